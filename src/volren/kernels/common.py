@@ -1,0 +1,262 @@
+"""Shared Warp structs and device functions. Every renderer uses these; none keeps its own copy.
+
+Ray parameters are world-space distances: a world ray ``o + t d`` with unit ``d`` maps to the local ray
+``M^-1 o + t M^-1 d`` of a volume (``M`` = to_world), so ``t`` is the same number in both spaces and the
+extinction integral needs no rescaling, even for non-uniformly scaled boxes.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+INF = wp.constant(1.0e30)
+LIGHT_DIRECTIONAL = wp.constant(0)
+LIGHT_POINT = wp.constant(1)
+
+
+@wp.struct
+class CameraGPU:
+    origin: wp.vec3
+    right: wp.vec3
+    up: wp.vec3
+    forward: wp.vec3
+    tan_half_fov: float
+    aspect: float
+    width: int
+    height: int
+    near: float
+    far: float
+
+
+@wp.struct
+class VolumeGPU:
+    to_local: wp.mat44
+    to_world: wp.mat44
+    offset: int
+    """first voxel of this volume in the packed density array"""
+    res: wp.vec3i
+    """voxels per axis (x, y, z)"""
+    light_offset: int
+    """first voxel of this volume's light grids in the packed light-map array (one grid per light)"""
+    light_res: wp.vec3i
+    density_scale: float
+    albedo: wp.vec3
+    g: float
+    emission: wp.vec3
+    diagonal: float
+    """[m] longest world-space box diagonal: uniform steps put at most V samples across it"""
+
+
+@wp.struct
+class LightGPU:
+    kind: int
+    vector: wp.vec3
+    """unit direction of travel (directional) or position (point)"""
+    power: wp.vec3
+    """irradiance [W/m^2] (directional) or intensity [W/sr] (point)"""
+
+
+@wp.struct
+class MarchState:
+    """Front-to-back compositing state of one ray."""
+
+    color: wp.vec3
+    transmittance: float
+    depth_t: float
+    """ray distance where the transmittance first fell to 1/2 (the image's depth), INF if never"""
+    samples: int
+    """density fetches on this ray"""
+    shaded: int
+    """samples that were lit (non-zero density): each costs one light-map lookup or shadow ray per light"""
+
+
+@wp.func
+def camera_ray(cam: CameraGPU, row: int, col: int, jx: float, jy: float) -> wp.vec3:
+    """Unit world direction through pixel (row, col) at sub-pixel offset (jx, jy) in [0, 1) (0.5 = centre)."""
+    x = ((float(col) + jx) / float(cam.width) * 2.0 - 1.0) * cam.tan_half_fov * cam.aspect
+    y = (1.0 - (float(row) + jy) / float(cam.height) * 2.0) * cam.tan_half_fov
+    return wp.normalize(cam.forward + x * cam.right + y * cam.up)
+
+
+@wp.func
+def view_t_range(cam: CameraGPU, d: wp.vec3) -> wp.vec2:
+    """Ray distances of the near and far planes along ``d`` (planes are at linear depths near/far)."""
+    c = wp.dot(d, cam.forward)
+    return wp.vec2(cam.near / c, cam.far / c)
+
+
+@wp.func
+def box_hit(o: wp.vec3, d: wp.vec3) -> wp.vec2:
+    """Slab test of the ray ``o + t d`` against [-1, 1]^3; returns (t_enter, t_exit), empty when t_exit <= t_enter."""
+    t0 = -INF
+    t1 = INF
+    for a in range(3):
+        if wp.abs(d[a]) < 1.0e-12:
+            if wp.abs(o[a]) > 1.0:
+                return wp.vec2(INF, -INF)
+        else:
+            inv = 1.0 / d[a]
+            ta = (-1.0 - o[a]) * inv
+            tb = (1.0 - o[a]) * inv
+            t0 = wp.max(t0, wp.min(ta, tb))
+            t1 = wp.min(t1, wp.max(ta, tb))
+    return wp.vec2(t0, t1)
+
+
+@wp.func
+def inside_box(p: wp.vec3) -> bool:
+    return wp.abs(p[0]) <= 1.0 and wp.abs(p[1]) <= 1.0 and wp.abs(p[2]) <= 1.0
+
+
+@wp.func
+def sample_grid(data: wp.array(dtype=float), offset: int, res: wp.vec3i, p: wp.vec3) -> float:
+    """Trilinear sample of a packed [z, y, x] grid at local ``p`` in [-1, 1]^3, voxel centres at -1 + (i + 0.5) 2/n,
+    clamped at the border (DESIGN.md)."""
+    nx = res[0]
+    ny = res[1]
+    nz = res[2]
+    fx = wp.clamp((p[0] + 1.0) * 0.5 * float(nx) - 0.5, 0.0, float(nx - 1))
+    fy = wp.clamp((p[1] + 1.0) * 0.5 * float(ny) - 0.5, 0.0, float(ny - 1))
+    fz = wp.clamp((p[2] + 1.0) * 0.5 * float(nz) - 0.5, 0.0, float(nz - 1))
+    x0 = wp.min(int(fx), nx - 2)
+    y0 = wp.min(int(fy), ny - 2)
+    z0 = wp.min(int(fz), nz - 2)
+    ax = fx - float(x0)
+    ay = fy - float(y0)
+    az = fz - float(z0)
+    i = offset + (z0 * ny + y0) * nx + x0
+    sy = nx
+    sz = nx * ny
+    c00 = wp.lerp(data[i], data[i + 1], ax)
+    c10 = wp.lerp(data[i + sy], data[i + sy + 1], ax)
+    c01 = wp.lerp(data[i + sz], data[i + sz + 1], ax)
+    c11 = wp.lerp(data[i + sz + sy], data[i + sz + sy + 1], ax)
+    return wp.lerp(wp.lerp(c00, c10, ay), wp.lerp(c01, c11, ay), az)
+
+
+@wp.func
+def voxel_center(i: int, j: int, k: int, res: wp.vec3i) -> wp.vec3:
+    """Local position of voxel (x=i, y=j, z=k)."""
+    return wp.vec3(
+        -1.0 + (float(i) + 0.5) * 2.0 / float(res[0]),
+        -1.0 + (float(j) + 0.5) * 2.0 / float(res[1]),
+        -1.0 + (float(k) + 0.5) * 2.0 / float(res[2]),
+    )
+
+
+@wp.func
+def hg_phase(cos_theta: float, g: float) -> float:
+    """Henyey-Greenstein phase function [1/sr]; cos_theta is between the light's and the scattered direction."""
+    denom = 1.0 + g * g - 2.0 * g * cos_theta
+    return (1.0 - g * g) / (4.0 * wp.pi * denom * wp.sqrt(denom))
+
+
+@wp.func
+def light_travel_dir(light: LightGPU, x: wp.vec3) -> wp.vec3:
+    """Unit direction in which the light's radiance travels when it arrives at ``x``."""
+    if light.kind == LIGHT_DIRECTIONAL:
+        return light.vector
+    return wp.normalize(x - light.vector)
+
+
+@wp.func
+def light_distance(light: LightGPU, x: wp.vec3) -> float:
+    """[m] from ``x`` to the light (INF for a directional light): where a shadow ray stops."""
+    if light.kind == LIGHT_DIRECTIONAL:
+        return INF
+    return wp.length(light.vector - x)
+
+
+@wp.func
+def light_irradiance(light: LightGPU, x: wp.vec3) -> wp.vec3:
+    """Unshadowed irradiance at ``x`` on a plane facing the light (inverse-square for a point light)."""
+    if light.kind == LIGHT_DIRECTIONAL:
+        return light.power
+    r2 = wp.max(wp.length_sq(light.vector - x), 1.0e-8)
+    return light.power / r2
+
+
+@wp.func
+def march_step_count(length: float, diagonal: float, samples: int) -> int:
+    """Uniform steps of at most diagonal / samples over ``length``: ceil(length / step), at least 1."""
+    n = int(wp.ceil(length * float(samples) / diagonal - 1.0e-6))
+    return wp.max(n, 1)
+
+
+@wp.func
+def transmittance_toward(
+    x: wp.vec3,
+    toward: wp.vec3,
+    t_limit: float,
+    volumes: wp.array(dtype=VolumeGPU),
+    v_begin: int,
+    v_end: int,
+    density: wp.array(dtype=float),
+    samples: int,
+    counters: wp.array(dtype=wp.int64),
+    counter_index: int,
+) -> float:
+    """Transmittance from world point ``x`` along unit ``toward`` up to ``t_limit`` (paper 000 Eq. 2), marching
+    the union of volumes [v_begin, v_end) with uniform midpoint steps of (smallest diagonal) / samples; extinctions
+    of overlapping volumes add. Counts one density sample per (step, volume containing it)."""
+    t_end = 0.0
+    diag = float(INF)
+    for v in range(v_begin, v_end):
+        vol = volumes[v]
+        h = box_hit(wp.transform_point(vol.to_local, x), wp.transform_vector(vol.to_local, toward))
+        if h[1] > wp.max(h[0], 0.0):
+            t_end = wp.max(t_end, h[1])
+            diag = wp.min(diag, vol.diagonal)
+    t_end = wp.min(t_end, t_limit)
+    if t_end <= 0.0:
+        return 1.0
+    n = march_step_count(t_end, diag, samples)
+    dt = t_end / float(n)
+    tau = 0.0
+    fetched = 0
+    for i in range(n):
+        xs = x + (float(i) + 0.5) * dt * toward
+        for v in range(v_begin, v_end):
+            vol = volumes[v]
+            p = wp.transform_point(vol.to_local, xs)
+            if inside_box(p):
+                tau += vol.density_scale * sample_grid(density, vol.offset, vol.res, p)
+                fetched += 1
+    wp.atomic_add(counters, counter_index, wp.int64(fetched))
+    return wp.exp(-tau * dt)
+
+
+@wp.func
+def integrate_step(state: MarchState, source: wp.vec3, sigma_t: float, t: float, dt: float) -> MarchState:
+    """Composite one step front to back, with sigma_t and the source term J (radiance added per metre) constant over
+    the step: dL = T J (1 - exp(-sigma_t dt)) / sigma_t, T *= exp(-sigma_t dt) -- exact for homogeneous media, so
+    closed forms hold at any step count (paper 000 Eq. 1-2 discretised)."""
+    s = state
+    tau = sigma_t * dt
+    step_t = wp.exp(-tau)
+    weight = dt
+    if tau > 1.0e-6:
+        weight = (1.0 - step_t) / sigma_t
+    s.color = s.color + s.transmittance * weight * source
+    if s.transmittance > 0.5 and s.transmittance * step_t <= 0.5:
+        s.depth_t = t
+    s.transmittance = s.transmittance * step_t
+    return s
+
+
+@wp.func
+def new_march_state() -> MarchState:
+    s = MarchState()
+    s.color = wp.vec3(0.0)
+    s.transmittance = 1.0
+    s.depth_t = INF
+    s.samples = 0
+    s.shaded = 0
+    return s
+
+
+@wp.func
+def ray_jitter(seed: int, view: int, row: int, col: int, width: int, height: int, index: int) -> float:
+    """Seeded uniform number in [0, 1) for (view, pixel, index): the same inputs give the same image."""
+    state = wp.rand_init(seed, ((view * height + row) * width + col) * 8 + index)
+    return wp.randf(state)

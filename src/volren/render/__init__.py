@@ -1,0 +1,13 @@
+"""Renderers, one module per method; `METHODS` maps the CLI's --method names to their classes."""
+
+from volren.render.base import Renderer
+from volren.render.dssrm import DSSRM, DSSRMConfig
+from volren.render.frame import COUNTERS, Frame, Stats
+from volren.render.reference import Reference, ReferenceConfig
+
+METHODS: dict[str, tuple[type[Renderer], type]] = {
+    "dssrm": (DSSRM, DSSRMConfig),
+    "reference": (Reference, ReferenceConfig),
+}
+
+__all__ = ["COUNTERS", "DSSRM", "METHODS", "DSSRMConfig", "Frame", "Reference", "ReferenceConfig", "Renderer", "Stats"]

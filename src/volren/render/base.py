@@ -1,0 +1,78 @@
+"""The renderer interface: ``render(scene, views, frame) -> Frame``; subclasses supply the per-view pass."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict
+from typing import Any, ClassVar
+
+import numpy as np
+import warp as wp
+
+from volren.camera import Camera
+from volren.device import resolve_device
+from volren.errors import VolrenError
+from volren.render.frame import Frame, PassClock, Stats
+from volren.scene import Scene
+from volren.upload import DeviceScene, upload_scene
+
+
+def frame_seed(seed: int, frame: int) -> int:
+    """A 31-bit RNG seed per (seed, frame), so jittered frames differ and the same inputs repeat bit for bit."""
+    return (seed * 1_000_003 + frame * 7_919 + 12_345) % (2**31 - 1)
+
+
+def check_positive(name: str, value: int | float) -> None:
+    if not value > 0:
+        raise VolrenError(f"{name} must be > 0, got {value}")
+
+
+class Renderer:
+    """Base class. A subclass has a frozen config dataclass and implements ``_render_view``."""
+
+    name: ClassVar[str] = ""
+
+    def __init__(self, config: Any, device: str = "auto") -> None:
+        self.config = config
+        self.device = resolve_device(device)
+        self._device_scene: DeviceScene | None = None
+        self._light_grid: int | None = None
+
+    def _upload(self, scene: Scene, clock: PassClock, light_grid: int | None = None) -> DeviceScene:
+        """The scene on the device, uploaded once per scene object (the cache holds the scene, so ids stay valid)."""
+        ds = self._device_scene
+        if ds is None or ds.scene is not scene or self._light_grid != light_grid:
+            with clock.measure("upload"):
+                ds = upload_scene(scene, self.device, light_grid)
+            self._device_scene, self._light_grid = ds, light_grid
+        return ds
+
+    def _prepare(self, scene: Scene, clock: PassClock, frame: int) -> DeviceScene:
+        """Per-frame passes shared by all views (upload, light map, ...)."""
+        return self._upload(scene, clock)
+
+    def _render_view(
+        self, ds: DeviceScene, cam: Camera, view: int, frame: int, image: wp.array, depth: wp.array, clock: PassClock
+    ) -> None:
+        raise NotImplementedError
+
+    def render(self, scene: Scene, views: Sequence[Camera], frame: int = 0) -> Frame:
+        views = list(views)
+        if not views:
+            raise VolrenError("render needs at least one view")
+        clock = PassClock(self.device)
+        ds = self._prepare(scene, clock, frame)
+        targets = []
+        for v, cam in enumerate(views):
+            image = wp.zeros((cam.height, cam.width), dtype=wp.vec4, device=self.device)
+            depth = wp.zeros((cam.height, cam.width), dtype=float, device=self.device)
+            self._render_view(ds, cam, v, frame, image, depth, clock)
+            targets.append((image, depth))
+        with clock.measure("readback"):
+            images = [np.ascontiguousarray(img.numpy().reshape(img.shape[0], img.shape[1], 4)) for img, _ in targets]
+            depths = [d.numpy() for _, d in targets]
+        for d in depths:
+            d[d >= 1e29] = np.inf
+        settings = {"views": len(views), "resolution": [[c.width, c.height] for c in views], **asdict(self.config)}
+        stats = Stats(self.device, self.name, settings, clock.times_ms, clock.counter_values())
+        return Frame(images, depths, stats, frame)

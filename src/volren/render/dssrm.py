@@ -1,0 +1,204 @@
+"""DSSRM: direct screen-space ray marching (paper 000 §4.1 baseline, paper 001 Table 1 "DSSRM").
+
+Per pixel: intersect the view ray with each volume's box in local space [-1, 1]^3, march uniform steps (at most V
+samples across the box diagonal, midpoint or seeded-jittered positions), shade each sample with single scattering
+from the light map (sigma_s * phase * T_light * E) plus the unshadowed ambient sigma_s * L_ambient and emission,
+composite front to back with early ray termination. Volumes are visited in painter's order per view; the segment
+starts at the near plane when the eye is inside a box.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import warp as wp
+
+from volren.camera import Camera
+from volren.device import launch_rows
+from volren.kernels.common import (
+    CameraGPU,
+    LightGPU,
+    MarchState,
+    VolumeGPU,
+    box_hit,
+    camera_ray,
+    hg_phase,
+    integrate_step,
+    light_irradiance,
+    light_travel_dir,
+    march_step_count,
+    new_march_state,
+    ray_jitter,
+    sample_grid,
+    view_t_range,
+)
+from volren.render.base import Renderer, check_positive, frame_seed
+from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
+from volren.render.lightmap import compute_light_map
+from volren.upload import DeviceScene, camera_struct, depth_order
+
+
+@dataclass(frozen=True)
+class DSSRMConfig:
+    samples: int = 360
+    """V: at most this many view samples across a box diagonal"""
+    light_samples: int = 96
+    """L: at most this many samples across the box diagonal on each light-map ray"""
+    light_grid: int | None = None
+    """light-map voxels on the longest axis; None = half the density resolution"""
+    jitter: bool = False
+    """seeded random start offset per ray instead of the step midpoint"""
+    seed: int = 0
+    min_transmittance: float = 1e-3
+    """early ray termination threshold"""
+
+    def __post_init__(self) -> None:
+        check_positive("samples (V)", self.samples)
+        check_positive("light samples (L)", self.light_samples)
+        if not 0 <= self.min_transmittance < 1:
+            raise ValueError("min_transmittance must lie in [0, 1)")
+
+
+@wp.struct
+class MarchParams:
+    samples: int
+    jitter: int
+    seed: int
+    view: int
+    min_transmittance: float
+    ambient: wp.vec3
+
+
+@wp.func
+def shade_light_map(
+    vol: VolumeGPU,
+    lightmap: wp.array(dtype=float),
+    lights: wp.array(dtype=LightGPU),
+    p: wp.vec3,
+    x: wp.vec3,
+    d: wp.vec3,
+    ambient: wp.vec3,
+) -> wp.vec3:
+    """Radiance scattered towards -d per unit sigma_s at local p / world x: ambient + sum_l phase T_l E_l."""
+    radiance = ambient
+    res = vol.light_res
+    count = res[0] * res[1] * res[2]
+    for li in range(lights.shape[0]):
+        light = lights[li]
+        t = sample_grid(lightmap, vol.light_offset + li * count, res, p)
+        phase = hg_phase(wp.dot(light_travel_dir(light, x), -d), vol.g)
+        radiance += phase * t * light_irradiance(light, x)
+    return radiance
+
+
+@wp.func
+def march_volume_light_map(
+    state: MarchState,
+    vol: VolumeGPU,
+    origin: wp.vec3,
+    d: wp.vec3,
+    t0: float,
+    t1: float,
+    offset: float,
+    density: wp.array(dtype=float),
+    lightmap: wp.array(dtype=float),
+    lights: wp.array(dtype=LightGPU),
+    params: MarchParams,
+) -> MarchState:
+    """March [t0, t1] of one volume with uniform steps (offset in [0, 1) within each step), shading from the light
+    map; stops early below params.min_transmittance. ``state.samples`` counts density fetches."""
+    s = state
+    o_l = wp.transform_point(vol.to_local, origin)
+    d_l = wp.transform_vector(vol.to_local, d)
+    n = march_step_count(t1 - t0, vol.diagonal, params.samples)
+    dt = (t1 - t0) / float(n)
+    for i in range(n):
+        t = t0 + (float(i) + offset) * dt
+        p = o_l + t * d_l
+        rho = sample_grid(density, vol.offset, vol.res, p)
+        s.samples += 1
+        if rho > 0.0:
+            sigma_t = vol.density_scale * rho
+            s.shaded += 1
+            light = shade_light_map(vol, lightmap, lights, p, origin + t * d, d, params.ambient)
+            source = wp.cw_mul(vol.albedo, light) * sigma_t + vol.emission * rho
+            s = integrate_step(s, source, sigma_t, t, dt)
+            if s.transmittance < params.min_transmittance:
+                return s
+    return s
+
+
+@wp.kernel
+def dssrm_kernel(
+    cam: CameraGPU,
+    volumes: wp.array(dtype=VolumeGPU),
+    order: wp.array(dtype=int),
+    density: wp.array(dtype=float),
+    lightmap: wp.array(dtype=float),
+    lights: wp.array(dtype=LightGPU),
+    params: MarchParams,
+    image: wp.array2d(dtype=wp.vec4),
+    depth: wp.array2d(dtype=float),
+    counters: wp.array(dtype=wp.int64),
+    row0: int,
+):
+    r, col = wp.tid()
+    row = r + row0
+    d = camera_ray(cam, row, col, 0.5, 0.5)
+    planes = view_t_range(cam, d)
+    s = new_march_state()
+    hit = 0
+    for k in range(order.shape[0]):
+        vol = volumes[order[k]]
+        h = box_hit(wp.transform_point(vol.to_local, cam.origin), wp.transform_vector(vol.to_local, d))
+        t0 = wp.max(h[0], planes[0])
+        t1 = wp.min(h[1], planes[1])
+        if t1 > t0:
+            hit = 1
+            offset = 0.5
+            if params.jitter != 0:
+                offset = ray_jitter(params.seed, params.view, row, col, cam.width, cam.height, k)
+            s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, offset, density, lightmap, lights, params)
+            if s.transmittance < params.min_transmittance:
+                break
+    wp.atomic_add(counters, DENSITY_SAMPLES, wp.int64(s.samples))
+    wp.atomic_add(counters, LIGHTMAP_LOOKUPS, wp.int64(s.shaded * lights.shape[0]))
+    wp.atomic_add(counters, RAYS, wp.int64(hit))
+    image[row, col] = wp.vec4(s.color[0], s.color[1], s.color[2], 1.0 - s.transmittance)
+    depth[row, col] = s.depth_t * wp.dot(d, cam.forward)
+
+
+class DSSRM(Renderer):
+    """Direct screen-space ray marching with a light map; ``config`` is a `DSSRMConfig`."""
+
+    name = "dssrm"
+
+    def __init__(self, config: DSSRMConfig | None = None, device: str = "auto") -> None:
+        super().__init__(config or DSSRMConfig(), device)
+
+    def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
+        ds = self._upload(scene, clock, self.config.light_grid)
+        compute_light_map(ds, self.config.light_samples, clock)
+        return ds
+
+    def _render_view(
+        self, ds: DeviceScene, cam: Camera, view: int, frame: int, image: wp.array, depth: wp.array, clock: PassClock
+    ) -> None:
+        c = self.config
+        params = MarchParams()
+        params.samples = c.samples
+        params.jitter = int(c.jitter)
+        params.seed = frame_seed(c.seed, frame)
+        params.view = view
+        params.min_transmittance = c.min_transmittance
+        params.ambient = ds.ambient
+        order = wp.array(depth_order(ds.scene, cam), dtype=int, device=self.device)
+        with clock.measure("march"):
+            launch_rows(
+                dssrm_kernel,
+                cam.height,
+                cam.width,
+                [camera_struct(cam), ds.volumes, order, ds.density, ds.lightmap, ds.lights, params, image, depth],
+                self.device,
+                clock.counters,
+            )

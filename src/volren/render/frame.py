@@ -1,0 +1,67 @@
+"""What a renderer returns: per-view images and depth, plus stats (device-synchronised pass times, work counters)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from volren.device import MAX_BANDS, synchronize
+
+COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays")
+"""Work counters gathered by the kernels (wp.atomic_add into one int64 array, indexed by position here):
+density_samples: trilinear density fetches on view rays; light_samples: density fetches on rays towards lights
+(light-map pass or the reference's per-sample shadow rays); lightmap_lookups: light-map fetches while shading;
+rays: view rays that hit at least one volume box."""
+DENSITY_SAMPLES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS, RAYS = range(len(COUNTERS))
+
+
+@dataclass
+class Stats:
+    device: str
+    method: str
+    settings: dict[str, Any]
+    times_ms: dict[str, float] = field(default_factory=dict)
+    """wall time per pass, measured after a device synchronise"""
+    counters: dict[str, int] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["times_ms"]["total"] = sum(self.times_ms.values())
+        return d
+
+
+@dataclass
+class Frame:
+    """One rendered frame: ``images[v]`` is float32 (H, W, 4) premultiplied linear RGBA, ``depths[v]`` the linear
+    view depth [m] where the transmittance reached 1/2 (+inf where it never did)."""
+
+    images: list[np.ndarray]
+    depths: list[np.ndarray]
+    stats: Stats
+    index: int = 0
+
+
+class PassClock:
+    """Times named passes with a device synchronise on both ends and owns the frame's counters array."""
+
+    def __init__(self, device: str) -> None:
+        self.device = device
+        self.times_ms: dict[str, float] = {}
+        self.counters = wp.zeros((MAX_BANDS, len(COUNTERS)), dtype=wp.int64, device=device)
+
+    @contextmanager
+    def measure(self, name: str) -> Iterator[None]:
+        synchronize(self.device)
+        start = time.perf_counter()
+        yield
+        synchronize(self.device)
+        self.times_ms[name] = self.times_ms.get(name, 0.0) + (time.perf_counter() - start) * 1e3
+
+    def counter_values(self) -> dict[str, int]:
+        return {name: int(v) for name, v in zip(COUNTERS, self.counters.numpy().sum(axis=0), strict=True)}

@@ -1,0 +1,286 @@
+"""Scene model: volumes, lights, environment and background. Plain data; no rendering logic.
+
+Conventions (DESIGN.md): world is right-handed, y up, metres. A volume's density grid is a numpy array laid out
+``[z, y, x]``; its ``to_world`` 4x4 matrix maps the local cube [-1, 1]^3 onto the world. Extinction is
+``sigma_t = density_scale * density`` [1/m], scattering ``sigma_s = albedo * sigma_t``, emission adds
+``emission * density`` [W/(m^3 sr)] of radiance per metre, and the phase function is Henyey-Greenstein with ``g``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from volren.errors import VolrenError
+
+RGB = tuple[float, float, float]
+
+
+def as_rgb(value: float | Sequence[float], what: str) -> RGB:
+    """Accept a scalar (grey) or three numbers; refuse anything else with a message that names ``what``."""
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    if arr.size == 1:
+        arr = np.repeat(arr, 3)
+    if arr.size != 3 or not np.all(np.isfinite(arr)):
+        raise VolrenError(f"{what} must be one number or three finite numbers, got {value!r}")
+    return (float(arr[0]), float(arr[1]), float(arr[2]))
+
+
+def as_vec3(value: Sequence[float], what: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    if arr.size != 3 or not np.all(np.isfinite(arr)):
+        raise VolrenError(f"{what} must be three finite numbers, got {value!r}")
+    return arr
+
+
+def validate_density(density: np.ndarray, what: str = "density") -> np.ndarray:
+    """Return ``density`` as C-ordered float32 ``[z, y, x]`` or raise a one-line error saying what is wrong."""
+    arr = np.asarray(density)
+    if arr.ndim != 3:
+        raise VolrenError(f"{what} must be a 3D array [z, y, x], got {arr.ndim} dimension(s) with shape {arr.shape}")
+    if min(arr.shape) < 2:
+        raise VolrenError(f"{what} has shape {arr.shape}: every axis needs at least 2 voxels")
+    if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+        raise VolrenError(f"{what} must hold real numbers, got dtype {arr.dtype}")
+    arr = np.ascontiguousarray(arr, dtype=np.float32)
+    bad = int(np.count_nonzero(~np.isfinite(arr)))
+    if bad:
+        raise VolrenError(f"{what} has {bad} NaN/Inf value(s); clean the data first")
+    negative = int(np.count_nonzero(arr < 0))
+    if negative:
+        raise VolrenError(f"{what} has {negative} negative value(s); densities must be >= 0")
+    return arr
+
+
+def scale_translate(scale: float | Sequence[float] = 1.0, translate: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """A ``to_world`` matrix mapping [-1, 1]^3 to a box of half-extent ``scale`` centred at ``translate``."""
+    s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,))
+    m = np.eye(4)
+    m[0, 0], m[1, 1], m[2, 2] = s
+    m[:3, 3] = as_vec3(translate, "translate")
+    return m
+
+
+def _downsample(grid: np.ndarray, reduce: str) -> np.ndarray:
+    """Halve each axis (longer than 1) with a 2x2x2 mean or max; odd axes repeat their last voxel."""
+    pads = [(0, n % 2) if n > 1 else (0, 0) for n in grid.shape]
+    g = np.pad(grid, pads, mode="edge")
+    shape = []
+    for n in g.shape:
+        shape += [max(n // 2, 1), 2 if n > 1 else 1]
+    blocks = g.reshape(shape)
+    op = np.mean if reduce == "mean" else np.max
+    return op(blocks, axis=(1, 3, 5)).astype(np.float32)
+
+
+def _dilate_max(grid: np.ndarray) -> np.ndarray:
+    """Max over each voxel's 3x3x3 neighbourhood (edges clamped)."""
+    g = np.pad(grid, 1, mode="edge")
+    out = grid.copy()
+    nz, ny, nx = grid.shape
+    for dz in range(3):
+        for dy in range(3):
+            for dx in range(3):
+                np.maximum(out, g[dz : dz + nz, dy : dy + ny, dx : dx + nx], out=out)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Volume:
+    """A density grid placed in the world.
+
+    ``density`` is ``[z, y, x]``; voxel i of n along an axis sits at local ``-1 + (i + 0.5) * 2 / n`` and sampling is
+    trilinear between centres, clamped at the border.
+    """
+
+    density: np.ndarray
+    to_world: np.ndarray = field(default_factory=lambda: np.eye(4))
+    density_scale: float = 10.0
+    """[1/m] per unit density: sigma_t = density_scale * density."""
+    albedo: RGB = (0.9, 0.9, 0.9)
+    """single-scattering albedo sigma_s / sigma_t per RGB channel, in [0, 1]."""
+    g: float = 0.0
+    """Henyey-Greenstein asymmetry, in (-1, 1)."""
+    emission: RGB = (0.0, 0.0, 0.0)
+    """[W/(m^3 sr)] per unit density: emitted radiance added per metre is emission * density."""
+    name: str = "volume"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "density", validate_density(self.density, f"volume '{self.name}' density"))
+        m = np.asarray(self.to_world, dtype=np.float64)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise VolrenError(f"volume '{self.name}': to_world must be a finite 4x4 matrix")
+        if abs(np.linalg.det(m[:3, :3])) < 1e-12 or not np.allclose(m[3], [0, 0, 0, 1]):
+            raise VolrenError(f"volume '{self.name}': to_world must be an invertible affine matrix")
+        object.__setattr__(self, "to_world", m)
+        if not (np.isfinite(self.density_scale) and self.density_scale >= 0):
+            raise VolrenError(f"volume '{self.name}': density_scale must be >= 0, got {self.density_scale}")
+        albedo = as_rgb(self.albedo, "albedo")
+        if min(albedo) < 0 or max(albedo) > 1:
+            raise VolrenError(f"volume '{self.name}': albedo must lie in [0, 1], got {albedo}")
+        object.__setattr__(self, "albedo", albedo)
+        if not -1 < self.g < 1:
+            raise VolrenError(f"volume '{self.name}': HG g must lie in (-1, 1), got {self.g}")
+        emission = as_rgb(self.emission, "emission")
+        if min(emission) < 0:
+            raise VolrenError(f"volume '{self.name}': emission must be >= 0, got {emission}")
+        object.__setattr__(self, "emission", emission)
+
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        """Voxels per axis as ``(x, y, z)``."""
+        nz, ny, nx = self.density.shape
+        return (nx, ny, nz)
+
+    @cached_property
+    def to_local(self) -> np.ndarray:
+        return np.linalg.inv(self.to_world)
+
+    @cached_property
+    def corners_world(self) -> np.ndarray:
+        """The 8 box corners in world space, ``(8, 3)``."""
+        c = np.array([[x, y, z, 1.0] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)])
+        return (c @ self.to_world.T)[:, :3]
+
+    @property
+    def center_world(self) -> np.ndarray:
+        return self.to_world[:3, 3].copy()
+
+    @cached_property
+    def diagonal(self) -> float:
+        """[m] the longest world-space diagonal of the box: V samples span it at most (uniform steps)."""
+        c = self.corners_world
+        return float(max(np.linalg.norm(c[i] - c[7 - i]) for i in range(4)))
+
+    @cached_property
+    def mip_pyramid(self) -> tuple[np.ndarray, ...]:
+        """Level 0 is the grid; each next level halves every axis by a 2x2x2 mean, down to one voxel (for LOD)."""
+        levels = [self.density]
+        while max(levels[-1].shape) > 1:
+            levels.append(_downsample(levels[-1], "mean"))
+        return tuple(levels)
+
+    @cached_property
+    def max_pyramid(self) -> tuple[np.ndarray, ...]:
+        """Conservative max-density pyramid for empty-space culling.
+
+        Level 0 holds, per voxel, the max over its 3x3x3 neighbourhood: a trilinear sample anywhere in the voxel's
+        cell reads only voxels of that neighbourhood, so ``max_pyramid[0]`` bounds every sample there. Each next
+        level is the 2x2x2 max of the previous one.
+        """
+        levels = [_dilate_max(self.density)]
+        while max(levels[-1].shape) > 1:
+            levels.append(_downsample(levels[-1], "max"))
+        return tuple(levels)
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """A distant light. ``direction`` is where the light travels (from the light into the scene)."""
+
+    direction: tuple[float, float, float] = (-0.4, -1.0, -0.3)
+    irradiance: RGB = (3.0, 3.0, 3.0)
+    """[W/m^2] on a plane facing the light."""
+
+    def __post_init__(self) -> None:
+        d = as_vec3(self.direction, "light direction")
+        n = np.linalg.norm(d)
+        if n < 1e-9:
+            raise VolrenError("light direction must not be the zero vector")
+        object.__setattr__(self, "direction", tuple(float(v) for v in d / n))
+        e = as_rgb(self.irradiance, "light irradiance")
+        if min(e) < 0:
+            raise VolrenError(f"light irradiance must be >= 0, got {e}")
+        object.__setattr__(self, "irradiance", e)
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """An isotropic point light with inverse-square falloff."""
+
+    position: tuple[float, float, float] = (0.0, 2.0, 0.0)
+    intensity: RGB = (10.0, 10.0, 10.0)
+    """[W/sr]"""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position", tuple(float(v) for v in as_vec3(self.position, "light position")))
+        e = as_rgb(self.intensity, "light intensity")
+        if min(e) < 0:
+            raise VolrenError(f"light intensity must be >= 0, got {e}")
+        object.__setattr__(self, "intensity", e)
+
+
+Light = DirectionalLight | PointLight
+
+
+@dataclass(frozen=True, eq=False)
+class Environment:
+    """Distant environment: a constant radiance, or an equirectangular HDR image ``(H, W, 3)``.
+
+    Image convention (DESIGN.md): u (column) is the azimuth, v (row) the polar angle from +y.
+    """
+
+    radiance: RGB = (0.0, 0.0, 0.0)
+    """[W/(m^2 sr)] used when ``image`` is None."""
+    image: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "radiance", as_rgb(self.radiance, "environment radiance"))
+        if min(self.radiance) < 0:
+            raise VolrenError(f"environment radiance must be >= 0, got {self.radiance}")
+        if self.image is not None:
+            img = np.asarray(self.image, dtype=np.float32)
+            if img.ndim != 3 or img.shape[2] < 3 or min(img.shape[:2]) < 1:
+                raise VolrenError(f"environment image must be (H, W, 3), got shape {img.shape}")
+            img = np.ascontiguousarray(img[..., :3])
+            if not np.all(np.isfinite(img)) or img.min() < 0:
+                raise VolrenError("environment image must hold finite, non-negative radiance")
+            object.__setattr__(self, "image", img)
+
+    def mean_radiance(self) -> RGB:
+        """Radiance averaged over the sphere (solid-angle weights sin(theta) per row for an image).
+
+        This is the ambient term's L_ambient: an isotropic, unshadowed in-scattering sigma_s * L_ambient, because
+        any normalised phase function integrates to 1 over the sphere.
+        """
+        if self.image is None:
+            return self.radiance
+        h = self.image.shape[0]
+        theta = (np.arange(h) + 0.5) / h * np.pi
+        w = np.sin(theta)
+        mean = np.einsum("hwc,h->c", self.image.astype(np.float64), w) / (w.sum() * self.image.shape[1])
+        return (float(mean[0]), float(mean[1]), float(mean[2]))
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """What is rendered: volumes, lights, a distant environment (ambient) and a background colour."""
+
+    volumes: tuple[Volume, ...]
+    lights: tuple[Light, ...] = (DirectionalLight(),)
+    environment: Environment = field(default_factory=lambda: Environment((0.05, 0.06, 0.08)))
+    background: RGB = (0.0, 0.0, 0.0)
+    """linear RGB seen where rays leave the scene (composited only when an image is written)."""
+    name: str = "scene"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "volumes", tuple(self.volumes))
+        object.__setattr__(self, "lights", tuple(self.lights))
+        if not self.volumes:
+            raise VolrenError("a scene needs at least one volume")
+        for v in self.volumes:
+            if not isinstance(v, Volume):
+                raise VolrenError(f"scene volumes must be Volume objects, got {type(v).__name__}")
+        for light in self.lights:
+            if not isinstance(light, DirectionalLight | PointLight):
+                raise VolrenError(f"unknown light type {type(light).__name__}")
+        object.__setattr__(self, "background", as_rgb(self.background, "background"))
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World-space axis-aligned bounds of all volume boxes: ``(lo, hi)``."""
+        c = np.concatenate([v.corners_world for v in self.volumes])
+        return c.min(axis=0), c.max(axis=0)
