@@ -44,6 +44,12 @@ def synchronize(device: str) -> None:
     wp.synchronize_device(device)
 
 
+def cpu_threads() -> int:
+    """Threads for CPU launches: ``VOLREN_CPU_THREADS`` if set (benchmarks use 1 to measure one thread), else all."""
+    value = os.environ.get("VOLREN_CPU_THREADS", "")
+    return max(1, int(value)) if value.isdigit() else (os.cpu_count() or 1)
+
+
 MAX_BANDS = 64
 """Rows of a counters array: one per concurrent CPU band, because Warp's CPU atomics are not atomic across threads."""
 
@@ -58,7 +64,7 @@ def launch_rows(kernel: Any, rows: int, cols: int, inputs: list[Any], device: st
     """
     if rows <= 0 or cols <= 0:
         return
-    threads = os.cpu_count() or 1
+    threads = cpu_threads()
     if not device.startswith("cpu") or threads == 1 or rows < 2 * threads:
         wp.launch(kernel, dim=(rows, cols), inputs=[*inputs, counters[0], 0], device=device)
         return

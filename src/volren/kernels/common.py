@@ -199,7 +199,7 @@ def transmittance_toward(
     """Transmittance from world point ``x`` along unit ``toward`` up to ``t_limit`` (paper 000 Eq. 2), marching
     the union of volumes [v_begin, v_end) with uniform midpoint steps of (smallest diagonal) / samples; extinctions
     of overlapping volumes add. Counts one density sample per (step, volume containing it)."""
-    t_end = 0.0
+    t_end = float(0.0)
     diag = float(INF)
     for v in range(v_begin, v_end):
         vol = volumes[v]
@@ -212,8 +212,8 @@ def transmittance_toward(
         return 1.0
     n = march_step_count(t_end, diag, samples)
     dt = t_end / float(n)
-    tau = 0.0
-    fetched = 0
+    tau = float(0.0)
+    fetched = int(0)
     for i in range(n):
         xs = x + (float(i) + 0.5) * dt * toward
         for v in range(v_begin, v_end):

@@ -147,7 +147,7 @@ def dssrm_kernel(
     d = camera_ray(cam, row, col, 0.5, 0.5)
     planes = view_t_range(cam, d)
     s = new_march_state()
-    hit = 0
+    hit = int(0)
     for k in range(order.shape[0]):
         vol = volumes[order[k]]
         h = box_hit(wp.transform_point(vol.to_local, cam.origin), wp.transform_vector(vol.to_local, d))
@@ -155,7 +155,7 @@ def dssrm_kernel(
         t1 = wp.min(h[1], planes[1])
         if t1 > t0:
             hit = 1
-            offset = 0.5
+            offset = float(0.5)
             if params.jitter != 0:
                 offset = ray_jitter(params.seed, params.view, row, col, cam.width, cam.height, k)
             s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, offset, density, lightmap, lights, params)

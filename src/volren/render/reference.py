@@ -98,7 +98,7 @@ def reference_kernel(
         for i in range(n):
             t = t0 + (float(i) + 0.5) * dt
             x = cam.origin + t * d
-            sigma_t = 0.0
+            sigma_t = float(0.0)
             source = wp.vec3(0.0)
             for v in range(n_vol):
                 vol = volumes[v]
@@ -124,9 +124,10 @@ def reference_kernel(
                         if inside_box(p):
                             sigma_s = vol.albedo * (vol.density_scale * sample_grid(density, vol.offset, vol.res, p))
                             source += wp.cw_mul(sigma_s, e) * hg_phase(wp.dot(-to_light, -d), vol.g)
-                s = integrate_step(s, source, sigma_t, t, dt)
-                if s.transmittance < params.min_transmittance:
-                    break
+            # Emission-only media (sigma_t = 0) still add radiance.
+            s = integrate_step(s, source, sigma_t, t, dt)
+            if s.transmittance < params.min_transmittance:
+                break
     wp.atomic_add(counters, DENSITY_SAMPLES, wp.int64(s.samples))
     image[row, col] = wp.vec4(s.color[0], s.color[1], s.color[2], 1.0 - s.transmittance)
     depth[row, col] = s.depth_t * wp.dot(d, cam.forward)

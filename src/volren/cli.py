@@ -1,0 +1,280 @@
+"""``volren`` command line: demo, render, scenes, compare, bench. Thin over the Python API.
+
+Every user error (bad file, bad number, no GPU, ...) is printed as one line on stderr with exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from volren.errors import VolrenError
+
+DEFAULT_SCENE = "smoke"
+
+
+class CliError(VolrenError):
+    """A bad command-line value."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse that raises instead of printing usage and exiting, so every error is one line."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise CliError(message)
+
+
+def floats(text: str, count: int | tuple[int, ...] = 3) -> tuple[float, ...]:
+    """Parse ``"x,y,z"`` (or one number where ``count`` allows 1) into floats."""
+    counts = (count,) if isinstance(count, int) else count
+    try:
+        values = tuple(float(t) for t in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a list of numbers") from None
+    if len(values) not in counts:
+        raise argparse.ArgumentTypeError(f"'{text}' needs {' or '.join(map(str, counts))} comma-separated numbers")
+    return values
+
+
+def vec3(text: str) -> tuple[float, ...]:
+    return floats(text, 3)
+
+
+def rgb(text: str) -> tuple[float, ...]:
+    v = floats(text, (1, 3))
+    return v * 3 if len(v) == 1 else v
+
+
+def ints3(text: str) -> tuple[int, int, int]:
+    try:
+        values = tuple(int(t) for t in text.lower().replace("x", ",").split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' must be three integers X,Y,Z") from None
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"'{text}' must be three integers X,Y,Z")
+    return values  # type: ignore[return-value]
+
+
+def add_device(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda or cuda:N")
+
+
+def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
+    from volren.render import METHODS
+
+    src = p.add_argument_group("data")
+    if not demo:
+        src.add_argument("--scene", default=None, help=f"built-in scene (default {DEFAULT_SCENE}; see `volren scenes`)")
+        src.add_argument("--volume", type=Path, help="density file: .npy .npz .nrrd .nhdr .nii(.gz) .nvdb or raw")
+        src.add_argument("--shape", type=ints3, help="raw files: voxels X,Y,Z (x varies fastest in the file)")
+        src.add_argument("--dtype", help="raw files: uint8, uint16, int16, float32, ...")
+    src.add_argument("--resolution", type=int, default=128 if demo else 64, help="built-in scenes: voxels per axis")
+    src.add_argument("--count", type=int, default=16, help="scene 'multi': 4, 16 or 36 instances")
+    mat = p.add_argument_group("material and light (override the scene's)")
+    mat.add_argument("--density-scale", type=float, help="sigma_t per unit density [1/m]")
+    mat.add_argument("--albedo", type=rgb, help="single-scattering albedo: a or r,g,b")
+    mat.add_argument("--g", type=float, help="Henyey-Greenstein asymmetry in (-1, 1)")
+    mat.add_argument("--emission", type=rgb, help="emitted radiance per unit density per metre: e or r,g,b")
+    mat.add_argument("--light-dir", type=vec3, help="direction the light travels: x,y,z")
+    mat.add_argument("--light-irradiance", type=rgb, help="directional light irradiance [W/m^2]: e or r,g,b")
+    mat.add_argument("--ambient", type=rgb, help="constant environment radiance: l or r,g,b")
+    mat.add_argument("--background", type=rgb, help="background colour (linear): c or r,g,b")
+    cam = p.add_argument_group("views")
+    cam.add_argument("--camera-pos", type=vec3, default=(0.0, 0.4, 3.2), help="eye position x,y,z [m]")
+    cam.add_argument("--look-at", type=vec3, default=(0.0, 0.0, 0.0), help="x,y,z")
+    cam.add_argument("--up", type=vec3, default=(0.0, 1.0, 0.0), help="x,y,z")
+    cam.add_argument("--fov", type=float, default=45.0, help="vertical field of view [degrees]")
+    cam.add_argument("--width", type=int, default=640)
+    cam.add_argument("--height", type=int, default=360)
+    cam.add_argument("--near", type=float, default=0.01, help="[m]")
+    cam.add_argument("--far", type=float, default=1000.0, help="[m]")
+    cam.add_argument("--views", default="stereo", help="mono, stereo, or N viewers on an arc")
+    cam.add_argument("--ipd", type=float, default=0.063, help="stereo eye distance [m]")
+    r = p.add_argument_group("method")
+    if not demo:
+        r.add_argument("--method", default="dssrm", help=f"one of: {', '.join(METHODS)}")
+    r.add_argument("--samples", type=int, help="V: view samples across the box diagonal (method default if unset)")
+    r.add_argument("--light-samples", type=int, help="L: samples towards the light (method default if unset)")
+    r.add_argument("--light-grid", type=int, help="light-map voxels on the longest axis (default: half the density)")
+    r.add_argument("--jitter", action="store_true", help="seeded random ray start offsets")
+    r.add_argument("--frames", type=int, default=1, help="render N frames (temporal methods), keep every frame")
+    r.add_argument("--seed", type=int, default=0)
+    add_device(p)
+    o = p.add_argument_group("output")
+    o.add_argument("--out", type=Path, default=Path("out"), help="output folder")
+    o.add_argument("--save-linear", action="store_true", help="also write linear (H, W, 4) float32 .npy images")
+    o.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
+    o.add_argument("--tonemap", default="none", help="PNG tone map: none, reinhard, aces")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="volren", description="Multi-view volumetric density rendering (NVIDIA Warp, CPU or CUDA).")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
+    add_render_args(sub.add_parser("demo", help="render the default scene as a stereo pair into out/"), demo=True)
+    add_render_args(sub.add_parser("render", help="render a built-in scene or a volume file"))
+    sub.add_parser("scenes", help="list the built-in scenes")
+    c = sub.add_parser("compare", help="PSNR, SSIM, FLIP of TEST against REF, and an error heat map")
+    c.add_argument("ref", type=Path)
+    c.add_argument("test", type=Path)
+    c.add_argument("--heatmap", type=Path, help="heat map PNG (default: next to TEST, *_error.png)")
+    b = sub.add_parser("bench", help="run a benchmark suite; writes JSON and a Markdown table")
+    b.add_argument("suite", help="suite name (see `volren bench list`)")
+    b.add_argument("--quick", action="store_true", help="small sizes for a CPU")
+    b.add_argument("--out", type=Path, default=Path("docs/bench"), help="folder for the JSON and Markdown")
+    add_device(b)
+    return p
+
+
+def scene_from_args(args: argparse.Namespace):
+    """The scene the arguments ask for: a built-in or a volume file, with material and light overrides."""
+    from volren.data import builtin_scene, load_volume_file
+    from volren.scene import DirectionalLight, Environment, Scene, Volume
+
+    if getattr(args, "volume", None) is not None:
+        if args.scene:
+            raise CliError("give either --scene or --volume, not both")
+        density = load_volume_file(args.volume, shape=args.shape, dtype=args.dtype)
+        scene = Scene((Volume(density, name=args.volume.name),), name=args.volume.stem)
+    else:
+        scene = builtin_scene(getattr(args, "scene", None) or DEFAULT_SCENE, args.resolution, count=args.count,
+                              seed=args.seed)
+    material = {k: getattr(args, a) for k, a in (("density_scale", "density_scale"), ("albedo", "albedo"),
+                                                    ("g", "g"), ("emission", "emission")) if getattr(args, a) is not None}
+    volumes = tuple(dataclasses.replace(v, **material) for v in scene.volumes) if material else scene.volumes
+    lights = list(scene.lights)
+    if args.light_dir is not None or args.light_irradiance is not None:
+        idx = next((i for i, lt in enumerate(lights) if isinstance(lt, DirectionalLight)), None)
+        base = lights[idx] if idx is not None else DirectionalLight()
+        new = dataclasses.replace(
+            base,
+            **({"direction": args.light_dir} if args.light_dir is not None else {}),
+            **({"irradiance": args.light_irradiance} if args.light_irradiance is not None else {}),
+        )
+        if idx is None:
+            lights.append(new)
+        else:
+            lights[idx] = new
+    environment = Environment(args.ambient) if args.ambient is not None else scene.environment
+    background = args.background if args.background is not None else scene.background
+    return dataclasses.replace(scene, volumes=volumes, lights=tuple(lights), environment=environment,
+                               background=background)
+
+
+def views_from_args(args: argparse.Namespace):
+    from volren.camera import Camera, make_views
+
+    cam = Camera(position=args.camera_pos, look_at=args.look_at, up=args.up, fov_y=args.fov, width=args.width,
+                 height=args.height, near=args.near, far=args.far)
+    return make_views(cam, args.views, args.ipd)
+
+
+def renderer_from_args(args: argparse.Namespace, method: str):
+    from volren.render import METHODS
+
+    if method not in METHODS:
+        raise CliError(f"unknown method '{method}': choose from {', '.join(METHODS)}")
+    cls, config_cls = METHODS[method]
+    fields = {f.name for f in dataclasses.fields(config_cls)}
+    given = {"samples": args.samples, "light_samples": args.light_samples, "light_grid": args.light_grid,
+             "jitter": args.jitter or None, "seed": args.seed}
+    options = {k: v for k, v in given.items() if v is not None and k in fields}
+    ignored = sorted(k for k, v in given.items() if v is not None and k not in fields and k != "seed")
+    if ignored:
+        raise CliError(f"method '{method}' does not take --{', --'.join(s.replace('_', '-') for s in ignored)}")
+    try:
+        config = config_cls(**options)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    return cls(config, device=args.device)
+
+
+def run_render(args: argparse.Namespace, method: str) -> int:
+    from volren.output import prepare_out_dir, write_frame, write_stats
+
+    if args.frames < 1:
+        raise CliError(f"--frames must be >= 1, got {args.frames}")
+    scene = scene_from_args(args)
+    views = views_from_args(args)
+    renderer = renderer_from_args(args, method)
+    out = prepare_out_dir(args.out)
+    frames, files = [], []
+    start = time.perf_counter()
+    for i in range(args.frames):
+        frame = renderer.render(scene, views, frame=i)
+        prefix = f"frame{i:04d}_" if args.frames > 1 else ""
+        files += write_frame(frame, out, scene.background, exposure=args.exposure, tonemap=args.tonemap,
+                             linear=args.save_linear, prefix=prefix)
+        frames.append(frame)
+    wall = time.perf_counter() - start
+    stats = write_stats(out, frames, {"scene": scene.name, "command": " ".join(sys.argv[1:])})
+    last = frames[-1].stats
+    print(f"{method} on {last.device}: {len(views)} view(s) of '{scene.name}', {args.frames} frame(s) in {wall:.2f} s")
+    print("  last frame, ms per pass: " + ", ".join(f"{k} {v:.1f}" for k, v in last.times_ms.items()))
+    print("  work: " + ", ".join(f"{k} {v:,}" for k, v in last.counters.items()))
+    shown = files if len(files) <= 8 else [*files[:6], f"... ({len(files) - 6} more)"]
+    print("  wrote " + ", ".join(str(f) for f in [*shown, stats]))
+    return 0
+
+
+def run_scenes() -> int:
+    from volren.data import BUILTIN_SCENES
+
+    width = max(len(n) for n in BUILTIN_SCENES)
+    for name, spec in BUILTIN_SCENES.items():
+        print(f"{name:<{width}}  {spec.description}")
+    return 0
+
+
+def run_compare(args: argparse.Namespace) -> int:
+    from volren.metrics import compare_files
+
+    heatmap = args.heatmap or args.test.with_name(args.test.stem + "_error.png")
+    result = compare_files(args.ref, args.test, heatmap)
+    print(f"PSNR {result['psnr']:.2f} dB  SSIM {result['ssim']:.5f}  FLIP {result['flip']:.5f}  "
+          f"max |error| {result['max_abs_error']:.4g}")
+    print(f"  heat map (per-pixel L1 of normalised RGB, 0..25%): {heatmap}")
+    return 0
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    from volren.bench import all_suites, run_suite
+
+    if args.suite == "list":
+        for name, suite in all_suites().items():
+            print(f"{name}: {suite.description}")
+        return 0
+    json_path, md_path, table = run_suite(args.suite, quick=args.quick, device=args.device, out=args.out)
+    print(table)
+    print(f"wrote {json_path} and {md_path}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        if args.command == "demo":
+            return run_render(args, "dssrm")
+        if args.command == "render":
+            return run_render(args, args.method)
+        if args.command == "scenes":
+            return run_scenes()
+        if args.command == "compare":
+            return run_compare(args)
+        return run_bench(args)
+    except VolrenError as exc:
+        print(f"volren: error: {exc}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("volren: error: out of memory (try a smaller image, resolution or view count)", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("volren: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,53 @@
+"""Shared test helpers: small homogeneous scenes, cameras with an on-axis centre pixel, host-side ray-box chords."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volren.camera import Camera
+from volren.render import DSSRM, DSSRMConfig, Reference, ReferenceConfig
+from volren.scene import DirectionalLight, Environment, Scene, Volume, scale_translate
+
+
+def homogeneous_volume(sigma: float, *, n: int = 8, albedo=0.0, g: float = 0.0, emission=0.0, scale=1.0,
+                       translate=(0.0, 0.0, 0.0)) -> Volume:
+    return Volume(np.ones((n, n, n), np.float32), scale_translate(scale, translate), density_scale=sigma,
+                  albedo=albedo, g=g, emission=emission)
+
+
+def scene_of(*volumes: Volume, lights=(), ambient=0.0) -> Scene:
+    return Scene(volumes, tuple(lights), Environment(ambient))
+
+
+def axis_camera(position=(0.0, 0.0, 3.0), size=(33, 33), **kw) -> Camera:
+    """Odd image sizes put the centre pixel's ray exactly through the look-at point."""
+    return Camera(position=position, width=size[0], height=size[1], **kw)
+
+
+def chords(cam: Camera, lo=(-1, -1, -1), hi=(1, 1, 1)) -> tuple[np.ndarray, np.ndarray]:
+    """(t_enter clamped at the near plane, chord length) of every pixel ray through an axis-aligned box, float64."""
+    d = cam.ray_directions()
+    o = np.asarray(cam.position)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (np.asarray(lo) - o) / d
+        tb = (np.asarray(hi) - o) / d
+    t0 = np.nanmax(np.minimum(ta, tb), axis=-1)
+    t1 = np.nanmin(np.maximum(ta, tb), axis=-1)
+    forward = cam.basis()[2]
+    t0 = np.maximum(t0, cam.near / (d @ forward))
+    return t0, np.clip(t1 - t0, 0.0, None)
+
+
+def render(method: str, scene: Scene, cams, **config):
+    if method == "dssrm":
+        return DSSRM(DSSRMConfig(**config), device="cpu").render(scene, list(cams))
+    return Reference(ReferenceConfig(**config), device="cpu").render(scene, list(cams))
+
+
+@pytest.fixture(params=["dssrm", "reference"])
+def method(request) -> str:
+    return request.param
+
+
+DOWN = DirectionalLight(direction=(0.0, -1.0, 0.0), irradiance=(2.0, 2.0, 2.0))
