@@ -142,8 +142,8 @@ def scene_from_args(args: argparse.Namespace):
     else:
         scene = builtin_scene(getattr(args, "scene", None) or DEFAULT_SCENE, args.resolution, count=args.count,
                               seed=args.seed)
-    material = {k: getattr(args, a) for k, a in (("density_scale", "density_scale"), ("albedo", "albedo"),
-                                                    ("g", "g"), ("emission", "emission")) if getattr(args, a) is not None}
+    names = ("density_scale", "albedo", "g", "emission")
+    material = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
     volumes = tuple(dataclasses.replace(v, **material) for v in scene.volumes) if material else scene.volumes
     lights = list(scene.lights)
     if args.light_dir is not None or args.light_irradiance is not None:
