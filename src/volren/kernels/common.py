@@ -214,19 +214,27 @@ def covering_diagonal(x: wp.vec3, volumes: wp.array(dtype=VolumeGPU), v_begin: i
 
 
 @wp.func
-def extinction_at(
-    x: wp.vec3, volumes: wp.array(dtype=VolumeGPU), v_begin: int, v_end: int, density: wp.array(dtype=float)
+def optical_depth(
+    vol: VolumeGPU, x: wp.vec3, toward: wp.vec3, t_limit: float, density: wp.array(dtype=float), samples: int
 ) -> wp.vec2:
-    """(sum of sigma_t of the volumes containing x, number of density fetches)."""
-    sigma_t = float(0.0)
-    fetched = float(0.0)
-    for v in range(v_begin, v_end):
-        vol = volumes[v]
-        p = wp.transform_point(vol.to_local, x)
-        if inside_box(p):
-            sigma_t += vol.density_scale * sample_grid(density, vol.offset, vol.res, p)
-            fetched += 1.0
-    return wp.vec2(sigma_t, fetched)
+    """(tau, fetches): the optical depth of one volume along ``x + t toward``, 0 <= t <= t_limit, by uniform midpoint
+    steps of at most diagonal / samples over its chord, sampled in local space (no per-sample transform)."""
+    o_l = wp.transform_point(vol.to_local, x)
+    d_l = wp.transform_vector(vol.to_local, toward)
+    h = box_hit(o_l, d_l)
+    t0 = wp.max(h[0], 0.0)
+    t1 = wp.min(h[1], t_limit)
+    if t1 <= t0:
+        return wp.vec2(0.0, 0.0)
+    n = march_step_count(t1 - t0, vol.diagonal, samples)
+    dt = (t1 - t0) / float(n)
+    p = o_l + (t0 + 0.5 * dt) * d_l
+    step = dt * d_l
+    rho_sum = float(0.0)
+    for _i in range(n):
+        rho_sum += sample_grid(density, vol.offset, vol.res, p)
+        p = p + step
+    return wp.vec2(vol.density_scale * rho_sum * dt, float(n))
 
 
 @wp.func
@@ -242,31 +250,15 @@ def transmittance_toward(
     counters: wp.array(dtype=wp.int64),
     counter_index: int,
 ) -> float:
-    """Transmittance from world point ``x`` along unit ``toward`` up to ``t_limit`` (paper 000 Eq. 2) through the
-    volumes [v_begin, v_end): between consecutive box boundaries, uniform midpoint steps of at most (smallest
-    covering diagonal) / samples; extinctions of overlapping volumes add, empty gaps cost nothing. Counts one
-    density sample per (step, volume containing it)."""
-    t_end = float(0.0)
-    for v in range(v_begin, v_end):
-        vol = volumes[v]
-        h = box_hit(wp.transform_point(vol.to_local, x), wp.transform_vector(vol.to_local, toward))
-        if h[1] > wp.max(h[0], 0.0):
-            t_end = wp.max(t_end, h[1])
-    t_end = wp.min(t_end, t_limit)
+    """Transmittance from world point ``x`` along unit ``toward`` up to ``t_limit`` through volumes
+    [v_begin, v_end) (paper 000 Eq. 2). Optical depths add even where boxes overlap, so T is the product of each
+    volume's own chord march (order-independent, as paper 000 §3.2 notes for its any-hit traversal)."""
     tau = float(0.0)
     fetched = float(0.0)
-    t = float(0.0)
-    while t < t_end:
-        t_next = wp.min(next_box_boundary(x, toward, t, volumes, v_begin, v_end), t_end)
-        diag = covering_diagonal(x + (0.5 * (t + t_next)) * toward, volumes, v_begin, v_end)
-        if diag < INF:
-            n = march_step_count(t_next - t, diag, samples)
-            dt = (t_next - t) / float(n)
-            for i in range(n):
-                e = extinction_at(x + (t + (float(i) + 0.5) * dt) * toward, volumes, v_begin, v_end, density)
-                tau += e[0] * dt
-                fetched += e[1]
-        t = t_next
+    for v in range(v_begin, v_end):
+        r = optical_depth(volumes[v], x, toward, t_limit, density, samples)
+        tau += r[0]
+        fetched += r[1]
     wp.atomic_add(counters, counter_index, wp.int64(fetched))
     return wp.exp(-tau)
 
