@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import re
+import sys
+import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -14,10 +16,36 @@ from volren.errors import VolrenError
 _DEVICE_RE = re.compile(r"^(auto|cpu|cuda|cuda:\d+)$")
 
 
+# volren never differentiates its kernels: skipping adjoint code halves compile times. No banner on every CLI call.
+wp.config.enable_backward = False
+wp.config.log_level = wp.LOG_WARNING
+
+_NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+_ready = False
+
+
 def init_warp() -> None:
-    """Initialise Warp once, quietly (no banner on every CLI call)."""
-    wp.config.quiet = True
-    wp.init()
+    """Initialise Warp once. Its native library prints a warning on every start on machines without a CUDA driver;
+    that expected line is dropped (``resolve_device`` reports a missing GPU when one is asked for), anything else
+    the native code writes to stderr is passed on."""
+    global _ready
+    if _ready:
+        return
+    _ready = True
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as capture:
+        os.dup2(capture.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        capture.seek(0)
+        lines = capture.read().decode(errors="replace").splitlines()
+    for line in lines:
+        if _NO_DRIVER not in line:
+            print(line, file=sys.stderr)
 
 
 def resolve_device(name: str = "auto") -> str:

@@ -1,0 +1,31 @@
+"""Scene data: built-in procedural scenes and volume file loaders."""
+
+from volren.data.loaders import load_volume_file
+from volren.data.procedural import (
+    BUILTIN_SCENES,
+    MAX_RESOLUTION,
+    MIN_RESOLUTION,
+    MULTI_COUNTS,
+    BuiltinScene,
+    builtin_scene,
+    cloud_density,
+    density_field,
+    multi_layout,
+    phantom_density,
+    smoke_density,
+)
+
+__all__ = [
+    "BUILTIN_SCENES",
+    "MAX_RESOLUTION",
+    "MIN_RESOLUTION",
+    "MULTI_COUNTS",
+    "BuiltinScene",
+    "builtin_scene",
+    "cloud_density",
+    "density_field",
+    "load_volume_file",
+    "multi_layout",
+    "phantom_density",
+    "smoke_density",
+]

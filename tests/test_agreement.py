@@ -1,0 +1,70 @@
+"""DSSRM against the reference on the built-in scenes (paper 000 §4.1 methodology, at CPU test sizes).
+
+Measured on 64^3 scenes, 96x64 views (PSNR of DSSRM:512:512 with a full-resolution light grid against the
+reference at 512:512): smoke 62.7, cloud 58.7, phantom 53.3, multi 70.5 dB. At matched dense steps the methods differ
+only in the light map: transmittance interpolated trilinearly between light-voxel centres (and clamped within half a
+voxel of the box faces) instead of marched from each sample, a bias that no step count removes. The 45 dB floor sits
+8 dB under the worst measured scene, and far above what a wrong light direction, phase sign or compositing order
+gives (< 30 dB).
+"""
+
+from __future__ import annotations
+
+import itertools
+from functools import cache
+
+import numpy as np
+import pytest
+
+from volren.camera import Camera
+from volren.data import builtin_scene
+from volren.metrics import psnr, ssim
+from volren.render import DSSRM, DSSRMConfig, Reference, ReferenceConfig
+
+VIEWS = [Camera(position=(0.0, 0.4, 3.2), width=96, height=64)]
+SCENES = ["smoke", "cloud", "phantom", "multi"]
+
+
+@cache
+def scene(name: str):
+    return builtin_scene(name, 64, count=4)
+
+
+@cache
+def reference(name: str, samples: int = 256) -> np.ndarray:
+    return Reference(ReferenceConfig(samples=samples, light_samples=samples), device="cpu").render(
+        scene(name), VIEWS).images[0]
+
+
+def dssrm(name: str, view_samples: int, light_samples: int) -> np.ndarray:
+    config = DSSRMConfig(samples=view_samples, light_samples=light_samples, light_grid=64)
+    return DSSRM(config, device="cpu").render(scene(name), VIEWS).images[0]
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_dssrm_matches_reference_at_dense_settings(name):
+    ref = reference(name)
+    assert ref[..., 3].max() > 0.5, "the scene must be visible for the comparison to mean anything"
+    img = dssrm(name, 256, 256)
+    assert psnr(ref, img) > 45.0
+    assert ssim(ref, img) > 0.999
+
+
+def test_wrong_light_direction_fails_the_floor():
+    """The floor can fail: the same scene lit from below instead of above drops far under it."""
+    from dataclasses import replace
+
+    from volren.scene import DirectionalLight
+
+    s = scene("cloud")
+    flipped = replace(s, lights=(DirectionalLight((0.5, 1.0, 0.35), s.lights[0].irradiance),))
+    img = DSSRM(DSSRMConfig(samples=256, light_samples=256, light_grid=64), device="cpu").render(flipped, VIEWS)
+    assert psnr(reference("cloud"), img.images[0]) < 35.0
+
+
+@pytest.mark.parametrize("name", ["cloud", "phantom"])
+def test_dssrm_quality_rises_with_v_and_l(name):
+    """Coarse to fine V:L, up to where the light-map bias (above) takes over."""
+    ref = reference(name, 512)
+    scores = [psnr(ref, dssrm(name, v, lv)) for v, lv in [(16, 8), (32, 16), (64, 32), (128, 64)]]
+    assert all(b > a + 1.0 for a, b in itertools.pairwise(scores)), scores
