@@ -95,3 +95,16 @@ def test_depth_is_where_transmittance_halves():
     # T = 1/2 at ln 2 / sigma into the box; the step that crosses it is recorded (within one step of 2 sqrt 3 / 512).
     assert frame.depths[0][16, 16] == pytest.approx(5.0 + np.log(2) / sigma, abs=2 * np.sqrt(3) / 512 + 1e-4)
     assert np.isinf(frame.depths[0][0, 0])
+
+
+def test_point_light_inverse_square(method):
+    """Optically thin cube (sigma 1e-3), isotropic phase, point light at (0, D, 0): along the central ray (x = y = 0)
+    L = sigma_s I / (4 pi) int_{-1}^{1} dz / (D^2 + z^2) = sigma_s I / (4 pi) (2 / D) atan(1 / D), up to e^-0.002."""
+    from volren.scene import PointLight
+
+    sigma, albedo, intensity, dist = 1e-3, 1.0, 50.0, 3.0
+    scene = scene_of(homogeneous_volume(sigma, albedo=albedo, n=16),
+                     lights=[PointLight((0.0, dist, 0.0), (intensity,) * 3)])
+    frame = render(method, scene, [axis_camera()], samples=256, light_samples=64, min_transmittance=0)
+    expected = sigma * albedo * intensity / (4 * np.pi) * (2 / dist) * np.arctan(1 / dist)
+    assert frame.images[0][16, 16, 1] == pytest.approx(expected, rel=3e-3)

@@ -67,6 +67,17 @@ def resolve_device(name: str = "auto") -> str:
     return f"cuda:{index}"
 
 
+def check_allocation(nbytes: int, device: str, what: str) -> None:
+    """Refuse an allocation that cannot fit (host RAM for the CPU, free memory for a GPU) with a clear error, rather
+    than failing inside Warp or swapping the machine to a halt."""
+    if device.startswith("cuda"):
+        free = wp.get_device(device).free_memory
+    else:
+        free = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    if nbytes > free:
+        raise VolrenError(f"{what} needs {nbytes / 2**30:.1f} GiB but only {free / 2**30:.1f} GiB is free on {device}")
+
+
 def synchronize(device: str) -> None:
     """Wait for all work on ``device``, so that wall-clock pass timings are real."""
     wp.synchronize_device(device)

@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from volren.camera import Camera
-from volren.device import resolve_device
+from volren.device import check_allocation, resolve_device
 from volren.errors import VolrenError
 from volren.render.frame import Frame, PassClock, Stats
 from volren.scene import Scene
@@ -60,6 +60,9 @@ class Renderer:
         views = list(views)
         if not views:
             raise VolrenError("render needs at least one view")
+        # RGBA + depth on the device, and their host copies.
+        pixels = sum(c.width * c.height for c in views)
+        check_allocation(pixels * 20 * (1 if self.device == "cpu" else 2), self.device, f"{len(views)} view image(s)")
         clock = PassClock(self.device)
         ds = self._prepare(scene, clock, frame)
         targets = []
