@@ -82,6 +82,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     mat.add_argument("--light-dir", type=vec3, help="direction the light travels: x,y,z")
     mat.add_argument("--light-irradiance", type=rgb, help="directional light irradiance [W/m^2]: e or r,g,b")
     mat.add_argument("--ambient", type=rgb, help="constant environment radiance: l or r,g,b")
+    mat.add_argument("--environment", type=Path,
+                     help="equirectangular environment (.npy linear, or PNG/JPEG sRGB); its mean is the ambient")
     mat.add_argument("--background", type=rgb, help="background colour (linear): c or r,g,b")
     cam = p.add_argument_group("views")
     cam.add_argument("--camera-pos", type=vec3, default=(0.0, 0.4, 3.2), help="eye position x,y,z [m]")
@@ -158,7 +160,15 @@ def scene_from_args(args: argparse.Namespace):
             lights.append(new)
         else:
             lights[idx] = new
-    environment = Environment(args.ambient) if args.ambient is not None else scene.environment
+    if args.ambient is not None and args.environment is not None:
+        raise CliError("give either --ambient or --environment, not both")
+    environment = scene.environment
+    if args.ambient is not None:
+        environment = Environment(args.ambient)
+    elif args.environment is not None:
+        from volren.imageio import load_image
+
+        environment = Environment(image=load_image(args.environment)[..., :3])
     background = args.background if args.background is not None else scene.background
     return dataclasses.replace(scene, volumes=volumes, lights=tuple(lights), environment=environment,
                                background=background)
@@ -185,11 +195,7 @@ def renderer_from_args(args: argparse.Namespace, method: str):
     ignored = sorted(k for k, v in given.items() if v is not None and k not in fields and k != "seed")
     if ignored:
         raise CliError(f"method '{method}' does not take --{', --'.join(s.replace('_', '-') for s in ignored)}")
-    try:
-        config = config_cls(**options)
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
-    return cls(config, device=args.device)
+    return cls(config_cls(**options), device=args.device)
 
 
 def run_render(args: argparse.Namespace, method: str) -> int:

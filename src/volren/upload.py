@@ -12,12 +12,14 @@ import numpy as np
 import warp as wp
 
 from volren.camera import Camera
+from volren.device import check_allocation
 from volren.errors import VolrenError
 from volren.kernels.common import LIGHT_DIRECTIONAL, LIGHT_POINT, CameraGPU, LightGPU, VolumeGPU
 from volren.scene import DirectionalLight, Scene
 
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
+MAX_LIGHT_GRID = 1024
 
 
 def light_grid_resolution(res: tuple[int, int, int], light_grid: int | None) -> tuple[int, int, int]:
@@ -25,8 +27,8 @@ def light_grid_resolution(res: tuple[int, int, int], light_grid: int | None) -> 
     density resolution when None (the papers' 128^3 light grid for 256^3 density), at least 2 voxels per axis."""
     if light_grid is None:
         return tuple(max(2, (n + 1) // 2) for n in res)
-    if light_grid < 2:
-        raise VolrenError(f"light grid resolution must be >= 2, got {light_grid}")
+    if not 2 <= light_grid <= MAX_LIGHT_GRID:
+        raise VolrenError(f"light grid resolution must lie in [2, {MAX_LIGHT_GRID}], got {light_grid}")
     longest = max(res)
     return tuple(max(2, round(n * light_grid / longest)) for n in res)
 
@@ -108,6 +110,7 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None) -> De
         light_offset += n_lights * int(np.prod(lres))
     if offset > MAX_PACKED or light_offset > MAX_PACKED:
         raise VolrenError(f"scene too large: {offset} voxels (at most {MAX_PACKED} in all volumes together)")
+    check_allocation(4 * (offset + light_offset), device, f"scene '{scene.name}' (density and light maps)")
     try:
         density = wp.array(np.concatenate([v.density.reshape(-1) for v in scene.volumes]), dtype=float, device=device)
         lightmap = wp.ones(max(light_offset, 1), dtype=float, device=device)

@@ -22,9 +22,18 @@ def frame_seed(seed: int, frame: int) -> int:
     return (seed * 1_000_003 + frame * 7_919 + 12_345) % (2**31 - 1)
 
 
-def check_positive(name: str, value: int | float) -> None:
-    if not value > 0:
-        raise VolrenError(f"{name} must be > 0, got {value}")
+MAX_SAMPLES = 65536
+"""Cap on V and L: kernels count steps in 32-bit ints, and more samples than this per diagonal buys nothing."""
+
+
+def check_transmittance_threshold(value: float) -> None:
+    if not 0 <= value < 1:
+        raise VolrenError(f"min_transmittance (early termination) must lie in [0, 1), got {value}")
+
+
+def check_sample_count(name: str, value: int) -> None:
+    if int(value) != value or not 1 <= value <= MAX_SAMPLES:
+        raise VolrenError(f"{name} must be an integer in [1, {MAX_SAMPLES}], got {value}")
 
 
 class Renderer:

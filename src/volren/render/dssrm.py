@@ -32,7 +32,7 @@ from volren.kernels.common import (
     sample_grid,
     view_t_range,
 )
-from volren.render.base import Renderer, check_positive, frame_seed
+from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold, frame_seed
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
 from volren.render.lightmap import compute_light_map
 from volren.upload import DeviceScene, camera_struct, depth_order
@@ -53,10 +53,9 @@ class DSSRMConfig:
     """early ray termination threshold"""
 
     def __post_init__(self) -> None:
-        check_positive("samples (V)", self.samples)
-        check_positive("light samples (L)", self.light_samples)
-        if not 0 <= self.min_transmittance < 1:
-            raise ValueError("min_transmittance must lie in [0, 1)")
+        check_sample_count("samples (V)", self.samples)
+        check_sample_count("light samples (L)", self.light_samples)
+        check_transmittance_threshold(self.min_transmittance)
 
 
 @wp.struct

@@ -39,7 +39,7 @@ from volren.kernels.common import (
     transmittance_toward,
     view_t_range,
 )
-from volren.render.base import Renderer, check_positive
+from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold
 from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, PassClock
 from volren.upload import DeviceScene, camera_struct
 
@@ -53,8 +53,9 @@ class ReferenceConfig:
     min_transmittance: float = 1e-4
 
     def __post_init__(self) -> None:
-        check_positive("samples (V)", self.samples)
-        check_positive("light samples (L)", self.light_samples)
+        check_sample_count("samples (V)", self.samples)
+        check_sample_count("light samples (L)", self.light_samples)
+        check_transmittance_threshold(self.min_transmittance)
 
 
 @wp.struct
