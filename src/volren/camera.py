@@ -13,6 +13,8 @@ import numpy as np
 from volren.errors import VolrenError
 from volren.scene import as_vec3
 
+MAX_VIEWS = 1024
+"""Views per render: more is almost certainly a typo, and each view is a separate image in memory."""
 MAX_PIXELS = 8192 * 8192
 """Per view: 64 Mpixel, a float32 RGBA image of 1 GiB. Larger requests are refused, not attempted."""
 
@@ -112,8 +114,8 @@ class StereoRig:
 
 def orbit_views(camera: Camera, count: int, spread_deg: float = 10.0) -> list[Camera]:
     """``count`` viewers on a horizontal arc around the look-at point, ``spread_deg`` apart, centred on ``camera``."""
-    if count < 1:
-        raise VolrenError(f"view count must be >= 1, got {count}")
+    if not 1 <= count <= MAX_VIEWS:
+        raise VolrenError(f"view count must lie in [1, {MAX_VIEWS}], got {count}")
     target = np.asarray(camera.look_at)
     offset = np.asarray(camera.position) - target
     views = []
@@ -133,7 +135,7 @@ def make_views(camera: Camera, views: str | int = "stereo", ipd: float = 0.063) 
             return [camera]
         if key == "stereo":
             return StereoRig(camera, ipd).eyes()
-        if not key.isdigit():
+        if not (key.isascii() and key.isdecimal()):
             raise VolrenError(f"--views must be mono, stereo or a positive integer, got '{views}'")
         views = int(key)
     return orbit_views(camera, int(views))

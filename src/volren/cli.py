@@ -7,12 +7,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 from volren.errors import VolrenError
+from volren.imageio import TONEMAPS
+
+MAX_EXPOSURE = 64.0
+"""[stops] beyond this every pixel is black or white, and 2**exposure overflows soon after."""
 
 DEFAULT_SCENE = "smoke"
 
@@ -110,7 +115,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     o.add_argument("--out", type=Path, default=Path("out"), help="output folder")
     o.add_argument("--save-linear", action="store_true", help="also write linear (H, W, 4) float32 .npy images")
     o.add_argument("--exposure", type=float, default=1.0 if demo else 0.0, help="PNG exposure in stops")
-    o.add_argument("--tonemap", default="none", help="PNG tone map: none, reinhard, aces")
+    o.add_argument("--tonemap", default="none", choices=TONEMAPS, help="PNG tone map")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -137,12 +142,13 @@ def scene_from_args(args: argparse.Namespace):
     from volren.scene import DirectionalLight, Environment, Scene, Volume
 
     if getattr(args, "volume", None) is not None:
-        if args.scene:
+        if args.scene is not None:
             raise CliError("give either --scene or --volume, not both")
         density = load_volume_file(args.volume, shape=args.shape, dtype=args.dtype)
         scene = Scene((Volume(density, name=args.volume.name),), name=args.volume.stem)
     else:
-        scene = builtin_scene(getattr(args, "scene", None) or DEFAULT_SCENE, args.resolution, count=args.count,
+        name = getattr(args, "scene", None)
+        scene = builtin_scene(DEFAULT_SCENE if name is None else name, args.resolution, count=args.count,
                               seed=args.seed)
     names = ("density_scale", "albedo", "g", "emission")
     material = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
@@ -198,11 +204,13 @@ def renderer_from_args(args: argparse.Namespace, method: str):
     return cls(config_cls(**options), device=args.device)
 
 
-def run_render(args: argparse.Namespace, method: str) -> int:
+def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     from volren.output import prepare_out_dir, write_frame, write_stats
 
     if args.frames < 1:
         raise CliError(f"--frames must be >= 1, got {args.frames}")
+    if not (math.isfinite(args.exposure) and abs(args.exposure) <= MAX_EXPOSURE):
+        raise CliError(f"--exposure must be a number of stops in [-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
     scene = scene_from_args(args)
     views = views_from_args(args)
     renderer = renderer_from_args(args, method)
@@ -216,7 +224,7 @@ def run_render(args: argparse.Namespace, method: str) -> int:
                              linear=args.save_linear, prefix=prefix)
         frames.append(frame)
     wall = time.perf_counter() - start
-    stats = write_stats(out, frames, {"scene": scene.name, "command": " ".join(sys.argv[1:])})
+    stats = write_stats(out, frames, {"scene": scene.name, "command": command})
     last = frames[-1].stats
     print(f"{method} on {last.device}: {len(views)} view(s) of '{scene.name}', {args.frames} frame(s) in {wall:.2f} s")
     print("  last frame, ms per pass: " + ", ".join(f"{k} {v:.1f}" for k, v in last.times_ms.items()))
@@ -260,12 +268,14 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = " ".join(["volren", *argv])
     try:
         args = build_parser().parse_args(argv)
         if args.command == "demo":
-            return run_render(args, "dssrm")
+            return run_render(args, "dssrm", command)
         if args.command == "render":
-            return run_render(args, args.method)
+            return run_render(args, args.method, command)
         if args.command == "scenes":
             return run_scenes()
         if args.command == "compare":

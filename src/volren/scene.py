@@ -45,10 +45,13 @@ def validate_density(density: np.ndarray, what: str = "density") -> np.ndarray:
         raise VolrenError(f"{what} has shape {arr.shape}: every axis needs at least 2 voxels")
     if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
         raise VolrenError(f"{what} must hold real numbers, got dtype {arr.dtype}")
-    arr = np.ascontiguousarray(arr, dtype=np.float32)
     bad = int(np.count_nonzero(~np.isfinite(arr)))
     if bad:
         raise VolrenError(f"{what} has {bad} NaN/Inf value(s); clean the data first")
+    huge = int(np.count_nonzero(np.abs(arr) > np.finfo(np.float32).max))
+    if huge:
+        raise VolrenError(f"{what} has {huge} value(s) beyond the float32 range; rescale the data first")
+    arr = np.ascontiguousarray(arr, dtype=np.float32)
     negative = int(np.count_nonzero(arr < 0))
     if negative:
         raise VolrenError(f"{what} has {negative} negative value(s); densities must be >= 0")

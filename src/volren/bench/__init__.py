@@ -66,13 +66,13 @@ def run_suite(name: str, *, quick: bool, device: str, out: Path) -> tuple[Path, 
     if name not in suites:
         raise VolrenError(f"unknown bench suite '{name}': choose from {', '.join(suites)}")
     device = resolve_device(device)
-    result = suites[name].run(quick, device)
-    doc = {"suite": name, "quick": quick, "machine": machine_info(device), **result}
-    tag = f"{name}-{'cpu' if device == 'cpu' else 'cuda'}-{'quick' if quick else 'full'}"
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise VolrenError(f"cannot create '{out}': {exc.strerror}") from exc
+    result = suites[name].run(quick, device)
+    doc = {"suite": name, "quick": quick, "machine": machine_info(device), **result}
+    tag = f"{name}-{'cpu' if device == 'cpu' else 'cuda'}-{'quick' if quick else 'full'}"
     json_path, md_path = out / f"{tag}.json", out / f"{tag}.md"
     json_path.write_text(json.dumps(doc, indent=2, default=str) + "\n")
     m = doc["machine"]

@@ -46,6 +46,9 @@ def _normalise_integers(data: np.ndarray) -> np.ndarray:
 
 
 def _read_npy(path: Path) -> np.ndarray:
+    with open(path, "rb") as f:
+        if f.read(6) != b"\x93NUMPY":
+            raise VolrenError(f"{path}: not a .npy file (no NumPy header)")
     return np.load(path, allow_pickle=False)
 
 

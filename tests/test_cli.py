@@ -1,0 +1,825 @@
+"""The ``volren`` command line, run in-process through ``volren.cli.main`` (plus one run of the installed script).
+
+Every render is tiny (24x16 pixels, 64^3 built-ins, V 16, L 8, light grid 16, CPU), so the whole file takes seconds.
+
+Output is captured at the file-descriptor level (``capfd``, a superset of ``capsys``), so text that Warp's native
+library writes to fd 2 counts as stderr too. Python warnings raised during a call are recorded as well: pytest would
+swallow them, but a real ``volren`` run prints them on stderr, so a warning is an extra stderr line.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import warnings
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import imageio.v3 as iio
+import nibabel as nib
+import nrrd
+import numpy as np
+import pytest
+import warp as wp
+
+from volren.cli import main
+from volren.device import init_warp
+
+BASE = ("--width", "24", "--height", "16", "--resolution", "64", "--samples", "16", "--light-samples", "8",
+        "--device", "cpu")
+"""Tiny settings every method takes."""
+TINY = (*BASE, "--light-grid", "16")
+"""Tiny settings for dssrm and demo (reference takes no --light-grid)."""
+W, H = 24, 16
+SCENES = ("smoke", "cloud", "phantom", "multi")
+COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays")
+GARBAGE = b"this is not a volume \x00\x01\x02\xff" * 8
+
+
+# ---------------------------------------------------------------- helpers
+
+
+@dataclass
+class Result:
+    code: int
+    out: str
+    err: str
+    warnings: list[str]
+
+
+def run(capfd: pytest.CaptureFixture[str], *argv: object) -> Result:
+    """``main(argv)``; an exception escaping it (a traceback for the user) fails the test with its type and text."""
+    capfd.readouterr()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            code = main([str(a) for a in argv])
+        except TimeoutError:  # from deadline(): the call took too long, which is reported as such
+            raise
+        except Exception as exc:  # any escape is the bug being reported
+            out, err = capfd.readouterr()
+            pytest.fail(f"main() raised {type(exc).__name__}: {exc} (the user sees a traceback)\nstderr: {err}")
+    out, err = capfd.readouterr()
+    return Result(code, out, err, [f"{w.category.__name__}: {w.message}" for w in caught])
+
+
+def ok(capfd: pytest.CaptureFixture[str], *argv: object) -> Result:
+    """Run and require success: exit 0, nothing on stderr, no warnings, no traceback."""
+    r = run(capfd, *argv)
+    assert r.code == 0, f"exit {r.code}; stderr: {r.err}"
+    assert "Traceback" not in r.out + r.err
+    assert r.err == "", r.err
+    assert not r.warnings, r.warnings
+    return r
+
+
+def render(capfd: pytest.CaptureFixture[str], out: Path, *extra: object, method: str = "dssrm") -> Result:
+    settings = TINY if method == "dssrm" else BASE
+    return ok(capfd, "render", *settings, "--method", method, "--out", out, *extra)
+
+
+def assert_error(capfd: pytest.CaptureFixture[str], argv: list[object], *fragments: str,
+                 no_out: Path | None = None) -> str:
+    """Exit 2 with exactly one stderr line ``volren: error: ...`` holding every fragment (case-insensitive), nothing
+    on stdout, no warning, no traceback; with ``no_out``, that output folder must not have been created."""
+    r = run(capfd, *argv)
+    assert "Traceback" not in r.out + r.err, r.err
+    assert r.code == 2, f"exit {r.code}; stdout: {r.out!r}; stderr: {r.err!r}"
+    lines = r.err.splitlines()
+    assert len(lines) == 1, f"expected one stderr line, got {r.err!r}"
+    line = lines[0]
+    assert line.startswith("volren: error: "), line
+    assert len(line) > len("volren: error: ") + 5, line
+    for fragment in fragments:
+        assert fragment.lower() in line.lower(), f"{fragment!r} not in {line!r}"
+    assert r.out == "", r.out
+    assert not r.warnings, f"a real run would also print {r.warnings}"
+    if no_out is not None:
+        assert not no_out.exists(), f"bad input created {no_out}"
+    return line
+
+
+def render_error(capfd: pytest.CaptureFixture[str], tmp_path: Path, extra: list[object], *fragments: str,
+                 early: bool = True) -> str:
+    """A bad ``render``; ``early``: refused before the output folder is created (input checks, not render-time)."""
+    out = tmp_path / "out"
+    return assert_error(capfd, ["render", *TINY, "--out", out, *extra], *fragments, no_out=out if early else None)
+
+
+def stats_of(folder: Path) -> dict:
+    return json.loads((folder / "stats.json").read_text())
+
+
+def png(path: Path) -> np.ndarray:
+    return iio.imread(path)
+
+
+def has_cuda() -> bool:
+    init_warp()
+    return wp.get_cuda_device_count() > 0
+
+
+@contextlib.contextmanager
+def deadline(seconds: int) -> Iterator[None]:
+    """Fail (TimeoutError) if the block runs longer than ``seconds`` (SIGALRM; the main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("SIGALRM needs the main thread")
+
+    def expire(signum: int, frame: object) -> None:
+        raise TimeoutError(f"still running after {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def asymmetric_density() -> np.ndarray:
+    """float32 [z, y, x] = (8, 16, 24) with values in (0, 1] that vary along every axis: any axis mix-up changes the
+    shape or the image. Sizes are multiples of 8 because Warp writes NanoVDB grids in 8^3 tiles whose every voxel is
+    active, so other sizes come back padded with background voxels (documented in test_data.py)."""
+    return (((np.arange(8 * 16 * 24).reshape(8, 16, 24) * 7) % 37 + 1) / 37).astype(np.float32)
+
+
+def write_npy(path: Path, a: np.ndarray) -> Path:
+    np.save(path, a)
+    return path
+
+
+# ---------------------------------------------------------------- end to end: demo, render
+
+
+def test_demo_writes_stereo_pair_and_stats(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "demo"
+    r = ok(capfd, "demo", *TINY, "--out", out)
+    assert sorted(p.name for p in out.iterdir()) == ["stats.json", "stereo.png", "view0.png", "view1.png"]
+    for name in ("view0.png", "view1.png"):
+        assert png(out / name).shape == (H, W, 3)
+    assert png(out / "stereo.png").shape == (H, 2 * W, 3)
+    stereo = png(out / "stereo.png")
+    np.testing.assert_array_equal(stereo[:, :W], png(out / "view0.png"))
+    np.testing.assert_array_equal(stereo[:, W:], png(out / "view1.png"))
+    for name in ("view0.png", "view1.png", "stereo.png", "stats.json"):
+        assert name in r.out
+    assert "ms per pass" in r.out and "march" in r.out
+    assert "dssrm on cpu" in r.out
+    stats = stats_of(out)
+    assert stats["frames"][0]["method"] == "dssrm"
+    assert stats["frames"][0]["settings"]["views"] == 2
+
+
+def test_stats_json_content(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "r"
+    r = render(capfd, out)
+    stats = stats_of(out)
+    assert stats["scene"] == "smoke"
+    assert len(stats["frames"]) == 1
+    frame = stats["frames"][0]
+    assert frame["index"] == 0
+    assert frame["device"] == "cpu"
+    assert frame["method"] == "dssrm"
+    settings = frame["settings"]
+    assert settings["samples"] == 16
+    assert settings["light_samples"] == 8
+    assert settings["light_grid"] == 16
+    assert settings["views"] == 2
+    assert settings["resolution"] == [[W, H], [W, H]]
+    times = frame["times_ms"]
+    assert {"light_map", "march", "readback"} <= set(times)
+    assert all(isinstance(v, int | float) and v >= 0 and math.isfinite(v) for v in times.values())
+    counters = frame["counters"]
+    assert set(counters) == set(COUNTERS)
+    for key, value in counters.items():
+        assert type(value) is int and value >= 0, (key, value)
+    assert counters["density_samples"] > 0
+    assert 0 < counters["rays"] <= 2 * W * H
+    # stdout repeats the counters
+    for key in COUNTERS:
+        assert key in r.out
+
+
+def test_stats_json_records_the_given_command(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "r"
+    render(capfd, out, "--views", "mono")
+    command = stats_of(out)["command"]
+    assert command.startswith("volren render "), command
+    assert "--views mono" in command
+
+
+def test_render_mono_writes_one_view(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "mono"
+    render(capfd, out, "--views", "mono")
+    assert sorted(p.name for p in out.iterdir()) == ["stats.json", "view0.png"]
+    assert png(out / "view0.png").shape == (H, W, 3)
+    assert stats_of(out)["frames"][0]["settings"]["views"] == 1
+
+
+def test_render_three_views_on_an_arc(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "three"
+    render(capfd, out, "--views", "3", "--save-linear")
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["stats.json", "view0.npy", "view0.png", "view1.npy", "view1.png", "view2.npy", "view2.png"]
+    settings = stats_of(out)["frames"][0]["settings"]
+    assert settings["views"] == 3 and settings["resolution"] == [[W, H]] * 3
+    images = [np.load(out / f"view{i}.npy") for i in range(3)]
+    assert not np.array_equal(images[0], images[2])  # different viewpoints
+
+
+def test_save_linear_writes_float32_rgba(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "lin"
+    r = render(capfd, out, "--save-linear")
+    for i in range(2):
+        image = np.load(out / f"view{i}.npy")
+        assert image.dtype == np.float32
+        assert image.shape == (H, W, 4)
+        assert np.isfinite(image).all()
+        alpha = image[..., 3]
+        assert alpha.min() >= 0 and alpha.max() <= 1
+        assert alpha.max() > 0  # the smoke is visible
+        assert image[..., :3].min() >= 0
+        assert f"view{i}.npy" in r.out
+    assert (out / "stereo.png").is_file()
+
+
+def test_jittered_frames_are_kept_and_differ(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "seq"
+    r = render(capfd, out, "--frames", "3", "--jitter", "--seed", "3", "--save-linear")
+    for f in range(3):
+        for name in ("view0.png", "view1.png", "stereo.png", "view0.npy", "view1.npy"):
+            assert (out / f"frame{f:04d}_{name}").is_file(), name
+    assert not (out / "view0.png").exists()
+    stats = stats_of(out)
+    assert [f["index"] for f in stats["frames"]] == [0, 1, 2]
+    assert all(f["settings"]["jitter"] is True for f in stats["frames"])
+    frames = [np.load(out / f"frame{f:04d}_view0.npy") for f in range(3)]
+    assert not np.array_equal(frames[0], frames[1])
+    assert not np.array_equal(frames[1], frames[2])
+    assert "3 frame(s)" in r.out
+
+
+def test_frames_without_jitter_repeat_exactly(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "seq"
+    render(capfd, out, "--frames", "2", "--views", "mono", "--save-linear")
+    np.testing.assert_array_equal(np.load(out / "frame0000_view0.npy"), np.load(out / "frame0001_view0.npy"))
+
+
+def test_reference_method(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "ref"
+    r = render(capfd, out, method="reference")
+    assert "reference on cpu" in r.out
+    frame = stats_of(out)["frames"][0]
+    assert frame["method"] == "reference"
+    assert frame["settings"]["samples"] == 16 and frame["settings"]["light_samples"] == 8
+    assert "march" in frame["times_ms"]
+    assert set(frame["counters"]) == set(COUNTERS)
+    assert frame["counters"]["density_samples"] > 0
+    assert (out / "stereo.png").is_file()
+
+
+@pytest.mark.parametrize(("extra", "scene_name"), [
+    (["--scene", "cloud"], "cloud"),
+    (["--scene", "phantom"], "phantom"),
+    (["--scene", "multi", "--count", "4"], "multi"),
+])
+def test_builtin_scenes_render(capfd, tmp_path: Path, extra: list[str], scene_name: str) -> None:
+    out = tmp_path / "s"
+    render(capfd, out, "--views", "mono", "--save-linear", *extra)
+    stats = stats_of(out)
+    assert stats["scene"].startswith(scene_name)
+    assert stats["frames"][0]["counters"]["density_samples"] > 0
+    assert np.load(out / "view0.npy")[..., 3].max() > 0
+
+
+# ---------------------------------------------------------------- every loader through --volume
+
+
+def write_volume(path: Path, a: np.ndarray) -> None:
+    """Write the [z, y, x] grid ``a`` in the format named by the file's extension, as each format stores it."""
+    xyz = np.ascontiguousarray(a.transpose(2, 1, 0))  # NRRD, NIfTI and NanoVDB index (x, y, z)
+    name = path.name
+    if name.endswith(".npy"):
+        np.save(path, a)
+    elif name.endswith(".npz"):
+        np.savez(path, density=a)
+    elif name.endswith((".nrrd", ".nhdr")):
+        nrrd.write(str(path), np.asfortranarray(xyz), index_order="F")
+    elif name.endswith((".nii", ".nii.gz")):
+        nib.save(nib.Nifti1Image(xyz, np.eye(4)), path)
+    elif name.endswith(".nvdb"):
+        init_warp()
+        wp.Volume.load_from_numpy(xyz, bg_value=0.0, device="cpu").save_to_nvdb(str(path))
+    else:
+        raise AssertionError(name)
+
+
+LOADERS = ["vol.npy", "vol.npz", "vol.nrrd", "vol.nhdr", "vol.nii", "vol.nii.gz", "vol.nvdb"]
+
+
+def _linear_render(capfd, out: Path, *volume_args: object) -> np.ndarray:
+    render(capfd, out, "--views", "mono", "--save-linear", "--volume", *volume_args)
+    return np.load(out / "view0.npy")
+
+
+@pytest.mark.parametrize("name", LOADERS)
+def test_volume_formats_render_like_npy(capfd, tmp_path: Path, name: str) -> None:
+    a = asymmetric_density()
+    reference = _linear_render(capfd, tmp_path / "ref", write_npy(tmp_path / "reference.npy", a))
+    assert reference[..., 3].max() > 0
+    path = tmp_path / name
+    write_volume(path, a)
+    image = _linear_render(capfd, tmp_path / "out", path)
+    np.testing.assert_allclose(image, reference, rtol=0, atol=1e-6)
+    assert stats_of(tmp_path / "out")["scene"]
+
+
+def test_raw_volume_with_shape_and_dtype(capfd, tmp_path: Path) -> None:
+    a = asymmetric_density()
+    u8 = np.round(a * 255).astype(np.uint8)
+    u8.tofile(tmp_path / "vol.raw")  # C order of [z, y, x]: x varies fastest
+    image = _linear_render(capfd, tmp_path / "out", tmp_path / "vol.raw", "--shape", "24,16,8", "--dtype", "uint8")
+    reference = _linear_render(capfd, tmp_path / "ref", write_npy(tmp_path / "ref.npy", u8.astype(np.float32) / 255))
+    np.testing.assert_allclose(image, reference, rtol=1e-5, atol=1e-6)
+
+
+def test_axis_order_matters(capfd, tmp_path: Path) -> None:
+    """The loader comparisons above would catch an axis mix-up: a transposed grid renders differently."""
+    a = asymmetric_density()
+    reference = _linear_render(capfd, tmp_path / "ref", write_npy(tmp_path / "a.npy", a))
+    swapped = _linear_render(capfd, tmp_path / "t", write_npy(tmp_path / "t.npy", np.ascontiguousarray(a.transpose())))
+    assert np.abs(swapped - reference).max() > 1e-3
+
+
+# ---------------------------------------------------------------- material, light and output overrides
+
+
+@pytest.fixture(scope="module")
+def baseline(tmp_path_factory: pytest.TempPathFactory) -> np.ndarray:
+    out = tmp_path_factory.mktemp("baseline")
+    assert main(["render", *TINY, "--views", "mono", "--save-linear", "--out", str(out)]) == 0
+    return np.load(out / "view0.npy")
+
+
+def _mono(capfd, tmp_path: Path, *extra: object) -> tuple[np.ndarray, np.ndarray]:
+    out = tmp_path / "o"
+    render(capfd, out, "--views", "mono", "--save-linear", *extra)
+    return np.load(out / "view0.npy"), png(out / "view0.png")
+
+
+def test_density_scale_zero_is_empty(capfd, tmp_path: Path) -> None:
+    image, pixels = _mono(capfd, tmp_path, "--density-scale", "0")
+    assert np.all(image[..., 3] == 0)
+    assert np.all(image[..., :3] == 0)
+    assert np.all(pixels == pixels[0, 0])  # only the background
+
+
+def test_albedo_zero_keeps_alpha_and_drops_scattering(capfd, tmp_path: Path, baseline: np.ndarray) -> None:
+    image, _ = _mono(capfd, tmp_path, "--albedo", "0")
+    np.testing.assert_allclose(image[..., 3], baseline[..., 3], atol=1e-6)
+    assert np.all(image[..., :3] == 0)
+
+
+def test_albedo_per_channel(capfd, tmp_path: Path) -> None:
+    image, _ = _mono(capfd, tmp_path, "--albedo", "0.1,0.5,0.9")
+    red, blue = image[..., 0].sum(), image[..., 2].sum()
+    assert blue > red > 0
+
+
+def test_emission_adds_light_not_opacity(capfd, tmp_path: Path, baseline: np.ndarray) -> None:
+    image, _ = _mono(capfd, tmp_path, "--emission", "2")
+    np.testing.assert_allclose(image[..., 3], baseline[..., 3], atol=1e-6)
+    assert image[..., :3].sum() > baseline[..., :3].sum()
+
+
+def test_no_light_and_no_ambient_is_black(capfd, tmp_path: Path, baseline: np.ndarray) -> None:
+    image, _ = _mono(capfd, tmp_path, "--light-irradiance", "0", "--ambient", "0")
+    assert np.all(image[..., :3] == 0)
+    np.testing.assert_allclose(image[..., 3], baseline[..., 3], atol=1e-6)
+
+
+@pytest.mark.parametrize("extra", [["--g", "0.8"], ["--g", "-0.5"], ["--light-dir", "0,1,0"],
+                                   ["--light-irradiance", "1,2,3"], ["--ambient", "0.5"]])
+def test_light_and_phase_overrides_change_the_image(capfd, tmp_path: Path, baseline: np.ndarray,
+                                                    extra: list[str]) -> None:
+    image, _ = _mono(capfd, tmp_path, *extra)
+    assert np.isfinite(image).all()
+    assert not np.allclose(image[..., :3], baseline[..., :3])
+    np.testing.assert_allclose(image[..., 3], baseline[..., 3], atol=1e-6)  # opacity depends on density only
+
+
+def test_background_shows_where_the_volume_is_transparent(capfd, tmp_path: Path) -> None:
+    image, pixels = _mono(capfd, tmp_path, "--background", "1,0,0")
+    empty = image[..., 3] == 0
+    assert empty.any()
+    assert np.all(pixels[empty] == (255, 0, 0))
+
+
+def test_exposure_and_tonemaps_change_only_the_png(capfd, tmp_path: Path) -> None:
+    base, base_png = _mono(capfd, tmp_path / "a")
+    bright, bright_png = _mono(capfd, tmp_path / "b", "--exposure", "2")
+    np.testing.assert_array_equal(bright, base)
+    assert bright_png.astype(int).sum() > base_png.astype(int).sum()
+    for tonemap in ("aces", "reinhard"):
+        mapped, mapped_png = _mono(capfd, tmp_path / tonemap, "--tonemap", tonemap, "--exposure", "3")
+        np.testing.assert_array_equal(mapped, base)
+        assert not np.array_equal(mapped_png, base_png)
+
+
+def test_environment_image(capfd, tmp_path: Path, baseline: np.ndarray) -> None:
+    env = write_npy(tmp_path / "env.npy", np.full((8, 16, 3), 0.5, np.float32))
+    image, _ = _mono(capfd, tmp_path, "--environment", env)
+    assert image[..., :3].sum() > baseline[..., :3].sum()
+
+
+# ---------------------------------------------------------------- scenes, compare, bench, help
+
+
+def test_scenes_lists_builtins(capfd) -> None:
+    r = ok(capfd, "scenes")
+    names = [line.split()[0] for line in r.out.splitlines() if line.strip()]
+    assert names == list(SCENES)
+
+
+def _images(tmp_path: Path) -> tuple[Path, Path]:
+    rng = np.random.default_rng(0)
+    ref = rng.random((H, W, 4), dtype=np.float32)
+    test = np.clip(ref + rng.normal(0, 0.05, ref.shape).astype(np.float32), 0, None)
+    return write_npy(tmp_path / "ref.npy", ref), write_npy(tmp_path / "test.npy", test)
+
+
+def _psnr(out: str) -> float:
+    match = re.search(r"PSNR (\S+) dB", out)
+    assert match, out
+    return float(match.group(1))
+
+
+def test_compare_prints_metrics_and_writes_default_heatmap(capfd, tmp_path: Path) -> None:
+    ref, test = _images(tmp_path)
+    r = ok(capfd, "compare", ref, test)
+    assert "SSIM" in r.out and "FLIP" in r.out
+    assert 0 < _psnr(r.out) < math.inf
+    heatmap = tmp_path / "test_error.png"
+    assert heatmap.is_file()
+    assert str(heatmap.name) in r.out
+    assert png(heatmap).shape == (H, W, 3)
+
+
+def test_compare_heatmap_path(capfd, tmp_path: Path) -> None:
+    ref, test = _images(tmp_path)
+    heatmap = tmp_path / "new" / "folder" / "err.png"
+    r = ok(capfd, "compare", ref, test, "--heatmap", heatmap)
+    assert png(heatmap).shape == (H, W, 3)
+    assert str(heatmap) in r.out
+    assert not (tmp_path / "test_error.png").exists()
+
+
+def test_compare_identical_files_gives_infinite_psnr(capfd, tmp_path: Path) -> None:
+    ref, _ = _images(tmp_path)
+    copy = tmp_path / "copy.npy"
+    shutil.copy(ref, copy)
+    r = ok(capfd, "compare", ref, copy)
+    assert _psnr(r.out) == math.inf
+    heat = png(tmp_path / "copy_error.png")
+    assert np.all(heat == heat[0, 0])  # no error anywhere
+
+
+def test_compare_rendered_methods(capfd, tmp_path: Path) -> None:
+    render(capfd, tmp_path / "ref", "--views", "mono", "--save-linear", method="reference")
+    render(capfd, tmp_path / "test", "--views", "mono", "--save-linear")
+    r = ok(capfd, "compare", tmp_path / "ref" / "view0.npy", tmp_path / "test" / "view0.npy")
+    assert math.isfinite(_psnr(r.out))
+    assert (tmp_path / "test" / "view0_error.png").is_file()
+
+
+def test_bench_list(capfd) -> None:
+    r = ok(capfd, "bench", "list")
+    assert r.out.startswith("dssrm:")
+
+
+def test_bench_dssrm_quick(capfd, tmp_path: Path) -> None:
+    """About 4 s on 2 CPU cores."""
+    r = ok(capfd, "bench", "dssrm", "--quick", "--device", "cpu", "--out", tmp_path)
+    json_path, md_path = tmp_path / "dssrm-cpu-quick.json", tmp_path / "dssrm-cpu-quick.md"
+    doc = json.loads(json_path.read_text())
+    assert doc["suite"] == "dssrm" and doc["quick"] is True
+    assert doc["machine"]["device"] == "cpu"
+    assert doc["rows"]
+    assert md_path.read_text().count("|") > 10
+    assert str(json_path) in r.out and str(md_path) in r.out
+
+
+def test_help_exits_zero(capfd) -> None:
+    try:
+        code = main(["--help"])
+    except SystemExit as exc:  # argparse exits after printing help
+        code = exc.code
+    out, err = capfd.readouterr()
+    assert code in (0, None)
+    assert "render" in out and "compare" in out
+    assert err == ""
+
+
+def test_console_script(tmp_path: Path) -> None:
+    """The installed ``volren`` entry point: success and a user error, each without a traceback."""
+    exe = shutil.which("volren", path=str(Path(sys.executable).parent)) or shutil.which("volren")
+    if exe is None:
+        pytest.skip("the volren console script is not installed")
+    done = subprocess.run([exe, "scenes"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == ""
+    assert "Traceback" not in done.stdout
+    assert [line.split()[0] for line in done.stdout.splitlines()] == list(SCENES)
+    bad = subprocess.run([exe, "render", "--device", "tpu"], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path)
+    assert bad.returncode == 2
+    assert bad.stdout == ""
+    assert bad.stderr.splitlines() == [bad.stderr.strip()]
+    assert bad.stderr.startswith("volren: error: ") and "tpu" in bad.stderr
+    assert not (tmp_path / "out").exists()
+
+
+# ---------------------------------------------------------------- bad input: one line, exit 2
+
+
+BAD_RENDER_ARGS = {
+    "width-0": (["--width", "0"], ["image size", "0x16"]),
+    "height-negative": (["--height", "-5"], ["image size", "24x-5"]),
+    "image-too-large": (["--width", "100000", "--height", "100000"], ["too large"]),
+    "width-not-int": (["--width", "1e3"], ["--width", "1e3"]),
+    "up-parallel": (["--camera-pos", "0,3,0", "--look-at", "0,0,0", "--up", "0,1,0"], ["parallel"]),
+    "up-zero": (["--up", "0,0,0"], ["up"]),
+    "camera-at-look-at": (["--camera-pos", "1,1,1", "--look-at", "1,1,1"], ["coincide"]),
+    "camera-nan": (["--camera-pos", "nan,0,0"], ["camera position", "finite"]),
+    "fov-0": (["--fov", "0"], ["fov", "180"]),
+    "fov-180": (["--fov", "180"], ["fov", "180"]),
+    "near-0": (["--near", "0"], ["near"]),
+    "far-before-near": (["--near", "1", "--far", "0.5"], ["near", "far"]),
+    "ipd-negative": (["--ipd", "-1"], ["ipd"]),
+    "unknown-scene": (["--scene", "fog"], ["unknown scene", "fog", "smoke"]),
+    "unknown-method": (["--method", "bogus"], ["unknown method", "bogus", "dssrm"]),
+    "reference-no-light-grid": (["--method", "reference", "--jitter"], ["reference", "--jitter", "--light-grid"]),
+    "unknown-device": (["--device", "tpu"], ["unknown device", "tpu"]),
+    "samples-0": (["--samples", "0"], ["samples", "0"]),
+    "samples-huge": (["--samples", "10000000000"], ["samples", "10000000000"]),
+    "light-samples-negative": (["--light-samples", "-1"], ["light samples", "-1"]),
+    "light-grid-1": (["--light-grid", "1"], ["light grid", "1"]),
+    "light-grid-huge": (["--light-grid", "100000"], ["light grid", "100000"]),
+    "frames-0": (["--frames", "0"], ["--frames", "0"]),
+    "frames-not-int": (["--frames", "abc"], ["--frames", "abc"]),
+    "views-0": (["--views", "0"], ["view", "0"]),
+    "views-abc": (["--views", "abc"], ["--views", "abc"]),
+    "views-negative": (["--views", "-1"], ["--views", "-1"]),
+    "views-fraction": (["--views", "2.5"], ["--views", "2.5"]),
+    "resolution-10": (["--resolution", "10"], ["resolution", "10"]),
+    "resolution-5000": (["--resolution", "5000"], ["resolution", "5000"]),
+    "multi-count-5": (["--scene", "multi", "--count", "5"], ["count", "5"]),
+    "seed-negative": (["--seed", "-1"], ["seed"]),
+    "light-dir-two-numbers": (["--light-dir", "1,2"], ["--light-dir", "1,2"]),
+    "light-dir-zero": (["--light-dir", "0,0,0"], ["light direction", "zero"]),
+    "albedo-not-numbers": (["--albedo", "a,b,c"], ["--albedo", "a,b,c"]),
+    "albedo-two-numbers": (["--albedo", "1,2"], ["--albedo", "1,2"]),
+    "albedo-above-1": (["--albedo", "1.5"], ["albedo", "1.5"]),
+    "albedo-nan": (["--albedo", "nan"], ["albedo"]),
+    "g-1": (["--g", "1.0"], ["g", "(-1, 1)"]),
+    "g-nan": (["--g", "nan"], ["g", "nan"]),
+    "density-scale-negative": (["--density-scale", "-1"], ["density_scale", "-1"]),
+    "density-scale-inf": (["--density-scale", "inf"], ["density_scale", "inf"]),
+    "emission-negative": (["--emission", "-1"], ["emission"]),
+    "irradiance-negative": (["--light-irradiance", "-1"], ["irradiance"]),
+    "irradiance-inf": (["--light-irradiance", "inf"], ["irradiance"]),
+    "ambient-negative": (["--ambient", "-1"], ["radiance"]),
+    "background-nan": (["--background", "nan"], ["background"]),
+    "shape-two-numbers": (["--shape", "5,4"], ["--shape", "5,4"]),
+    "unknown-option": (["--bogus-option"], ["unrecognized arguments", "--bogus-option"]),
+}
+
+
+LATE_CHECKS = {"light-grid-1", "light-grid-huge"}
+"""Checked when the scene is uploaded, just after the (empty) output folder is created: cheap, so accepted."""
+
+
+@pytest.mark.parametrize("case", list(BAD_RENDER_ARGS))
+def test_bad_render_argument(capfd, tmp_path: Path, case: str) -> None:
+    extra, fragments = BAD_RENDER_ARGS[case]
+    render_error(capfd, tmp_path, extra, *fragments, early=case not in LATE_CHECKS)
+
+
+@pytest.mark.parametrize("device", ["cuda", "cuda:0"])
+def test_cuda_without_gpu(capfd, tmp_path: Path, device: str) -> None:
+    if has_cuda():
+        pytest.skip("this machine has a CUDA GPU")
+    render_error(capfd, tmp_path, ["--device", device], "no CUDA GPU", device)
+
+
+def test_bad_device_for_bench_and_demo(capfd, tmp_path: Path) -> None:
+    assert_error(capfd, ["bench", "dssrm", "--quick", "--device", "tpu", "--out", tmp_path / "b"], "tpu",
+                 no_out=tmp_path / "b")
+    assert_error(capfd, ["demo", *TINY, "--device", "tpu", "--out", tmp_path / "d"], "tpu", no_out=tmp_path / "d")
+
+
+def test_demo_takes_no_scene_or_method(capfd, tmp_path: Path) -> None:
+    for option in (["--scene", "cloud"], ["--method", "reference"], ["--volume", "x.npy"]):
+        assert_error(capfd, ["demo", *TINY, "--out", tmp_path / "d", *option], "unrecognized", option[0],
+                     no_out=tmp_path / "d")
+
+
+def test_no_command(capfd) -> None:
+    assert_error(capfd, [], "command")
+
+
+def test_tonemap_unknown(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert_error(capfd, ["render", *TINY, "--out", out, "--tonemap", "bogus"], "tonemap", "bogus", "aces")
+    assert not out.exists() or not any(out.iterdir())  # no partial files
+
+
+def test_tonemap_unknown_is_refused_before_rendering(capfd, tmp_path: Path) -> None:
+    render_error(capfd, tmp_path, ["--tonemap", "bogus"], "bogus")
+
+
+def test_scene_and_volume_together(capfd, tmp_path: Path) -> None:
+    vol = write_npy(tmp_path / "v.npy", asymmetric_density())
+    render_error(capfd, tmp_path, ["--scene", "smoke", "--volume", vol], "--scene", "--volume")
+
+
+@pytest.mark.parametrize("with_volume", [False, True])
+def test_empty_scene_name(capfd, tmp_path: Path, with_volume: bool) -> None:
+    extra: list[object] = ["--scene", ""]
+    if with_volume:
+        extra += ["--volume", write_npy(tmp_path / "v.npy", asymmetric_density())]
+    render_error(capfd, tmp_path, extra, "scene")
+
+
+def test_output_folder_is_a_file(capfd, tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert_error(capfd, ["render", *TINY, "--out", blocker], "output folder", str(blocker))
+    assert_error(capfd, ["render", *TINY, "--out", blocker / "sub"], "output folder")
+
+
+def test_views_too_many_for_memory(capfd, tmp_path: Path) -> None:
+    # checked by the renderer before it allocates, after the output folder is created
+    render_error(capfd, tmp_path, ["--views", "1024", "--width", "8192", "--height", "8192"], "1024", "GiB",
+                 early=False)
+
+
+def test_absurd_view_count_is_refused_quickly(capfd, tmp_path: Path) -> None:
+    with deadline(5):
+        render_error(capfd, tmp_path, ["--views", "100000000"], "view", early=False)
+
+
+def test_views_superscript_digit(capfd, tmp_path: Path) -> None:
+    render_error(capfd, tmp_path, ["--views", "²"], "--views")
+
+
+@pytest.mark.parametrize("value", ["nan", "inf"])
+def test_exposure_not_finite(capfd, tmp_path: Path, value: str) -> None:
+    render_error(capfd, tmp_path, [f"--exposure={value}", "--background", "0"], "exposure", early=False)
+
+
+def test_exposure_huge(capfd, tmp_path: Path) -> None:
+    r = run(capfd, "render", *TINY, "--out", tmp_path / "out", "--exposure", "1e10")
+    assert "Traceback" not in r.err and not r.warnings
+    if r.code == 2:  # refused: one line naming the option
+        assert r.err.startswith("volren: error: ") and len(r.err.splitlines()) == 1 and "exposure" in r.err
+    else:  # or saturates to white
+        assert r.code == 0 and r.err == ""
+
+
+# ---------------------------------------------------------------- bad volume files
+
+
+def _raw(p: Path) -> None:
+    p.write_bytes(bytes(range(60)))
+
+
+BAD_VOLUMES: dict[str, tuple[str, Callable[[Path], object], list[str], list[str]]] = {
+    # case: (file name, writer, extra args, fragments)
+    "missing": ("missing.npy", lambda p: None, [], ["not found"]),
+    "directory": ("adir", lambda p: p.mkdir(), [], ["not a regular file"]),
+    "garbage-npy": ("bad.npy", lambda p: p.write_bytes(GARBAGE), [], ["not a .npy file"]),
+    "garbage-npz": ("bad.npz", lambda p: p.write_bytes(GARBAGE), [], ["cannot read"]),
+    "garbage-nrrd": ("bad.nrrd", lambda p: p.write_bytes(GARBAGE), [], ["cannot read"]),
+    "garbage-nii": ("bad.nii", lambda p: p.write_bytes(GARBAGE), [], ["cannot read"]),
+    "garbage-nii-gz": ("bad.nii.gz", lambda p: p.write_bytes(GARBAGE), [], ["cannot read"]),
+    "garbage-nvdb": ("bad.nvdb", lambda p: p.write_bytes(GARBAGE), [], ["nanovdb"]),
+    "empty-file-npy": ("empty.npy", lambda p: p.write_bytes(b""), [], ["not a .npy file"]),
+    "unknown-extension": ("vol.txt", lambda p: p.write_text("hi"), [], ["unknown extension", "--shape"]),
+    "raw-no-shape": ("vol.raw", _raw, [], ["shape"]),
+    "raw-no-dtype": ("vol.raw", _raw, ["--shape", "5,4,3"], ["dtype"]),
+    "raw-size-mismatch": ("vol.raw", _raw, ["--shape", "4,4,3", "--dtype", "uint8"], ["60 bytes", "48 bytes"]),
+    "raw-size-mismatch-dtype": ("vol.raw", _raw, ["--shape", "5,4,3", "--dtype", "uint16"], ["60", "120"]),
+    "raw-bad-dtype": ("vol.raw", _raw, ["--shape", "5,4,3", "--dtype", "bogus"], ["dtype", "bogus"]),
+    "raw-complex-dtype": ("vol.raw", _raw, ["--shape", "5,4,3", "--dtype", "complex64"], ["complex64"]),
+    "raw-zero-axis": ("vol.raw", _raw, ["--shape", "0,4,15", "--dtype", "uint8"], ["shape"]),
+    "shape-for-npy": ("v.npy", lambda p: np.save(p, asymmetric_density()), ["--shape", "24,16,8", "--dtype", "float32"],
+                      ["raw"]),
+    "nan": ("nan.npy", lambda p: np.save(p, np.full((3, 4, 5), np.nan, np.float32)), [], ["nan"]),
+    "inf": ("inf.npy", lambda p: np.save(p, np.where(np.arange(60).reshape(3, 4, 5) == 7, np.inf, 1.0)), [],
+            ["1 NaN/Inf"]),
+    "negative": ("neg.npy", lambda p: np.save(p, np.where(np.arange(60).reshape(3, 4, 5) < 3, -1.0, 1.0)), [],
+                 ["3 negative"]),
+    "one-voxel-axis": ("thin.npy", lambda p: np.save(p, np.ones((1, 4, 5), np.float32)), [], ["(1, 4, 5)", "2 voxels"]),
+    "2d": ("flat.npy", lambda p: np.save(p, np.ones((4, 5), np.float32)), [], ["3D", "2 dimension"]),
+    "empty-array": ("empty.npy", lambda p: np.save(p, np.ones((0, 4, 5), np.float32)), [], ["(0, 4, 5)"]),
+    "complex": ("c.npy", lambda p: np.save(p, np.ones((3, 4, 5), np.complex64)), [], ["complex64"]),
+    "npz-several-arrays": ("two.npz", lambda p: np.savez(p, a=np.ones((3, 4, 5)), b=np.ones((3, 4, 5))), [],
+                           ["a, b", "density"]),
+    "nifti-4d": ("t.nii", lambda p: nib.save(nib.Nifti1Image(np.ones((3, 4, 5, 2), np.float32), np.eye(4)), p), [],
+                 ["4D"]),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_VOLUMES))
+def test_bad_volume(capfd, tmp_path: Path, case: str) -> None:
+    name, writer, extra, fragments = BAD_VOLUMES[case]
+    path = tmp_path / name
+    writer(path)
+    line = render_error(capfd, tmp_path, ["--volume", path, *extra], *fragments)
+    assert name in line  # the message names the file
+
+
+def test_volume_beyond_float32_range(capfd, tmp_path: Path) -> None:
+    path = write_npy(tmp_path / "big.npy", np.full((3, 4, 5), 1e300))
+    render_error(capfd, tmp_path, ["--volume", path], "big.npy")
+
+
+def test_environment_errors(capfd, tmp_path: Path) -> None:
+    env = write_npy(tmp_path / "env.npy", np.ones((8, 16, 3), np.float32))
+    render_error(capfd, tmp_path, ["--environment", env, "--ambient", "0.1"], "--ambient", "--environment")
+    render_error(capfd, tmp_path, ["--environment", tmp_path / "missing.npy"], "missing.npy")
+    negative = write_npy(tmp_path / "neg.npy", -np.ones((8, 16, 3), np.float32))
+    render_error(capfd, tmp_path, ["--environment", negative], "environment")
+
+
+# ---------------------------------------------------------------- bad compare and bench input
+
+
+def _compare_case(tmp_path: Path, case: str) -> tuple[list[object], list[str]]:
+    ref, test = _images(tmp_path)
+    if case == "missing":
+        return [ref, tmp_path / "nope.npy"], ["nope.npy"]
+    if case == "shape-mismatch":
+        return [ref, write_npy(tmp_path / "small.npy", np.zeros((H, W - 4, 4), np.float32))], ["differ"]
+    if case == "nan":
+        a = np.load(test)
+        a[3, 4, 1] = np.nan
+        return [ref, write_npy(tmp_path / "nan.npy", a)], ["NaN"]
+    if case == "nan-reference":
+        a = np.load(ref)
+        a[3, 4, 1] = np.inf
+        return [write_npy(tmp_path / "inf.npy", a), test], ["reference", "infinite"]
+    if case == "integer":
+        return [ref, write_npy(tmp_path / "int.npy", np.zeros((H, W, 4), np.uint8))], ["int.npy", "uint8"]
+    if case == "2d":
+        return [ref, write_npy(tmp_path / "flat.npy", np.zeros((H, W), np.float32))], ["flat.npy", "(H, W, 3)"]
+    if case == "garbage":
+        (tmp_path / "bad.npy").write_bytes(GARBAGE)
+        return [ref, tmp_path / "bad.npy"], ["bad.npy"]
+    if case == "garbage-png":
+        (tmp_path / "bad.png").write_bytes(GARBAGE)
+        return [tmp_path / "bad.png", test], ["bad.png"]
+    if case == "unsupported":
+        (tmp_path / "x.txt").write_text("x")
+        return [ref, tmp_path / "x.txt"], [".txt"]
+    if case == "too-small-for-ssim":
+        a = np.zeros((8, 8, 4), np.float32)
+        return [write_npy(tmp_path / "s1.npy", a + 0.5), write_npy(tmp_path / "s2.npy", a)], ["SSIM", "11"]
+    if case == "heatmap-not-png":
+        return [ref, test, "--heatmap", tmp_path / "err.jpg"], [".png"]
+    if case == "one-file":
+        return [ref], ["test"]
+    raise AssertionError(case)
+
+
+COMPARE_CASES = ["missing", "shape-mismatch", "nan", "nan-reference", "integer", "2d", "garbage", "garbage-png",
+                 "unsupported", "too-small-for-ssim", "heatmap-not-png", "one-file"]
+
+
+@pytest.mark.parametrize("case", COMPARE_CASES)
+def test_bad_compare(capfd, tmp_path: Path, case: str) -> None:
+    args, fragments = _compare_case(tmp_path, case)
+    assert_error(capfd, ["compare", *args], *fragments)
+    assert not (tmp_path / "test_error.png").exists()
+
+
+def test_bench_unknown_suite(capfd, tmp_path: Path) -> None:
+    assert_error(capfd, ["bench", "nonexistent", "--out", tmp_path / "b"], "unknown bench suite", "nonexistent",
+                 "dssrm", no_out=tmp_path / "b")
+
+
+def test_bench_cuda_without_gpu(capfd, tmp_path: Path) -> None:
+    if has_cuda():
+        pytest.skip("this machine has a CUDA GPU")
+    assert_error(capfd, ["bench", "dssrm", "--quick", "--device", "cuda", "--out", tmp_path / "b"], "no CUDA GPU",
+                 no_out=tmp_path / "b")
