@@ -22,15 +22,18 @@ from volren.kernels.common import (
     VolumeGPU,
     box_hit,
     camera_ray,
+    composite_step,
+    half_depth,
     hg_phase,
-    integrate_step,
     light_irradiance,
     light_travel_dir,
     march_step_count,
     new_march_state,
     ray_jitter,
     sample_grid,
+    state_accumulator,
     view_t_range,
+    with_accumulator,
 )
 from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold, frame_seed
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
@@ -106,24 +109,33 @@ def march_volume_light_map(
 ) -> MarchState:
     """March [t0, t1] of one volume with uniform steps (offset in [0, 1) within each step), shading from the light
     map; stops early below params.min_transmittance. ``state.samples`` counts density fetches."""
-    s = state
     o_l = wp.transform_point(vol.to_local, origin)
     d_l = wp.transform_vector(vol.to_local, d)
     n = march_step_count(t1 - t0, vol.diagonal, params.samples)
     dt = (t1 - t0) / float(n)
+    acc = state_accumulator(state)
+    depth_t = state.depth_t
+    shaded = int(0)
+    taken = int(0)
     for i in range(n):
         t = t0 + (float(i) + offset) * dt
         p = o_l + t * d_l
         rho = sample_grid(density, vol.offset, vol.res, p)
-        s.samples += 1
+        taken += 1
         if rho > 0.0:
             sigma_t = vol.density_scale * rho
-            s.shaded += 1
+            shaded += 1
             light = shade_light_map(vol, lightmap, lights, p, origin + t * d, d, params.ambient)
             source = wp.cw_mul(vol.albedo, light) * sigma_t + vol.emission * rho
-            s = integrate_step(s, source, sigma_t, t, dt)
-            if s.transmittance < params.min_transmittance:
-                return s
+            before = acc[3]
+            acc = composite_step(acc, source, sigma_t, dt)
+            depth_t = half_depth(depth_t, before, acc[3], t)
+            if acc[3] < params.min_transmittance:
+                break
+    s = with_accumulator(state, acc)
+    s.depth_t = depth_t
+    s.samples = s.samples + taken
+    s.shaded = s.shaded + shaded
     return s
 
 

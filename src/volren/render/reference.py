@@ -25,10 +25,11 @@ from volren.kernels.common import (
     VolumeGPU,
     box_hit,
     camera_ray,
+    composite_step,
     covering_diagonal,
+    half_depth,
     hg_phase,
     inside_box,
-    integrate_step,
     light_distance,
     light_irradiance,
     light_travel_dir,
@@ -36,8 +37,10 @@ from volren.kernels.common import (
     new_march_state,
     next_box_boundary,
     sample_grid,
+    state_accumulator,
     transmittance_toward,
     view_t_range,
+    with_accumulator,
 )
 from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold
 from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, PassClock
@@ -110,7 +113,9 @@ def reference_sample(
                     sigma_s = vol.albedo * (vol.density_scale * sample_grid(density, vol.offset, vol.res, p))
                     source += wp.cw_mul(sigma_s, e) * hg_phase(wp.dot(-to_light, -d), vol.g)
     # Emission-only media (sigma_t = 0) still add radiance.
-    return integrate_step(s, source, sigma_t, t, dt)
+    acc = composite_step(state_accumulator(s), source, sigma_t, dt)
+    s.depth_t = half_depth(s.depth_t, s.transmittance, acc[3], t)
+    return with_accumulator(s, acc)
 
 
 @wp.kernel
