@@ -203,6 +203,15 @@ def next_box_boundary(
 
 
 @wp.func
+def density_inside(vol: VolumeGPU, x: wp.vec3, density: wp.array(dtype=float)) -> float:
+    """The volume's density at world ``x``, or -1 where ``x`` lies outside its box."""
+    p = wp.transform_point(vol.to_local, x)
+    if inside_box(p):
+        return sample_grid(density, vol.offset, vol.res, p)
+    return -1.0
+
+
+@wp.func
 def covering_diagonal(x: wp.vec3, volumes: wp.array(dtype=VolumeGPU), v_begin: int, v_end: int) -> float:
     """Smallest diagonal of the boxes containing ``x`` (INF if none): the step rule of a dense march there."""
     diag = float(INF)
@@ -310,6 +319,24 @@ def new_march_state() -> MarchState:
     s.samples = 0
     s.shaded = 0
     return s
+
+
+@wp.func
+def write_pixel(
+    s: MarchState,
+    cam: CameraGPU,
+    d: wp.vec3,
+    row: int,
+    col: int,
+    image: wp.array2d(dtype=wp.vec4),
+    depth: wp.array2d(dtype=float),
+    counters: wp.array(dtype=wp.int64),
+    density_counter: int,
+):
+    """Store a finished ray: premultiplied RGBA (alpha = 1 - T), linear view depth, and its density samples."""
+    wp.atomic_add(counters, density_counter, wp.int64(s.samples))
+    image[row, col] = wp.vec4(s.color[0], s.color[1], s.color[2], 1.0 - s.transmittance)
+    depth[row, col] = s.depth_t * wp.dot(d, cam.forward)
 
 
 @wp.func

@@ -34,6 +34,7 @@ from volren.kernels.common import (
     state_accumulator,
     view_t_range,
     with_accumulator,
+    write_pixel,
 )
 from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold, frame_seed
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
@@ -172,11 +173,9 @@ def dssrm_kernel(
             s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, offset, density, lightmap, lights, params)
             if s.transmittance < params.min_transmittance:
                 break
-    wp.atomic_add(counters, DENSITY_SAMPLES, wp.int64(s.samples))
     wp.atomic_add(counters, LIGHTMAP_LOOKUPS, wp.int64(s.shaded * lights.shape[0]))
     wp.atomic_add(counters, RAYS, wp.int64(hit))
-    image[row, col] = wp.vec4(s.color[0], s.color[1], s.color[2], 1.0 - s.transmittance)
-    depth[row, col] = s.depth_t * wp.dot(d, cam.forward)
+    write_pixel(s, cam, d, row, col, image, depth, counters, DENSITY_SAMPLES)
 
 
 class DSSRM(Renderer):

@@ -27,20 +27,20 @@ from volren.kernels.common import (
     camera_ray,
     composite_step,
     covering_diagonal,
+    density_inside,
     half_depth,
     hg_phase,
-    inside_box,
     light_distance,
     light_irradiance,
     light_travel_dir,
     march_step_count,
     new_march_state,
     next_box_boundary,
-    sample_grid,
     state_accumulator,
     transmittance_toward,
     view_t_range,
     with_accumulator,
+    write_pixel,
 )
 from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold
 from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, PassClock
@@ -90,9 +90,8 @@ def reference_sample(
     source = wp.vec3(0.0)
     for v in range(n_vol):
         vol = volumes[v]
-        p = wp.transform_point(vol.to_local, x)
-        if inside_box(p):
-            rho = sample_grid(density, vol.offset, vol.res, p)
+        rho = density_inside(vol, x, density)
+        if rho >= 0.0:
             s.samples += 1
             sigma_t += vol.density_scale * rho
             source += wp.cw_mul(vol.albedo, params.ambient) * (vol.density_scale * rho) + vol.emission * rho
@@ -108,9 +107,9 @@ def reference_sample(
             e = light_irradiance(light, x) * tl
             for v in range(n_vol):
                 vol = volumes[v]
-                p = wp.transform_point(vol.to_local, x)
-                if inside_box(p):
-                    sigma_s = vol.albedo * (vol.density_scale * sample_grid(density, vol.offset, vol.res, p))
+                rho = density_inside(vol, x, density)
+                if rho >= 0.0:
+                    sigma_s = vol.albedo * (vol.density_scale * rho)
                     source += wp.cw_mul(sigma_s, e) * hg_phase(wp.dot(-to_light, -d), vol.g)
     # Emission-only media (sigma_t = 0) still add radiance.
     acc = composite_step(state_accumulator(s), source, sigma_t, dt)
@@ -161,9 +160,7 @@ def reference_kernel(
                 if s.transmittance < params.min_transmittance:
                     break
         t = t_next
-    wp.atomic_add(counters, DENSITY_SAMPLES, wp.int64(s.samples))
-    image[row, col] = wp.vec4(s.color[0], s.color[1], s.color[2], 1.0 - s.transmittance)
-    depth[row, col] = s.depth_t * wp.dot(d, cam.forward)
+    write_pixel(s, cam, d, row, col, image, depth, counters, DENSITY_SAMPLES)
 
 
 class Reference(Renderer):
