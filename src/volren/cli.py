@@ -8,9 +8,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from volren.errors import VolrenError
@@ -204,6 +206,20 @@ def renderer_from_args(args: argparse.Namespace, method: str):
     return cls(config_cls(**options), device=args.device)
 
 
+@contextmanager
+def progress_bar(label: str, total_rows: int) -> Iterator[Callable[[int], None] | None]:
+    """A rich progress bar over rendered image rows on an interactive terminal; nothing in CI, pipes or tests."""
+    if not sys.stderr.isatty() or os.environ.get("CI"):
+        yield None
+        return
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    columns = (TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+    with Progress(*columns, transient=True) as bar:
+        task = bar.add_task(label, total=total_rows)
+        yield lambda rows: bar.advance(task, rows)
+
+
 def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     from volren.output import prepare_out_dir, write_frame, write_stats
 
@@ -217,12 +233,14 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     out = prepare_out_dir(args.out)
     frames, files = [], []
     start = time.perf_counter()
-    for i in range(args.frames):
-        frame = renderer.render(scene, views, frame=i)
-        prefix = f"frame{i:04d}_" if args.frames > 1 else ""
-        files += write_frame(frame, out, scene.background, exposure=args.exposure, tonemap=args.tonemap,
-                             linear=args.save_linear, prefix=prefix)
-        frames.append(frame)
+    with progress_bar(f"{method} {scene.name}", args.frames * sum(v.height for v in views)) as advance:
+        renderer.on_rows = advance
+        for i in range(args.frames):
+            frame = renderer.render(scene, views, frame=i)
+            prefix = f"frame{i:04d}_" if args.frames > 1 else ""
+            files += write_frame(frame, out, scene.background, exposure=args.exposure, tonemap=args.tonemap,
+                                 linear=args.save_linear, prefix=prefix)
+            frames.append(frame)
     wall = time.perf_counter() - start
     stats = write_stats(out, frames, {"scene": scene.name, "command": command})
     last = frames[-1].stats

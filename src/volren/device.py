@@ -6,6 +6,7 @@ import os
 import re
 import sys
 import tempfile
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -93,19 +94,30 @@ MAX_BANDS = 64
 """Rows of a counters array: one per concurrent CPU band, because Warp's CPU atomics are not atomic across threads."""
 
 
-def launch_rows(kernel: Any, rows: int, cols: int, inputs: list[Any], device: str, counters: wp.array) -> None:
+def launch_rows(
+    kernel: Any,
+    rows: int,
+    cols: int,
+    inputs: list[Any],
+    device: str,
+    counters: wp.array,
+    progress: Callable[[int], None] | None = None,
+) -> None:
     """Launch a 2D kernel over ``rows x cols`` whose last two inputs are ``counters`` (1D int64) and ``row0: int``
     (the launch's first row); ``counters`` here is 2D ``(MAX_BANDS, n)`` and each band adds into its own row.
 
     Warp's CPU backend runs one launch on one thread, but launches from different Python threads run concurrently
     (the native call releases the GIL; see DESIGN.md, measured 1.9x on 2 cores). On the CPU the rows are split into
-    bands run by one thread per core; on CUDA it is a single launch.
+    bands run by one thread per core; on CUDA it is a single launch. ``progress``, if given, is called with the
+    number of rows each launch covered once it has been issued (a CPU launch has then finished).
     """
     if rows <= 0 or cols <= 0:
         return
     threads = cpu_threads()
     if not device.startswith("cpu") or threads == 1 or rows < 2 * threads:
         wp.launch(kernel, dim=(rows, cols), inputs=[*inputs, counters[0], 0], device=device)
+        if progress is not None:
+            progress(rows)
         return
     # More bands than threads balances uneven per-row cost (a volume covers only part of the image).
     bands = min(rows, threads * 4, MAX_BANDS)
@@ -114,6 +126,8 @@ def launch_rows(kernel: Any, rows: int, cols: int, inputs: list[Any], device: st
     def run(b: int) -> None:
         dim = (edges[b + 1] - edges[b], cols)
         wp.launch(kernel, dim=dim, inputs=[*inputs, counters[b], edges[b]], device=device)
+        if progress is not None:
+            progress(dim[0])
 
     with ThreadPoolExecutor(max_workers=threads) as pool:
         list(pool.map(run, range(bands)))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from typing import Any, ClassVar
 
@@ -46,6 +46,8 @@ class Renderer:
         self.device = resolve_device(device)
         self._device_scene: DeviceScene | None = None
         self._light_grid: int | None = None
+        self.on_rows: Callable[[int], None] | None = None
+        """Progress hook: called with the number of image rows the view pass just finished."""
 
     def _upload(self, scene: Scene, clock: PassClock, light_grid: int | None = None) -> DeviceScene:
         """The scene on the device, uploaded once per scene object (the cache holds the scene, so ids stay valid)."""

@@ -211,4 +211,5 @@ class DSSRM(Renderer):
                 [camera_struct(cam), ds.volumes, order, ds.density, ds.lightmap, ds.lights, params, image, depth],
                 self.device,
                 clock.counters,
+                self.on_rows,
             )

@@ -188,4 +188,5 @@ class Reference(Renderer):
                 [camera_struct(cam), ds.volumes, ds.density, ds.lights, params, image, depth],
                 self.device,
                 clock.counters,
+                self.on_rows,
             )
