@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import sys
@@ -129,5 +130,10 @@ def launch_rows(
         if progress is not None:
             progress(dim[0])
 
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        list(pool.map(run, range(bands)))
+    list(_band_pool(threads).map(run, range(bands)))
+
+
+@functools.cache
+def _band_pool(threads: int) -> ThreadPoolExecutor:
+    """One long-lived pool per thread count (a frame issues many launches: a light map per volume, a march per view)."""
+    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="volren-band")
