@@ -15,7 +15,7 @@ from volren.camera import Camera
 from volren.device import check_allocation
 from volren.errors import VolrenError
 from volren.kernels.common import LIGHT_DIRECTIONAL, LIGHT_POINT, CameraGPU, LightGPU, VolumeGPU
-from volren.scene import DirectionalLight, Scene
+from volren.scene import DirectionalLight, Scene, Volume
 
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
@@ -73,6 +73,9 @@ class DeviceScene:
     light_res: list[tuple[int, int, int]]
     lightmap: wp.array
     ambient: wp.vec3
+    levels: list[list[VolumeGPU]]
+    """per volume, its struct at each uploaded mip level (level 0 only unless uploaded with ``mip_levels``);
+    levels differ only in ``offset`` and ``res``: same box, material and light map"""
 
     @property
     def volume_count(self) -> int:
@@ -83,36 +86,52 @@ class DeviceScene:
         return len(self.scene.lights)
 
 
-def upload_scene(scene: Scene, device: str, light_grid: int | None = None) -> DeviceScene:
-    """Pack and copy ``scene`` to ``device``; light grids get ``light_grid`` voxels on their longest axis."""
+def volume_struct(
+    vol: Volume, offset: int, res: tuple[int, int, int], light_offset: int, light_res: tuple[int, int, int]
+) -> VolumeGPU:
+    """The device description of ``vol`` whose (mip level of the) grid of ``res`` voxels (x, y, z) starts at
+    ``offset`` in the packed density array."""
+    s = VolumeGPU()
+    s.to_local = _mat44(vol.to_local)
+    s.to_world = _mat44(vol.to_world)
+    s.offset = offset
+    s.res = wp.vec3i(*res)
+    s.light_offset = light_offset
+    s.light_res = wp.vec3i(*light_res)
+    s.density_scale = vol.density_scale
+    s.albedo = wp.vec3(*vol.albedo)
+    s.g = vol.g
+    s.emission = wp.vec3(*vol.emission)
+    s.diagonal = vol.diagonal
+    return s
+
+
+def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_levels: bool = False) -> DeviceScene:
+    """Pack and copy ``scene`` to ``device``; light grids get ``light_grid`` voxels on their longest axis. With
+    ``mip_levels`` every level of each volume's mip pyramid is packed too (for LOD marching)."""
     n_lights = len(scene.lights)
     structs = []
+    grids = []
+    levels = []
     offset = 0
     light_offset = 0
     light_res = []
     for vol in scene.volumes:
-        s = VolumeGPU()
-        s.to_local = _mat44(vol.to_local)
-        s.to_world = _mat44(vol.to_world)
-        s.offset = offset
-        s.res = wp.vec3i(*vol.resolution)
         lres = light_grid_resolution(vol.resolution, light_grid)
-        s.light_offset = light_offset
-        s.light_res = wp.vec3i(*lres)
-        s.density_scale = vol.density_scale
-        s.albedo = wp.vec3(*vol.albedo)
-        s.g = vol.g
-        s.emission = wp.vec3(*vol.emission)
-        s.diagonal = vol.diagonal
-        structs.append(s)
+        per_level = []
+        for grid in vol.mip_pyramid if mip_levels else vol.mip_pyramid[:1]:
+            per_level.append(volume_struct(vol, offset, grid.shape[::-1], light_offset, lres))
+            grids.append(grid.reshape(-1))
+            offset += grid.size
+        levels.append(per_level)
+        structs.append(per_level[0])
         light_res.append(lres)
-        offset += vol.density.size
         light_offset += n_lights * int(np.prod(lres))
     if offset > MAX_PACKED or light_offset > MAX_PACKED:
         raise VolrenError(f"scene too large: {offset} voxels (at most {MAX_PACKED} in all volumes together)")
     check_allocation(4 * (offset + light_offset), device, f"scene '{scene.name}' (density and light maps)")
     try:
-        density = wp.array(np.concatenate([v.density.reshape(-1) for v in scene.volumes]), dtype=float, device=device)
+        density = wp.array(np.concatenate(grids), dtype=float, device=device)
         lightmap = wp.ones(max(light_offset, 1), dtype=float, device=device)
     except (RuntimeError, MemoryError) as exc:
         raise VolrenError(f"cannot allocate the scene on {device}: {exc}") from exc
@@ -133,4 +152,5 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None) -> De
         light_res=light_res,
         lightmap=lightmap,
         ambient=wp.vec3(*scene.environment.mean_radiance()),
+        levels=levels,
     )

@@ -1,13 +1,27 @@
 """Renderers, one module per method; `METHODS` maps the CLI's --method names to their classes."""
 
 from volren.render.base import Renderer
+from volren.render.cmsrm import CMSRM, CMSRMConfig
 from volren.render.dssrm import DSSRM, DSSRMConfig
 from volren.render.frame import COUNTERS, Frame, Stats
 from volren.render.reference import Reference, ReferenceConfig
 
 METHODS: dict[str, tuple[type[Renderer], type]] = {
     "dssrm": (DSSRM, DSSRMConfig),
+    "cmsrm": (CMSRM, CMSRMConfig),
     "reference": (Reference, ReferenceConfig),
 }
 
-__all__ = ["COUNTERS", "DSSRM", "METHODS", "DSSRMConfig", "Frame", "Reference", "ReferenceConfig", "Renderer", "Stats"]
+__all__ = [
+    "CMSRM",
+    "COUNTERS",
+    "DSSRM",
+    "METHODS",
+    "CMSRMConfig",
+    "DSSRMConfig",
+    "Frame",
+    "Reference",
+    "ReferenceConfig",
+    "Renderer",
+    "Stats",
+]

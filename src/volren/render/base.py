@@ -45,17 +45,20 @@ class Renderer:
         self.config = config
         self.device = resolve_device(device)
         self._device_scene: DeviceScene | None = None
-        self._light_grid: int | None = None
+        self._upload_key: tuple[int | None, bool] | None = None
         self.on_rows: Callable[[int], None] | None = None
         """Progress hook: called with the number of image rows the view pass just finished."""
 
-    def _upload(self, scene: Scene, clock: PassClock, light_grid: int | None = None) -> DeviceScene:
+    def _upload(
+        self, scene: Scene, clock: PassClock, light_grid: int | None = None, mip_levels: bool = False
+    ) -> DeviceScene:
         """The scene on the device, uploaded once per scene object (the cache holds the scene, so ids stay valid)."""
         ds = self._device_scene
-        if ds is None or ds.scene is not scene or self._light_grid != light_grid:
+        key = (light_grid, mip_levels)
+        if ds is None or ds.scene is not scene or self._upload_key != key:
             with clock.measure("upload"):
-                ds = upload_scene(scene, self.device, light_grid)
-            self._device_scene, self._light_grid = ds, light_grid
+                ds = upload_scene(scene, self.device, light_grid, mip_levels)
+            self._device_scene, self._upload_key = ds, key
         return ds
 
     def _prepare(self, scene: Scene, clock: PassClock, frame: int) -> DeviceScene:
@@ -75,6 +78,7 @@ class Renderer:
         pixels = sum(c.width * c.height for c in views)
         check_allocation(pixels * 20 * (1 if self.device == "cpu" else 2), self.device, f"{len(views)} view image(s)")
         clock = PassClock(self.device)
+        self._frame_info: dict[str, Any] = {}
         ds = self._prepare(scene, clock, frame)
         targets = []
         for v, cam in enumerate(views):
@@ -88,5 +92,5 @@ class Renderer:
         for d in depths:
             d[d >= 1e29] = np.inf
         settings = {"views": len(views), "resolution": [[c.width, c.height] for c in views], **asdict(self.config)}
-        stats = Stats(self.device, self.name, settings, clock.times_ms, clock.counter_values())
+        stats = Stats(self.device, self.name, settings, clock.times_ms, clock.counter_values(), self._frame_info)
         return Frame(images, depths, stats, frame)

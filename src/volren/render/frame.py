@@ -29,6 +29,8 @@ class Stats:
     times_ms: dict[str, float] = field(default_factory=dict)
     """wall time per pass, measured after a device synchronise"""
     counters: dict[str, int] = field(default_factory=dict)
+    info: dict[str, Any] = field(default_factory=dict)
+    """method-specific reports (e.g. CMSRM's per-volume scheme, LOD and cube-map memory)"""
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

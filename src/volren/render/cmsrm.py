@@ -1,0 +1,314 @@
+"""CMSRM: cube-map-space ray marching on the interior faces of each volume's box (paper 001; paper 000 §3.1.1).
+
+Per volume and view: (1) the cube ray-marching pass casts a ray from the eye through the centre of every texel of
+the visible faces (Eq. 1) of a cube map over the box and marches it from the box entry (or the near plane, with the
+eye inside) to the texel, storing premultiplied colour and transmittance; (2) the cube resampling pass casts each
+pixel's ray, finds where it leaves the box and samples the cube map there bilinearly (seamless across face edges).
+The march is DSSRM's (`march_volume_light_map`), lit by the same light map. Cost follows the cube-map size, not the
+viewport: S x S texels per visible face.
+
+Adaptive LOD (§3.3) picks per volume and view the cube-map/density mip level and the sample count N from the box's
+projected size; the hybrid choice (§3.4, first paragraph) marches a volume directly in screen space when its
+projected pixels are fewer than its visible texels. ``cube_faces="exterior"`` casts rays to the exterior faces the eye
+sees instead (paper 001 Fig. 2 (a)); it exists to show the texel aliasing that the interior scheme avoids.
+
+Not yet here (issue 3): mesh occlusion with the 2x2 bilateral depth filter (§3.2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from volren.camera import Camera
+from volren.device import launch_rows
+from volren.errors import VolrenError
+from volren.kernels.common import (
+    INF,
+    CameraGPU,
+    LightGPU,
+    VolumeGPU,
+    box_hit,
+    camera_ray,
+    new_march_state,
+    view_t_range,
+    write_pixel,
+)
+from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold
+from volren.render.cubemap import (
+    FACE_COUNT,
+    cube_bilinear,
+    cube_lod,
+    face_point,
+    point_face,
+    texel_index,
+    visible_faces,
+)
+from volren.render.dssrm import MarchParams, march_volume_light_map
+from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
+from volren.render.lightmap import compute_light_map
+from volren.upload import DeviceScene, camera_struct, depth_order
+
+SCHEME_DIRECT = 0
+SCHEME_CUBE = 1
+
+
+@dataclass(frozen=True)
+class CMSRMConfig:
+    samples: int = 360
+    """N_max: at most this many view samples across a box diagonal (cube texel rays and direct rays)"""
+    light_samples: int = 96
+    """L: at most this many samples across the box diagonal on each light-map ray"""
+    light_grid: int | None = None
+    """light-map voxels on the longest axis; None = half the density resolution"""
+    cube_size: int | None = None
+    """S0: level-0 face size [texels]; None = the density grid's longest axis"""
+    cube_faces: str = "interior"
+    """interior (the method) or exterior (only to show its texel aliasing)"""
+    adaptive_lod: bool = True
+    """choose the mip level and N from the projected size (§3.3); off = level 0 and N_max"""
+    k_u: float = 1.0
+    """screen up-scaling coefficient of S_ideal = max projected edge / k_u"""
+    k_c: float = 3.0
+    """sampling coefficient of N_ideal = k_c S_ideal / sqrt 3; 3 gives one sample per texel along a diagonal"""
+    hybrid: bool = True
+    """march a volume directly when its projected pixels are fewer than its visible texels"""
+    seed: int = 0
+    min_transmittance: float = 1e-3
+    """early ray termination threshold"""
+
+    def __post_init__(self) -> None:
+        check_sample_count("samples (N_max)", self.samples)
+        check_sample_count("light samples (L)", self.light_samples)
+        check_transmittance_threshold(self.min_transmittance)
+        if self.cube_faces not in ("interior", "exterior"):
+            raise VolrenError(f"cube faces must be interior or exterior, got '{self.cube_faces}'")
+        if self.cube_size is not None and not 2 <= self.cube_size <= 4096:
+            raise VolrenError(f"cube size must lie in [2, 4096] texels, got {self.cube_size}")
+        if not (self.k_u > 0 and self.k_c > 0):
+            raise VolrenError(f"k_u and k_c must be > 0, got {self.k_u} and {self.k_c}")
+
+
+@wp.kernel
+def cube_march_kernel(
+    cam: CameraGPU,
+    vol: VolumeGPU,
+    faces: wp.array(dtype=int),
+    size: int,
+    exterior: int,
+    density: wp.array(dtype=float),
+    lightmap: wp.array(dtype=float),
+    lights: wp.array(dtype=LightGPU),
+    params: MarchParams,
+    cube: wp.array(dtype=wp.vec4),
+    cube_t: wp.array(dtype=float),
+    offset: int,
+    counters: wp.array(dtype=wp.int64),
+    row0: int,
+):
+    """One ray per texel of the visible faces: from the eye through the texel centre, marched from the box entry
+    (or near plane) to the texel (interior), or from the texel to the box exit (exterior)."""
+    r, i = wp.tid()
+    row = r + row0
+    k = row / size
+    j = row - k * size
+    f = faces[k]
+    h = 2.0 / float(size)
+    x = wp.transform_point(vol.to_world, face_point(f, -1.0 + (float(i) + 0.5) * h, -1.0 + (float(j) + 0.5) * h))
+    dist = wp.length(x - cam.origin)
+    d = (x - cam.origin) / dist
+    s = new_march_state()
+    facing = wp.dot(d, cam.forward)
+    if facing > 0.0:
+        hb = box_hit(wp.transform_point(vol.to_local, cam.origin), wp.transform_vector(vol.to_local, d))
+        t0 = wp.max(hb[0], cam.near / facing)
+        t1 = dist
+        if exterior != 0:
+            t0 = wp.max(dist, cam.near / facing)
+            t1 = hb[1]
+        if t1 > t0:
+            wp.atomic_add(counters, RAYS, wp.int64(1))
+            s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, density, lightmap, lights, params)
+    texel = offset + texel_index(f, i, j, size)
+    cube[texel] = wp.vec4(s.color[0], s.color[1], s.color[2], s.transmittance)
+    cube_t[texel] = s.depth_t
+    wp.atomic_add(counters, DENSITY_SAMPLES, wp.int64(s.samples))
+    wp.atomic_add(counters, LIGHTMAP_LOOKUPS, wp.int64(s.shaded * lights.shape[0]))
+
+
+@wp.func
+def cube_nearest_t(cube_t: wp.array(dtype=float), offset: int, size: int, p: wp.vec3) -> float:
+    """The texel ray's half-transmittance distance stored nearest to the box-surface point p."""
+    f = point_face(p)
+    a = f / 2
+    i = wp.clamp(int((p[(a + 1) % 3] + 1.0) * 0.5 * float(size)), 0, size - 1)
+    j = wp.clamp(int((p[(a + 2) % 3] + 1.0) * 0.5 * float(size)), 0, size - 1)
+    return cube_t[offset + texel_index(f, i, j, size)]
+
+
+@wp.kernel
+def cube_resample_kernel(
+    cam: CameraGPU,
+    volumes: wp.array(dtype=VolumeGPU),
+    order: wp.array(dtype=int),
+    scheme: wp.array(dtype=int),
+    cube_offset: wp.array(dtype=int),
+    cube_size: wp.array(dtype=int),
+    exterior: int,
+    cube: wp.array(dtype=wp.vec4),
+    cube_t: wp.array(dtype=float),
+    density: wp.array(dtype=float),
+    lightmap: wp.array(dtype=float),
+    lights: wp.array(dtype=LightGPU),
+    params: MarchParams,
+    image: wp.array2d(dtype=wp.vec4),
+    depth: wp.array2d(dtype=float),
+    counters: wp.array(dtype=wp.int64),
+    row0: int,
+):
+    """Per pixel, front to back over the volumes: a cube-scheme volume is looked up bilinearly where the pixel's ray
+    leaves its box (enters, for exterior faces); a direct-scheme volume is marched here, as in DSSRM."""
+    r, col = wp.tid()
+    row = r + row0
+    d = camera_ray(cam, row, col, 0.5, 0.5)
+    planes = view_t_range(cam, d)
+    s = new_march_state()
+    direct = int(0)
+    for k in range(order.shape[0]):
+        v = order[k]
+        vol = volumes[v]
+        o_l = wp.transform_point(vol.to_local, cam.origin)
+        d_l = wp.transform_vector(vol.to_local, d)
+        h = box_hit(o_l, d_l)
+        t0 = wp.max(h[0], planes[0])
+        t1 = wp.min(h[1], planes[1])
+        if t1 > t0:
+            if scheme[v] == SCHEME_CUBE:
+                t_face = h[1]
+                if exterior != 0:
+                    t_face = h[0]
+                p = o_l + t_face * d_l
+                c = cube_bilinear(cube, cube_offset[v], cube_size[v], p)
+                after = s.transmittance * c[3]
+                if s.transmittance > 0.5 and after <= 0.5:
+                    s.depth_t = cube_nearest_t(cube_t, cube_offset[v], cube_size[v], p)
+                s.color = s.color + s.transmittance * wp.vec3(c[0], c[1], c[2])
+                s.transmittance = after
+            else:
+                direct = 1
+                s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, density, lightmap, lights, params)
+            if s.transmittance < params.min_transmittance:
+                break
+    wp.atomic_add(counters, RAYS, wp.int64(direct))
+    wp.atomic_add(counters, LIGHTMAP_LOOKUPS, wp.int64(s.shaded * lights.shape[0]))
+    write_pixel(s, cam, d, row, col, image, depth, counters, DENSITY_SAMPLES)
+
+
+def projected_pixels(vol_corners: np.ndarray, cam: Camera) -> float:
+    """Viewport pixels covered by the box's projection, estimated by the bounding rectangle of its projected corners
+    clipped to the viewport; the whole viewport when a corner is behind the near plane."""
+    view = cam.view_matrix()
+    c = np.c_[vol_corners, np.ones(len(vol_corners))] @ view.T
+    depth = -c[:, 2]
+    if np.any(depth <= cam.near):
+        return float(cam.width * cam.height)
+    focal = cam.height / (2 * cam.tan_half_fov)
+    x = c[:, 0] / depth * focal + cam.width / 2
+    y = c[:, 1] / depth * focal + cam.height / 2
+    w = np.clip(x.max(), 0, cam.width) - np.clip(x.min(), 0, cam.width)
+    h = np.clip(y.max(), 0, cam.height) - np.clip(y.min(), 0, cam.height)
+    return float(w * h)
+
+
+class CMSRM(Renderer):
+    """Cube-map-space ray marching; ``config`` is a `CMSRMConfig`."""
+
+    name = "cmsrm"
+
+    def __init__(self, config: CMSRMConfig | None = None, device: str = "auto") -> None:
+        super().__init__(config or CMSRMConfig(), device)
+
+    def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
+        ds = self._upload(scene, clock, self.config.light_grid, mip_levels=True)
+        compute_light_map(ds, self.config.light_samples, clock)
+        self._frame_info["volumes"] = []
+        return ds
+
+    def _params(self, ds: DeviceScene, view: int, samples: int) -> MarchParams:
+        params = MarchParams()
+        params.samples = samples
+        params.jitter = 0
+        params.seed = 0
+        params.view = view
+        params.min_transmittance = self.config.min_transmittance
+        params.ambient = ds.ambient
+        return params
+
+    def _plan(self, ds: DeviceScene, cam: Camera) -> list[dict]:
+        """Per volume: visible faces (Eq. 1), LOD (§3.3) and scheme (hybrid, §3.4)."""
+        c = self.config
+        plans = []
+        for vol in ds.scene.volumes:
+            eye = (vol.to_local @ np.r_[cam.position, 1.0])[:3]
+            faces = visible_faces(eye, c.cube_faces)
+            base = c.cube_size or max(vol.resolution)
+            lod = cube_lod(vol, cam, base, c.samples, c.k_u, c.k_c, c.adaptive_lod)
+            texels = len(faces) * lod.size**2
+            pixels = projected_pixels(vol.corners_world, cam)
+            scheme = SCHEME_DIRECT if (c.hybrid and pixels < texels) or not faces else SCHEME_CUBE
+            plans.append({"faces": faces, "lod": lod, "texels": texels, "pixels": pixels, "scheme": scheme})
+        return plans
+
+    def _render_view(
+        self, ds: DeviceScene, cam: Camera, view: int, frame: int, image: wp.array, depth: wp.array, clock: PassClock
+    ) -> None:
+        exterior = int(self.config.cube_faces == "exterior")
+        plans = self._plan(ds, cam)
+        offsets, sizes, total = [], [], 0
+        for plan in plans:
+            offsets.append(total)
+            sizes.append(plan["lod"].size)
+            if plan["scheme"] == SCHEME_CUBE:
+                total += FACE_COUNT * plan["lod"].size ** 2
+        cube = wp.full(max(total, 1), wp.vec4(0.0, 0.0, 0.0, 1.0), dtype=wp.vec4, device=self.device)
+        cube_t = wp.full(max(total, 1), INF, dtype=float, device=self.device)
+        cam_gpu = camera_struct(cam)
+        with clock.measure("cube_march"):
+            for v, plan in enumerate(plans):
+                if plan["scheme"] != SCHEME_CUBE:
+                    continue
+                lod = plan["lod"]
+                level = ds.levels[v][min(lod.level, len(ds.levels[v]) - 1)]
+                faces = wp.array(plan["faces"], dtype=int, device=self.device)
+                launch_rows(
+                    cube_march_kernel,
+                    len(plan["faces"]) * lod.size,
+                    lod.size,
+                    [cam_gpu, level, faces, lod.size, exterior, ds.density, ds.lightmap, ds.lights,
+                     self._params(ds, view, lod.samples), cube, cube_t, offsets[v]],
+                    self.device,
+                    clock.counters,
+                )
+        per_volume = [wp.array(a, dtype=int, device=self.device)
+                      for a in ([p["scheme"] for p in plans], offsets, sizes)]
+        order = wp.array(depth_order(ds.scene, cam), dtype=int, device=self.device)
+        with clock.measure("resample"):
+            launch_rows(
+                cube_resample_kernel,
+                cam.height,
+                cam.width,
+                [cam_gpu, ds.volumes, order, *per_volume, exterior, cube, cube_t, ds.density, ds.lightmap,
+                 ds.lights, self._params(ds, view, self.config.samples), image, depth],
+                self.device,
+                clock.counters,
+                self.on_rows,
+            )
+        self._frame_info["volumes"].append([
+            {"view": view, "volume": v, "scheme": "cube" if p["scheme"] == SCHEME_CUBE else "direct",
+             "faces": p["faces"], "level": p["lod"].level, "face_size": p["lod"].size, "samples": p["lod"].samples,
+             "visible_texels": p["texels"], "projected_pixels": round(p["pixels"])}
+            for v, p in enumerate(plans)
+        ])
+        self._frame_info["cube_map_bytes"] = self._frame_info.get("cube_map_bytes", 0) + total * 20

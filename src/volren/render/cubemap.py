@@ -1,0 +1,151 @@
+"""Cube-map addressing over a volume's box, the visible-face mask (paper 001 Eq. 1) and adaptive LOD (§3.3).
+
+Faces are numbered 0..5 = +x, -x, +y, -y, +z, -z: face f lies on axis a = f / 2 at sign s = +1 for even f, -1 for
+odd f. Its texels are indexed (i, j) along the tangent axes b = (a + 1) % 3 and c = (a + 2) % 3; texel (i, j) of an
+S x S face is centred at local P[a] = s, P[b] = -1 + (i + 0.5) 2 / S, P[c] = -1 + (j + 0.5) 2 / S. Texel f holds
+``f * S * S + j * S + i`` in a flat array. Sampling by direction uses the point where a ray leaves the box, which is
+what a hardware cube map does with the direction from the box centre.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from volren.camera import Camera
+from volren.scene import Volume
+
+FACE_COUNT = 6
+
+
+@wp.func
+def axis_unit(k: int) -> wp.vec3:
+    if k == 0:
+        return wp.vec3(1.0, 0.0, 0.0)
+    if k == 1:
+        return wp.vec3(0.0, 1.0, 0.0)
+    return wp.vec3(0.0, 0.0, 1.0)
+
+
+@wp.func
+def face_point(f: int, u: float, v: float) -> wp.vec3:
+    """Local point on face f at tangent coordinates (u, v) in [-1, 1]^2 (may overflow for seam handling)."""
+    a = f / 2
+    s = 1.0 - 2.0 * float(f % 2)
+    return s * axis_unit(a) + u * axis_unit((a + 1) % 3) + v * axis_unit((a + 2) % 3)
+
+
+@wp.func
+def point_face(p: wp.vec3) -> int:
+    """The face a point on (or near) the box surface belongs to: the axis of largest |component|, and its sign."""
+    ax = wp.abs(p[0])
+    ay = wp.abs(p[1])
+    az = wp.abs(p[2])
+    a = int(2)
+    if ax >= ay and ax >= az:
+        a = 0
+    elif ay >= az:
+        a = 1
+    f = 2 * a
+    if p[a] < 0.0:
+        f = f + 1
+    return f
+
+
+@wp.func
+def texel_index(f: int, i: int, j: int, size: int) -> int:
+    """Flat index of texel (i, j) of face f; indices one past a face edge wrap onto the adjacent face, so that
+    bilinear filtering is seamless across edges (the texel half a texel beyond the edge is the neighbour face's
+    first row: P[b] = +-1, P[a] = s (1 - h / 2))."""
+    if i >= 0 and i < size and j >= 0 and j < size:
+        return (f * size + j) * size + i
+    h = 2.0 / float(size)
+    u = wp.clamp(-1.0 + (float(i) + 0.5) * h, -1.0, 1.0)
+    v = wp.clamp(-1.0 + (float(j) + 0.5) * h, -1.0, 1.0)
+    a = f / 2
+    s = 1.0 - 2.0 * float(f % 2)
+    p = s * (1.0 - 0.5 * h) * axis_unit(a) + u * axis_unit((a + 1) % 3) + v * axis_unit((a + 2) % 3)
+    g = point_face(p)
+    ga = g / 2
+    gi = wp.clamp(int((p[(ga + 1) % 3] + 1.0) * 0.5 * float(size)), 0, size - 1)
+    gj = wp.clamp(int((p[(ga + 2) % 3] + 1.0) * 0.5 * float(size)), 0, size - 1)
+    return (g * size + gj) * size + gi
+
+
+@wp.func
+def cube_bilinear(cube: wp.array(dtype=wp.vec4), offset: int, size: int, p: wp.vec3) -> wp.vec4:
+    """Bilinear sample of the cube map (texels ``offset ...``) at the box-surface point ``p``, seamless at edges."""
+    f = point_face(p)
+    a = f / 2
+    x = (p[(a + 1) % 3] + 1.0) * 0.5 * float(size) - 0.5
+    y = (p[(a + 2) % 3] + 1.0) * 0.5 * float(size) - 0.5
+    x0 = int(wp.floor(x))
+    y0 = int(wp.floor(y))
+    fx = x - float(x0)
+    fy = y - float(y0)
+    c00 = cube[offset + texel_index(f, x0, y0, size)]
+    c10 = cube[offset + texel_index(f, x0 + 1, y0, size)]
+    c01 = cube[offset + texel_index(f, x0, y0 + 1, size)]
+    c11 = cube[offset + texel_index(f, x0 + 1, y0 + 1, size)]
+    return (c00 * (1.0 - fx) + c10 * fx) * (1.0 - fy) + (c01 * (1.0 - fx) + c11 * fx) * fy
+
+
+def visible_faces(eye_local: np.ndarray, faces: str = "interior") -> list[int]:
+    """Paper 001 Eq. 1: interior face i is visible when E[i / 2] < 1 for even i (the + face) and E[i / 2] > -1 for
+    odd i (the - face); an eye inside the box sees all six. Exterior faces are visible from the other side:
+    E[i / 2] > 1 for even i and E[i / 2] < -1 for odd i."""
+    interior = faces == "interior"
+    out = []
+    for i in range(FACE_COUNT):
+        # Signed distance of the eye beyond the face's plane along its outward normal.
+        beyond = float(eye_local[i // 2]) * (1.0 if i % 2 == 0 else -1.0) - 1.0
+        if (beyond < 0.0) == interior:
+            out.append(i)
+    return out
+
+
+@dataclass(frozen=True)
+class CubeLOD:
+    """Adaptive LOD of one volume in one view (paper 001 §3.3)."""
+
+    level: int
+    """cube-map and density mip level: 0 is the finest"""
+    size: int
+    """face size S at that level [texels]"""
+    samples: int
+    """N: view samples across the box diagonal"""
+    edge_pixels: float
+    """longest projected box edge [pixels]"""
+
+
+def cube_lod(vol: Volume, cam: Camera, base_size: int, max_samples: int, k_u: float, k_c: float,
+             adaptive: bool) -> CubeLOD:
+    """Steps 1-5 of paper 001 §3.3.
+
+    S_ideal = max projected edge / k_u, N_ideal = k_c S_ideal / sqrt 3, N = min(ceil(N_ideal), N_max),
+    S = sqrt 3 min(N_ideal, N) / k_c, and the level l = max(floor(log2(S0 / S)), 0). The paper prints
+    log2(S / S0), which would give a finer level for a smaller S; the reading used here makes a volume that shrinks
+    on screen march a coarser cube map and density level. A corner behind the eye (the eye close to or inside the
+    box) counts as an unbounded edge: level 0 and N_max. ``adaptive=False`` keeps level 0 and N = N_max.
+    """
+    levels = len(vol.mip_pyramid)
+    if not adaptive:
+        return CubeLOD(0, base_size, max_samples, math.inf)
+    view = cam.view_matrix()
+    corners = np.c_[vol.corners_world, np.ones(8)] @ view.T
+    depth = -corners[:, 2]
+    if np.any(depth <= cam.near):
+        return CubeLOD(0, base_size, max_samples, math.inf)
+    focal = cam.height / (2 * cam.tan_half_fov)
+    px = corners[:, :2] / depth[:, None] * focal
+    edges = [(i, i ^ bit) for i in range(8) for bit in (1, 2, 4) if i < i ^ bit]
+    edge = max(float(np.linalg.norm(px[i] - px[j])) for i, j in edges)
+    s_ideal = edge / k_u
+    n_ideal = k_c * s_ideal / math.sqrt(3)
+    n = max(1, min(math.ceil(n_ideal), max_samples))
+    s = math.sqrt(3) * min(n_ideal, n) / k_c
+    level = 0 if s >= base_size else min(int(math.floor(math.log2(base_size / max(s, 1e-9)))), levels - 1)
+    return CubeLOD(level, max(base_size >> level, 2), n, edge)
