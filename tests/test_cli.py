@@ -82,7 +82,7 @@ def ok(capfd: pytest.CaptureFixture[str], *argv: object) -> Result:
 
 
 def render(capfd: pytest.CaptureFixture[str], out: Path, *extra: object, method: str = "dssrm") -> Result:
-    settings = TINY if method == "dssrm" else BASE
+    settings = TINY if method in ("dssrm", "cmsrm") else BASE
     return ok(capfd, "render", *settings, "--method", method, "--out", out, *extra)
 
 
@@ -823,3 +823,36 @@ def test_bench_cuda_without_gpu(capfd, tmp_path: Path) -> None:
         pytest.skip("this machine has a CUDA GPU")
     assert_error(capfd, ["bench", "dssrm", "--quick", "--device", "cuda", "--out", tmp_path / "b"], "no CUDA GPU",
                  no_out=tmp_path / "b")
+
+
+@pytest.mark.parametrize("views", ["mono", "stereo"])
+@pytest.mark.parametrize("scene", SCENES)
+def test_cmsrm_renders_every_builtin(capfd, tmp_path: Path, scene: str, views: str) -> None:
+    out = tmp_path / "c"
+    render(capfd, out, "--scene", scene, "--count", "4", "--views", views, "--no-hybrid", method="cmsrm")
+    stats = stats_of(out)["frames"][0]
+    assert stats["method"] == "cmsrm" and "cube_march" in stats["times_ms"] and "resample" in stats["times_ms"]
+    plans = stats["info"]["volumes"]
+    assert len(plans) == (1 if views == "mono" else 2)
+    assert all(p["scheme"] == "cube" for view in plans for p in view)
+    assert (out / "stereo.png").exists() == (views == "stereo")
+
+
+def test_cmsrm_options(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "c"
+    render(capfd, out, "--views", "mono", "--cube-faces", "exterior", "--cube-size", "32", "--no-lod", method="cmsrm")
+    plan = stats_of(out)["frames"][0]["info"]["volumes"][0][0]
+    assert plan["face_size"] == 32 and plan["level"] == 0
+
+
+@pytest.mark.parametrize(
+    ("extra", "fragment"),
+    [
+        (["--method", "cmsrm", "--cube-size", "1"], "cube size"),
+        (["--method", "cmsrm", "--cube-faces", "sideways"], "cube-faces"),
+        (["--method", "dssrm", "--no-lod"], "--no-lod"),
+        (["--method", "cmsrm", "--jitter"], "--jitter"),
+    ],
+)
+def test_cmsrm_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: str) -> None:
+    render_error(capfd, tmp_path, extra, fragment)

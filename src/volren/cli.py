@@ -110,6 +110,11 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--light-samples", type=int, help="L: samples towards the light (method default if unset)")
     r.add_argument("--light-grid", type=int, help="light-map voxels on the longest axis (default: half the density)")
     r.add_argument("--jitter", action="store_true", help="seeded random ray start offsets")
+    r.add_argument("--cube-faces", choices=("interior", "exterior"), help="cmsrm: march to interior (default) or "
+                   "exterior cube faces (exterior only to show its aliasing)")
+    r.add_argument("--cube-size", type=int, help="cmsrm: level-0 cube face size S0 (default: the density's axis)")
+    r.add_argument("--no-lod", action="store_true", help="cmsrm: no adaptive LOD (level 0, N = --samples)")
+    r.add_argument("--no-hybrid", action="store_true", help="cmsrm: always march the cube map, never directly")
     r.add_argument("--frames", type=int, default=1, help="render N frames (temporal methods), keep every frame")
     r.add_argument("--seed", type=int, default=0)
     add_device(p)
@@ -197,12 +202,23 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         raise CliError(f"unknown method '{method}': choose from {', '.join(METHODS)}")
     cls, config_cls = METHODS[method]
     fields = {f.name for f in dataclasses.fields(config_cls)}
-    given = {"samples": args.samples, "light_samples": args.light_samples, "light_grid": args.light_grid,
-             "jitter": args.jitter or None, "seed": args.seed}
-    options = {k: v for k, v in given.items() if v is not None and k in fields}
-    ignored = sorted(k for k, v in given.items() if v is not None and k not in fields and k != "seed")
+    # config field -> (value given on the command line or None, the flag that gives it)
+    given = {
+        "samples": (args.samples, "--samples"),
+        "light_samples": (args.light_samples, "--light-samples"),
+        "light_grid": (args.light_grid, "--light-grid"),
+        "jitter": (args.jitter or None, "--jitter"),
+        "cube_faces": (args.cube_faces, "--cube-faces"),
+        "cube_size": (args.cube_size, "--cube-size"),
+        "adaptive_lod": (False if args.no_lod else None, "--no-lod"),
+        "hybrid": (False if args.no_hybrid else None, "--no-hybrid"),
+    }
+    options = {k: v for k, (v, _) in given.items() if v is not None and k in fields}
+    ignored = [flag for k, (v, flag) in given.items() if v is not None and k not in fields]
     if ignored:
-        raise CliError(f"method '{method}' does not take --{', --'.join(s.replace('_', '-') for s in ignored)}")
+        raise CliError(f"method '{method}' does not take {', '.join(ignored)}")
+    if "seed" in fields:
+        options["seed"] = args.seed
     return cls(config_cls(**options), device=args.device)
 
 
