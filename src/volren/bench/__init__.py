@@ -6,7 +6,9 @@ from __future__ import annotations
 import json
 import os
 import platform
-from collections.abc import Callable
+import statistics
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -14,8 +16,11 @@ from typing import Any
 
 import warp as wp
 
+from volren.camera import Camera
 from volren.device import cpu_threads, resolve_device
 from volren.errors import VolrenError
+from volren.render import Renderer
+from volren.scene import Scene
 
 
 @dataclass(frozen=True)
@@ -23,14 +28,45 @@ class Suite:
     name: str
     description: str
     run: Callable[[bool, str], dict[str, Any]]
-    """(quick, device) -> {"settings": ..., "rows": [dict, ...], "columns": [(key, header, format), ...]}"""
+    """(quick, device) -> {"settings": ..., "rows": [dict, ...], "columns": [(key, header, format), ...]}, plus
+    optionally "summary": (rows, columns) for a second table (ratios against a paper's goals)"""
 
 
 def all_suites() -> dict[str, Suite]:
     """Every suite by name (imported here, so importing volren.bench stays cheap)."""
     from volren.bench.dssrm import SUITE as DSSRM_SUITE
+    from volren.bench.resolution import SUITE as RESOLUTION_SUITE
 
-    return {s.name: s for s in (DSSRM_SUITE,)}
+    return {s.name: s for s in (DSSRM_SUITE, RESOLUTION_SUITE)}
+
+
+NOT_PASSES = ("upload", "readback")
+"""Times that are not the method's per-frame work (one-off upload, copying images to the host)."""
+
+
+def measure(renderer: Renderer, scene: Scene, views: list[Camera], repeats: int) -> dict[str, Any]:
+    """Median pass times [ms] over ``repeats`` frames after a warm-up frame (kernel compilation, upload), the
+    frame time (sum of the passes), the last frame's counters and info, and the last frame itself."""
+    renderer.render(scene, views)
+    frames = [renderer.render(scene, views, frame=i) for i in range(repeats)]
+    passes = sorted({k for f in frames for k in f.stats.times_ms if k not in NOT_PASSES})
+    times = {f"{k}_ms": statistics.median(f.stats.times_ms.get(k, 0.0) for f in frames) for k in passes}
+    return {"frame_ms": sum(times.values()), **times, **frames[-1].stats.counters, "frame": frames[-1]}
+
+
+@contextmanager
+def cpu_thread_limit(threads: int | None) -> Iterator[None]:
+    """Run with ``VOLREN_CPU_THREADS`` set (None: leave it as it is)."""
+    old = os.environ.get("VOLREN_CPU_THREADS")
+    if threads is not None:
+        os.environ["VOLREN_CPU_THREADS"] = str(threads)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("VOLREN_CPU_THREADS", None)
+        else:
+            os.environ["VOLREN_CPU_THREADS"] = old
 
 
 def machine_info(device: str) -> dict[str, Any]:
@@ -71,12 +107,15 @@ def run_suite(name: str, *, quick: bool, device: str, out: Path) -> tuple[Path, 
     except OSError as exc:
         raise VolrenError(f"cannot create '{out}': {exc.strerror}") from exc
     result = suites[name].run(quick, device)
-    doc = {"suite": name, "quick": quick, "machine": machine_info(device), **result}
+    table = markdown_table(result["rows"], result["columns"])
+    summary_rows, summary_columns = result.pop("summary", ([], []))
+    if summary_rows:
+        table += "\n\n" + markdown_table(summary_rows, summary_columns)
+    doc = {"suite": name, "quick": quick, "machine": machine_info(device), **result, "summary": summary_rows}
     tag = f"{name}-{'cpu' if device == 'cpu' else 'cuda'}-{'quick' if quick else 'full'}"
     json_path, md_path = out / f"{tag}.json", out / f"{tag}.md"
     json_path.write_text(json.dumps(doc, indent=2, default=str) + "\n")
     m = doc["machine"]
-    table = markdown_table(result["rows"], result["columns"])
     md_path.write_text(f"### {name} ({'quick' if quick else 'full'}) on {m['device_name']} ({m['cpu']}, "
                        f"{m['cpu_threads_used']} CPU threads), warp {m['warp']}, {m['date']}\n\n{table}\n")
     return json_path, md_path, table

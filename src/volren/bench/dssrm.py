@@ -9,12 +9,9 @@ light-map lookups).
 
 from __future__ import annotations
 
-import os
-import statistics
-from contextlib import contextmanager
 from typing import Any
 
-from volren.bench import Suite
+from volren.bench import Suite, cpu_thread_limit, measure
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.render import DSSRM, DSSRMConfig
@@ -24,35 +21,14 @@ QUICK = {"resolution": 64, "light_grid": 32, "sizes": [(192, 108), (384, 216)], 
 SETTINGS = [(360, 96), (100, 48)]
 
 
-@contextmanager
-def cpu_thread_limit(threads: int | None):
-    old = os.environ.get("VOLREN_CPU_THREADS")
-    if threads is not None:
-        os.environ["VOLREN_CPU_THREADS"] = str(threads)
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop("VOLREN_CPU_THREADS", None)
-        else:
-            os.environ["VOLREN_CPU_THREADS"] = old
-
-
-def measure(renderer: DSSRM, scene, views, repeats: int) -> dict[str, Any]:
-    renderer.render(scene, views)  # warm-up: kernel compilation and upload
-    frames = [renderer.render(scene, views, frame=i) for i in range(repeats)]
-    times = {k: statistics.median(f.stats.times_ms.get(k, 0.0) for f in frames) for k in ("light_map", "march")}
-    counters = frames[-1].stats.counters
+def rates(row: dict[str, Any]) -> dict[str, Any]:
+    """Samples per second of the march (density, and all trilinear fetches) and of the light-map pass."""
+    march, light = row["march_ms"], row.get("light_map_ms", 0.0)
     return {
-        "light_map_ms": times["light_map"],
-        "march_ms": times["march"],
-        "frame_ms": times["light_map"] + times["march"],
-        **counters,
-        "march_msamples_per_s": counters["density_samples"] / times["march"] / 1e3 if times["march"] else None,
+        "march_msamples_per_s": row["density_samples"] / march / 1e3 if march else None,
         # Light-map lookups are trilinear fetches too (of the light grid instead of the density).
-        "march_trilinear_per_s": (counters["density_samples"] + counters["lightmap_lookups"]) / times["march"] / 1e3
-        if times["march"] else None,
-        "light_msamples_per_s": counters["light_samples"] / times["light_map"] / 1e3 if times["light_map"] else None,
+        "march_trilinear_per_s": (row["density_samples"] + row["lightmap_lookups"]) / march / 1e3 if march else None,
+        "light_msamples_per_s": row["light_samples"] / light / 1e3 if light else None,
     }
 
 
@@ -68,8 +44,9 @@ def run(quick: bool, device: str) -> dict[str, Any]:
                 with cpu_thread_limit(threads):
                     r = DSSRM(DSSRMConfig(samples=v, light_samples=lsamp, light_grid=cfg["light_grid"]), device)
                     row = measure(r, scene, views, cfg["repeats"])
+                row.pop("frame")
                 rows.append({"size": f"{width}x{height}", "method": f"DSSRM:{v}:{lsamp}",
-                             "threads": threads or "all", **row})
+                             "threads": threads or "all", **row, **rates(row)})
     columns = [
         ("size", "view size", "s"), ("method", "method", "s"), ("threads", "CPU threads", ""),
         ("frame_ms", "stereo frame [ms]", ".2f"), ("light_map_ms", "light map [ms]", ".2f"),

@@ -1,0 +1,29 @@
+"""Benchmark suites at toy sizes: the rows, ratios and files they produce (their timings are not checked)."""
+
+from __future__ import annotations
+
+import json
+
+from volren.bench import run_suite
+from volren.bench.resolution import run_config
+
+
+def test_resolution_suite_rows_and_ratios():
+    cfg = {"scenes": ["cloud"], "resolution": 64, "light_grid": 16, "sizes": [(48, 27), (96, 54)], "repeats": 1,
+           "reference": 64}
+    result = run_config(cfg, "cpu")
+    rows = result["rows"]
+    assert {r["method"] for r in rows} == {"DSSRM:360:96", "DSSRM:100:48", "CMSRM:360:96", "CMSRM:100:48"}
+    assert len(rows) == 4 * len(cfg["sizes"])
+    smallest = [r for r in rows if r["size"] == "48x27"]
+    assert all(0 < r["ssim"] <= 1 and r["psnr"] > 20 for r in smallest)
+    assert all("psnr" not in r for r in rows if r["size"] == "96x54")
+    (ratio,), _ = result["summary"]
+    assert ratio["scene"] == "cloud" and ratio["dssrm_over_cmsrm_largest"] > 0
+
+
+def test_run_suite_writes_json_and_markdown(tmp_path):
+    json_path, md_path, table = run_suite("dssrm", quick=True, device="cpu", out=tmp_path)
+    doc = json.loads(json_path.read_text())
+    assert doc["machine"]["device"] == "cpu" and doc["rows"]
+    assert table in md_path.read_text()
