@@ -32,6 +32,7 @@ from volren.kernels.common import (
     VolumeGPU,
     box_hit,
     camera_ray,
+    count,
     new_march_state,
     view_t_range,
     write_pixel,
@@ -129,13 +130,13 @@ def cube_march_kernel(
             t0 = wp.max(dist, cam.near / facing)
             t1 = hb[1]
         if t1 > t0:
-            wp.atomic_add(counters, RAYS, wp.int64(1))
+            count(counters, RAYS, 1)
             s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, density, lightmap, lights, params)
     texel = offset + texel_index(f, i, j, size)
     cube[texel] = wp.vec4(s.color[0], s.color[1], s.color[2], s.transmittance)
     cube_t[texel] = s.depth_t
-    wp.atomic_add(counters, DENSITY_SAMPLES, wp.int64(s.samples))
-    wp.atomic_add(counters, LIGHTMAP_LOOKUPS, wp.int64(s.shaded * lights.shape[0]))
+    count(counters, DENSITY_SAMPLES, s.samples)
+    count(counters, LIGHTMAP_LOOKUPS, s.shaded * lights.shape[0])
 
 
 @wp.func
@@ -201,8 +202,8 @@ def cube_resample_kernel(
                 s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, density, lightmap, lights, params)
             if s.transmittance < params.min_transmittance:
                 break
-    wp.atomic_add(counters, RAYS, wp.int64(direct))
-    wp.atomic_add(counters, LIGHTMAP_LOOKUPS, wp.int64(s.shaded * lights.shape[0]))
+    count(counters, RAYS, direct)
+    count(counters, LIGHTMAP_LOOKUPS, s.shaded * lights.shape[0])
     write_pixel(s, cam, d, row, col, image, depth, counters, DENSITY_SAMPLES)
 
 

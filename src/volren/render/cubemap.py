@@ -86,10 +86,18 @@ def cube_bilinear(cube: wp.array(dtype=wp.vec4), offset: int, size: int, p: wp.v
     y0 = int(wp.floor(y))
     fx = x - float(x0)
     fy = y - float(y0)
-    c00 = cube[offset + texel_index(f, x0, y0, size)]
-    c10 = cube[offset + texel_index(f, x0 + 1, y0, size)]
-    c01 = cube[offset + texel_index(f, x0, y0 + 1, size)]
-    c11 = cube[offset + texel_index(f, x0 + 1, y0 + 1, size)]
+    if x0 >= 0 and y0 >= 0 and x0 < size - 1 and y0 < size - 1:
+        # Inside the face (all but a half-texel rim): plain 2x2 addressing.
+        base = offset + (f * size + y0) * size + x0
+        c00 = cube[base]
+        c10 = cube[base + 1]
+        c01 = cube[base + size]
+        c11 = cube[base + size + 1]
+    else:
+        c00 = cube[offset + texel_index(f, x0, y0, size)]
+        c10 = cube[offset + texel_index(f, x0 + 1, y0, size)]
+        c01 = cube[offset + texel_index(f, x0, y0 + 1, size)]
+        c11 = cube[offset + texel_index(f, x0 + 1, y0 + 1, size)]
     return (c00 * (1.0 - fx) + c10 * fx) * (1.0 - fy) + (c01 * (1.0 - fx) + c11 * fx) * fy
 
 

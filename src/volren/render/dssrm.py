@@ -23,6 +23,7 @@ from volren.kernels.common import (
     box_hit,
     camera_ray,
     composite_step,
+    count,
     half_depth,
     hg_phase,
     light_irradiance,
@@ -173,8 +174,8 @@ def dssrm_kernel(
             s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, offset, density, lightmap, lights, params)
             if s.transmittance < params.min_transmittance:
                 break
-    wp.atomic_add(counters, LIGHTMAP_LOOKUPS, wp.int64(s.shaded * lights.shape[0]))
-    wp.atomic_add(counters, RAYS, wp.int64(hit))
+    count(counters, LIGHTMAP_LOOKUPS, s.shaded * lights.shape[0])
+    count(counters, RAYS, hit)
     write_pixel(s, cam, d, row, col, image, depth, counters, DENSITY_SAMPLES)
 
 

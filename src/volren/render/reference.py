@@ -26,6 +26,7 @@ from volren.kernels.common import (
     box_hit,
     camera_ray,
     composite_step,
+    count,
     covering_diagonal,
     density_inside,
     half_depth,
@@ -146,7 +147,7 @@ def reference_kernel(
     t1 = wp.min(t1, planes[1])
     s = new_march_state()
     if t1 > t0:
-        wp.atomic_add(counters, RAYS, wp.int64(1))
+        count(counters, RAYS, 1)
     t = t0
     while t < t1 and s.transmittance >= params.min_transmittance:
         t_next = wp.min(next_box_boundary(cam.origin, d, t, volumes, 0, n_vol), t1)
