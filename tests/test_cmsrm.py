@@ -161,4 +161,4 @@ def test_stereo_cube_maps_per_eye():
     frame = CMSRM(CMSRMConfig(hybrid=False, **MATCHED), device="cpu").render(builtin_scene("smoke", 64), views)
     assert len(frame.images) == 2 and np.abs(frame.images[0] - frame.images[1]).max() > 0.01
     assert len(frame.stats.info["volumes"]) == 2
-    assert frame.stats.info["cube_map_bytes"] == 2 * 6 * 64 * 64 * 20
+    assert frame.stats.info["cube_map_bytes"] == 2 * 6 * 64 * 64 * 24

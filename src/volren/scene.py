@@ -219,6 +219,49 @@ class PointLight:
 Light = DirectionalLight | PointLight
 
 
+def _albedo(value: float | Sequence[float], what: str) -> RGB:
+    a = as_rgb(value, what)
+    if min(a) < 0 or max(a) > 1:
+        raise VolrenError(f"{what} must lie in [0, 1], got {a}")
+    return a
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """An opaque diffuse sphere (the analytic stand-in for meshes, paper 001 §3.2): it hides what lies behind it."""
+
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    radius: float = 0.5
+    """[m]"""
+    albedo: RGB = (0.7, 0.7, 0.7)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", tuple(float(v) for v in as_vec3(self.center, "sphere center")))
+        if not (np.isfinite(self.radius) and self.radius > 0):
+            raise VolrenError(f"sphere radius must be > 0, got {self.radius}")
+        object.__setattr__(self, "albedo", _albedo(self.albedo, "sphere albedo"))
+
+
+@dataclass(frozen=True)
+class Plane:
+    """An opaque diffuse plane through ``point`` facing ``normal`` (e.g. a ground plane)."""
+
+    point: tuple[float, float, float] = (0.0, -1.0, 0.0)
+    normal: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    albedo: RGB = (0.5, 0.5, 0.5)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "point", tuple(float(v) for v in as_vec3(self.point, "plane point")))
+        n = as_vec3(self.normal, "plane normal")
+        if np.linalg.norm(n) < 1e-9:
+            raise VolrenError("plane normal must not be the zero vector")
+        object.__setattr__(self, "normal", tuple(float(v) for v in n / np.linalg.norm(n)))
+        object.__setattr__(self, "albedo", _albedo(self.albedo, "plane albedo"))
+
+
+Opaque = Sphere | Plane
+
+
 @dataclass(frozen=True, eq=False)
 class Environment:
     """Distant environment: a constant radiance, or an equirectangular HDR image ``(H, W, 3)``.
@@ -268,10 +311,16 @@ class Scene:
     background: RGB = (0.0, 0.0, 0.0)
     """linear RGB seen where rays leave the scene (composited only when an image is written)."""
     name: str = "scene"
+    opaque: tuple[Opaque, ...] = ()
+    """opaque diffuse surfaces, ray-traced into a colour + depth buffer per view that clips the volumes"""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "volumes", tuple(self.volumes))
         object.__setattr__(self, "lights", tuple(self.lights))
+        object.__setattr__(self, "opaque", tuple(self.opaque))
+        for o in self.opaque:
+            if not isinstance(o, Sphere | Plane):
+                raise VolrenError(f"opaque objects must be Sphere or Plane, got {type(o).__name__}")
         if not self.volumes:
             raise VolrenError("a scene needs at least one volume")
         for v in self.volumes:

@@ -14,7 +14,8 @@ import warp as wp
 from volren.camera import Camera
 from volren.device import check_allocation
 from volren.errors import VolrenError
-from volren.kernels.common import LIGHT_DIRECTIONAL, LIGHT_POINT, CameraGPU, LightGPU, VolumeGPU
+from volren.kernels.common import LIGHT_DIRECTIONAL, LIGHT_POINT, CameraGPU, LightGPU, OpaqueGPU, VolumeGPU
+from volren.render.surfaces import opaque_structs
 from volren.scene import DirectionalLight, Scene, Volume
 
 MAX_PACKED = 2**31 - 1
@@ -73,6 +74,8 @@ class DeviceScene:
     light_res: list[tuple[int, int, int]]
     lightmap: wp.array
     ambient: wp.vec3
+    opaque: wp.array
+    """the scene's opaque spheres and planes (`OpaqueGPU`)"""
     levels: list[list[VolumeGPU]]
     """per volume, its struct at each uploaded mip level (level 0 only unless uploaded with ``mip_levels``);
     levels differ only in ``offset`` and ``res``: same box, material and light map"""
@@ -152,5 +155,7 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         light_res=light_res,
         lightmap=lightmap,
         ambient=wp.vec3(*scene.environment.mean_radiance()),
+        opaque=wp.array(opaque_structs(scene), dtype=OpaqueGPU, device=device)
+        if scene.opaque else wp.zeros(0, dtype=OpaqueGPU, device=device),
         levels=levels,
     )

@@ -12,6 +12,8 @@ import warp as wp
 INF = wp.constant(1.0e30)
 LIGHT_DIRECTIONAL = wp.constant(0)
 LIGHT_POINT = wp.constant(1)
+OPAQUE_SPHERE = wp.constant(0)
+OPAQUE_PLANE = wp.constant(1)
 
 
 @wp.struct
@@ -54,6 +56,31 @@ class LightGPU:
     """unit direction of travel (directional) or position (point)"""
     power: wp.vec3
     """irradiance [W/m^2] (directional) or intensity [W/sr] (point)"""
+
+
+@wp.struct
+class OpaqueGPU:
+    kind: int
+    position: wp.vec3
+    """sphere centre, or a point of the plane"""
+    normal: wp.vec3
+    """plane normal (unused for spheres)"""
+    radius: float
+    albedo: wp.vec3
+
+
+@wp.struct
+class ViewBuffers:
+    """One view's render targets and its opaque-surface buffers (paper 001 §3.2's colour + z-buffer)."""
+
+    image: wp.array2d(dtype=wp.vec4)
+    """premultiplied linear RGBA, composited over the opaque surfaces"""
+    depth: wp.array2d(dtype=float)
+    """linear depth where the transmittance reached 1/2, else of the opaque surface, else INF"""
+    occluder_color: wp.array2d(dtype=wp.vec4)
+    """shaded opaque surface (rgb) and w = 1 where its colour is known (0 for a user depth image)"""
+    occluder_depth: wp.array2d(dtype=float)
+    """linear depth of the nearest opaque surface, INF where there is none"""
 
 
 @wp.struct
@@ -332,21 +359,50 @@ def new_march_state() -> MarchState:
 
 
 @wp.func
+def occluder_t(buffers: ViewBuffers, cam: CameraGPU, d: wp.vec3, row: int, col: int) -> float:
+    """Ray distance to the opaque surface seen through pixel (row, col) along d (INF if none): rays stop there."""
+    z = buffers.occluder_depth[row, col]
+    if z >= INF:
+        return INF
+    return z / wp.dot(d, cam.forward)
+
+
+@wp.func
+def project_pixel(cam: CameraGPU, x: wp.vec3) -> wp.vec3:
+    """(column, row, linear depth) of world point x in the view; columns and rows are continuous pixel coordinates
+    (pixel (r, c) spans [c, c + 1) x [r, r + 1))."""
+    v = x - cam.origin
+    z = wp.dot(v, cam.forward)
+    col = (wp.dot(v, cam.right) / (z * cam.tan_half_fov * cam.aspect) + 1.0) * 0.5 * float(cam.width)
+    row = (1.0 - wp.dot(v, cam.up) / (z * cam.tan_half_fov)) * 0.5 * float(cam.height)
+    return wp.vec3(col, row, z)
+
+
+@wp.func
 def write_pixel(
     s: MarchState,
     cam: CameraGPU,
     d: wp.vec3,
     row: int,
     col: int,
-    image: wp.array2d(dtype=wp.vec4),
-    depth: wp.array2d(dtype=float),
+    buffers: ViewBuffers,
     counters: wp.array(dtype=wp.int64),
     density_counter: int,
 ):
-    """Store a finished ray: premultiplied RGBA (alpha = 1 - T), linear view depth, and its density samples."""
+    """Store a finished ray: premultiplied RGBA (alpha = 1 - T) over the opaque surface behind it (alpha 1 there),
+    linear view depth, and its density samples."""
     count(counters, density_counter, s.samples)
-    image[row, col] = wp.vec4(s.color[0], s.color[1], s.color[2], 1.0 - s.transmittance)
-    depth[row, col] = s.depth_t * wp.dot(d, cam.forward)
+    color = s.color
+    alpha = 1.0 - s.transmittance
+    surface = buffers.occluder_color[row, col]
+    if surface[3] > 0.0:
+        color = color + s.transmittance * wp.vec3(surface[0], surface[1], surface[2])
+        alpha = 1.0
+    z = s.depth_t * wp.dot(d, cam.forward)
+    if s.depth_t >= INF:
+        z = buffers.occluder_depth[row, col]
+    buffers.image[row, col] = wp.vec4(color[0], color[1], color[2], alpha)
+    buffers.depth[row, col] = z
 
 
 @wp.func

@@ -7,14 +7,15 @@ from dataclasses import asdict
 from typing import Any, ClassVar
 
 import numpy as np
-import warp as wp
 
 from volren.camera import Camera
 from volren.device import check_allocation, resolve_device
 from volren.errors import VolrenError
+from volren.kernels.common import ViewBuffers
 from volren.render.frame import Frame, PassClock, Stats
+from volren.render.surfaces import check_user_depth, trace_surfaces, view_buffers
 from volren.scene import Scene
-from volren.upload import DeviceScene, upload_scene
+from volren.upload import DeviceScene, camera_struct, upload_scene
 
 
 def frame_seed(seed: int, frame: int) -> int:
@@ -66,29 +67,46 @@ class Renderer:
         return self._upload(scene, clock)
 
     def _render_view(
-        self, ds: DeviceScene, cam: Camera, view: int, frame: int, image: wp.array, depth: wp.array, clock: PassClock
+        self, ds: DeviceScene, cam: Camera, view: int, frame: int, buffers: ViewBuffers, clock: PassClock
     ) -> None:
         raise NotImplementedError
 
-    def render(self, scene: Scene, views: Sequence[Camera], frame: int = 0) -> Frame:
+    def render(
+        self,
+        scene: Scene,
+        views: Sequence[Camera],
+        frame: int = 0,
+        *,
+        occluder_depth: Sequence[np.ndarray | None] | None = None,
+    ) -> Frame:
+        """Render ``frame`` of ``scene`` for every view. ``occluder_depth`` optionally gives per view a linear depth
+        image (H, W) of opaque geometry drawn elsewhere (+inf where none): volumes are clipped there."""
         views = list(views)
         if not views:
             raise VolrenError("render needs at least one view")
-        # RGBA + depth on the device, and their host copies.
+        user_depth = list(occluder_depth) if occluder_depth is not None else [None] * len(views)
+        if len(user_depth) != len(views):
+            raise VolrenError(f"got {len(user_depth)} depth image(s) for {len(views)} view(s)")
+        user_depth = [None if z is None else check_user_depth(z, c, v)
+                      for v, (z, c) in enumerate(zip(user_depth, views, strict=True))]
+        # RGBA + depth and the surface colour + depth on the device, and host copies of the first two.
         pixels = sum(c.width * c.height for c in views)
-        check_allocation(pixels * 20 * (1 if self.device == "cpu" else 2), self.device, f"{len(views)} view image(s)")
+        check_allocation(pixels * (40 if self.device == "cpu" else 60), self.device, f"{len(views)} view image(s)")
         clock = PassClock(self.device)
         self._frame_info: dict[str, Any] = {}
         ds = self._prepare(scene, clock, frame)
         targets = []
         for v, cam in enumerate(views):
-            image = wp.zeros((cam.height, cam.width), dtype=wp.vec4, device=self.device)
-            depth = wp.zeros((cam.height, cam.width), dtype=float, device=self.device)
-            self._render_view(ds, cam, v, frame, image, depth, clock)
-            targets.append((image, depth))
+            buffers = view_buffers(cam, self.device)
+            if scene.opaque or user_depth[v] is not None:
+                with clock.measure("surfaces"):
+                    trace_surfaces(scene, camera_struct(cam), cam, ds.opaque, ds.lights, ds.ambient, user_depth[v],
+                                   buffers, self.device)
+            self._render_view(ds, cam, v, frame, buffers, clock)
+            targets.append(buffers)
         with clock.measure("readback"):
-            images = [np.ascontiguousarray(img.numpy().reshape(img.shape[0], img.shape[1], 4)) for img, _ in targets]
-            depths = [d.numpy() for _, d in targets]
+            images = [np.ascontiguousarray(b.image.numpy()) for b in targets]
+            depths = [b.depth.numpy() for b in targets]
         for d in depths:
             d[d >= 1e29] = np.inf
         settings = {"views": len(views), "resolution": [[c.width, c.height] for c in views], **asdict(self.config)}

@@ -12,7 +12,10 @@ projected size; the hybrid choice (§3.4, first paragraph) marches a volume dire
 projected pixels are fewer than its visible texels. ``cube_faces="exterior"`` casts rays to the exterior faces the eye
 sees instead (paper 001 Fig. 2 (a)); it exists to show the texel aliasing that the interior scheme avoids.
 
-Not yet here (issue 3): mesh occlusion with the 2x2 bilateral depth filter (§3.2).
+Mesh occlusion (§3.2): each texel ray stops at the opaque surface of the z-buffer pixel its texel projects to
+(nearest), its end depth is kept in a cube depth map, and resampling weights the 2x2 texels by the bilateral
+edge-stopping w_z = max(1 - k_z |z_buffer - z_cube|, 0) (k_z = 0.5) so that texels cut at a different depth than
+the pixel's own ray do not bleed across occlusion edges (the halo of plain bilinear).
 """
 
 from __future__ import annotations
@@ -29,19 +32,22 @@ from volren.kernels.common import (
     INF,
     CameraGPU,
     LightGPU,
+    ViewBuffers,
     VolumeGPU,
     box_hit,
     camera_ray,
     count,
     new_march_state,
+    occluder_t,
+    project_pixel,
     view_t_range,
     write_pixel,
 )
 from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold
 from volren.render.cubemap import (
     FACE_COUNT,
-    cube_bilinear,
     cube_lod,
+    cube_sample,
     face_point,
     point_face,
     texel_index,
@@ -76,6 +82,8 @@ class CMSRMConfig:
     """sampling coefficient of N_ideal = k_c S_ideal / sqrt 3; 3 gives one sample per texel along a diagonal"""
     hybrid: bool = True
     """march a volume directly when its projected pixels are fewer than its visible texels"""
+    k_z: float = 0.5
+    """[1/m] edge-stopping coefficient of the 2x2 bilateral resampling filter (§3.2); 0 = plain bilinear"""
     seed: int = 0
     min_transmittance: float = 1e-3
     """early ray termination threshold"""
@@ -88,6 +96,8 @@ class CMSRMConfig:
             raise VolrenError(f"cube faces must be interior or exterior, got '{self.cube_faces}'")
         if self.cube_size is not None and not 2 <= self.cube_size <= 4096:
             raise VolrenError(f"cube size must lie in [2, 4096] texels, got {self.cube_size}")
+        if not (np.isfinite(self.k_z) and self.k_z >= 0):
+            raise VolrenError(f"k_z must be >= 0, got {self.k_z}")
         if not (self.k_u > 0 and self.k_c > 0):
             raise VolrenError(f"k_u and k_c must be > 0, got {self.k_u} and {self.k_c}")
 
@@ -103,14 +113,17 @@ def cube_march_kernel(
     lightmap: wp.array(dtype=float),
     lights: wp.array(dtype=LightGPU),
     params: MarchParams,
+    buffers: ViewBuffers,
     cube: wp.array(dtype=wp.vec4),
     cube_t: wp.array(dtype=float),
+    cube_z: wp.array(dtype=float),
     offset: int,
     counters: wp.array(dtype=wp.int64),
     row0: int,
 ):
     """One ray per texel of the visible faces: from the eye through the texel centre, marched from the box entry
-    (or near plane) to the texel (interior), or from the texel to the box exit (exterior)."""
+    (or near plane) to the texel (interior), or from the texel to the box exit (exterior), and cut at the opaque
+    surface of the z-buffer pixel the texel projects to (nearest, the paper's blit into a cube depth map)."""
     r, i = wp.tid()
     row = r + row0
     k = row / size
@@ -122,19 +135,25 @@ def cube_march_kernel(
     d = (x - cam.origin) / dist
     s = new_march_state()
     facing = wp.dot(d, cam.forward)
+    t1 = dist
     if facing > 0.0:
         hb = box_hit(wp.transform_point(vol.to_local, cam.origin), wp.transform_vector(vol.to_local, d))
         t0 = wp.max(hb[0], cam.near / facing)
-        t1 = dist
         if exterior != 0:
             t0 = wp.max(dist, cam.near / facing)
             t1 = hb[1]
+        pix = project_pixel(cam, x)
+        col = int(wp.floor(pix[0]))
+        row_z = int(wp.floor(pix[1]))
+        if col >= 0 and col < cam.width and row_z >= 0 and row_z < cam.height:
+            t1 = wp.min(t1, buffers.occluder_depth[row_z, col] / facing)
         if t1 > t0:
             count(counters, RAYS, 1)
             s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, density, lightmap, lights, params)
     texel = offset + texel_index(f, i, j, size)
     cube[texel] = wp.vec4(s.color[0], s.color[1], s.color[2], s.transmittance)
     cube_t[texel] = s.depth_t
+    cube_z[texel] = t1 * facing
     count(counters, DENSITY_SAMPLES, s.samples)
     count(counters, LIGHTMAP_LOOKUPS, s.shaded * lights.shape[0])
 
@@ -158,14 +177,15 @@ def cube_resample_kernel(
     cube_offset: wp.array(dtype=int),
     cube_size: wp.array(dtype=int),
     exterior: int,
+    k_z: float,
     cube: wp.array(dtype=wp.vec4),
     cube_t: wp.array(dtype=float),
+    cube_z: wp.array(dtype=float),
     density: wp.array(dtype=float),
     lightmap: wp.array(dtype=float),
     lights: wp.array(dtype=LightGPU),
     params: MarchParams,
-    image: wp.array2d(dtype=wp.vec4),
-    depth: wp.array2d(dtype=float),
+    buffers: ViewBuffers,
     counters: wp.array(dtype=wp.int64),
     row0: int,
 ):
@@ -175,6 +195,7 @@ def cube_resample_kernel(
     row = r + row0
     d = camera_ray(cam, row, col, 0.5, 0.5)
     planes = view_t_range(cam, d)
+    planes[1] = wp.min(planes[1], occluder_t(buffers, cam, d, row, col))
     s = new_march_state()
     direct = int(0)
     for k in range(order.shape[0]):
@@ -191,7 +212,7 @@ def cube_resample_kernel(
                 if exterior != 0:
                     t_face = h[0]
                 p = o_l + t_face * d_l
-                c = cube_bilinear(cube, cube_offset[v], cube_size[v], p)
+                c = cube_sample(cube, cube_z, cube_offset[v], cube_size[v], p, t1 * wp.dot(d, cam.forward), k_z)
                 after = s.transmittance * c[3]
                 if s.transmittance > 0.5 and after <= 0.5:
                     s.depth_t = cube_nearest_t(cube_t, cube_offset[v], cube_size[v], p)
@@ -204,7 +225,7 @@ def cube_resample_kernel(
                 break
     count(counters, RAYS, direct)
     count(counters, LIGHTMAP_LOOKUPS, s.shaded * lights.shape[0])
-    write_pixel(s, cam, d, row, col, image, depth, counters, DENSITY_SAMPLES)
+    write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
 
 def projected_pixels(vol_corners: np.ndarray, cam: Camera) -> float:
@@ -263,7 +284,7 @@ class CMSRM(Renderer):
         return plans
 
     def _render_view(
-        self, ds: DeviceScene, cam: Camera, view: int, frame: int, image: wp.array, depth: wp.array, clock: PassClock
+        self, ds: DeviceScene, cam: Camera, view: int, frame: int, buffers: ViewBuffers, clock: PassClock
     ) -> None:
         exterior = int(self.config.cube_faces == "exterior")
         plans = self._plan(ds, cam)
@@ -275,6 +296,7 @@ class CMSRM(Renderer):
                 total += FACE_COUNT * plan["lod"].size ** 2
         cube = wp.full(max(total, 1), wp.vec4(0.0, 0.0, 0.0, 1.0), dtype=wp.vec4, device=self.device)
         cube_t = wp.full(max(total, 1), INF, dtype=float, device=self.device)
+        cube_z = wp.full(max(total, 1), INF, dtype=float, device=self.device)
         cam_gpu = camera_struct(cam)
         with clock.measure("cube_march"):
             for v, plan in enumerate(plans):
@@ -288,7 +310,7 @@ class CMSRM(Renderer):
                     len(plan["faces"]) * lod.size,
                     lod.size,
                     [cam_gpu, level, faces, lod.size, exterior, ds.density, ds.lightmap, ds.lights,
-                     self._params(ds, view, lod.samples), cube, cube_t, offsets[v]],
+                     self._params(ds, view, lod.samples), buffers, cube, cube_t, cube_z, offsets[v]],
                     self.device,
                     clock.counters,
                 )
@@ -300,8 +322,8 @@ class CMSRM(Renderer):
                 cube_resample_kernel,
                 cam.height,
                 cam.width,
-                [cam_gpu, ds.volumes, order, *per_volume, exterior, cube, cube_t, ds.density, ds.lightmap,
-                 ds.lights, self._params(ds, view, self.config.samples), image, depth],
+                [cam_gpu, ds.volumes, order, *per_volume, exterior, self.config.k_z, cube, cube_t, cube_z, ds.density,
+                 ds.lightmap, ds.lights, self._params(ds, view, self.config.samples), buffers],
                 self.device,
                 clock.counters,
                 self.on_rows,
@@ -312,4 +334,4 @@ class CMSRM(Renderer):
              "visible_texels": p["texels"], "projected_pixels": round(p["pixels"])}
             for v, p in enumerate(plans)
         ])
-        self._frame_info["cube_map_bytes"] = self._frame_info.get("cube_map_bytes", 0) + total * 20
+        self._frame_info["cube_map_bytes"] = self._frame_info.get("cube_map_bytes", 0) + total * 24

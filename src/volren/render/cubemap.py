@@ -76,8 +76,19 @@ def texel_index(f: int, i: int, j: int, size: int) -> int:
 
 
 @wp.func
-def cube_bilinear(cube: wp.array(dtype=wp.vec4), offset: int, size: int, p: wp.vec3) -> wp.vec4:
-    """Bilinear sample of the cube map (texels ``offset ...``) at the box-surface point ``p``, seamless at edges."""
+def cube_sample(
+    cube: wp.array(dtype=wp.vec4),
+    cube_z: wp.array(dtype=float),
+    offset: int,
+    size: int,
+    p: wp.vec3,
+    z_pixel: float,
+    k_z: float,
+) -> wp.vec4:
+    """Sample the cube map (texels ``offset ...``) at the box-surface point ``p`` from the 2x2 texels bilinear
+    filtering would use (seamless across face edges), each weighted by its bilinear weight times the edge-stopping
+    w_z = max(1 - k_z |z_pixel - z_cube|, 0) of paper 001 §3.2 (z: linear depth where the texel's / pixel's ray
+    ends). k_z = 0 is plain bilinear; where every w_z is 0 the plain bilinear weights are used."""
     f = point_face(p)
     a = f / 2
     x = (p[(a + 1) % 3] + 1.0) * 0.5 * float(size) - 0.5
@@ -86,19 +97,37 @@ def cube_bilinear(cube: wp.array(dtype=wp.vec4), offset: int, size: int, p: wp.v
     y0 = int(wp.floor(y))
     fx = x - float(x0)
     fy = y - float(y0)
+    i00 = int(0)
+    i10 = int(0)
+    i01 = int(0)
+    i11 = int(0)
     if x0 >= 0 and y0 >= 0 and x0 < size - 1 and y0 < size - 1:
         # Inside the face (all but a half-texel rim): plain 2x2 addressing.
-        base = offset + (f * size + y0) * size + x0
-        c00 = cube[base]
-        c10 = cube[base + 1]
-        c01 = cube[base + size]
-        c11 = cube[base + size + 1]
+        i00 = offset + (f * size + y0) * size + x0
+        i10 = i00 + 1
+        i01 = i00 + size
+        i11 = i00 + size + 1
     else:
-        c00 = cube[offset + texel_index(f, x0, y0, size)]
-        c10 = cube[offset + texel_index(f, x0 + 1, y0, size)]
-        c01 = cube[offset + texel_index(f, x0, y0 + 1, size)]
-        c11 = cube[offset + texel_index(f, x0 + 1, y0 + 1, size)]
-    return (c00 * (1.0 - fx) + c10 * fx) * (1.0 - fy) + (c01 * (1.0 - fx) + c11 * fx) * fy
+        i00 = offset + texel_index(f, x0, y0, size)
+        i10 = offset + texel_index(f, x0 + 1, y0, size)
+        i01 = offset + texel_index(f, x0, y0 + 1, size)
+        i11 = offset + texel_index(f, x0 + 1, y0 + 1, size)
+    b00 = (1.0 - fx) * (1.0 - fy)
+    b10 = fx * (1.0 - fy)
+    b01 = (1.0 - fx) * fy
+    b11 = fx * fy
+    w00 = b00 * wp.max(1.0 - k_z * wp.abs(z_pixel - cube_z[i00]), 0.0)
+    w10 = b10 * wp.max(1.0 - k_z * wp.abs(z_pixel - cube_z[i10]), 0.0)
+    w01 = b01 * wp.max(1.0 - k_z * wp.abs(z_pixel - cube_z[i01]), 0.0)
+    w11 = b11 * wp.max(1.0 - k_z * wp.abs(z_pixel - cube_z[i11]), 0.0)
+    total = w00 + w10 + w01 + w11
+    if total < 1.0e-6:
+        w00 = b00
+        w10 = b10
+        w01 = b01
+        w11 = b11
+        total = 1.0
+    return (cube[i00] * w00 + cube[i10] * w10 + cube[i01] * w01 + cube[i11] * w11) / total
 
 
 def visible_faces(eye_local: np.ndarray, faces: str = "interior") -> list[int]:

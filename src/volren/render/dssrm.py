@@ -19,6 +19,7 @@ from volren.kernels.common import (
     CameraGPU,
     LightGPU,
     MarchState,
+    ViewBuffers,
     VolumeGPU,
     box_hit,
     camera_ray,
@@ -30,6 +31,7 @@ from volren.kernels.common import (
     light_travel_dir,
     march_step_count,
     new_march_state,
+    occluder_t,
     ray_jitter,
     sample_grid,
     state_accumulator,
@@ -150,8 +152,7 @@ def dssrm_kernel(
     lightmap: wp.array(dtype=float),
     lights: wp.array(dtype=LightGPU),
     params: MarchParams,
-    image: wp.array2d(dtype=wp.vec4),
-    depth: wp.array2d(dtype=float),
+    buffers: ViewBuffers,
     counters: wp.array(dtype=wp.int64),
     row0: int,
 ):
@@ -159,6 +160,7 @@ def dssrm_kernel(
     row = r + row0
     d = camera_ray(cam, row, col, 0.5, 0.5)
     planes = view_t_range(cam, d)
+    planes[1] = wp.min(planes[1], occluder_t(buffers, cam, d, row, col))
     s = new_march_state()
     hit = int(0)
     for k in range(order.shape[0]):
@@ -176,7 +178,7 @@ def dssrm_kernel(
                 break
     count(counters, LIGHTMAP_LOOKUPS, s.shaded * lights.shape[0])
     count(counters, RAYS, hit)
-    write_pixel(s, cam, d, row, col, image, depth, counters, DENSITY_SAMPLES)
+    write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
 
 class DSSRM(Renderer):
@@ -193,7 +195,7 @@ class DSSRM(Renderer):
         return ds
 
     def _render_view(
-        self, ds: DeviceScene, cam: Camera, view: int, frame: int, image: wp.array, depth: wp.array, clock: PassClock
+        self, ds: DeviceScene, cam: Camera, view: int, frame: int, buffers: ViewBuffers, clock: PassClock
     ) -> None:
         c = self.config
         params = MarchParams()
@@ -209,7 +211,7 @@ class DSSRM(Renderer):
                 dssrm_kernel,
                 cam.height,
                 cam.width,
-                [camera_struct(cam), ds.volumes, order, ds.density, ds.lightmap, ds.lights, params, image, depth],
+                [camera_struct(cam), ds.volumes, order, ds.density, ds.lightmap, ds.lights, params, buffers],
                 self.device,
                 clock.counters,
                 self.on_rows,

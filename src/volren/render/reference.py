@@ -22,6 +22,7 @@ from volren.kernels.common import (
     CameraGPU,
     LightGPU,
     MarchState,
+    ViewBuffers,
     VolumeGPU,
     box_hit,
     camera_ray,
@@ -37,6 +38,7 @@ from volren.kernels.common import (
     march_step_count,
     new_march_state,
     next_box_boundary,
+    occluder_t,
     state_accumulator,
     transmittance_toward,
     view_t_range,
@@ -125,8 +127,7 @@ def reference_kernel(
     density: wp.array(dtype=float),
     lights: wp.array(dtype=LightGPU),
     params: ReferenceParams,
-    image: wp.array2d(dtype=wp.vec4),
-    depth: wp.array2d(dtype=float),
+    buffers: ViewBuffers,
     counters: wp.array(dtype=wp.int64),
     row0: int,
 ):
@@ -134,6 +135,7 @@ def reference_kernel(
     row = r + row0
     d = camera_ray(cam, row, col, 0.5, 0.5)
     planes = view_t_range(cam, d)
+    planes[1] = wp.min(planes[1], occluder_t(buffers, cam, d, row, col))
     n_vol = volumes.shape[0]
     t0 = float(INF)
     t1 = float(-INF)
@@ -161,7 +163,7 @@ def reference_kernel(
                 if s.transmittance < params.min_transmittance:
                     break
         t = t_next
-    write_pixel(s, cam, d, row, col, image, depth, counters, DENSITY_SAMPLES)
+    write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
 
 class Reference(Renderer):
@@ -173,7 +175,7 @@ class Reference(Renderer):
         super().__init__(config or ReferenceConfig(), device)
 
     def _render_view(
-        self, ds: DeviceScene, cam: Camera, view: int, frame: int, image: wp.array, depth: wp.array, clock: PassClock
+        self, ds: DeviceScene, cam: Camera, view: int, frame: int, buffers: ViewBuffers, clock: PassClock
     ) -> None:
         c = self.config
         params = ReferenceParams()
@@ -186,7 +188,7 @@ class Reference(Renderer):
                 reference_kernel,
                 cam.height,
                 cam.width,
-                [camera_struct(cam), ds.volumes, ds.density, ds.lights, params, image, depth],
+                [camera_struct(cam), ds.volumes, ds.density, ds.lights, params, buffers],
                 self.device,
                 clock.counters,
                 self.on_rows,

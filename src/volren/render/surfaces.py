@@ -1,0 +1,170 @@
+"""Opaque-surface pass: the scene's analytic spheres and planes ray-traced per view into a colour + linear depth
+buffer, merged with an optional user depth image. Every renderer clips its rays at this depth and composites the
+volume over the colour (paper 001 §3.2's z-buffer, before meshes exist).
+
+Surfaces are Lambertian, lit by every light (with ray-traced shadows from the other opaque objects) and by the
+ambient environment (albedo * L_ambient). Volumes do not shadow surfaces here, and surfaces do not shadow volumes:
+the light map and the reference's shadow rays see only the media.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from volren.camera import Camera
+from volren.errors import VolrenError
+from volren.kernels.common import (
+    INF,
+    OPAQUE_PLANE,
+    OPAQUE_SPHERE,
+    CameraGPU,
+    LightGPU,
+    OpaqueGPU,
+    ViewBuffers,
+    camera_ray,
+    light_distance,
+    light_irradiance,
+    light_travel_dir,
+)
+from volren.scene import Scene, Sphere
+
+SURFACE_EPSILON = 1.0e-4
+"""[m] minimum hit distance, so a shadow ray does not hit the surface it leaves"""
+
+
+@wp.func
+def opaque_hit(obj: OpaqueGPU, o: wp.vec3, d: wp.vec3) -> float:
+    """Nearest hit distance t > SURFACE_EPSILON of the unit-direction ray o + t d with obj, INF if none."""
+    if obj.kind == OPAQUE_SPHERE:
+        oc = o - obj.position
+        b = wp.dot(oc, d)
+        disc = b * b - (wp.dot(oc, oc) - obj.radius * obj.radius)
+        if disc < 0.0:
+            return INF
+        root = wp.sqrt(disc)
+        t = -b - root
+        if t > SURFACE_EPSILON:
+            return t
+        t = -b + root
+        if t > SURFACE_EPSILON:
+            return t
+        return INF
+    denom = wp.dot(d, obj.normal)
+    if wp.abs(denom) < 1.0e-12:
+        return INF
+    t = wp.dot(obj.position - o, obj.normal) / denom
+    if t > SURFACE_EPSILON:
+        return t
+    return INF
+
+
+@wp.func
+def opaque_normal(obj: OpaqueGPU, x: wp.vec3) -> wp.vec3:
+    if obj.kind == OPAQUE_PLANE:
+        return obj.normal
+    return wp.normalize(x - obj.position)
+
+
+@wp.kernel
+def surface_kernel(
+    cam: CameraGPU,
+    opaque: wp.array(dtype=OpaqueGPU),
+    lights: wp.array(dtype=LightGPU),
+    ambient: wp.vec3,
+    user_depth: wp.array2d(dtype=float),
+    buffers: ViewBuffers,
+):
+    row, col = wp.tid()
+    d = camera_ray(cam, row, col, 0.5, 0.5)
+    t = float(INF)
+    nearest = int(-1)
+    for k in range(opaque.shape[0]):
+        tk = opaque_hit(opaque[k], cam.origin, d)
+        if tk < t:
+            t = tk
+            nearest = k
+    color = wp.vec4(0.0)
+    z = float(INF)
+    if nearest >= 0:
+        obj = opaque[nearest]
+        x = cam.origin + t * d
+        n = opaque_normal(obj, x)
+        if wp.dot(n, d) > 0.0:
+            n = -n
+        rgb = wp.cw_mul(obj.albedo, ambient)
+        for li in range(lights.shape[0]):
+            light = lights[li]
+            to_light = -light_travel_dir(light, x)
+            cos = wp.dot(n, to_light)
+            if cos > 0.0:
+                dist = light_distance(light, x)
+                lit = float(1.0)
+                for k in range(opaque.shape[0]):
+                    if opaque_hit(opaque[k], x, to_light) < dist:
+                        lit = 0.0
+                rgb += wp.cw_mul(obj.albedo, light_irradiance(light, x)) * (cos * lit / wp.pi)
+        color = wp.vec4(rgb[0], rgb[1], rgb[2], 1.0)
+        z = t * wp.dot(d, cam.forward)
+    if user_depth[row, col] < z:
+        z = user_depth[row, col]
+        color = wp.vec4(0.0)
+    buffers.occluder_color[row, col] = color
+    buffers.occluder_depth[row, col] = z
+
+
+def opaque_structs(scene: Scene) -> list[OpaqueGPU]:
+    out = []
+    for o in scene.opaque:
+        s = OpaqueGPU()
+        if isinstance(o, Sphere):
+            s.kind, s.position, s.radius = OPAQUE_SPHERE, wp.vec3(*o.center), o.radius
+            s.normal = wp.vec3(0.0, 1.0, 0.0)
+        else:
+            s.kind, s.position, s.normal, s.radius = OPAQUE_PLANE, wp.vec3(*o.point), wp.vec3(*o.normal), 0.0
+        s.albedo = wp.vec3(*o.albedo)
+        out.append(s)
+    return out
+
+
+def view_buffers(cam: Camera, device: str) -> ViewBuffers:
+    """Render targets for one view, with empty surface buffers (no opaque surface anywhere)."""
+    b = ViewBuffers()
+    shape = (cam.height, cam.width)
+    b.image = wp.zeros(shape, dtype=wp.vec4, device=device)
+    b.depth = wp.zeros(shape, dtype=float, device=device)
+    b.occluder_color = wp.zeros(shape, dtype=wp.vec4, device=device)
+    b.occluder_depth = wp.full(shape, INF, dtype=float, device=device)
+    return b
+
+
+def check_user_depth(depth: np.ndarray, cam: Camera, view: int) -> np.ndarray:
+    """A user depth image: linear view depth [m] per pixel, (H, W), +inf where nothing is opaque."""
+    arr = np.asarray(depth, dtype=np.float32)
+    if arr.shape != (cam.height, cam.width):
+        raise VolrenError(f"depth image for view {view} has shape {arr.shape}, the view is {cam.height}x{cam.width}")
+    if np.isnan(arr).any() or (arr <= 0).any():
+        raise VolrenError(f"depth image for view {view} must hold positive depths or +inf (no NaN)")
+    return np.minimum(arr, np.float32(INF))
+
+
+def trace_surfaces(
+    scene: Scene,
+    cam_gpu: CameraGPU,
+    cam: Camera,
+    opaque: wp.array,
+    lights: wp.array,
+    ambient: wp.vec3,
+    user_depth: np.ndarray | None,
+    buffers: ViewBuffers,
+    device: str,
+) -> None:
+    """Fill ``buffers``' surface colour and depth; a no-op when there is nothing opaque."""
+    if not scene.opaque and user_depth is None:
+        return
+    if user_depth is None:
+        user = wp.full((cam.height, cam.width), INF, dtype=float, device=device)
+    else:
+        user = wp.array(user_depth, dtype=float, device=device)
+    wp.launch(surface_kernel, dim=(cam.height, cam.width), inputs=[cam_gpu, opaque, lights, ambient, user, buffers],
+              device=device)
