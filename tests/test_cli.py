@@ -856,3 +856,33 @@ def test_cmsrm_options(capfd, tmp_path: Path) -> None:
 )
 def test_cmsrm_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: str) -> None:
     render_error(capfd, tmp_path, extra, fragment)
+
+
+def test_opaque_geometry_options(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "o"
+    render(capfd, out, "--views", "mono", "--sphere", "0,0,1.5,0.4", "--sphere", "0.5,0,0,0.2", "--ground", "-0.8",
+           "--save-linear", method="cmsrm")
+    image = np.load(out / "view0.npy")
+    assert image[H // 2, W // 2, 3] == 1.0  # the sphere in front is opaque
+    assert "surfaces" in stats_of(out)["frames"][0]["times_ms"]
+
+
+def test_depth_image_option(capfd, tmp_path: Path) -> None:
+    depth = tmp_path / "z.npy"
+    np.save(depth, np.full((H, W), 0.5, np.float32))  # in front of the whole volume: nothing left
+    out = tmp_path / "d"
+    render(capfd, out, "--views", "stereo", "--depth-image", depth, "--save-linear")
+    assert np.load(out / "view1.npy")[..., 3].max() == 0.0
+
+
+@pytest.mark.parametrize(
+    ("extra", "fragment"),
+    [
+        (["--sphere", "1,2"], "4 comma-separated"),
+        (["--sphere", "0,0,0,-1"], "radius"),
+        (["--depth-image", "missing.npy"], "depth image"),
+        (["--method", "cmsrm", "--k-z", "-1"], "k_z"),
+    ],
+)
+def test_opaque_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: str) -> None:
+    render_error(capfd, tmp_path, extra, fragment)

@@ -92,6 +92,12 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     mat.add_argument("--environment", type=Path,
                      help="equirectangular environment (.npy linear, or PNG/JPEG sRGB); its mean is the ambient")
     mat.add_argument("--background", type=rgb, help="background colour (linear): c or r,g,b")
+    opq = p.add_argument_group("opaque geometry (clips the volumes)")
+    opq.add_argument("--sphere", type=lambda t: floats(t, 4), action="append", default=[],
+                     help="opaque diffuse sphere x,y,z,radius (repeatable)")
+    opq.add_argument("--ground", type=float, help="opaque ground plane at height y")
+    opq.add_argument("--depth-image", type=Path,
+                     help=".npy linear depth (H, W), or (views, H, W), of geometry drawn elsewhere; inf = none")
     cam = p.add_argument_group("views")
     cam.add_argument("--camera-pos", type=vec3, default=(0.0, 0.4, 3.2), help="eye position x,y,z [m]")
     cam.add_argument("--look-at", type=vec3, default=(0.0, 0.0, 0.0), help="x,y,z")
@@ -115,6 +121,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--cube-size", type=int, help="cmsrm: level-0 cube face size S0 (default: the density's axis)")
     r.add_argument("--no-lod", action="store_true", help="cmsrm: no adaptive LOD (level 0, N = --samples)")
     r.add_argument("--no-hybrid", action="store_true", help="cmsrm: always march the cube map, never directly")
+    r.add_argument("--k-z", type=float, help="cmsrm: bilateral edge-stopping coefficient [1/m] (0 = bilinear)")
     r.add_argument("--frames", type=int, default=1, help="render N frames (temporal methods), keep every frame")
     r.add_argument("--seed", type=int, default=0)
     add_device(p)
@@ -146,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
 def scene_from_args(args: argparse.Namespace):
     """The scene the arguments ask for: a built-in or a volume file, with material and light overrides."""
     from volren.data import builtin_scene, load_volume_file
-    from volren.scene import DirectionalLight, Environment, Scene, Volume
+    from volren.scene import DirectionalLight, Environment, Plane, Scene, Sphere, Volume
 
     if getattr(args, "volume", None) is not None:
         if args.scene is not None:
@@ -175,6 +182,9 @@ def scene_from_args(args: argparse.Namespace):
             lights[idx] = new
     if args.ambient is not None and args.environment is not None:
         raise CliError("give either --ambient or --environment, not both")
+    opaque = list(scene.opaque) + [Sphere(tuple(s[:3]), s[3]) for s in args.sphere]
+    if args.ground is not None:
+        opaque.append(Plane((0.0, args.ground, 0.0), (0.0, 1.0, 0.0)))
     environment = scene.environment
     if args.ambient is not None:
         environment = Environment(args.ambient)
@@ -184,7 +194,7 @@ def scene_from_args(args: argparse.Namespace):
         environment = Environment(image=load_image(args.environment)[..., :3])
     background = args.background if args.background is not None else scene.background
     return dataclasses.replace(scene, volumes=volumes, lights=tuple(lights), environment=environment,
-                               background=background)
+                               background=background, opaque=tuple(opaque))
 
 
 def views_from_args(args: argparse.Namespace):
@@ -193,6 +203,23 @@ def views_from_args(args: argparse.Namespace):
     cam = Camera(position=args.camera_pos, look_at=args.look_at, up=args.up, fov_y=args.fov, width=args.width,
                  height=args.height, near=args.near, far=args.far)
     return make_views(cam, args.views, args.ipd)
+
+
+def depth_images_from_args(args: argparse.Namespace, view_count: int) -> list | None:
+    """``--depth-image``: one (H, W) image for every view, or a (views, H, W) stack."""
+    if args.depth_image is None:
+        return None
+    import numpy as np
+
+    try:
+        depth = np.load(args.depth_image, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise CliError(f"cannot read depth image '{args.depth_image}': {exc}") from None
+    if depth.ndim == 2:
+        return [depth] * view_count
+    if depth.ndim == 3 and depth.shape[0] == view_count:
+        return list(depth)
+    raise CliError(f"depth image must be (H, W) or ({view_count}, H, W), got shape {depth.shape}")
 
 
 def renderer_from_args(args: argparse.Namespace, method: str):
@@ -212,6 +239,7 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "cube_size": (args.cube_size, "--cube-size"),
         "adaptive_lod": (False if args.no_lod else None, "--no-lod"),
         "hybrid": (False if args.no_hybrid else None, "--no-hybrid"),
+        "k_z": (args.k_z, "--k-z"),
     }
     options = {k: v for k, (v, _) in given.items() if v is not None and k in fields}
     ignored = [flag for k, (v, flag) in given.items() if v is not None and k not in fields]
@@ -245,6 +273,7 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
         raise CliError(f"--exposure must be a number of stops in [-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
     scene = scene_from_args(args)
     views = views_from_args(args)
+    occluder_depth = depth_images_from_args(args, len(views))
     renderer = renderer_from_args(args, method)
     out = prepare_out_dir(args.out)
     frames, files = [], []
@@ -252,7 +281,7 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     with progress_bar(f"{method} {scene.name}", args.frames * sum(v.height for v in views)) as advance:
         renderer.on_rows = advance
         for i in range(args.frames):
-            frame = renderer.render(scene, views, frame=i)
+            frame = renderer.render(scene, views, frame=i, occluder_depth=occluder_depth)
             prefix = f"frame{i:04d}_" if args.frames > 1 else ""
             files += write_frame(frame, out, scene.background, exposure=args.exposure, tonemap=args.tonemap,
                                  linear=args.save_linear, prefix=prefix)

@@ -142,7 +142,8 @@ def check_user_depth(depth: np.ndarray, cam: Camera, view: int) -> np.ndarray:
     """A user depth image: linear view depth [m] per pixel, (H, W), +inf where nothing is opaque."""
     arr = np.asarray(depth, dtype=np.float32)
     if arr.shape != (cam.height, cam.width):
-        raise VolrenError(f"depth image for view {view} has shape {arr.shape}, the view is {cam.height}x{cam.width}")
+        need = (cam.height, cam.width)
+        raise VolrenError(f"depth image for view {view} has shape {arr.shape}, the view needs {need}")
     if np.isnan(arr).any() or (arr <= 0).any():
         raise VolrenError(f"depth image for view {view} must hold positive depths or +inf (no NaN)")
     return np.minimum(arr, np.float32(INF))
