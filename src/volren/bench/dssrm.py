@@ -17,7 +17,7 @@ from volren.data import builtin_scene
 from volren.render import DSSRM, DSSRMConfig
 
 FULL = {"resolution": 256, "light_grid": 128, "sizes": [(1920, 1080), (2560, 1440), (3840, 2160)], "repeats": 5}
-QUICK = {"resolution": 64, "light_grid": 32, "sizes": [(192, 108), (384, 216)], "repeats": 3}
+QUICK = {"resolution": 64, "light_grid": 32, "sizes": [(192, 108), (384, 216)], "repeats": 5}
 SETTINGS = [(360, 96), (100, 48)]
 
 
