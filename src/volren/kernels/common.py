@@ -145,30 +145,58 @@ def inside_box(p: wp.vec3) -> bool:
     return wp.abs(p[0]) <= 1.0 and wp.abs(p[1]) <= 1.0 and wp.abs(p[2]) <= 1.0
 
 
+vec8 = wp.types.vector(length=8, dtype=wp.float32)
+"""The 8 voxels of a trilinear cell, x fastest: (x0,y0,z0), (x1,y0,z0), (x0,y1,z0), ..., (x1,y1,z1)."""
+
+
+@wp.func
+def grid_coords(res: wp.vec3i, p: wp.vec3) -> wp.vec3:
+    """Continuous voxel coordinates of local ``p`` in [-1, 1]^3 (voxel centres at -1 + (i + 0.5) 2/n), clamped to the
+    outermost centres (DESIGN.md)."""
+    return wp.vec3(
+        wp.clamp((p[0] + 1.0) * 0.5 * float(res[0]) - 0.5, 0.0, float(res[0] - 1)),
+        wp.clamp((p[1] + 1.0) * 0.5 * float(res[1]) - 0.5, 0.0, float(res[1] - 1)),
+        wp.clamp((p[2] + 1.0) * 0.5 * float(res[2]) - 0.5, 0.0, float(res[2] - 1)),
+    )
+
+
+@wp.func
+def grid_cell(res: wp.vec3i, f: wp.vec3) -> wp.vec3i:
+    """The trilinear cell (lowest corner voxel) holding continuous coordinates ``f``."""
+    return wp.vec3i(wp.min(int(f[0]), res[0] - 2), wp.min(int(f[1]), res[1] - 2), wp.min(int(f[2]), res[2] - 2))
+
+
+@wp.func
+def gather_cell(data: wp.array(dtype=float), offset: int, res: wp.vec3i, cell: wp.vec3i) -> vec8:
+    """The 8 voxels of a packed [z, y, x] grid around ``cell``."""
+    i = offset + (cell[2] * res[1] + cell[1]) * res[0] + cell[0]
+    sy = res[0]
+    sz = res[0] * res[1]
+    return vec8(data[i], data[i + 1], data[i + sy], data[i + sy + 1],
+                data[i + sz], data[i + sz + 1], data[i + sz + sy], data[i + sz + sy + 1])
+
+
+@wp.func
+def cell_fraction(f: wp.vec3, cell: wp.vec3i) -> wp.vec3:
+    return wp.vec3(f[0] - float(cell[0]), f[1] - float(cell[1]), f[2] - float(cell[2]))
+
+
+@wp.func
+def interpolate_cell(v: vec8, a: wp.vec3) -> float:
+    """Trilinear interpolation of a gathered cell at fractional position ``a`` in [0, 1]^3."""
+    c00 = wp.lerp(v[0], v[1], a[0])
+    c10 = wp.lerp(v[2], v[3], a[0])
+    c01 = wp.lerp(v[4], v[5], a[0])
+    c11 = wp.lerp(v[6], v[7], a[0])
+    return wp.lerp(wp.lerp(c00, c10, a[1]), wp.lerp(c01, c11, a[1]), a[2])
+
+
 @wp.func
 def sample_grid(data: wp.array(dtype=float), offset: int, res: wp.vec3i, p: wp.vec3) -> float:
-    """Trilinear sample of a packed [z, y, x] grid at local ``p`` in [-1, 1]^3, voxel centres at -1 + (i + 0.5) 2/n,
-    clamped at the border (DESIGN.md)."""
-    nx = res[0]
-    ny = res[1]
-    nz = res[2]
-    fx = wp.clamp((p[0] + 1.0) * 0.5 * float(nx) - 0.5, 0.0, float(nx - 1))
-    fy = wp.clamp((p[1] + 1.0) * 0.5 * float(ny) - 0.5, 0.0, float(ny - 1))
-    fz = wp.clamp((p[2] + 1.0) * 0.5 * float(nz) - 0.5, 0.0, float(nz - 1))
-    x0 = wp.min(int(fx), nx - 2)
-    y0 = wp.min(int(fy), ny - 2)
-    z0 = wp.min(int(fz), nz - 2)
-    ax = fx - float(x0)
-    ay = fy - float(y0)
-    az = fz - float(z0)
-    i = offset + (z0 * ny + y0) * nx + x0
-    sy = nx
-    sz = nx * ny
-    c00 = wp.lerp(data[i], data[i + 1], ax)
-    c10 = wp.lerp(data[i + sy], data[i + sy + 1], ax)
-    c01 = wp.lerp(data[i + sz], data[i + sz + 1], ax)
-    c11 = wp.lerp(data[i + sz + sy], data[i + sz + sy + 1], ax)
-    return wp.lerp(wp.lerp(c00, c10, ay), wp.lerp(c01, c11, ay), az)
+    """Trilinear sample of a packed [z, y, x] grid at local ``p`` in [-1, 1]^3, clamped at the border."""
+    f = grid_coords(res, p)
+    cell = grid_cell(res, f)
+    return interpolate_cell(gather_cell(data, offset, res, cell), cell_fraction(f, cell))
 
 
 @wp.func

@@ -71,6 +71,13 @@ class Renderer:
     ) -> None:
         raise NotImplementedError
 
+    def _render_views(
+        self, ds: DeviceScene, views: list[Camera], frame: int, targets: list[ViewBuffers], clock: PassClock
+    ) -> None:
+        """Render every view into its buffers; methods that share work between views override this."""
+        for v, (cam, buffers) in enumerate(zip(views, targets, strict=True)):
+            self._render_view(ds, cam, v, frame, buffers, clock)
+
     def render(
         self,
         scene: Scene,
@@ -102,8 +109,8 @@ class Renderer:
                 with clock.measure("surfaces"):
                     trace_surfaces(scene, camera_struct(cam), cam, ds.opaque, ds.lights, ds.ambient, user_depth[v],
                                    buffers, self.device)
-            self._render_view(ds, cam, v, frame, buffers, clock)
             targets.append(buffers)
+        self._render_views(ds, views, frame, targets, clock)
         with clock.measure("readback"):
             images = [np.ascontiguousarray(b.image.numpy()) for b in targets]
             depths = [b.depth.numpy() for b in targets]

@@ -62,6 +62,21 @@ SCHEME_DIRECT = 0
 SCHEME_CUBE = 1
 
 
+@dataclass
+class CubeMaps:
+    """One view's cube maps of all its cube-scheme volumes, packed: volume v's 6 faces start at ``offsets[v]``."""
+
+    color: wp.array
+    """premultiplied rgb and transmittance per texel"""
+    t_half: wp.array
+    """ray distance where the texel's transmittance reached 1/2 (INF if never)"""
+    z_end: wp.array
+    """linear depth where the texel's ray ends (its texel, or an opaque surface in front of it)"""
+    offsets: list[int]
+    sizes: list[int]
+    texels: int
+
+
 @dataclass(frozen=True)
 class CMSRMConfig:
     samples: int = 360
@@ -283,55 +298,83 @@ class CMSRM(Renderer):
             plans.append({"faces": faces, "lod": lod, "texels": texels, "pixels": pixels, "scheme": scheme})
         return plans
 
-    def _render_view(
-        self, ds: DeviceScene, cam: Camera, view: int, frame: int, buffers: ViewBuffers, clock: PassClock
-    ) -> None:
-        exterior = int(self.config.cube_faces == "exterior")
-        plans = self._plan(ds, cam)
+    def _allocate(self, plans: list[dict]) -> CubeMaps:
+        """One view's cube maps: colour + transmittance, half-transmittance distance and end depth per texel."""
         offsets, sizes, total = [], [], 0
         for plan in plans:
             offsets.append(total)
             sizes.append(plan["lod"].size)
             if plan["scheme"] == SCHEME_CUBE:
                 total += FACE_COUNT * plan["lod"].size ** 2
-        cube = wp.full(max(total, 1), wp.vec4(0.0, 0.0, 0.0, 1.0), dtype=wp.vec4, device=self.device)
-        cube_t = wp.full(max(total, 1), INF, dtype=float, device=self.device)
-        cube_z = wp.full(max(total, 1), INF, dtype=float, device=self.device)
-        cam_gpu = camera_struct(cam)
-        with clock.measure("cube_march"):
-            for v, plan in enumerate(plans):
+        n = max(total, 1)
+        return CubeMaps(
+            color=wp.full(n, wp.vec4(0.0, 0.0, 0.0, 1.0), dtype=wp.vec4, device=self.device),
+            t_half=wp.full(n, INF, dtype=float, device=self.device),
+            z_end=wp.full(n, INF, dtype=float, device=self.device),
+            offsets=offsets,
+            sizes=sizes,
+            texels=total,
+        )
+
+    def _march_cubes(
+        self,
+        ds: DeviceScene,
+        views: list[Camera],
+        plans: list[list[dict]],
+        cubes: list[CubeMaps],
+        targets: list[ViewBuffers],
+        clock: PassClock,
+    ) -> None:
+        """The cube ray-marching pass of every view, each view on its own."""
+        exterior = int(self.config.cube_faces == "exterior")
+        for view, cam in enumerate(views):
+            cam_gpu = camera_struct(cam)
+            for v, plan in enumerate(plans[view]):
                 if plan["scheme"] != SCHEME_CUBE:
                     continue
                 lod = plan["lod"]
                 level = ds.levels[v][min(lod.level, len(ds.levels[v]) - 1)]
                 faces = wp.array(plan["faces"], dtype=int, device=self.device)
+                c = cubes[view]
                 launch_rows(
                     cube_march_kernel,
                     len(plan["faces"]) * lod.size,
                     lod.size,
                     [cam_gpu, level, faces, lod.size, exterior, ds.density, ds.lightmap, ds.lights,
-                     self._params(ds, view, lod.samples), buffers, cube, cube_t, cube_z, offsets[v]],
+                     self._params(ds, view, lod.samples), targets[view], c.color, c.t_half, c.z_end, c.offsets[v]],
                     self.device,
                     clock.counters,
                 )
-        per_volume = [wp.array(a, dtype=int, device=self.device)
-                      for a in ([p["scheme"] for p in plans], offsets, sizes)]
-        order = wp.array(depth_order(ds.scene, cam), dtype=int, device=self.device)
-        with clock.measure("resample"):
-            launch_rows(
-                cube_resample_kernel,
-                cam.height,
-                cam.width,
-                [cam_gpu, ds.volumes, order, *per_volume, exterior, self.config.k_z, cube, cube_t, cube_z, ds.density,
-                 ds.lightmap, ds.lights, self._params(ds, view, self.config.samples), buffers],
-                self.device,
-                clock.counters,
-                self.on_rows,
-            )
-        self._frame_info["volumes"].append([
-            {"view": view, "volume": v, "scheme": "cube" if p["scheme"] == SCHEME_CUBE else "direct",
-             "faces": p["faces"], "level": p["lod"].level, "face_size": p["lod"].size, "samples": p["lod"].samples,
-             "visible_texels": p["texels"], "projected_pixels": round(p["pixels"])}
-            for v, p in enumerate(plans)
-        ])
-        self._frame_info["cube_map_bytes"] = self._frame_info.get("cube_map_bytes", 0) + total * 24
+
+    def _render_views(
+        self, ds: DeviceScene, views: list[Camera], frame: int, targets: list[ViewBuffers], clock: PassClock
+    ) -> None:
+        plans = [self._plan(ds, cam) for cam in views]
+        cubes = [self._allocate(p) for p in plans]
+        with clock.measure("cube_march"):
+            self._march_cubes(ds, views, plans, cubes, targets, clock)
+        exterior = int(self.config.cube_faces == "exterior")
+        for view, cam in enumerate(views):
+            c = cubes[view]
+            per_volume = [wp.array(a, dtype=int, device=self.device)
+                          for a in ([p["scheme"] for p in plans[view]], c.offsets, c.sizes)]
+            order = wp.array(depth_order(ds.scene, cam), dtype=int, device=self.device)
+            with clock.measure("resample"):
+                launch_rows(
+                    cube_resample_kernel,
+                    cam.height,
+                    cam.width,
+                    [camera_struct(cam), ds.volumes, order, *per_volume, exterior, self.config.k_z, c.color,
+                     c.t_half, c.z_end, ds.density, ds.lightmap, ds.lights,
+                     self._params(ds, view, self.config.samples), targets[view]],
+                    self.device,
+                    clock.counters,
+                    self.on_rows,
+                )
+            self._frame_info["volumes"].append([
+                {"view": view, "volume": v, "scheme": "cube" if p["scheme"] == SCHEME_CUBE else "direct",
+                 "faces": p["faces"], "level": p["lod"].level, "face_size": p["lod"].size,
+                 "samples": p["lod"].samples, "visible_texels": p["texels"], "projected_pixels": round(p["pixels"])}
+                for v, p in enumerate(plans[view])
+            ])
+        self._frame_info["cube_map_bytes"] = sum(c.texels for c in cubes) * 24

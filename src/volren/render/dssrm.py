@@ -98,6 +98,27 @@ def shade_light_map(
 
 
 @wp.func
+def lit_step(
+    acc: wp.vec4,
+    rho: float,
+    vol: VolumeGPU,
+    lightmap: wp.array(dtype=float),
+    lights: wp.array(dtype=LightGPU),
+    p: wp.vec3,
+    x: wp.vec3,
+    d: wp.vec3,
+    dt: float,
+    ambient: wp.vec3,
+) -> wp.vec4:
+    """Composite one step of density rho > 0 at local p / world x: single scattering from the light map, ambient
+    and emission as the source, extinction density_scale * rho."""
+    sigma_t = vol.density_scale * rho
+    light = shade_light_map(vol, lightmap, lights, p, x, d, ambient)
+    source = wp.cw_mul(vol.albedo, light) * sigma_t + vol.emission * rho
+    return composite_step(acc, source, sigma_t, dt)
+
+
+@wp.func
 def march_volume_light_map(
     state: MarchState,
     vol: VolumeGPU,
@@ -127,12 +148,9 @@ def march_volume_light_map(
         rho = sample_grid(density, vol.offset, vol.res, p)
         taken += 1
         if rho > 0.0:
-            sigma_t = vol.density_scale * rho
             shaded += 1
-            light = shade_light_map(vol, lightmap, lights, p, origin + t * d, d, params.ambient)
-            source = wp.cw_mul(vol.albedo, light) * sigma_t + vol.emission * rho
             before = acc[3]
-            acc = composite_step(acc, source, sigma_t, dt)
+            acc = lit_step(acc, rho, vol, lightmap, lights, p, origin + t * d, d, dt, params.ambient)
             depth_t = half_depth(depth_t, before, acc[3], t)
             if acc[3] < params.min_transmittance:
                 break
