@@ -82,7 +82,7 @@ def ok(capfd: pytest.CaptureFixture[str], *argv: object) -> Result:
 
 
 def render(capfd: pytest.CaptureFixture[str], out: Path, *extra: object, method: str = "dssrm") -> Result:
-    settings = TINY if method in ("dssrm", "cmsrm") else BASE
+    settings = TINY if method in ("dssrm", "cmsrm", "cacrm") else BASE
     return ok(capfd, "render", *settings, "--method", method, "--out", out, *extra)
 
 
@@ -886,3 +886,16 @@ def test_depth_image_option(capfd, tmp_path: Path) -> None:
 )
 def test_opaque_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: str) -> None:
     render_error(capfd, tmp_path, extra, fragment)
+
+
+@pytest.mark.parametrize("extra", [[], ["--no-coupling"], ["--no-share"]])
+def test_cacrm_switches(capfd, tmp_path: Path, extra: list[str]) -> None:
+    out = tmp_path / "a"
+    render(capfd, out, "--no-hybrid", "--no-lod", *extra, method="cacrm")
+    counters = stats_of(out)["frames"][0]["counters"]
+    assert (counters["shared_samples"] > 0) == (not extra)
+    assert (out / "stereo.png").exists()
+
+
+def test_cacrm_switch_refused_by_other_methods(capfd, tmp_path: Path) -> None:
+    render_error(capfd, tmp_path, ["--method", "cmsrm", "--no-coupling"], "--no-coupling")

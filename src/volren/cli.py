@@ -116,12 +116,14 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--light-samples", type=int, help="L: samples towards the light (method default if unset)")
     r.add_argument("--light-grid", type=int, help="light-map voxels on the longest axis (default: half the density)")
     r.add_argument("--jitter", action="store_true", help="seeded random ray start offsets")
-    r.add_argument("--cube-faces", choices=("interior", "exterior"), help="cmsrm: march to interior (default) or "
+    r.add_argument("--cube-faces", choices=("interior", "exterior"), help="cmsrm/cacrm: march to interior (default) or "
                    "exterior cube faces (exterior only to show its aliasing)")
     r.add_argument("--cube-size", type=int, help="cmsrm: level-0 cube face size S0 (default: the density's axis)")
     r.add_argument("--no-lod", action="store_true", help="cmsrm: no adaptive LOD (level 0, N = --samples)")
     r.add_argument("--no-hybrid", action="store_true", help="cmsrm: always march the cube map, never directly")
     r.add_argument("--k-z", type=float, help="cmsrm: bilateral edge-stopping coefficient [1/m] (0 = bilinear)")
+    r.add_argument("--no-coupling", action="store_true", help="cacrm: march each eye alone (same steps)")
+    r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
     r.add_argument("--frames", type=int, default=1, help="render N frames (temporal methods), keep every frame")
     r.add_argument("--seed", type=int, default=0)
     add_device(p)
@@ -240,6 +242,8 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "adaptive_lod": (False if args.no_lod else None, "--no-lod"),
         "hybrid": (False if args.no_hybrid else None, "--no-hybrid"),
         "k_z": (args.k_z, "--k-z"),
+        "coupling": (False if args.no_coupling else None, "--no-coupling"),
+        "share_voxels": (False if args.no_share else None, "--no-share"),
     }
     options = {k: v for k, (v, _) in given.items() if v is not None and k in fields}
     ignored = [flag for k, (v, flag) in given.items() if v is not None and k not in fields]

@@ -1,6 +1,7 @@
 """Renderers, one module per method; `METHODS` maps the CLI's --method names to their classes."""
 
 from volren.render.base import Renderer
+from volren.render.cacrm import CACRM, CACRMConfig
 from volren.render.cmsrm import CMSRM, CMSRMConfig
 from volren.render.dssrm import DSSRM, DSSRMConfig
 from volren.render.frame import COUNTERS, Frame, Stats
@@ -9,14 +10,17 @@ from volren.render.reference import Reference, ReferenceConfig
 METHODS: dict[str, tuple[type[Renderer], type]] = {
     "dssrm": (DSSRM, DSSRMConfig),
     "cmsrm": (CMSRM, CMSRMConfig),
+    "cacrm": (CACRM, CACRMConfig),
     "reference": (Reference, ReferenceConfig),
 }
 
 __all__ = [
+    "CACRM",
     "CMSRM",
     "COUNTERS",
     "DSSRM",
     "METHODS",
+    "CACRMConfig",
     "CMSRMConfig",
     "DSSRMConfig",
     "Frame",

@@ -298,6 +298,9 @@ class CMSRM(Renderer):
             plans.append({"faces": faces, "lod": lod, "texels": texels, "pixels": pixels, "scheme": scheme})
         return plans
 
+    def _plan_views(self, ds: DeviceScene, views: list[Camera]) -> list[list[dict]]:
+        return [self._plan(ds, cam) for cam in views]
+
     def _allocate(self, plans: list[dict]) -> CubeMaps:
         """One view's cube maps: colour + transmittance, half-transmittance distance and end depth per texel."""
         offsets, sizes, total = [], [], 0
@@ -349,7 +352,7 @@ class CMSRM(Renderer):
     def _render_views(
         self, ds: DeviceScene, views: list[Camera], frame: int, targets: list[ViewBuffers], clock: PassClock
     ) -> None:
-        plans = [self._plan(ds, cam) for cam in views]
+        plans = self._plan_views(ds, views)
         cubes = [self._allocate(p) for p in plans]
         with clock.measure("cube_march"):
             self._march_cubes(ds, views, plans, cubes, targets, clock)

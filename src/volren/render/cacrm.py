@@ -1,0 +1,277 @@
+"""CACRM: coupled adaptive cube-map ray marching for binocular views (paper 000 §3.1), built on CMSRM.
+
+Ray coupling (§3.1.2): the two eyes' rays that end on the same interior-face texel are marched by one work item.
+Each eye's ray runs from its box entry (or near plane) to the texel (its t_min, t_max), cut at that eye's z-buffer,
+in uniform steps of Delta t = diagonal / N anchored at the texel; the pair takes max(n_0, n_1) synchronised steps
+front to back, and the eye whose segment is shorter skips the steps that lie outside it while keeping the step
+(the paper's joint length t_d = max(t_max - t_min) with both rays starting at t_max - t_d). Where the two samples of
+a step fall in the same trilinear cell (the paper's floor((x0 + t v) S + 0.5) test on voxel coordinates), its 8 voxels
+are fetched once and interpolated for both rays (the explicit two-phase version); the counters record those as
+``shared_samples``. The rays converge at the texel, so sharing grows towards the far faces.
+
+Both eyes get their own cube map (the visible faces of either eye, the finer LOD of the two) and are resampled to
+their own views as in CMSRM. Views are coupled in pairs (0, 1), (2, 3), ...; an odd last view is marched alone.
+``coupling=False`` marches each eye alone with the same anchored steps, so coupled marching without sharing gives the
+same images; ``share_voxels=False`` keeps coupling but fetches per ray.
+
+Not yet here (issue 4): variable step amplification (Eq. 4-6), interleaved spatial reuse, 32x32 tile LOD and
+empty-tile culling, the binocular benchmark.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import warp as wp
+
+from volren.camera import Camera
+from volren.device import launch_rows
+from volren.errors import VolrenError
+from volren.kernels.common import (
+    INF,
+    CameraGPU,
+    LightGPU,
+    ViewBuffers,
+    VolumeGPU,
+    box_hit,
+    cell_fraction,
+    count,
+    gather_cell,
+    grid_cell,
+    grid_coords,
+    half_depth,
+    interpolate_cell,
+    project_pixel,
+)
+from volren.render.cmsrm import CMSRM, SCHEME_CUBE, CMSRMConfig, CubeMaps
+from volren.render.cubemap import CubeLOD, face_point, texel_index
+from volren.render.dssrm import MarchParams, lit_step
+from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, PassClock
+from volren.upload import DeviceScene, camera_struct
+
+
+@dataclass(frozen=True)
+class CACRMConfig(CMSRMConfig):
+    coupling: bool = True
+    """march both eyes' rays to a texel in one work item (off: each eye alone, same steps)"""
+    share_voxels: bool = True
+    """fetch a trilinear cell once when both eyes' samples fall in it"""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.cube_faces != "interior":
+            raise VolrenError("cacrm couples rays on interior cube faces only (--cube-faces interior)")
+
+
+@wp.func
+def eye_segment(cam: CameraGPU, vol: VolumeGPU, x: wp.vec3, buffers: ViewBuffers) -> wp.vec4:
+    """(t_min, t_max, facing, steps-valid flag) of the ray from this eye to the world texel point x: from the box
+    entry or near plane to the texel, cut at the opaque surface of the z-buffer pixel x projects to."""
+    dist = wp.length(x - cam.origin)
+    d = (x - cam.origin) / dist
+    facing = wp.dot(d, cam.forward)
+    if facing <= 0.0:
+        return wp.vec4(0.0, 0.0, facing, 0.0)
+    hb = box_hit(wp.transform_point(vol.to_local, cam.origin), wp.transform_vector(vol.to_local, d))
+    t0 = wp.max(hb[0], cam.near / facing)
+    t1 = dist
+    pix = project_pixel(cam, x)
+    col = int(wp.floor(pix[0]))
+    row = int(wp.floor(pix[1]))
+    if col >= 0 and col < cam.width and row >= 0 and row < cam.height:
+        t1 = wp.min(t1, buffers.occluder_depth[row, col] / facing)
+    valid = float(0.0)
+    if t1 > t0 + 1.0e-6:
+        valid = 1.0
+    return wp.vec4(t0, t1, facing, valid)
+
+
+@wp.func
+def anchored_steps(seg: wp.vec4, dt: float) -> int:
+    """Steps of dt from the texel back to t_min (the last one clipped), 0 for an empty segment."""
+    if seg[3] == 0.0:
+        return 0
+    return wp.max(int(wp.ceil((seg[1] - seg[0]) / dt - 1.0e-6)), 1)
+
+
+@wp.func
+def step_interval(seg: wp.vec4, k: int, dt: float) -> wp.vec2:
+    """(midpoint, length) of step k counted from the texel: [t_max - (k + 1) dt, t_max - k dt] clipped at t_min."""
+    hi = seg[1] - float(k) * dt
+    lo = wp.max(seg[1] - float(k + 1) * dt, seg[0])
+    return wp.vec2(0.5 * (lo + hi), hi - lo)
+
+
+@wp.kernel
+def coupled_march_kernel(
+    cam0: CameraGPU,
+    cam1: CameraGPU,
+    eyes: int,
+    share: int,
+    vol: VolumeGPU,
+    faces: wp.array(dtype=int),
+    size: int,
+    density: wp.array(dtype=float),
+    lightmap: wp.array(dtype=float),
+    lights: wp.array(dtype=LightGPU),
+    params: MarchParams,
+    buffers0: ViewBuffers,
+    buffers1: ViewBuffers,
+    cube0: wp.array(dtype=wp.vec4),
+    cube0_t: wp.array(dtype=float),
+    cube0_z: wp.array(dtype=float),
+    offset0: int,
+    cube1: wp.array(dtype=wp.vec4),
+    cube1_t: wp.array(dtype=float),
+    cube1_z: wp.array(dtype=float),
+    offset1: int,
+    counters: wp.array(dtype=wp.int64),
+    row0: int,
+):
+    """One texel, both eyes (eye 1 only when eyes == 2): synchronised anchored steps, shared cell fetches."""
+    r, i = wp.tid()
+    row = r + row0
+    k = row / size
+    j = row - k * size
+    f = faces[k]
+    h = 2.0 / float(size)
+    x = wp.transform_point(vol.to_world, face_point(f, -1.0 + (float(i) + 0.5) * h, -1.0 + (float(j) + 0.5) * h))
+    seg0 = eye_segment(cam0, vol, x, buffers0)
+    seg1 = wp.vec4(0.0)
+    if eyes == 2:
+        seg1 = eye_segment(cam1, vol, x, buffers1)
+    d0 = wp.normalize(x - cam0.origin)
+    d1 = wp.normalize(x - cam1.origin)
+    o0 = wp.transform_point(vol.to_local, cam0.origin)
+    o1 = wp.transform_point(vol.to_local, cam1.origin)
+    dl0 = wp.transform_vector(vol.to_local, d0)
+    dl1 = wp.transform_vector(vol.to_local, d1)
+    dt = vol.diagonal / float(params.samples)
+    n0 = anchored_steps(seg0, dt)
+    n1 = anchored_steps(seg1, dt)
+    n = wp.max(n0, n1)
+    acc0 = wp.vec4(0.0, 0.0, 0.0, 1.0)
+    acc1 = wp.vec4(0.0, 0.0, 0.0, 1.0)
+    half0 = float(INF)
+    half1 = float(INF)
+    samples = int(0)
+    shared = int(0)
+    shaded = int(0)
+    for m in range(n):
+        k0 = n - 1 - m
+        k1 = n - 1 - m
+        in0 = k0 < n0 and acc0[3] >= params.min_transmittance
+        in1 = k1 < n1 and acc1[3] >= params.min_transmittance
+        if not in0 and not in1:
+            break
+        s0 = step_interval(seg0, k0, dt)
+        s1 = step_interval(seg1, k1, dt)
+        p0 = o0 + s0[0] * dl0
+        p1 = o1 + s1[0] * dl1
+        f0 = grid_coords(vol.res, p0)
+        f1 = grid_coords(vol.res, p1)
+        c0 = grid_cell(vol.res, f0)
+        c1 = grid_cell(vol.res, f1)
+        rho0 = float(0.0)
+        rho1 = float(0.0)
+        if in0 and in1 and share != 0 and c0 == c1:
+            cell = gather_cell(density, vol.offset, vol.res, c0)
+            rho0 = interpolate_cell(cell, cell_fraction(f0, c0))
+            rho1 = interpolate_cell(cell, cell_fraction(f1, c0))
+            shared += 1
+        else:
+            if in0:
+                rho0 = interpolate_cell(gather_cell(density, vol.offset, vol.res, c0), cell_fraction(f0, c0))
+            if in1:
+                rho1 = interpolate_cell(gather_cell(density, vol.offset, vol.res, c1), cell_fraction(f1, c1))
+        if in0:
+            samples += 1
+            if rho0 > 0.0:
+                shaded += 1
+                before = acc0[3]
+                x0 = cam0.origin + s0[0] * d0
+                acc0 = lit_step(acc0, rho0, vol, lightmap, lights, p0, x0, d0, s0[1], params.ambient)
+                half0 = half_depth(half0, before, acc0[3], s0[0])
+        if in1:
+            samples += 1
+            if rho1 > 0.0:
+                shaded += 1
+                before = acc1[3]
+                x1 = cam1.origin + s1[0] * d1
+                acc1 = lit_step(acc1, rho1, vol, lightmap, lights, p1, x1, d1, s1[1], params.ambient)
+                half1 = half_depth(half1, before, acc1[3], s1[0])
+    texel = texel_index(f, i, j, size)
+    cube0[offset0 + texel] = acc0
+    cube0_t[offset0 + texel] = half0
+    cube0_z[offset0 + texel] = seg0[1] * seg0[2]
+    if eyes == 2:
+        cube1[offset1 + texel] = acc1
+        cube1_t[offset1 + texel] = half1
+        cube1_z[offset1 + texel] = seg1[1] * seg1[2]
+    count(counters, DENSITY_SAMPLES, samples)
+    count(counters, SHARED_SAMPLES, shared)
+    count(counters, LIGHTMAP_LOOKUPS, shaded * lights.shape[0])
+    count(counters, RAYS, int(seg0[3] + seg1[3]))
+
+
+def merge_lods(a: CubeLOD, b: CubeLOD) -> CubeLOD:
+    """One LOD for a coupled pair: the finer level and the larger sample count of the two eyes."""
+    finer = a if a.level <= b.level else b
+    return replace(finer, samples=max(a.samples, b.samples), edge_pixels=max(a.edge_pixels, b.edge_pixels))
+
+
+class CACRM(CMSRM):
+    """Coupled binocular cube-map ray marching; ``config`` is a `CACRMConfig`."""
+
+    name = "cacrm"
+
+    def __init__(self, config: CACRMConfig | None = None, device: str = "auto") -> None:
+        super().__init__(config or CACRMConfig(), device)
+
+    def _plan_views(self, ds: DeviceScene, views: list[Camera]) -> list[list[dict]]:
+        """Per pair, one plan for both eyes: faces seen by either, the finer LOD, cube unless both would go direct."""
+        plans = super()._plan_views(ds, views)
+        for a, b in zip(plans[0::2], plans[1::2], strict=False):
+            for pa, pb in zip(a, b, strict=True):
+                merged = {
+                    "faces": sorted(set(pa["faces"]) | set(pb["faces"])),
+                    "lod": merge_lods(pa["lod"], pb["lod"]),
+                    "scheme": max(pa["scheme"], pb["scheme"]),
+                }
+                merged["texels"] = len(merged["faces"]) * merged["lod"].size ** 2
+                pa.update(merged)
+                pb.update(merged)
+        return plans
+
+    def _march_cubes(
+        self,
+        ds: DeviceScene,
+        views: list[Camera],
+        plans: list[list[dict]],
+        cubes: list[CubeMaps],
+        targets: list[ViewBuffers],
+        clock: PassClock,
+    ) -> None:
+        pairs = [(v, v + 1) for v in range(0, len(views) - 1, 2)] if self.config.coupling else []
+        singles = [v for v in range(len(views)) if not any(v in p for p in pairs)]
+        for group in [*pairs, *((v,) for v in singles)]:
+            first, last = group[0], group[-1]
+            for vol_index, plan in enumerate(plans[first]):
+                if plan["scheme"] != SCHEME_CUBE:
+                    continue
+                lod = plan["lod"]
+                level = ds.levels[vol_index][min(lod.level, len(ds.levels[vol_index]) - 1)]
+                faces = wp.array(plan["faces"], dtype=int, device=self.device)
+                a, b = cubes[first], cubes[last]
+                launch_rows(
+                    coupled_march_kernel,
+                    len(plan["faces"]) * lod.size,
+                    lod.size,
+                    [camera_struct(views[first]), camera_struct(views[last]), len(group),
+                     int(self.config.share_voxels), level, faces, lod.size, ds.density, ds.lightmap, ds.lights,
+                     self._params(ds, first, lod.samples), targets[first], targets[last],
+                     a.color, a.t_half, a.z_end, a.offsets[vol_index],
+                     b.color, b.t_half, b.z_end, b.offsets[vol_index]],
+                    self.device,
+                    clock.counters,
+                )

@@ -1,0 +1,81 @@
+"""CACRM (paper 000 §3.1.2): coupled binocular marching with shared voxel fetches.
+
+Measured on 64^3 built-ins, stereo 96x64 (ipd 0.063 m, eye 3.2 m away), CACRM 256:256 with a 64^3 light grid against
+the reference at 256:256: smoke 55.8, cloud 49.1, phantom 43.8, multi 44.7 dB (worst eye). CACRM marches CMSRM's
+texel rays with texel-anchored steps, so its error is CMSRM's (interpolation between texel rays one voxel apart);
+the floor of 40 dB sits 3.8 dB under the worst scene. Sharing is exact (the same 8 voxels, each ray's own weights).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volren.camera import Camera, make_views
+from volren.data import builtin_scene
+from volren.errors import VolrenError
+from volren.metrics import psnr
+from volren.render import CACRM, CACRMConfig, Reference, ReferenceConfig
+
+STEREO = make_views(Camera(position=(0.0, 0.4, 3.2), width=96, height=64), "stereo")
+FIXED = {"samples": 256, "light_samples": 64, "light_grid": 32, "hybrid": False, "adaptive_lod": False}
+
+
+def cacrm(scene, views=STEREO, **config):
+    return CACRM(CACRMConfig(**{**FIXED, **config}), device="cpu").render(scene, views)
+
+
+def test_coupled_marching_without_sharing_equals_independent_marches():
+    scene = builtin_scene("cloud", 64)
+    alone = cacrm(scene, coupling=False)
+    coupled = cacrm(scene, share_voxels=False)
+    for a, b in zip(alone.images, coupled.images, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    assert alone.stats.counters["density_samples"] == coupled.stats.counters["density_samples"]
+    assert coupled.stats.counters["shared_samples"] == 0
+
+
+def test_sharing_keeps_the_image_and_cuts_fetches_by_a_quarter():
+    """Shared cells are interpolated with each ray's own weights: the image does not change. Measured: 28.7% of the
+    samples reuse the other eye's fetch (the issue's goal: at least 25% fewer fetches than two independent marches)."""
+    scene = builtin_scene("smoke", 64)
+    alone = cacrm(scene, coupling=False)
+    shared = cacrm(scene)
+    for a, b in zip(alone.images, shared.images, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    c = shared.stats.counters
+    fetches = c["density_samples"] - c["shared_samples"]
+    assert fetches <= 0.75 * alone.stats.counters["density_samples"]
+
+
+def test_sharing_grows_as_the_eyes_converge():
+    """A wider baseline separates the two rays sooner: fewer shared samples."""
+    scene = builtin_scene("smoke", 64)
+    fractions = []
+    for ipd in (0.02, 0.063, 0.3):
+        c = cacrm(scene, make_views(STEREO[0], "stereo", ipd=ipd)).stats.counters
+        fractions.append(c["shared_samples"] / c["density_samples"])
+    assert fractions[0] > fractions[1] > fractions[2]
+
+
+@pytest.mark.parametrize("name", ["smoke", "cloud", "phantom", "multi"])
+def test_cacrm_against_the_reference(name):
+    scene = builtin_scene(name, 64, count=4)
+    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device="cpu").render(scene, STEREO)
+    frame = cacrm(scene, light_samples=256, light_grid=64, adaptive_lod=True)
+    for r, img in zip(ref.images, frame.images, strict=True):
+        assert psnr(r, img) > 40.0
+
+
+def test_single_view_and_odd_view_counts():
+    scene = builtin_scene("cloud", 64)
+    mono = cacrm(scene, STEREO[:1])
+    three = cacrm(scene, make_views(STEREO[0], "3"))
+    assert len(mono.images) == 1 and len(three.images) == 3
+    assert mono.stats.counters["shared_samples"] == 0
+    assert three.stats.counters["shared_samples"] > 0  # views 0 and 1 are coupled, view 2 alone
+
+
+def test_cacrm_refuses_exterior_faces():
+    with pytest.raises(VolrenError, match="interior"):
+        CACRMConfig(cube_faces="exterior")
