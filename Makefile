@@ -23,7 +23,7 @@ demo: $(VENV)/.installed
 	$(BIN)/volren demo
 
 lint: $(VENV)/.installed-dev
-	$(BIN)/ruff check src tests
+	$(BIN)/ruff check src tests scripts
 
 test: lint
 	$(BIN)/python -m pytest -n 2 -q

@@ -888,12 +888,12 @@ def test_opaque_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: s
     render_error(capfd, tmp_path, extra, fragment)
 
 
-@pytest.mark.parametrize("extra", [[], ["--no-coupling"], ["--no-share"]])
+@pytest.mark.parametrize("extra", [[], ["--no-coupling"], ["--no-share"], ["--no-vsa"]])
 def test_cacrm_switches(capfd, tmp_path: Path, extra: list[str]) -> None:
     out = tmp_path / "a"
     render(capfd, out, "--no-hybrid", "--no-lod", *extra, method="cacrm")
     counters = stats_of(out)["frames"][0]["counters"]
-    assert (counters["shared_samples"] > 0) == (not extra)
+    assert (counters["shared_samples"] > 0) == (extra in ([], ["--no-vsa"]))
     assert (out / "stereo.png").exists()
 
 

@@ -124,6 +124,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--k-z", type=float, help="cmsrm: bilateral edge-stopping coefficient [1/m] (0 = bilinear)")
     r.add_argument("--no-coupling", action="store_true", help="cacrm: march each eye alone (same steps)")
     r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
+    r.add_argument("--no-vsa", action="store_true", help="cacrm: uniform steps (no variable step amplification)")
     r.add_argument("--frames", type=int, default=1, help="render N frames (temporal methods), keep every frame")
     r.add_argument("--seed", type=int, default=0)
     add_device(p)
@@ -244,6 +245,7 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "k_z": (args.k_z, "--k-z"),
         "coupling": (False if args.no_coupling else None, "--no-coupling"),
         "share_voxels": (False if args.no_share else None, "--no-share"),
+        "vsa": (False if args.no_vsa else None, "--no-vsa"),
     }
     options = {k: v for k, (v, _) in given.items() if v is not None and k in fields}
     ignored = [flag for k, (v, flag) in given.items() if v is not None and k not in fields]

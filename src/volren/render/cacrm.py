@@ -14,14 +14,24 @@ their own views as in CMSRM. Views are coupled in pairs (0, 1), (2, 3), ...; an 
 ``coupling=False`` marches each eye alone with the same anchored steps, so coupled marching without sharing gives the
 same images; ``share_voxels=False`` keeps coupling but fetches per ray.
 
-Not yet here (issue 4): variable step amplification (Eq. 4-6), interleaved spatial reuse, 32x32 tile LOD and
-empty-tile culling, the binocular benchmark.
+Variable step amplification (§3.1.3, Eq. 4-6): after each sample, each eye proposes the next step as
+Delta t (N) max(k_a t / t_max, f_lambda^w_lambda f_T^w_T f_A^w_A, 1) with the base step Delta t = diagonal / N (the
+paper's (t_max - t_min) / N; here the same base step as DSSRM and CMSRM, so that N means the same in all three), and
+the pair takes the larger proposal. Departure: the amplification is floored to a whole number of base steps, so both
+eyes stay on their texel-anchored lattices and uniform stepping is the special case k_a = 0, w = 0 exactly. rho' is
+the backward difference of the last two samples per base step (the paper uses Bergner et al.'s estimate). The
+weights k_b, w_lambda, w_T, w_A come from ``scripts/fit_vsa.py`` (``vsa_fit.json``).
+
+Not yet here (issue 4): interleaved spatial reuse, 32x32 tile LOD and empty-tile culling, the binocular benchmark.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, replace
+from pathlib import Path
 
+import numpy as np
 import warp as wp
 
 from volren.camera import Camera
@@ -49,6 +59,38 @@ from volren.render.dssrm import MarchParams, lit_step
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, PassClock
 from volren.upload import DeviceScene, camera_struct
 
+VSA_FIT_FILE = Path(__file__).with_name("vsa_fit.json")
+VSA_FIT: dict[str, float] = json.loads(VSA_FIT_FILE.read_text())["weights"]
+"""Eq. 4-6 weights fitted by ``scripts/fit_vsa.py`` against the reference (the file says how and on what)."""
+
+
+@wp.struct
+class VSAParams:
+    """Eq. 4-6 constants; k_a = 0 with all weights 0 gives uniform steps."""
+
+    k_a: float
+    k_b: float
+    f_lambda_max: float
+    w_lambda: float
+    w_t: float
+    w_a: float
+
+
+@wp.func
+def vsa_multiple(vp: VSAParams, t: float, t_max: float, rho: float, drho: float, trans: float,
+                 absorb: float) -> int:
+    """Eq. 4 as a whole number of base steps: max(k_a t / t_max, f_lambda^w_lambda f_T^w_T f_A^w_A, 1), floored.
+    f_lambda = min(k_b / |rho'|, f_lambda_max) (Eq. 5); f_T = 1 - a (rho + rho') with a the optical depth of one
+    base step per unit density, and f_A = 1 - T (Eq. 6). rho' is the change of density per base step."""
+    f_lambda = vp.f_lambda_max
+    if wp.abs(drho) * vp.f_lambda_max > vp.k_b:
+        f_lambda = vp.k_b / wp.abs(drho)
+    f_t = wp.clamp(1.0 - absorb * (rho + drho), 0.0, 1.0)
+    f_a = wp.clamp(1.0 - trans, 0.0, 1.0)
+    product = wp.pow(f_lambda, vp.w_lambda) * wp.pow(f_t, vp.w_t) * wp.pow(f_a, vp.w_a)
+    amp = wp.max(wp.max(vp.k_a * t / t_max, product), 1.0)
+    return int(wp.floor(amp))
+
 
 @dataclass(frozen=True)
 class CACRMConfig(CMSRMConfig):
@@ -56,9 +98,23 @@ class CACRMConfig(CMSRMConfig):
     """march both eyes' rays to a texel in one work item (off: each eye alone, same steps)"""
     share_voxels: bool = True
     """fetch a trilinear cell once when both eyes' samples fall in it"""
+    vsa: bool = True
+    """variable step amplification (Eq. 4-6); off = uniform steps"""
+    k_a: float = 3.0
+    """Eq. 4: ray-length amplification k_a t / t_max"""
+    k_b: float = VSA_FIT["k_b"]
+    """Eq. 5: wave-length factor f_lambda = min(k_b / |rho'|, f_lambda_max), rho' per base step"""
+    f_lambda_max: float = 2.0
+    w_lambda: float = VSA_FIT["w_lambda"]
+    w_t: float = VSA_FIT["w_t"]
+    w_a: float = VSA_FIT["w_a"]
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        for name in ("k_a", "k_b", "f_lambda_max", "w_lambda", "w_t", "w_a"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise VolrenError(f"{name} must be a finite number >= 0, got {value}")
         if self.cube_faces != "interior":
             raise VolrenError("cacrm couples rays on interior cube faces only (--cube-faces interior)")
 
@@ -95,10 +151,11 @@ def anchored_steps(seg: wp.vec4, dt: float) -> int:
 
 
 @wp.func
-def step_interval(seg: wp.vec4, k: int, dt: float) -> wp.vec2:
-    """(midpoint, length) of step k counted from the texel: [t_max - (k + 1) dt, t_max - k dt] clipped at t_min."""
-    hi = seg[1] - float(k) * dt
-    lo = wp.max(seg[1] - float(k + 1) * dt, seg[0])
+def lattice_step(seg: wp.vec4, pos: int, m: int, dt: float) -> wp.vec2:
+    """(midpoint, length) of the step covering base cells [pos - m, pos) counted back from the texel:
+    [t_max - pos dt, t_max - (pos - m) dt], clipped at t_min (a step wholly before t_min has length <= 0)."""
+    hi = seg[1] - float(pos - m) * dt
+    lo = wp.max(seg[1] - float(pos) * dt, seg[0])
     return wp.vec2(0.5 * (lo + hi), hi - lo)
 
 
@@ -115,6 +172,7 @@ def coupled_march_kernel(
     lightmap: wp.array(dtype=float),
     lights: wp.array(dtype=LightGPU),
     params: MarchParams,
+    vp: VSAParams,
     buffers0: ViewBuffers,
     buffers1: ViewBuffers,
     cube0: wp.array(dtype=wp.vec4),
@@ -157,15 +215,24 @@ def coupled_march_kernel(
     samples = int(0)
     shared = int(0)
     shaded = int(0)
-    for m in range(n):
-        k0 = n - 1 - m
-        k1 = n - 1 - m
-        in0 = k0 < n0 and acc0[3] >= params.min_transmittance
-        in1 = k1 < n1 and acc1[3] >= params.min_transmittance
+    # VSA state per eye: the previous sample's density and position (for rho'), and the optical depth of a base step.
+    prev0 = float(-1.0)
+    prev1 = float(-1.0)
+    prev_t0 = float(0.0)
+    prev_t1 = float(0.0)
+    absorb = vol.density_scale * dt
+    # The pair walks the base-step lattice anchored at each eye's texel, front to back: pos base steps remain before
+    # the texel, and each step covers m of them (m = 1: uniform steps).
+    pos = n
+    m = int(1)
+    while pos > 0:
+        m = wp.min(m, pos)
+        in0 = pos - m < n0 and acc0[3] >= params.min_transmittance
+        in1 = pos - m < n1 and acc1[3] >= params.min_transmittance
         if not in0 and not in1:
             break
-        s0 = step_interval(seg0, k0, dt)
-        s1 = step_interval(seg1, k1, dt)
+        s0 = lattice_step(seg0, pos, m, dt)
+        s1 = lattice_step(seg1, pos, m, dt)
         p0 = o0 + s0[0] * dl0
         p1 = o1 + s1[0] * dl1
         f0 = grid_coords(vol.res, p0)
@@ -184,6 +251,7 @@ def coupled_march_kernel(
                 rho0 = interpolate_cell(gather_cell(density, vol.offset, vol.res, c0), cell_fraction(f0, c0))
             if in1:
                 rho1 = interpolate_cell(gather_cell(density, vol.offset, vol.res, c1), cell_fraction(f1, c1))
+        next_m = int(1)
         if in0:
             samples += 1
             if rho0 > 0.0:
@@ -192,6 +260,12 @@ def coupled_march_kernel(
                 x0 = cam0.origin + s0[0] * d0
                 acc0 = lit_step(acc0, rho0, vol, lightmap, lights, p0, x0, d0, s0[1], params.ambient)
                 half0 = half_depth(half0, before, acc0[3], s0[0])
+            drho0 = float(0.0)
+            if prev0 >= 0.0:
+                drho0 = (rho0 - prev0) * dt / wp.max(s0[0] - prev_t0, 1.0e-9)
+            next_m = wp.max(next_m, vsa_multiple(vp, s0[0], seg0[1], rho0, drho0, acc0[3], absorb))
+            prev0 = rho0
+            prev_t0 = s0[0]
         if in1:
             samples += 1
             if rho1 > 0.0:
@@ -200,6 +274,14 @@ def coupled_march_kernel(
                 x1 = cam1.origin + s1[0] * d1
                 acc1 = lit_step(acc1, rho1, vol, lightmap, lights, p1, x1, d1, s1[1], params.ambient)
                 half1 = half_depth(half1, before, acc1[3], s1[0])
+            drho1 = float(0.0)
+            if prev1 >= 0.0:
+                drho1 = (rho1 - prev1) * dt / wp.max(s1[0] - prev_t1, 1.0e-9)
+            next_m = wp.max(next_m, vsa_multiple(vp, s1[0], seg1[1], rho1, drho1, acc1[3], absorb))
+            prev1 = rho1
+            prev_t1 = s1[0]
+        pos = pos - m
+        m = next_m
     texel = texel_index(f, i, j, size)
     cube0[offset0 + texel] = acc0
     cube0_t[offset0 + texel] = half0
@@ -227,6 +309,13 @@ class CACRM(CMSRM):
 
     def __init__(self, config: CACRMConfig | None = None, device: str = "auto") -> None:
         super().__init__(config or CACRMConfig(), device)
+
+    def _vsa_params(self) -> VSAParams:
+        c = self.config
+        vp = VSAParams()
+        vp.k_a, vp.k_b, vp.f_lambda_max = (c.k_a, c.k_b, c.f_lambda_max) if c.vsa else (0.0, 1.0, 1.0)
+        vp.w_lambda, vp.w_t, vp.w_a = (c.w_lambda, c.w_t, c.w_a) if c.vsa else (0.0, 0.0, 0.0)
+        return vp
 
     def _plan_views(self, ds: DeviceScene, views: list[Camera]) -> list[list[dict]]:
         """Per pair, one plan for both eyes: faces seen by either, the finer LOD, cube unless both would go direct."""
@@ -269,7 +358,7 @@ class CACRM(CMSRM):
                     lod.size,
                     [camera_struct(views[first]), camera_struct(views[last]), len(group),
                      int(self.config.share_voxels), level, faces, lod.size, ds.density, ds.lightmap, ds.lights,
-                     self._params(ds, first, lod.samples), targets[first], targets[last],
+                     self._params(ds, first, lod.samples), self._vsa_params(), targets[first], targets[last],
                      a.color, a.t_half, a.z_end, a.offsets[vol_index],
                      b.color, b.t_half, b.z_end, b.offsets[vol_index]],
                     self.device,
