@@ -840,7 +840,8 @@ def test_cmsrm_renders_every_builtin(capfd, tmp_path: Path, scene: str, views: s
 
 def test_cmsrm_options(capfd, tmp_path: Path) -> None:
     out = tmp_path / "c"
-    render(capfd, out, "--views", "mono", "--cube-faces", "exterior", "--cube-size", "32", "--no-lod", method="cmsrm")
+    render(capfd, out, "--views", "mono", "--cube-faces", "exterior", "--cube-size", "32", "--no-lod", "--no-cull",
+           method="cmsrm")
     plan = stats_of(out)["frames"][0]["info"]["volumes"][0][0]
     assert plan["face_size"] == 32 and plan["level"] == 0
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from conftest import face_point_np
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
@@ -21,13 +22,6 @@ from volren.render import CMSRM, DSSRM, CMSRMConfig, DSSRMConfig
 from volren.render.cubemap import face_point, point_face, texel_index, visible_faces
 
 MATCHED = {"samples": 256, "light_samples": 64, "light_grid": 32}
-
-
-def face_point_np(f: int, u: float, v: float) -> np.ndarray:
-    a, s = f // 2, 1.0 - 2.0 * (f % 2)
-    p = np.zeros(3)
-    p[a], p[(a + 1) % 3], p[(a + 2) % 3] = s, u, v
-    return p
 
 
 @wp.kernel

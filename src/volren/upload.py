@@ -76,6 +76,10 @@ class DeviceScene:
     ambient: wp.vec3
     opaque: wp.array
     """the scene's opaque spheres and planes (`OpaqueGPU`)"""
+    max_density: wp.array
+    """per volume one coarse level of its conservative max-density pyramid, packed (for empty-tile culling)"""
+    max_grids: list[tuple[int, tuple[int, int, int]]]
+    """per volume (offset into ``max_density``, resolution (x, y, z)) of that level"""
     levels: list[list[VolumeGPU]]
     """per volume, its struct at each uploaded mip level (level 0 only unless uploaded with ``mip_levels``);
     levels differ only in ``offset`` and ``res``: same box, material and light map"""
@@ -87,6 +91,18 @@ class DeviceScene:
     @property
     def light_count(self) -> int:
         return len(self.scene.lights)
+
+
+CULL_GRID = 16
+"""Empty-tile culling reads the max-density pyramid level with at most this many cells per axis."""
+
+
+def coarse_max_level(vol: Volume) -> np.ndarray:
+    """The finest max-pyramid level with at most CULL_GRID cells on every axis."""
+    for level in vol.max_pyramid:
+        if max(level.shape) <= CULL_GRID:
+            return level
+    return vol.max_pyramid[-1]
 
 
 def volume_struct(
@@ -133,6 +149,11 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     if offset > MAX_PACKED or light_offset > MAX_PACKED:
         raise VolrenError(f"scene too large: {offset} voxels (at most {MAX_PACKED} in all volumes together)")
     check_allocation(4 * (offset + light_offset), device, f"scene '{scene.name}' (density and light maps)")
+    max_levels = [coarse_max_level(v) for v in scene.volumes] if mip_levels else []
+    max_grids, max_offset = [], 0
+    for grid in max_levels:
+        max_grids.append((max_offset, grid.shape[::-1]))
+        max_offset += grid.size
     try:
         density = wp.array(np.concatenate(grids), dtype=float, device=device)
         lightmap = wp.ones(max(light_offset, 1), dtype=float, device=device)
@@ -155,6 +176,9 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         light_res=light_res,
         lightmap=lightmap,
         ambient=wp.vec3(*scene.environment.mean_radiance()),
+        max_density=wp.array(np.concatenate([g.reshape(-1) for g in max_levels]) if max_levels else np.zeros(1),
+                             dtype=float, device=device),
+        max_grids=max_grids,
         opaque=wp.array(opaque_structs(scene), dtype=OpaqueGPU, device=device)
         if scene.opaque else wp.zeros(0, dtype=OpaqueGPU, device=device),
         levels=levels,

@@ -166,7 +166,8 @@ def coupled_march_kernel(
     eyes: int,
     share: int,
     vol: VolumeGPU,
-    faces: wp.array(dtype=int),
+    tiles: wp.array(dtype=wp.vec3i),
+    tile: int,
     size: int,
     density: wp.array(dtype=float),
     lightmap: wp.array(dtype=float),
@@ -187,11 +188,15 @@ def coupled_march_kernel(
     row0: int,
 ):
     """One texel, both eyes (eye 1 only when eyes == 2): synchronised anchored steps, shared cell fetches."""
-    r, i = wp.tid()
+    r, c = wp.tid()
     row = r + row0
-    k = row / size
-    j = row - k * size
-    f = faces[k]
+    k = row / tile
+    t = tiles[k]
+    f = t[0]
+    i = t[1] + c
+    j = t[2] + row - k * tile
+    if i >= size or j >= size:
+        return
     h = 2.0 / float(size)
     x = wp.transform_point(vol.to_world, face_point(f, -1.0 + (float(i) + 0.5) * h, -1.0 + (float(j) + 0.5) * h))
     seg0 = eye_segment(cam0, vol, x, buffers0)
@@ -350,14 +355,15 @@ class CACRM(CMSRM):
                     continue
                 lod = plan["lod"]
                 level = ds.levels[vol_index][min(lod.level, len(ds.levels[vol_index]) - 1)]
-                faces = wp.array(plan["faces"], dtype=int, device=self.device)
+                tiles, tile = self._live_tiles(ds, vol_index, plan, [views[first], views[last]], clock)
+                plans[last][vol_index].update(tiles=plan["tiles"], live_tiles=plan["live_tiles"])
                 a, b = cubes[first], cubes[last]
                 launch_rows(
                     coupled_march_kernel,
-                    len(plan["faces"]) * lod.size,
-                    lod.size,
+                    len(tiles) * tile,
+                    tile,
                     [camera_struct(views[first]), camera_struct(views[last]), len(group),
-                     int(self.config.share_voxels), level, faces, lod.size, ds.density, ds.lightmap, ds.lights,
+                     int(self.config.share_voxels), level, tiles, tile, lod.size, ds.density, ds.lightmap, ds.lights,
                      self._params(ds, first, lod.samples), self._vsa_params(), targets[first], targets[last],
                      a.color, a.t_half, a.z_end, a.offsets[vol_index],
                      b.color, b.t_half, b.z_end, b.offsets[vol_index]],

@@ -46,11 +46,14 @@ from volren.kernels.common import (
 from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold
 from volren.render.cubemap import (
     FACE_COUNT,
+    TILE,
     cube_lod,
     cube_sample,
     face_point,
+    face_tiles,
     point_face,
     texel_index,
+    tile_occupancy_kernel,
     visible_faces,
 )
 from volren.render.dssrm import MarchParams, march_volume_light_map
@@ -97,6 +100,8 @@ class CMSRMConfig:
     """sampling coefficient of N_ideal = k_c S_ideal / sqrt 3; 3 gives one sample per texel along a diagonal"""
     hybrid: bool = True
     """march a volume directly when its projected pixels are fewer than its visible texels"""
+    cull_tiles: bool = True
+    """skip 32x32-texel tiles whose rays can only meet zero density (coarse pass on the max-density pyramid)"""
     k_z: float = 0.5
     """[1/m] edge-stopping coefficient of the 2x2 bilateral resampling filter (§3.2); 0 = plain bilinear"""
     seed: int = 0
@@ -121,7 +126,8 @@ class CMSRMConfig:
 def cube_march_kernel(
     cam: CameraGPU,
     vol: VolumeGPU,
-    faces: wp.array(dtype=int),
+    tiles: wp.array(dtype=wp.vec3i),
+    tile: int,
     size: int,
     exterior: int,
     density: wp.array(dtype=float),
@@ -139,11 +145,15 @@ def cube_march_kernel(
     """One ray per texel of the visible faces: from the eye through the texel centre, marched from the box entry
     (or near plane) to the texel (interior), or from the texel to the box exit (exterior), and cut at the opaque
     surface of the z-buffer pixel the texel projects to (nearest, the paper's blit into a cube depth map)."""
-    r, i = wp.tid()
+    r, c = wp.tid()
     row = r + row0
-    k = row / size
-    j = row - k * size
-    f = faces[k]
+    k = row / tile
+    t = tiles[k]
+    f = t[0]
+    i = t[1] + c
+    j = t[2] + row - k * tile
+    if i >= size or j >= size:
+        return
     h = 2.0 / float(size)
     x = wp.transform_point(vol.to_world, face_point(f, -1.0 + (float(i) + 0.5) * h, -1.0 + (float(j) + 0.5) * h))
     dist = wp.length(x - cam.origin)
@@ -319,6 +329,31 @@ class CMSRM(Renderer):
             texels=total,
         )
 
+    def _live_tiles(
+        self, ds: DeviceScene, v: int, plan: dict, cams: list[Camera], clock: PassClock
+    ) -> tuple[wp.array, int]:
+        """The tiles of the plan's faces to march, after the coarse empty-tile culling pass (when on); records the
+        counts in the plan."""
+        lod = plan["lod"]
+        tiles = face_tiles(plan["faces"], lod.size)
+        tile = min(TILE, lod.size)
+        plan["tiles"] = len(tiles)
+        if self.config.cull_tiles and len(tiles):
+            vol = ds.scene.volumes[v]
+            eyes = [(vol.to_local @ np.r_[c.position, 1.0])[:3] for c in cams]
+            offset, res = ds.max_grids[v]
+            # A coarser density level reads voxels up to 2^level base voxels away (its trilinear support).
+            margin = (2**lod.level) * 2.0 / min(vol.resolution)
+            live = wp.zeros(len(tiles), dtype=int, device=self.device)
+            with clock.measure("tile_cull"):
+                wp.launch(tile_occupancy_kernel, dim=len(tiles),
+                          inputs=[wp.array(tiles, dtype=wp.vec3i, device=self.device), tile, lod.size,
+                                  wp.vec3(*eyes[0]), wp.vec3(*eyes[-1]), margin, ds.max_density, offset,
+                                  wp.vec3i(*res), live], device=self.device)
+            tiles = tiles[live.numpy() > 0]
+        plan["live_tiles"] = len(tiles)
+        return wp.array(tiles, dtype=wp.vec3i, device=self.device), tile
+
     def _march_cubes(
         self,
         ds: DeviceScene,
@@ -337,13 +372,13 @@ class CMSRM(Renderer):
                     continue
                 lod = plan["lod"]
                 level = ds.levels[v][min(lod.level, len(ds.levels[v]) - 1)]
-                faces = wp.array(plan["faces"], dtype=int, device=self.device)
+                tiles, tile = self._live_tiles(ds, v, plan, [cam], clock)
                 c = cubes[view]
                 launch_rows(
                     cube_march_kernel,
-                    len(plan["faces"]) * lod.size,
-                    lod.size,
-                    [cam_gpu, level, faces, lod.size, exterior, ds.density, ds.lightmap, ds.lights,
+                    len(tiles) * tile,
+                    tile,
+                    [cam_gpu, level, tiles, tile, lod.size, exterior, ds.density, ds.lightmap, ds.lights,
                      self._params(ds, view, lod.samples), targets[view], c.color, c.t_half, c.z_end, c.offsets[v]],
                     self.device,
                     clock.counters,
@@ -377,7 +412,8 @@ class CMSRM(Renderer):
             self._frame_info["volumes"].append([
                 {"view": view, "volume": v, "scheme": "cube" if p["scheme"] == SCHEME_CUBE else "direct",
                  "faces": p["faces"], "level": p["lod"].level, "face_size": p["lod"].size,
-                 "samples": p["lod"].samples, "visible_texels": p["texels"], "projected_pixels": round(p["pixels"])}
+                 "samples": p["lod"].samples, "visible_texels": p["texels"], "projected_pixels": round(p["pixels"]),
+                 "tiles": p.get("tiles", 0), "live_tiles": p.get("live_tiles", 0)}
                 for v, p in enumerate(plans[view])
             ])
         self._frame_info["cube_map_bytes"] = sum(c.texels for c in cubes) * 24

@@ -16,6 +16,7 @@ import numpy as np
 import warp as wp
 
 from volren.camera import Camera
+from volren.kernels.common import INF, box_hit
 from volren.scene import Volume
 
 FACE_COUNT = 6
@@ -76,6 +77,15 @@ def texel_index(f: int, i: int, j: int, size: int) -> int:
 
 
 @wp.func
+def edge_stop(z_pixel: float, z_cube: float, k_z: float) -> float:
+    """w_z = max(1 - k_z |z_buffer - z_cube|, 0) (paper 001 §3.2); 1 for a texel that was never marched (a culled,
+    empty tile: transparent whatever its depth)."""
+    if z_cube >= INF:
+        return 1.0
+    return wp.max(1.0 - k_z * wp.abs(z_pixel - z_cube), 0.0)
+
+
+@wp.func
 def cube_sample(
     cube: wp.array(dtype=wp.vec4),
     cube_z: wp.array(dtype=float),
@@ -116,10 +126,10 @@ def cube_sample(
     b10 = fx * (1.0 - fy)
     b01 = (1.0 - fx) * fy
     b11 = fx * fy
-    w00 = b00 * wp.max(1.0 - k_z * wp.abs(z_pixel - cube_z[i00]), 0.0)
-    w10 = b10 * wp.max(1.0 - k_z * wp.abs(z_pixel - cube_z[i10]), 0.0)
-    w01 = b01 * wp.max(1.0 - k_z * wp.abs(z_pixel - cube_z[i01]), 0.0)
-    w11 = b11 * wp.max(1.0 - k_z * wp.abs(z_pixel - cube_z[i11]), 0.0)
+    w00 = b00 * edge_stop(z_pixel, cube_z[i00], k_z)
+    w10 = b10 * edge_stop(z_pixel, cube_z[i10], k_z)
+    w01 = b01 * edge_stop(z_pixel, cube_z[i01], k_z)
+    w11 = b11 * edge_stop(z_pixel, cube_z[i11], k_z)
     total = w00 + w10 + w01 + w11
     if total < 1.0e-6:
         w00 = b00
@@ -186,3 +196,96 @@ def cube_lod(vol: Volume, cam: Camera, base_size: int, max_samples: int, k_u: fl
     s = math.sqrt(3) * min(n_ideal, n) / k_c
     level = 0 if s >= base_size else min(int(math.floor(math.log2(base_size / max(s, 1e-9)))), levels - 1)
     return CubeLOD(level, max(base_size >> level, 2), n, edge)
+
+
+TILE = 32
+"""Cube faces are marched in tiles of TILE x TILE texels (paper 000 §3.1.3); a smaller face is one tile."""
+
+
+def face_tiles(faces: list[int], size: int) -> np.ndarray:
+    """(face, i0, j0) of every tile of the given faces, int32 (n, 3)."""
+    t = min(TILE, size)
+    per_axis = math.ceil(size / t)
+    return np.array([(f, a * t, b * t) for f in faces for b in range(per_axis) for a in range(per_axis)],
+                    dtype=np.int32).reshape(-1, 3)
+
+
+@wp.func
+def ray_entry(eye: wp.vec3, q: wp.vec3) -> wp.vec3:
+    """Where the segment from the eye to the box-surface point q enters the box (the eye itself when inside)."""
+    h = box_hit(eye, q - eye)
+    return eye + wp.max(h[0], 0.0) * (q - eye)
+
+
+@wp.func
+def pyramid_bounds(eye: wp.vec3, q00: wp.vec3, q10: wp.vec3, q01: wp.vec3, q11: wp.vec3) -> wp.mat33:
+    """Rows 0 and 1: a box bounding the entry side of the rays from ``eye`` to the quad q00..q11 inside [-1, 1]^3.
+    The rays' in-box segments run from their entry points to the quad, so when the four corner rays enter through
+    one face (or the eye is inside) the entry points and the quad span them all; otherwise the entry patch may bend
+    over a box edge and the eye clamped into the box is used instead (looser, still conservative)."""
+    a = ray_entry(eye, q00)
+    b = ray_entry(eye, q10)
+    c = ray_entry(eye, q01)
+    d = ray_entry(eye, q11)
+    one = wp.vec3(1.0)
+    inside = wp.abs(eye[0]) <= 1.0 and wp.abs(eye[1]) <= 1.0 and wp.abs(eye[2]) <= 1.0
+    fa = point_face(a)
+    same = point_face(b) == fa and point_face(c) == fa and point_face(d) == fa
+    lo = wp.min(wp.min(a, b), wp.min(c, d))
+    hi = wp.max(wp.max(a, b), wp.max(c, d))
+    if not (inside or same):
+        e = wp.max(wp.min(eye, one), -one)
+        lo = wp.min(lo, e)
+        hi = wp.max(hi, e)
+    return wp.mat33(lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], 0.0, 0.0, 0.0)
+
+
+@wp.kernel
+def tile_occupancy_kernel(
+    tiles: wp.array(dtype=wp.vec3i),
+    tile: int,
+    size: int,
+    eye0: wp.vec3,
+    eye1: wp.vec3,
+    margin: float,
+    max_density: wp.array(dtype=float),
+    offset: int,
+    res: wp.vec3i,
+    live: wp.array(dtype=int),
+):
+    """Coarse pass of empty-tile culling: every ray of a tile runs from an eye to the tile's quad, so inside the box
+    it stays in the box-clamped bounding box of the eyes and the quad (widened by ``margin`` for the support of a
+    coarser density level). The tile is live when the conservative max-density pyramid is non-zero anywhere there."""
+    k = wp.tid()
+    t = tiles[k]
+    f = t[0]
+    h = 2.0 / float(size)
+    u0 = -1.0 + float(t[1]) * h
+    u1 = wp.min(-1.0 + float(t[1] + tile) * h, 1.0)
+    v0 = -1.0 + float(t[2]) * h
+    v1 = wp.min(-1.0 + float(t[2] + tile) * h, 1.0)
+    one = wp.vec3(1.0)
+    q00 = face_point(f, u0, v0)
+    q10 = face_point(f, u1, v0)
+    q01 = face_point(f, u0, v1)
+    q11 = face_point(f, u1, v1)
+    lo = wp.min(wp.min(q00, q10), wp.min(q01, q11))
+    hi = wp.max(wp.max(q00, q10), wp.max(q01, q11))
+    b0 = pyramid_bounds(eye0, q00, q10, q01, q11)
+    b1 = pyramid_bounds(eye1, q00, q10, q01, q11)
+    lo = wp.min(lo, wp.min(wp.vec3(b0[0, 0], b0[0, 1], b0[0, 2]), wp.vec3(b1[0, 0], b1[0, 1], b1[0, 2])))
+    hi = wp.max(hi, wp.max(wp.vec3(b0[1, 0], b0[1, 1], b0[1, 2]), wp.vec3(b1[1, 0], b1[1, 1], b1[1, 2])))
+    lo = wp.max(lo - wp.vec3(margin), -one)
+    hi = wp.min(hi + wp.vec3(margin), one)
+    a = wp.vec3i(0)
+    b = wp.vec3i(0)
+    for axis in range(3):
+        n = float(res[axis])
+        a[axis] = wp.clamp(int(wp.floor((lo[axis] + 1.0) * 0.5 * n)), 0, res[axis] - 1)
+        b[axis] = wp.clamp(int(wp.floor((hi[axis] + 1.0) * 0.5 * n)), 0, res[axis] - 1)
+    peak = float(0.0)
+    for z in range(a[2], b[2] + 1):
+        for y in range(a[1], b[1] + 1):
+            for x in range(a[0], b[0] + 1):
+                peak = wp.max(peak, max_density[offset + (z * res[1] + y) * res[0] + x])
+    live[k] = int(peak > 0.0)
