@@ -27,3 +27,18 @@ def test_run_suite_writes_json_and_markdown(tmp_path):
     doc = json.loads(json_path.read_text())
     assert doc["machine"]["device"] == "cpu" and doc["rows"]
     assert table in md_path.read_text()
+
+
+def test_binocular_suite_rows_and_goals():
+    from volren.bench.binocular import QUALITY_METHODS, run_config
+
+    cfg = {"scenes": ["cloud"], "resolution": 64, "light_grid": 16, "frames": 2, "quality_size": (48, 32),
+           "reference": 64, "sizes": [(64, 36)], "repeats": 1}
+    result = run_config(cfg, "cpu")
+    quality = [r for r in result["rows"] if r["table"] == "quality"]
+    assert [r["method"] for r in quality] == list(QUALITY_METHODS)
+    assert all(r["psnr"] > 20 and 0 < r["ssim"] <= 1 for r in quality)
+    speed = [r for r in result["rows"] if r["table"] == "speed"]
+    assert {r["method"] for r in speed} >= {"CACRM base", "CACRM +VSA", "CACRM"}
+    (goals,), _ = result["summary"]
+    assert 0 <= goals["coupling_gather_cut"] < 1  # at toy sizes the hybrid choice may march directly

@@ -34,10 +34,11 @@ class Suite:
 
 def all_suites() -> dict[str, Suite]:
     """Every suite by name (imported here, so importing volren.bench stays cheap)."""
+    from volren.bench.binocular import SUITE as BINOCULAR_SUITE
     from volren.bench.dssrm import SUITE as DSSRM_SUITE
     from volren.bench.resolution import SUITE as RESOLUTION_SUITE
 
-    return {s.name: s for s in (DSSRM_SUITE, RESOLUTION_SUITE)}
+    return {s.name: s for s in (DSSRM_SUITE, RESOLUTION_SUITE, BINOCULAR_SUITE)}
 
 
 NOT_PASSES = ("upload", "readback")
