@@ -66,14 +66,25 @@ VSA_FIT: dict[str, float] = json.loads(VSA_FIT_FILE.read_text())["weights"]
 
 @wp.struct
 class VSAParams:
-    """Eq. 4-6 constants; k_a = 0 with all weights 0 gives uniform steps."""
+    """Eq. 4-6 constants; k_a = 0 with all weights 0 gives uniform steps (as does enabled = 0, without the work)."""
 
+    enabled: int
     k_a: float
     k_b: float
     f_lambda_max: float
     w_lambda: float
     w_t: float
     w_a: float
+
+
+@wp.func
+def weighted(f: float, w: float) -> float:
+    """f^w, without a pow for the common weights 0 and 1 (three per sample and eye otherwise)."""
+    if w == 0.0:
+        return 1.0
+    if w == 1.0:
+        return f
+    return wp.pow(f, w)
 
 
 @wp.func
@@ -87,7 +98,7 @@ def vsa_multiple(vp: VSAParams, t: float, t_max: float, rho: float, drho: float,
         f_lambda = vp.k_b / wp.abs(drho)
     f_t = wp.clamp(1.0 - absorb * (rho + drho), 0.0, 1.0)
     f_a = wp.clamp(1.0 - trans, 0.0, 1.0)
-    product = wp.pow(f_lambda, vp.w_lambda) * wp.pow(f_t, vp.w_t) * wp.pow(f_a, vp.w_a)
+    product = weighted(f_lambda, vp.w_lambda) * weighted(f_t, vp.w_t) * weighted(f_a, vp.w_a)
     amp = wp.max(wp.max(vp.k_a * t / t_max, product), 1.0)
     return int(wp.floor(amp))
 
@@ -236,14 +247,25 @@ def coupled_march_kernel(
         in1 = pos - m < n1 and acc1[3] >= params.min_transmittance
         if not in0 and not in1:
             break
-        s0 = lattice_step(seg0, pos, m, dt)
-        s1 = lattice_step(seg1, pos, m, dt)
-        p0 = o0 + s0[0] * dl0
-        p1 = o1 + s1[0] * dl1
-        f0 = grid_coords(vol.res, p0)
-        f1 = grid_coords(vol.res, p1)
-        c0 = grid_cell(vol.res, f0)
-        c1 = grid_cell(vol.res, f1)
+        # Each eye's work only while it is inside its segment (eye 1 is absent when marching one view alone).
+        s0 = wp.vec2(0.0)
+        s1 = wp.vec2(0.0)
+        p0 = wp.vec3(0.0)
+        p1 = wp.vec3(0.0)
+        f0 = wp.vec3(0.0)
+        f1 = wp.vec3(0.0)
+        c0 = wp.vec3i(0)
+        c1 = wp.vec3i(-1)
+        if in0:
+            s0 = lattice_step(seg0, pos, m, dt)
+            p0 = o0 + s0[0] * dl0
+            f0 = grid_coords(vol.res, p0)
+            c0 = grid_cell(vol.res, f0)
+        if in1:
+            s1 = lattice_step(seg1, pos, m, dt)
+            p1 = o1 + s1[0] * dl1
+            f1 = grid_coords(vol.res, p1)
+            c1 = grid_cell(vol.res, f1)
         rho0 = float(0.0)
         rho1 = float(0.0)
         if in0 and in1 and share != 0 and c0 == c1:
@@ -265,12 +287,13 @@ def coupled_march_kernel(
                 x0 = cam0.origin + s0[0] * d0
                 acc0 = lit_step(acc0, rho0, vol, lightmap, lights, p0, x0, d0, s0[1], params.ambient)
                 half0 = half_depth(half0, before, acc0[3], s0[0])
-            drho0 = float(0.0)
-            if prev0 >= 0.0:
-                drho0 = (rho0 - prev0) * dt / wp.max(s0[0] - prev_t0, 1.0e-9)
-            next_m = wp.max(next_m, vsa_multiple(vp, s0[0], seg0[1], rho0, drho0, acc0[3], absorb))
-            prev0 = rho0
-            prev_t0 = s0[0]
+            if vp.enabled != 0:
+                drho0 = float(0.0)
+                if prev0 >= 0.0:
+                    drho0 = (rho0 - prev0) * dt / wp.max(s0[0] - prev_t0, 1.0e-9)
+                next_m = wp.max(next_m, vsa_multiple(vp, s0[0], seg0[1], rho0, drho0, acc0[3], absorb))
+                prev0 = rho0
+                prev_t0 = s0[0]
         if in1:
             samples += 1
             if rho1 > 0.0:
@@ -279,12 +302,13 @@ def coupled_march_kernel(
                 x1 = cam1.origin + s1[0] * d1
                 acc1 = lit_step(acc1, rho1, vol, lightmap, lights, p1, x1, d1, s1[1], params.ambient)
                 half1 = half_depth(half1, before, acc1[3], s1[0])
-            drho1 = float(0.0)
-            if prev1 >= 0.0:
-                drho1 = (rho1 - prev1) * dt / wp.max(s1[0] - prev_t1, 1.0e-9)
-            next_m = wp.max(next_m, vsa_multiple(vp, s1[0], seg1[1], rho1, drho1, acc1[3], absorb))
-            prev1 = rho1
-            prev_t1 = s1[0]
+            if vp.enabled != 0:
+                drho1 = float(0.0)
+                if prev1 >= 0.0:
+                    drho1 = (rho1 - prev1) * dt / wp.max(s1[0] - prev_t1, 1.0e-9)
+                next_m = wp.max(next_m, vsa_multiple(vp, s1[0], seg1[1], rho1, drho1, acc1[3], absorb))
+                prev1 = rho1
+                prev_t1 = s1[0]
         pos = pos - m
         m = next_m
     texel = texel_index(f, i, j, size)
@@ -318,6 +342,7 @@ class CACRM(CMSRM):
     def _vsa_params(self) -> VSAParams:
         c = self.config
         vp = VSAParams()
+        vp.enabled = int(c.vsa)
         vp.k_a, vp.k_b, vp.f_lambda_max = (c.k_a, c.k_b, c.f_lambda_max) if c.vsa else (0.0, 1.0, 1.0)
         vp.w_lambda, vp.w_t, vp.w_a = (c.w_lambda, c.w_t, c.w_a) if c.vsa else (0.0, 0.0, 0.0)
         return vp
