@@ -396,6 +396,15 @@ def occluder_t(buffers: ViewBuffers, cam: CameraGPU, d: wp.vec3, row: int, col: 
 
 
 @wp.func
+def pixel_ray(cam: CameraGPU, buffers: ViewBuffers, row: int, col: int):
+    """The unit direction through the centre of pixel (row, col) and its (near, far) ray distances, far cut at the
+    opaque surface seen through the pixel."""
+    d = camera_ray(cam, row, col, 0.5, 0.5)
+    planes = view_t_range(cam, d)
+    return d, wp.vec2(planes[0], wp.min(planes[1], occluder_t(buffers, cam, d, row, col)))
+
+
+@wp.func
 def project_pixel(cam: CameraGPU, x: wp.vec3) -> wp.vec3:
     """(column, row, linear depth) of world point x in the view; columns and rows are continuous pixel coordinates
     (pixel (r, c) spans [c, c + 1) x [r, r + 1))."""

@@ -170,6 +170,49 @@ def lattice_step(seg: wp.vec4, pos: int, m: int, dt: float) -> wp.vec2:
     return wp.vec2(0.5 * (lo + hi), hi - lo)
 
 
+@wp.func
+def eye_update(
+    acc: wp.vec4,
+    half: float,
+    prev: float,
+    prev_t: float,
+    rho: float,
+    vol: VolumeGPU,
+    lightmap: wp.array(dtype=float),
+    lights: wp.array(dtype=LightGPU),
+    p: wp.vec3,
+    x: wp.vec3,
+    d: wp.vec3,
+    step: wp.vec2,
+    seg: wp.vec4,
+    vp: VSAParams,
+    dt: float,
+    absorb: float,
+    ambient: wp.vec3,
+):
+    """One eye's step of the coupled march: composite the sample (density rho at local p / world x, step midpoint and
+    length ``step``) and propose the next step multiple by VSA. Returns (acc, half-transmittance distance, previous
+    density, previous distance, 1 if the sample was lit, step multiple)."""
+    out = acc
+    out_half = half
+    lit = int(0)
+    if rho > 0.0:
+        lit = 1
+        out = lit_step(acc, rho, vol, lightmap, lights, p, x, d, step[1], ambient)
+        out_half = half_depth(half, acc[3], out[3], step[0])
+    m = int(1)
+    out_prev = prev
+    out_prev_t = prev_t
+    if vp.enabled != 0:
+        drho = float(0.0)
+        if prev >= 0.0:
+            drho = (rho - prev) * dt / wp.max(step[0] - prev_t, 1.0e-9)
+        m = vsa_multiple(vp, step[0], seg[1], rho, drho, out[3], absorb)
+        out_prev = rho
+        out_prev_t = step[0]
+    return out, out_half, out_prev, out_prev_t, lit, m
+
+
 @wp.kernel
 def coupled_march_kernel(
     cam0: CameraGPU,
@@ -281,34 +324,20 @@ def coupled_march_kernel(
         next_m = int(1)
         if in0:
             samples += 1
-            if rho0 > 0.0:
-                shaded += 1
-                before = acc0[3]
-                x0 = cam0.origin + s0[0] * d0
-                acc0 = lit_step(acc0, rho0, vol, lightmap, lights, p0, x0, d0, s0[1], params.ambient)
-                half0 = half_depth(half0, before, acc0[3], s0[0])
-            if vp.enabled != 0:
-                drho0 = float(0.0)
-                if prev0 >= 0.0:
-                    drho0 = (rho0 - prev0) * dt / wp.max(s0[0] - prev_t0, 1.0e-9)
-                next_m = wp.max(next_m, vsa_multiple(vp, s0[0], seg0[1], rho0, drho0, acc0[3], absorb))
-                prev0 = rho0
-                prev_t0 = s0[0]
+            acc0, half0, prev0, prev_t0, lit, m0 = eye_update(
+                acc0, half0, prev0, prev_t0, rho0, vol, lightmap, lights, p0, cam0.origin + s0[0] * d0, d0, s0, seg0,
+                vp, dt, absorb, params.ambient,
+            )
+            shaded += lit
+            next_m = wp.max(next_m, m0)
         if in1:
             samples += 1
-            if rho1 > 0.0:
-                shaded += 1
-                before = acc1[3]
-                x1 = cam1.origin + s1[0] * d1
-                acc1 = lit_step(acc1, rho1, vol, lightmap, lights, p1, x1, d1, s1[1], params.ambient)
-                half1 = half_depth(half1, before, acc1[3], s1[0])
-            if vp.enabled != 0:
-                drho1 = float(0.0)
-                if prev1 >= 0.0:
-                    drho1 = (rho1 - prev1) * dt / wp.max(s1[0] - prev_t1, 1.0e-9)
-                next_m = wp.max(next_m, vsa_multiple(vp, s1[0], seg1[1], rho1, drho1, acc1[3], absorb))
-                prev1 = rho1
-                prev_t1 = s1[0]
+            acc1, half1, prev1, prev_t1, lit, m1 = eye_update(
+                acc1, half1, prev1, prev_t1, rho1, vol, lightmap, lights, p1, cam1.origin + s1[0] * d1, d1, s1, seg1,
+                vp, dt, absorb, params.ambient,
+            )
+            shaded += lit
+            next_m = wp.max(next_m, m1)
         pos = pos - m
         m = next_m
     texel = texel_index(f, i, j, size)

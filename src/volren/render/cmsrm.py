@@ -35,12 +35,10 @@ from volren.kernels.common import (
     ViewBuffers,
     VolumeGPU,
     box_hit,
-    camera_ray,
     count,
     new_march_state,
-    occluder_t,
+    pixel_ray,
     project_pixel,
-    view_t_range,
     write_pixel,
 )
 from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold
@@ -218,9 +216,7 @@ def cube_resample_kernel(
     leaves its box (enters, for exterior faces); a direct-scheme volume is marched here, as in DSSRM."""
     r, col = wp.tid()
     row = r + row0
-    d = camera_ray(cam, row, col, 0.5, 0.5)
-    planes = view_t_range(cam, d)
-    planes[1] = wp.min(planes[1], occluder_t(buffers, cam, d, row, col))
+    d, planes = pixel_ray(cam, buffers, row, col)
     s = new_march_state()
     direct = int(0)
     for k in range(order.shape[0]):

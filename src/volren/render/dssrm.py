@@ -22,7 +22,6 @@ from volren.kernels.common import (
     ViewBuffers,
     VolumeGPU,
     box_hit,
-    camera_ray,
     composite_step,
     count,
     half_depth,
@@ -31,11 +30,10 @@ from volren.kernels.common import (
     light_travel_dir,
     march_step_count,
     new_march_state,
-    occluder_t,
+    pixel_ray,
     ray_jitter,
     sample_grid,
     state_accumulator,
-    view_t_range,
     with_accumulator,
     write_pixel,
 )
@@ -176,9 +174,7 @@ def dssrm_kernel(
 ):
     r, col = wp.tid()
     row = r + row0
-    d = camera_ray(cam, row, col, 0.5, 0.5)
-    planes = view_t_range(cam, d)
-    planes[1] = wp.min(planes[1], occluder_t(buffers, cam, d, row, col))
+    d, planes = pixel_ray(cam, buffers, row, col)
     s = new_march_state()
     hit = int(0)
     for k in range(order.shape[0]):

@@ -25,7 +25,6 @@ from volren.kernels.common import (
     ViewBuffers,
     VolumeGPU,
     box_hit,
-    camera_ray,
     composite_step,
     count,
     covering_diagonal,
@@ -38,10 +37,9 @@ from volren.kernels.common import (
     march_step_count,
     new_march_state,
     next_box_boundary,
-    occluder_t,
+    pixel_ray,
     state_accumulator,
     transmittance_toward,
-    view_t_range,
     with_accumulator,
     write_pixel,
 )
@@ -133,9 +131,7 @@ def reference_kernel(
 ):
     r, col = wp.tid()
     row = r + row0
-    d = camera_ray(cam, row, col, 0.5, 0.5)
-    planes = view_t_range(cam, d)
-    planes[1] = wp.min(planes[1], occluder_t(buffers, cam, d, row, col))
+    d, planes = pixel_ray(cam, buffers, row, col)
     n_vol = volumes.shape[0]
     t0 = float(INF)
     t1 = float(-INF)
