@@ -16,6 +16,10 @@ Mesh occlusion (§3.2): each texel ray stops at the opaque surface of the z-buff
 (nearest), its end depth is kept in a cube depth map, and resampling weights the 2x2 texels by the bilateral
 edge-stopping w_z = max(1 - k_z |z_buffer - z_cube|, 0) (k_z = 0.5) so that texels cut at a different depth than
 the pixel's own ray do not bleed across occlusion edges (the halo of plain bilinear).
+
+Empty-tile culling (paper 000 §3's coarse phase, shared with CACRM): faces are marched in 32x32-texel tiles, and a
+coarse pass drops the tiles whose rays can only meet zero density according to the conservative max-density pyramid
+(`tile_occupancy_kernel`). Culled texels keep the transparent fill, which is what marching them would have given.
 """
 
 from __future__ import annotations
