@@ -5,7 +5,6 @@ Camera space looks down -z with +y up (OpenGL). Pixel (row 0, col 0) is the top-
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -140,7 +139,3 @@ def make_views(camera: Camera, views: str | int = "stereo", ipd: float = 0.063) 
         views = int(key)
     return orbit_views(camera, int(views))
 
-
-def look_from(position: Sequence[float], **kwargs) -> Camera:
-    """Shorthand: a camera at ``position`` looking at the origin."""
-    return Camera(position=tuple(position), **kwargs)
