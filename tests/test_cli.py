@@ -900,3 +900,14 @@ def test_cacrm_switches(capfd, tmp_path: Path, extra: list[str]) -> None:
 
 def test_cacrm_switch_refused_by_other_methods(capfd, tmp_path: Path) -> None:
     render_error(capfd, tmp_path, ["--method", "cmsrm", "--no-coupling"], "--no-coupling")
+
+
+def test_mesh_option(capfd, tmp_path: Path) -> None:
+    import trimesh
+
+    path = tmp_path / "box.ply"
+    trimesh.creation.box(extents=(0.4, 0.4, 0.4)).export(path)
+    out = tmp_path / "m"
+    render(capfd, out, "--views", "mono", "--mesh", path, "--mesh-translate", "0,0,2", "--save-linear")
+    assert np.load(out / "view0.npy")[H // 2, W // 2, 3] == 1.0  # the box in front is opaque
+    render_error(capfd, tmp_path, ["--mesh", tmp_path / "missing.obj"], "mesh file not found")

@@ -96,6 +96,10 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     opq.add_argument("--sphere", type=lambda t: floats(t, 4), action="append", default=[],
                      help="opaque diffuse sphere x,y,z,radius (repeatable)")
     opq.add_argument("--ground", type=float, help="opaque ground plane at height y")
+    opq.add_argument("--mesh", type=Path, action="append", default=[],
+                     help="opaque triangle mesh file: OBJ, PLY, STL, glTF/GLB, OFF (repeatable)")
+    opq.add_argument("--mesh-scale", type=float, default=1.0, help="scale applied to every --mesh (about the origin)")
+    opq.add_argument("--mesh-translate", type=vec3, default=(0.0, 0.0, 0.0), help="then translation x,y,z [m]")
     opq.add_argument("--depth-image", type=Path,
                      help=".npy linear depth (H, W), or (views, H, W), of geometry drawn elsewhere; inf = none")
     cam = p.add_argument_group("views")
@@ -156,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def scene_from_args(args: argparse.Namespace):
     """The scene the arguments ask for: a built-in or a volume file, with material and light overrides."""
-    from volren.data import builtin_scene, load_volume_file
+    from volren.data import builtin_scene, load_mesh_file, load_volume_file
     from volren.scene import DirectionalLight, Environment, Plane, Scene, Sphere, Volume
 
     if getattr(args, "volume", None) is not None:
@@ -187,6 +191,7 @@ def scene_from_args(args: argparse.Namespace):
     if args.ambient is not None and args.environment is not None:
         raise CliError("give either --ambient or --environment, not both")
     opaque = list(scene.opaque) + [Sphere(tuple(s[:3]), s[3]) for s in args.sphere]
+    opaque += [load_mesh_file(m, scale=args.mesh_scale, translate=args.mesh_translate) for m in args.mesh]
     if args.ground is not None:
         opaque.append(Plane((0.0, args.ground, 0.0), (0.0, 1.0, 0.0)))
     environment = scene.environment

@@ -259,7 +259,31 @@ class Plane:
         object.__setattr__(self, "albedo", _albedo(self.albedo, "plane albedo"))
 
 
-Opaque = Sphere | Plane
+@dataclass(frozen=True, eq=False)
+class TriangleMesh:
+    """An opaque diffuse triangle mesh in world coordinates (vertices (N, 3) [m], faces (M, 3) vertex indices),
+    ray-cast through a `wp.Mesh` BVH. Both sides of a triangle are opaque."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    albedo: RGB = (0.7, 0.7, 0.7)
+    name: str = "mesh"
+
+    def __post_init__(self) -> None:
+        v = np.asarray(self.vertices, dtype=np.float64)
+        f = np.asarray(self.faces)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or not np.all(np.isfinite(v)):
+            raise VolrenError(f"mesh '{self.name}': vertices must be a finite (N >= 3, 3) array, got {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) < 1 or not np.issubdtype(f.dtype, np.integer):
+            raise VolrenError(f"mesh '{self.name}': faces must be an integer (M >= 1, 3) array, got {f.shape}")
+        if f.min() < 0 or f.max() >= len(v):
+            raise VolrenError(f"mesh '{self.name}': face indices must lie in [0, {len(v) - 1}]")
+        object.__setattr__(self, "vertices", np.ascontiguousarray(v, dtype=np.float32))
+        object.__setattr__(self, "faces", np.ascontiguousarray(f, dtype=np.int32))
+        object.__setattr__(self, "albedo", _albedo(self.albedo, f"mesh '{self.name}' albedo"))
+
+
+Opaque = Sphere | Plane | TriangleMesh
 
 
 @dataclass(frozen=True, eq=False)
@@ -319,8 +343,8 @@ class Scene:
         object.__setattr__(self, "lights", tuple(self.lights))
         object.__setattr__(self, "opaque", tuple(self.opaque))
         for o in self.opaque:
-            if not isinstance(o, Sphere | Plane):
-                raise VolrenError(f"opaque objects must be Sphere or Plane, got {type(o).__name__}")
+            if not isinstance(o, Sphere | Plane | TriangleMesh):
+                raise VolrenError(f"opaque objects must be Sphere, Plane or TriangleMesh, got {type(o).__name__}")
         if not self.volumes:
             raise VolrenError("a scene needs at least one volume")
         for v in self.volumes:

@@ -16,7 +16,7 @@ from volren.device import check_allocation
 from volren.errors import VolrenError
 from volren.kernels.common import LIGHT_DIRECTIONAL, LIGHT_POINT, CameraGPU, LightGPU, OpaqueGPU, VolumeGPU
 from volren.render.surfaces import opaque_structs
-from volren.scene import DirectionalLight, Scene, Volume
+from volren.scene import DirectionalLight, Scene, TriangleMesh, Volume
 
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
@@ -76,6 +76,10 @@ class DeviceScene:
     ambient: wp.vec3
     opaque: wp.array
     """the scene's opaque spheres and planes (`OpaqueGPU`)"""
+    meshes: list[wp.Mesh]
+    """the scene's triangle meshes with their BVHs (kept alive here; kernels see ``mesh_ids``)"""
+    mesh_ids: wp.array
+    mesh_albedo: wp.array
     max_density: wp.array
     """per volume one coarse level of its conservative max-density pyramid, packed (for empty-tile culling)"""
     max_grids: list[tuple[int, tuple[int, int, int]]]
@@ -159,6 +163,10 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         lightmap = wp.ones(max(light_offset, 1), dtype=float, device=device)
     except (RuntimeError, MemoryError) as exc:
         raise VolrenError(f"cannot allocate the scene on {device}: {exc}") from exc
+    analytic = opaque_structs(scene)
+    meshes = [wp.Mesh(points=wp.array(o.vertices, dtype=wp.vec3, device=device),
+                      indices=wp.array(o.faces.reshape(-1), dtype=wp.int32, device=device))
+              for o in scene.opaque if isinstance(o, TriangleMesh)]
     lights = []
     for light in scene.lights:
         s = LightGPU()
@@ -179,7 +187,11 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         max_density=wp.array(np.concatenate([g.reshape(-1) for g in max_levels]) if max_levels else np.zeros(1),
                              dtype=float, device=device),
         max_grids=max_grids,
-        opaque=wp.array(opaque_structs(scene), dtype=OpaqueGPU, device=device)
-        if scene.opaque else wp.zeros(0, dtype=OpaqueGPU, device=device),
+        opaque=wp.array(analytic, dtype=OpaqueGPU, device=device) if analytic else wp.zeros(0, dtype=OpaqueGPU,
+                                                                                             device=device),
+        meshes=meshes,
+        mesh_ids=wp.array([m.id for m in meshes], dtype=wp.uint64, device=device),
+        mesh_albedo=wp.array([o.albedo for o in scene.opaque if isinstance(o, TriangleMesh)], dtype=wp.vec3,
+                             device=device),
         levels=levels,
     )

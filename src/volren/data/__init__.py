@@ -1,6 +1,7 @@
 """Scene data: built-in procedural scenes and volume file loaders."""
 
 from volren.data.loaders import load_volume_file
+from volren.data.meshes import load_mesh_file
 from volren.data.procedural import (
     BUILTIN_SCENES,
     MAX_RESOLUTION,
@@ -24,6 +25,7 @@ __all__ = [
     "builtin_scene",
     "cloud_density",
     "density_field",
+    "load_mesh_file",
     "load_volume_file",
     "multi_layout",
     "phantom_density",

@@ -1,6 +1,6 @@
-"""Opaque-surface pass: the scene's analytic spheres and planes ray-traced per view into a colour + linear depth
-buffer, merged with an optional user depth image. Every renderer clips its rays at this depth and composites the
-volume over the colour (paper 001 §3.2's z-buffer, before meshes exist).
+"""Opaque-surface pass: the scene's analytic spheres and planes and its triangle meshes (`wp.Mesh` BVH ray queries)
+ray-traced per view into a colour + linear depth buffer, merged with an optional user depth image. Every renderer
+clips its rays at this depth and composites the volume over the colour (paper 001 §3.2's z-buffer).
 
 Surfaces are Lambertian, lit by every light (with ray-traced shadows from the other opaque objects) and by the
 ambient environment (albedo * L_ambient). Volumes do not shadow surfaces here, and surfaces do not shadow volumes:
@@ -8,6 +8,8 @@ the light map and the reference's shadow rays see only the media.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
@@ -27,10 +29,15 @@ from volren.kernels.common import (
     light_irradiance,
     light_travel_dir,
 )
-from volren.scene import Scene, Sphere
+from volren.scene import Scene, Sphere, TriangleMesh
+
+if TYPE_CHECKING:
+    from volren.upload import DeviceScene
 
 SURFACE_EPSILON = 1.0e-4
 """[m] minimum hit distance, so a shadow ray does not hit the surface it leaves"""
+MESH_RANGE = wp.constant(1.0e6)
+"""[m] longest BVH ray query: "no limit" (INF = 1e30) overflows the traversal's arithmetic"""
 
 
 @wp.func
@@ -66,10 +73,25 @@ def opaque_normal(obj: OpaqueGPU, x: wp.vec3) -> wp.vec3:
     return wp.normalize(x - obj.position)
 
 
+@wp.func
+def occluded(x: wp.vec3, to_light: wp.vec3, dist: float, opaque: wp.array(dtype=OpaqueGPU),
+             mesh_ids: wp.array(dtype=wp.uint64)) -> bool:
+    """Whether any opaque object blocks the segment from x towards the light (shadow ray)."""
+    for k in range(opaque.shape[0]):
+        if opaque_hit(opaque[k], x, to_light) < dist:
+            return True
+    for k in range(mesh_ids.shape[0]):
+        if wp.mesh_query_ray_anyhit(mesh_ids[k], x, to_light, wp.min(dist, MESH_RANGE)):
+            return True
+    return False
+
+
 @wp.kernel
 def surface_kernel(
     cam: CameraGPU,
     opaque: wp.array(dtype=OpaqueGPU),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    mesh_albedo: wp.array(dtype=wp.vec3),
     lights: wp.array(dtype=LightGPU),
     ambient: wp.vec3,
     user_depth: wp.array2d(dtype=float),
@@ -78,32 +100,36 @@ def surface_kernel(
     row, col = wp.tid()
     d = camera_ray(cam, row, col, 0.5, 0.5)
     t = float(INF)
-    nearest = int(-1)
+    normal = wp.vec3(0.0)
+    albedo = wp.vec3(0.0)
     for k in range(opaque.shape[0]):
-        tk = opaque_hit(opaque[k], cam.origin, d)
+        obj = opaque[k]
+        tk = opaque_hit(obj, cam.origin, d)
         if tk < t:
             t = tk
-            nearest = k
+            normal = opaque_normal(obj, cam.origin + tk * d)
+            albedo = obj.albedo
+    for k in range(mesh_ids.shape[0]):
+        q = wp.mesh_query_ray(mesh_ids[k], cam.origin, d, wp.min(t, MESH_RANGE))
+        if q.result and q.t > SURFACE_EPSILON and q.t < t:
+            t = q.t
+            normal = q.normal
+            albedo = mesh_albedo[k]
     color = wp.vec4(0.0)
     z = float(INF)
-    if nearest >= 0:
-        obj = opaque[nearest]
+    if t < INF:
         x = cam.origin + t * d
-        n = opaque_normal(obj, x)
+        n = normal
         if wp.dot(n, d) > 0.0:
             n = -n
-        rgb = wp.cw_mul(obj.albedo, ambient)
+        rgb = wp.cw_mul(albedo, ambient)
         for li in range(lights.shape[0]):
             light = lights[li]
             to_light = -light_travel_dir(light, x)
             cos = wp.dot(n, to_light)
-            if cos > 0.0:
-                dist = light_distance(light, x)
-                lit = float(1.0)
-                for k in range(opaque.shape[0]):
-                    if opaque_hit(opaque[k], x, to_light) < dist:
-                        lit = 0.0
-                rgb += wp.cw_mul(obj.albedo, light_irradiance(light, x)) * (cos * lit / wp.pi)
+            if cos > 0.0 and not occluded(x + SURFACE_EPSILON * n, to_light, light_distance(light, x), opaque,
+                                          mesh_ids):
+                rgb += wp.cw_mul(albedo, light_irradiance(light, x)) * (cos / wp.pi)
         color = wp.vec4(rgb[0], rgb[1], rgb[2], 1.0)
         z = t * wp.dot(d, cam.forward)
     if user_depth[row, col] < z:
@@ -114,8 +140,11 @@ def surface_kernel(
 
 
 def opaque_structs(scene: Scene) -> list[OpaqueGPU]:
+    """The analytic objects (spheres, planes); triangle meshes go to `wp.Mesh` BVHs instead."""
     out = []
     for o in scene.opaque:
+        if isinstance(o, TriangleMesh):
+            continue
         s = OpaqueGPU()
         if isinstance(o, Sphere):
             s.kind, s.position, s.radius = OPAQUE_SPHERE, wp.vec3(*o.center), o.radius
@@ -150,22 +179,19 @@ def check_user_depth(depth: np.ndarray, cam: Camera, view: int) -> np.ndarray:
 
 
 def trace_surfaces(
-    scene: Scene,
+    ds: DeviceScene,
     cam_gpu: CameraGPU,
     cam: Camera,
-    opaque: wp.array,
-    lights: wp.array,
-    ambient: wp.vec3,
     user_depth: np.ndarray | None,
     buffers: ViewBuffers,
-    device: str,
 ) -> None:
     """Fill ``buffers``' surface colour and depth; a no-op when there is nothing opaque."""
-    if not scene.opaque and user_depth is None:
+    if not ds.scene.opaque and user_depth is None:
         return
     if user_depth is None:
-        user = wp.full((cam.height, cam.width), INF, dtype=float, device=device)
+        user = wp.full((cam.height, cam.width), INF, dtype=float, device=ds.device)
     else:
-        user = wp.array(user_depth, dtype=float, device=device)
-    wp.launch(surface_kernel, dim=(cam.height, cam.width), inputs=[cam_gpu, opaque, lights, ambient, user, buffers],
-              device=device)
+        user = wp.array(user_depth, dtype=float, device=ds.device)
+    wp.launch(surface_kernel, dim=(cam.height, cam.width),
+              inputs=[cam_gpu, ds.opaque, ds.mesh_ids, ds.mesh_albedo, ds.lights, ds.ambient, user, buffers],
+              device=ds.device)
