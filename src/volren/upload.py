@@ -14,7 +14,15 @@ import warp as wp
 from volren.camera import Camera
 from volren.device import check_allocation
 from volren.errors import VolrenError
-from volren.kernels.common import LIGHT_DIRECTIONAL, LIGHT_POINT, CameraGPU, LightGPU, OpaqueGPU, VolumeGPU
+from volren.kernels.common import (
+    LIGHT_DIRECTIONAL,
+    LIGHT_POINT,
+    CameraGPU,
+    LightGPU,
+    Medium,
+    OpaqueGPU,
+    VolumeGPU,
+)
 from volren.render.surfaces import opaque_structs
 from volren.scene import DirectionalLight, Scene, TriangleMesh, Volume
 
@@ -87,6 +95,11 @@ class DeviceScene:
     levels: list[list[VolumeGPU]]
     """per volume, its struct at each uploaded mip level (level 0 only unless uploaded with ``mip_levels``);
     levels differ only in ``offset`` and ``res``: same box, material and light map"""
+
+    def medium(self) -> Medium:
+        m = Medium()
+        m.density, m.lightmap, m.lights = self.density, self.lightmap, self.lights
+        return m
 
     @property
     def volume_count(self) -> int:

@@ -59,6 +59,15 @@ class LightGPU:
 
 
 @wp.struct
+class Medium:
+    """What a light-map-lit march reads: the packed density grids, the packed light maps and the lights."""
+
+    density: wp.array(dtype=float)
+    lightmap: wp.array(dtype=float)
+    lights: wp.array(dtype=LightGPU)
+
+
+@wp.struct
 class OpaqueGPU:
     kind: int
     position: wp.vec3

@@ -46,7 +46,7 @@ from volren.errors import VolrenError
 from volren.kernels.common import (
     INF,
     CameraGPU,
-    LightGPU,
+    Medium,
     ViewBuffers,
     VolumeGPU,
     box_hit,
@@ -184,8 +184,7 @@ def eye_update(
     prev_t: float,
     rho: float,
     vol: VolumeGPU,
-    lightmap: wp.array(dtype=float),
-    lights: wp.array(dtype=LightGPU),
+    medium: Medium,
     p: wp.vec3,
     x: wp.vec3,
     d: wp.vec3,
@@ -204,7 +203,7 @@ def eye_update(
     lit = int(0)
     if rho > 0.0:
         lit = 1
-        out = lit_step(acc, rho, vol, lightmap, lights, p, x, d, step[1], ambient)
+        out = lit_step(acc, rho, vol, medium, p, x, d, step[1], ambient)
         out_half = half_depth(half, acc[3], out[3], step[0])
     m = int(1)
     out_prev = prev
@@ -229,9 +228,7 @@ def coupled_march_kernel(
     tiles: wp.array(dtype=wp.vec3i),
     tile: int,
     size: int,
-    density: wp.array(dtype=float),
-    lightmap: wp.array(dtype=float),
-    lights: wp.array(dtype=LightGPU),
+    medium: Medium,
     params: MarchParams,
     vp: VSAParams,
     buffers0: ViewBuffers,
@@ -318,20 +315,20 @@ def coupled_march_kernel(
         rho0 = float(0.0)
         rho1 = float(0.0)
         if in0 and in1 and share != 0 and c0 == c1:
-            cell = gather_cell(density, vol.offset, vol.res, c0)
+            cell = gather_cell(medium.density, vol.offset, vol.res, c0)
             rho0 = interpolate_cell(cell, cell_fraction(f0, c0))
             rho1 = interpolate_cell(cell, cell_fraction(f1, c0))
             shared += 1
         else:
             if in0:
-                rho0 = interpolate_cell(gather_cell(density, vol.offset, vol.res, c0), cell_fraction(f0, c0))
+                rho0 = interpolate_cell(gather_cell(medium.density, vol.offset, vol.res, c0), cell_fraction(f0, c0))
             if in1:
-                rho1 = interpolate_cell(gather_cell(density, vol.offset, vol.res, c1), cell_fraction(f1, c1))
+                rho1 = interpolate_cell(gather_cell(medium.density, vol.offset, vol.res, c1), cell_fraction(f1, c1))
         next_m = int(1)
         if in0:
             samples += 1
             acc0, half0, prev0, prev_t0, lit, m0 = eye_update(
-                acc0, half0, prev0, prev_t0, rho0, vol, lightmap, lights, p0, cam0.origin + s0[0] * d0, d0, s0, seg0,
+                acc0, half0, prev0, prev_t0, rho0, vol, medium, p0, cam0.origin + s0[0] * d0, d0, s0, seg0,
                 vp, dt, absorb, params.ambient,
             )
             shaded += lit
@@ -339,7 +336,7 @@ def coupled_march_kernel(
         if in1:
             samples += 1
             acc1, half1, prev1, prev_t1, lit, m1 = eye_update(
-                acc1, half1, prev1, prev_t1, rho1, vol, lightmap, lights, p1, cam1.origin + s1[0] * d1, d1, s1, seg1,
+                acc1, half1, prev1, prev_t1, rho1, vol, medium, p1, cam1.origin + s1[0] * d1, d1, s1, seg1,
                 vp, dt, absorb, params.ambient,
             )
             shaded += lit
@@ -356,7 +353,7 @@ def coupled_march_kernel(
         cube1_z[offset1 + texel] = seg1[1] * seg1[2]
     count(counters, DENSITY_SAMPLES, samples)
     count(counters, SHARED_SAMPLES, shared)
-    count(counters, LIGHTMAP_LOOKUPS, shaded * lights.shape[0])
+    count(counters, LIGHTMAP_LOOKUPS, shaded * medium.lights.shape[0])
     count(counters, RAYS, int(seg0[3] + seg1[3]))
 
 
@@ -423,7 +420,7 @@ class CACRM(CMSRM):
                     len(tiles) * tile,
                     tile,
                     [camera_struct(views[first]), camera_struct(views[last]), len(group),
-                     int(self.config.share_voxels), level, tiles, tile, lod.size, ds.density, ds.lightmap, ds.lights,
+                     int(self.config.share_voxels), level, tiles, tile, lod.size, ds.medium(),
                      self._params(ds, first, lod.samples), self._vsa_params(), targets[first], targets[last],
                      a.color, a.t_half, a.z_end, a.offsets[vol_index],
                      b.color, b.t_half, b.z_end, b.offsets[vol_index]],

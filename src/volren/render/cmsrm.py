@@ -35,7 +35,7 @@ from volren.errors import VolrenError
 from volren.kernels.common import (
     INF,
     CameraGPU,
-    LightGPU,
+    Medium,
     ViewBuffers,
     VolumeGPU,
     box_hit,
@@ -132,9 +132,7 @@ def cube_march_kernel(
     tile: int,
     size: int,
     exterior: int,
-    density: wp.array(dtype=float),
-    lightmap: wp.array(dtype=float),
-    lights: wp.array(dtype=LightGPU),
+    medium: Medium,
     params: MarchParams,
     buffers: ViewBuffers,
     cube: wp.array(dtype=wp.vec4),
@@ -176,13 +174,13 @@ def cube_march_kernel(
             t1 = wp.min(t1, buffers.occluder_depth[row_z, col] / facing)
         if t1 > t0:
             count(counters, RAYS, 1)
-            s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, density, lightmap, lights, params)
+            s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, medium, params)
     texel = offset + texel_index(f, i, j, size)
     cube[texel] = wp.vec4(s.color[0], s.color[1], s.color[2], s.transmittance)
     cube_t[texel] = s.depth_t
     cube_z[texel] = t1 * facing
     count(counters, DENSITY_SAMPLES, s.samples)
-    count(counters, LIGHTMAP_LOOKUPS, s.shaded * lights.shape[0])
+    count(counters, LIGHTMAP_LOOKUPS, s.shaded * medium.lights.shape[0])
 
 
 @wp.func
@@ -208,9 +206,7 @@ def cube_resample_kernel(
     cube: wp.array(dtype=wp.vec4),
     cube_t: wp.array(dtype=float),
     cube_z: wp.array(dtype=float),
-    density: wp.array(dtype=float),
-    lightmap: wp.array(dtype=float),
-    lights: wp.array(dtype=LightGPU),
+    medium: Medium,
     params: MarchParams,
     buffers: ViewBuffers,
     counters: wp.array(dtype=wp.int64),
@@ -245,11 +241,11 @@ def cube_resample_kernel(
                 s.transmittance = after
             else:
                 direct = 1
-                s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, density, lightmap, lights, params)
+                s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, medium, params)
             if s.transmittance < params.min_transmittance:
                 break
     count(counters, RAYS, direct)
-    count(counters, LIGHTMAP_LOOKUPS, s.shaded * lights.shape[0])
+    count(counters, LIGHTMAP_LOOKUPS, s.shaded * medium.lights.shape[0])
     write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
 
@@ -378,7 +374,7 @@ class CMSRM(Renderer):
                     cube_march_kernel,
                     len(tiles) * tile,
                     tile,
-                    [cam_gpu, level, tiles, tile, lod.size, exterior, ds.density, ds.lightmap, ds.lights,
+                    [cam_gpu, level, tiles, tile, lod.size, exterior, ds.medium(),
                      self._params(ds, view, lod.samples), targets[view], c.color, c.t_half, c.z_end, c.offsets[v]],
                     self.device,
                     clock.counters,
@@ -403,7 +399,7 @@ class CMSRM(Renderer):
                     cam.height,
                     cam.width,
                     [camera_struct(cam), ds.volumes, order, *per_volume, exterior, self.config.k_z, c.color,
-                     c.t_half, c.z_end, ds.density, ds.lightmap, ds.lights,
+                     c.t_half, c.z_end, ds.medium(),
                      self._params(ds, view, self.config.samples), targets[view]],
                     self.device,
                     clock.counters,

@@ -17,8 +17,8 @@ from volren.camera import Camera
 from volren.device import launch_rows
 from volren.kernels.common import (
     CameraGPU,
-    LightGPU,
     MarchState,
+    Medium,
     ViewBuffers,
     VolumeGPU,
     box_hit,
@@ -76,8 +76,7 @@ class MarchParams:
 @wp.func
 def shade_light_map(
     vol: VolumeGPU,
-    lightmap: wp.array(dtype=float),
-    lights: wp.array(dtype=LightGPU),
+    medium: Medium,
     p: wp.vec3,
     x: wp.vec3,
     d: wp.vec3,
@@ -87,9 +86,9 @@ def shade_light_map(
     radiance = ambient
     res = vol.light_res
     count = res[0] * res[1] * res[2]
-    for li in range(lights.shape[0]):
-        light = lights[li]
-        t = sample_grid(lightmap, vol.light_offset + li * count, res, p)
+    for li in range(medium.lights.shape[0]):
+        light = medium.lights[li]
+        t = sample_grid(medium.lightmap, vol.light_offset + li * count, res, p)
         phase = hg_phase(wp.dot(light_travel_dir(light, x), -d), vol.g)
         radiance += phase * t * light_irradiance(light, x)
     return radiance
@@ -100,8 +99,7 @@ def lit_step(
     acc: wp.vec4,
     rho: float,
     vol: VolumeGPU,
-    lightmap: wp.array(dtype=float),
-    lights: wp.array(dtype=LightGPU),
+    medium: Medium,
     p: wp.vec3,
     x: wp.vec3,
     d: wp.vec3,
@@ -111,7 +109,7 @@ def lit_step(
     """Composite one step of density rho > 0 at local p / world x: single scattering from the light map, ambient
     and emission as the source, extinction density_scale * rho."""
     sigma_t = vol.density_scale * rho
-    light = shade_light_map(vol, lightmap, lights, p, x, d, ambient)
+    light = shade_light_map(vol, medium, p, x, d, ambient)
     source = wp.cw_mul(vol.albedo, light) * sigma_t + vol.emission * rho
     return composite_step(acc, source, sigma_t, dt)
 
@@ -125,9 +123,7 @@ def march_volume_light_map(
     t0: float,
     t1: float,
     offset: float,
-    density: wp.array(dtype=float),
-    lightmap: wp.array(dtype=float),
-    lights: wp.array(dtype=LightGPU),
+    medium: Medium,
     params: MarchParams,
 ) -> MarchState:
     """March [t0, t1] of one volume with uniform steps (offset in [0, 1) within each step), shading from the light
@@ -143,12 +139,12 @@ def march_volume_light_map(
     for i in range(n):
         t = t0 + (float(i) + offset) * dt
         p = o_l + t * d_l
-        rho = sample_grid(density, vol.offset, vol.res, p)
+        rho = sample_grid(medium.density, vol.offset, vol.res, p)
         taken += 1
         if rho > 0.0:
             shaded += 1
             before = acc[3]
-            acc = lit_step(acc, rho, vol, lightmap, lights, p, origin + t * d, d, dt, params.ambient)
+            acc = lit_step(acc, rho, vol, medium, p, origin + t * d, d, dt, params.ambient)
             depth_t = half_depth(depth_t, before, acc[3], t)
             if acc[3] < params.min_transmittance:
                 break
@@ -164,9 +160,7 @@ def dssrm_kernel(
     cam: CameraGPU,
     volumes: wp.array(dtype=VolumeGPU),
     order: wp.array(dtype=int),
-    density: wp.array(dtype=float),
-    lightmap: wp.array(dtype=float),
-    lights: wp.array(dtype=LightGPU),
+    medium: Medium,
     params: MarchParams,
     buffers: ViewBuffers,
     counters: wp.array(dtype=wp.int64),
@@ -187,10 +181,10 @@ def dssrm_kernel(
             offset = float(0.5)
             if params.jitter != 0:
                 offset = ray_jitter(params.seed, params.view, row, col, cam.width, cam.height, k)
-            s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, offset, density, lightmap, lights, params)
+            s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, offset, medium, params)
             if s.transmittance < params.min_transmittance:
                 break
-    count(counters, LIGHTMAP_LOOKUPS, s.shaded * lights.shape[0])
+    count(counters, LIGHTMAP_LOOKUPS, s.shaded * medium.lights.shape[0])
     count(counters, RAYS, hit)
     write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
@@ -225,7 +219,7 @@ class DSSRM(Renderer):
                 dssrm_kernel,
                 cam.height,
                 cam.width,
-                [camera_struct(cam), ds.volumes, order, ds.density, ds.lightmap, ds.lights, params, buffers],
+                [camera_struct(cam), ds.volumes, order, ds.medium(), params, buffers],
                 self.device,
                 clock.counters,
                 self.on_rows,
