@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -35,6 +35,26 @@ def check_transmittance_threshold(value: float) -> None:
 def check_sample_count(name: str, value: int) -> None:
     if int(value) != value or not 1 <= value <= MAX_SAMPLES:
         raise VolrenError(f"{name} must be an integer in [1, {MAX_SAMPLES}], got {value}")
+
+
+@dataclass(frozen=True)
+class LightMapMarchConfig:
+    """Settings every light-map-lit ray marcher shares (DSSRM, CMSRM, CACRM): the papers' METHOD:V:L."""
+
+    samples: int = 360
+    """V (N_max for the cube methods): at most this many view samples across a box diagonal"""
+    light_samples: int = 96
+    """L: at most this many samples across the box diagonal on each light-map ray"""
+    light_grid: int | None = None
+    """light-map voxels on the longest axis; None = half the density resolution"""
+    seed: int = 0
+    min_transmittance: float = 1e-3
+    """early ray termination threshold"""
+
+    def __post_init__(self) -> None:
+        check_sample_count("samples (V)", self.samples)
+        check_sample_count("light samples (L)", self.light_samples)
+        check_transmittance_threshold(self.min_transmittance)
 
 
 class Renderer:

@@ -45,7 +45,7 @@ from volren.kernels.common import (
     project_pixel,
     write_pixel,
 )
-from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold
+from volren.render.base import LightMapMarchConfig, Renderer
 from volren.render.cubemap import (
     FACE_COUNT,
     TILE,
@@ -83,13 +83,7 @@ class CubeMaps:
 
 
 @dataclass(frozen=True)
-class CMSRMConfig:
-    samples: int = 360
-    """N_max: at most this many view samples across a box diagonal (cube texel rays and direct rays)"""
-    light_samples: int = 96
-    """L: at most this many samples across the box diagonal on each light-map ray"""
-    light_grid: int | None = None
-    """light-map voxels on the longest axis; None = half the density resolution"""
+class CMSRMConfig(LightMapMarchConfig):
     cube_size: int | None = None
     """S0: level-0 face size [texels]; None = the density grid's longest axis"""
     cube_faces: str = "interior"
@@ -106,14 +100,9 @@ class CMSRMConfig:
     """skip 32x32-texel tiles whose rays can only meet zero density (coarse pass on the max-density pyramid)"""
     k_z: float = 0.5
     """[1/m] edge-stopping coefficient of the 2x2 bilateral resampling filter (§3.2); 0 = plain bilinear"""
-    seed: int = 0
-    min_transmittance: float = 1e-3
-    """early ray termination threshold"""
 
     def __post_init__(self) -> None:
-        check_sample_count("samples (N_max)", self.samples)
-        check_sample_count("light samples (L)", self.light_samples)
-        check_transmittance_threshold(self.min_transmittance)
+        super().__post_init__()
         if self.cube_faces not in ("interior", "exterior"):
             raise VolrenError(f"cube faces must be interior or exterior, got '{self.cube_faces}'")
         if self.cube_size is not None and not 2 <= self.cube_size <= 4096:

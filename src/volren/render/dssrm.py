@@ -37,30 +37,16 @@ from volren.kernels.common import (
     with_accumulator,
     write_pixel,
 )
-from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold, frame_seed
+from volren.render.base import LightMapMarchConfig, Renderer, frame_seed
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
 from volren.render.lightmap import compute_light_map
 from volren.upload import DeviceScene, camera_struct, depth_order
 
 
 @dataclass(frozen=True)
-class DSSRMConfig:
-    samples: int = 360
-    """V: at most this many view samples across a box diagonal"""
-    light_samples: int = 96
-    """L: at most this many samples across the box diagonal on each light-map ray"""
-    light_grid: int | None = None
-    """light-map voxels on the longest axis; None = half the density resolution"""
+class DSSRMConfig(LightMapMarchConfig):
     jitter: bool = False
     """seeded random start offset per ray instead of the step midpoint"""
-    seed: int = 0
-    min_transmittance: float = 1e-3
-    """early ray termination threshold"""
-
-    def __post_init__(self) -> None:
-        check_sample_count("samples (V)", self.samples)
-        check_sample_count("light samples (L)", self.light_samples)
-        check_transmittance_threshold(self.min_transmittance)
 
 
 @wp.struct
