@@ -8,8 +8,8 @@ DSSRM over CMSRM at the largest size >= 4 at 360:96; CMSRM:360:96 within 2 dB of
 configuration's fastest frame, the least disturbed one on a shared machine.
 
 Full sizes (GPU): 256^3 scenes, 128^3 light grid, 1920x1080, 2560x1440 and 3840x2160, reference 1024:1024.
-Quick sizes (CPU): 64^3 scenes, 32^3 light grid, the full sizes divided by 4, reference 512:512. The cube map
-follows the density grid (S0 = 64 here), so the quick viewports keep the full run's ratio of screen pixels to cube
+Quick sizes (CPU): 128^3 scenes, 64^3 light grid, the full sizes divided by 4, reference 512:512. The cube map
+follows the density grid (S0 = 128 here), so the quick viewports keep the full run's ratio of screen pixels to cube
 texels only roughly.
 """
 
@@ -25,7 +25,7 @@ from volren.render import CMSRM, DSSRM, CMSRMConfig, DSSRMConfig, Reference, Ref
 
 FULL = {"scenes": ["smoke", "cloud", "phantom"], "resolution": 256, "light_grid": 128,
         "sizes": [(1920, 1080), (2560, 1440), (3840, 2160)], "repeats": 5, "reference": 1024}
-QUICK = {"scenes": ["smoke", "cloud"], "resolution": 64, "light_grid": 32,
+QUICK = {"scenes": ["smoke", "cloud"], "resolution": 128, "light_grid": 64,
          "sizes": [(480, 270), (640, 360), (960, 540)], "repeats": 4, "reference": 512}
 SETTINGS = [(360, 96), (100, 48)]
 CAMERA = (0.0, 0.4, 3.2)
