@@ -902,6 +902,18 @@ def test_cacrm_switch_refused_by_other_methods(capfd, tmp_path: Path) -> None:
     render_error(capfd, tmp_path, ["--method", "cmsrm", "--no-coupling"], "--no-coupling")
 
 
+@pytest.mark.parametrize("method", ["cmsrm", "cacrm"])
+def test_tile_lod_option(capfd, tmp_path: Path, method: str) -> None:
+    out = tmp_path / "t"
+    render(capfd, out, "--no-hybrid", "--no-lod", "--camera-pos", "0,0.4,8", "--tile-lod", method=method)
+    plan = stats_of(out)["frames"][0]["info"]["volumes"][0][0]
+    assert plan["tile_levels"][0] < plan["live_tiles"]
+
+
+def test_tile_lod_refused_by_dssrm(capfd, tmp_path: Path) -> None:
+    render_error(capfd, tmp_path, ["--method", "dssrm", "--tile-lod"], "--tile-lod")
+
+
 def test_mesh_option(capfd, tmp_path: Path) -> None:
     import trimesh
 

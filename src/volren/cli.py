@@ -126,6 +126,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--no-lod", action="store_true", help="cmsrm: no adaptive LOD (level 0, N = --samples)")
     r.add_argument("--no-hybrid", action="store_true", help="cmsrm: always march the cube map, never directly")
     r.add_argument("--no-cull", action="store_true", help="cmsrm/cacrm: march empty tiles too (no culling)")
+    r.add_argument("--tile-lod", action="store_true", help="cmsrm/cacrm: per-tile LOD 0-2 (fewer samples for distant "
+                   "faces, lower PSNR)")
     r.add_argument("--k-z", type=float, help="cmsrm: bilateral edge-stopping coefficient [1/m] (0 = bilinear)")
     r.add_argument("--no-coupling", action="store_true", help="cacrm: march each eye alone (same steps)")
     r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
@@ -249,6 +251,7 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "adaptive_lod": (False if args.no_lod else None, "--no-lod"),
         "hybrid": (False if args.no_hybrid else None, "--no-hybrid"),
         "cull_tiles": (False if args.no_cull else None, "--no-cull"),
+        "tile_lod": (args.tile_lod or None, "--tile-lod"),
         "k_z": (args.k_z, "--k-z"),
         "coupling": (False if args.no_coupling else None, "--no-coupling"),
         "share_voxels": (False if args.no_share else None, "--no-share"),

@@ -425,6 +425,18 @@ def project_pixel(cam: CameraGPU, x: wp.vec3) -> wp.vec3:
 
 
 @wp.func
+def occluded_end(cam: CameraGPU, buffers: ViewBuffers, x: wp.vec3, t1: float, facing: float) -> float:
+    """Ray distance t1 towards the world point x, cut at the opaque surface of the z-buffer pixel that x projects to
+    (nearest pixel; x outside the viewport is not cut). ``facing`` is the ray direction's cosine with the view axis."""
+    pix = project_pixel(cam, x)
+    col = int(wp.floor(pix[0]))
+    row = int(wp.floor(pix[1]))
+    if col >= 0 and col < cam.width and row >= 0 and row < cam.height:
+        return wp.min(t1, buffers.occluder_depth[row, col] / facing)
+    return t1
+
+
+@wp.func
 def write_pixel(
     s: MarchState,
     cam: CameraGPU,

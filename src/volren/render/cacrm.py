@@ -22,13 +22,14 @@ eyes stay on their texel-anchored lattices and uniform stepping is the special c
 the backward difference of the last two samples per base step (the paper uses Bergner et al.'s estimate). The
 weights k_b, w_lambda, w_T, w_A come from ``scripts/fit_vsa.py`` (``vsa_fit.json``).
 
-Empty-tile culling (32x32 tiles) comes from CMSRM. Not yet here (issue 4): per-tile LOD and interleaved spatial
-reuse. A trial of the latter (one work item per 2x2 quad and eye pair, lane state in ``wp.types.matrix``) taught:
-the quad's rays must share one lattice anchor (the farthest texel), or the same step index samples different
-distances from the eye and a neighbour's cell misses this ray; interleaving only switches on where neighbouring
-rays are < 1/2 voxel apart, i.e. (t / t_max) n / S < 1/2, so never for an eye outside the box at S = n; it gained
-0.9 dB at N = 100 with the eye 1.4 m from the cloud but lost 1.3-1.5 dB with the eye inside the smoke (a slight
-darkening, unexplained); and dynamically indexed matrix state made the CPU march 2-3x slower. It was not kept.
+Empty-tile culling and tile LOD (32x32 tiles, the coarse phase) come from CMSRM; with a coupled pair a tile's level
+bounds the footprint in both eyes. Not here: interleaved spatial reuse. A trial of it (one work item per 2x2 quad
+and eye pair, lane state in ``wp.types.matrix``) taught: the quad's rays must share one lattice anchor (the farthest
+texel), or the same step index samples different distances from the eye and a neighbour's cell misses this ray;
+interleaving only switches on where neighbouring rays are < 1/2 voxel apart, i.e. (t / t_max) n / S < 1/2, so never
+for an eye outside the box at S = n; it gained 0.9 dB at N = 100 with the eye 1.4 m from the cloud but lost 1.3-1.5
+dB with the eye inside the smoke (a slight darkening, unexplained); and dynamically indexed matrix state made the
+CPU march 2-3x slower. It was not kept.
 """
 
 from __future__ import annotations
@@ -57,10 +58,10 @@ from volren.kernels.common import (
     grid_coords,
     half_depth,
     interpolate_cell,
-    project_pixel,
+    occluded_end,
 )
-from volren.render.cmsrm import CMSRM, SCHEME_CUBE, CMSRMConfig, CubeMaps
-from volren.render.cubemap import CubeLOD, face_point, texel_index
+from volren.render.cmsrm import CMSRM, CMSRMConfig, CubeMaps, TileGroup
+from volren.render.cubemap import CubeLOD, texel_index, texel_point, tile_texel
 from volren.render.dssrm import MarchParams, lit_step
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, PassClock
 from volren.upload import DeviceScene, camera_struct
@@ -147,12 +148,7 @@ def eye_segment(cam: CameraGPU, vol: VolumeGPU, x: wp.vec3, buffers: ViewBuffers
         return wp.vec4(0.0, 0.0, facing, 0.0)
     hb = box_hit(wp.transform_point(vol.to_local, cam.origin), wp.transform_vector(vol.to_local, d))
     t0 = wp.max(hb[0], cam.near / facing)
-    t1 = dist
-    pix = project_pixel(cam, x)
-    col = int(wp.floor(pix[0]))
-    row = int(wp.floor(pix[1]))
-    if col >= 0 and col < cam.width and row >= 0 and row < cam.height:
-        t1 = wp.min(t1, buffers.occluder_depth[row, col] / facing)
+    t1 = occluded_end(cam, buffers, x, dist, facing)
     valid = float(0.0)
     if t1 > t0 + 1.0e-6:
         valid = 1.0
@@ -227,6 +223,7 @@ def coupled_march_kernel(
     vol: VolumeGPU,
     tiles: wp.array(dtype=wp.vec3i),
     tile: int,
+    apron: int,
     size: int,
     medium: Medium,
     params: MarchParams,
@@ -246,16 +243,10 @@ def coupled_march_kernel(
 ):
     """One texel, both eyes (eye 1 only when eyes == 2): synchronised anchored steps, shared cell fetches."""
     r, c = wp.tid()
-    row = r + row0
-    k = row / tile
-    t = tiles[k]
-    f = t[0]
-    i = t[1] + c
-    j = t[2] + row - k * tile
-    if i >= size or j >= size:
+    q = tile_texel(tiles, tile, apron, size, r + row0, c)
+    if q[0] < 0:
         return
-    h = 2.0 / float(size)
-    x = wp.transform_point(vol.to_world, face_point(f, -1.0 + (float(i) + 0.5) * h, -1.0 + (float(j) + 0.5) * h))
+    x = wp.transform_point(vol.to_world, texel_point(q, size))
     seg0 = eye_segment(cam0, vol, x, buffers0)
     seg1 = wp.vec4(0.0)
     if eyes == 2:
@@ -343,7 +334,7 @@ def coupled_march_kernel(
             next_m = wp.max(next_m, m1)
         pos = pos - m
         m = next_m
-    texel = texel_index(f, i, j, size)
+    texel = texel_index(q[0], q[1], q[2], size)
     cube0[offset0 + texel] = acc0
     cube0_t[offset0 + texel] = half0
     cube0_z[offset0 + texel] = seg0[1] * seg0[2]
@@ -394,36 +385,25 @@ class CACRM(CMSRM):
                 pb.update(merged)
         return plans
 
-    def _march_cubes(
-        self,
-        ds: DeviceScene,
-        views: list[Camera],
-        plans: list[list[dict]],
-        cubes: list[CubeMaps],
-        targets: list[ViewBuffers],
-        clock: PassClock,
-    ) -> None:
-        pairs = [(v, v + 1) for v in range(0, len(views) - 1, 2)] if self.config.coupling else []
-        singles = [v for v in range(len(views)) if not any(v in p for p in pairs)]
-        for group in [*pairs, *((v,) for v in singles)]:
-            first, last = group[0], group[-1]
-            for vol_index, plan in enumerate(plans[first]):
-                if plan["scheme"] != SCHEME_CUBE:
-                    continue
-                lod = plan["lod"]
-                level = ds.levels[vol_index][min(lod.level, len(ds.levels[vol_index]) - 1)]
-                tiles, tile = self._live_tiles(ds, vol_index, plan, [views[first], views[last]], clock)
-                plans[last][vol_index].update(tiles=plan["tiles"], live_tiles=plan["live_tiles"])
-                a, b = cubes[first], cubes[last]
-                launch_rows(
-                    coupled_march_kernel,
-                    len(tiles) * tile,
-                    tile,
-                    [camera_struct(views[first]), camera_struct(views[last]), len(group),
-                     int(self.config.share_voxels), level, tiles, tile, lod.size, ds.medium(),
-                     self._params(ds, first, lod.samples), self._vsa_params(), targets[first], targets[last],
-                     a.color, a.t_half, a.z_end, a.offsets[vol_index],
-                     b.color, b.t_half, b.z_end, b.offsets[vol_index]],
-                    self.device,
-                    clock.counters,
-                )
+    def _view_groups(self, n: int) -> list[tuple[int, ...]]:
+        """Coupled pairs (0, 1), (2, 3), ... and an odd last view alone; every view alone without coupling."""
+        if not self.config.coupling:
+            return super()._view_groups(n)
+        return [tuple(range(v, min(v + 2, n))) for v in range(0, n, 2)]
+
+    def _launch_march(self, ds: DeviceScene, views: list[Camera], group: tuple[int, ...], level: VolumeGPU,
+                      tiles: TileGroup, samples: int, dest: list[tuple[CubeMaps, int]], targets: list[ViewBuffers],
+                      clock: PassClock) -> None:
+        first, last = group[0], group[-1]
+        (a, offset_a), (b, offset_b) = dest[0], dest[-1]
+        launch_rows(
+            coupled_march_kernel,
+            len(tiles.origins) * tiles.rows,
+            tiles.rows,
+            [camera_struct(views[first]), camera_struct(views[last]), len(group), int(self.config.share_voxels),
+             level, tiles.origins, tiles.rows, tiles.apron, tiles.size, ds.medium(),
+             self._params(ds, first, samples), self._vsa_params(), targets[first], targets[last],
+             a.color, a.t_half, a.z_end, offset_a, b.color, b.t_half, b.z_end, offset_b],
+            self.device,
+            clock.counters,
+        )

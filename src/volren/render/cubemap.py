@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from volren.camera import Camera
-from volren.kernels.common import INF, box_hit
+from volren.kernels.common import INF, CameraGPU, VolumeGPU, box_hit, project_pixel
 from volren.scene import Volume
 
 FACE_COUNT = 6
@@ -40,6 +40,13 @@ def face_point(f: int, u: float, v: float) -> wp.vec3:
 
 
 @wp.func
+def texel_point(q: wp.vec3i, size: int) -> wp.vec3:
+    """Local centre of texel q = (face, i, j) of an S x S face."""
+    h = 2.0 / float(size)
+    return face_point(q[0], -1.0 + (float(q[1]) + 0.5) * h, -1.0 + (float(q[2]) + 0.5) * h)
+
+
+@wp.func
 def point_face(p: wp.vec3) -> int:
     """The face a point on (or near) the box surface belongs to: the axis of largest |component|, and its sign."""
     ax = wp.abs(p[0])
@@ -57,12 +64,12 @@ def point_face(p: wp.vec3) -> int:
 
 
 @wp.func
-def texel_index(f: int, i: int, j: int, size: int) -> int:
-    """Flat index of texel (i, j) of face f; indices one past a face edge wrap onto the adjacent face, so that
+def canonical_texel(f: int, i: int, j: int, size: int) -> wp.vec3i:
+    """(face, i, j) of texel (i, j) of face f; indices one past a face edge wrap onto the adjacent face, so that
     bilinear filtering is seamless across edges (the texel half a texel beyond the edge is the neighbour face's
     first row: P[b] = +-1, P[a] = s (1 - h / 2))."""
     if i >= 0 and i < size and j >= 0 and j < size:
-        return (f * size + j) * size + i
+        return wp.vec3i(f, i, j)
     h = 2.0 / float(size)
     u = wp.clamp(-1.0 + (float(i) + 0.5) * h, -1.0, 1.0)
     v = wp.clamp(-1.0 + (float(j) + 0.5) * h, -1.0, 1.0)
@@ -73,7 +80,30 @@ def texel_index(f: int, i: int, j: int, size: int) -> int:
     ga = g / 2
     gi = wp.clamp(int((p[(ga + 1) % 3] + 1.0) * 0.5 * float(size)), 0, size - 1)
     gj = wp.clamp(int((p[(ga + 2) % 3] + 1.0) * 0.5 * float(size)), 0, size - 1)
-    return (g * size + gj) * size + gi
+    return wp.vec3i(g, gi, gj)
+
+
+@wp.func
+def texel_index(f: int, i: int, j: int, size: int) -> int:
+    """Flat index of texel (i, j) of face f, seamless past the edges (`canonical_texel`)."""
+    if i >= 0 and i < size and j >= 0 and j < size:
+        return (f * size + j) * size + i
+    q = canonical_texel(f, i, j, size)
+    return (q[0] * size + q[2]) * size + q[1]
+
+
+@wp.func
+def tile_texel(tiles: wp.array(dtype=wp.vec3i), rows: int, apron: int, size: int, row: int, col: int) -> wp.vec3i:
+    """The texel (face, i, j) that launch cell (row, col) of a tile-row launch marches: tile k = row / rows has
+    origin tiles[k]; a tile with an apron of 1 texel also marches its border ring (wrapped onto the adjacent face at
+    an edge) so that bilinear filtering inside it needs no other tile. Face -1: past the face, nothing to do."""
+    k = row / rows
+    t = tiles[k]
+    i = t[1] + col
+    j = t[2] + row - k * rows
+    if i < -apron or j < -apron or i >= size + apron or j >= size + apron:
+        return wp.vec3i(-1, 0, 0)
+    return canonical_texel(t[0], i, j, size)
 
 
 @wp.func
@@ -200,6 +230,8 @@ def cube_lod(vol: Volume, cam: Camera, base_size: int, max_samples: int, k_u: fl
 
 TILE = 32
 """Cube faces are marched in tiles of TILE x TILE texels (paper 000 §3.1.3); a smaller face is one tile."""
+MAX_TILE_LEVEL = 2
+"""Tile LOD l in {0, 1, 2}: 1x1, 2x2 or 4x4 fine texels per coarse texel (paper 000 §3.1.3)."""
 
 
 def face_tiles(faces: list[int], size: int) -> np.ndarray:
@@ -248,22 +280,29 @@ def tile_occupancy_kernel(
     eye0: wp.vec3,
     eye1: wp.vec3,
     margin: float,
+    tile_level: wp.array(dtype=int),
     max_density: wp.array(dtype=float),
     offset: int,
     res: wp.vec3i,
     live: wp.array(dtype=int),
 ):
     """Coarse pass of empty-tile culling: every ray of a tile runs from an eye to the tile's quad, so inside the box
-    it stays in the box-clamped bounding box of the eyes and the quad (widened by ``margin`` for the support of a
-    coarser density level). The tile is live when the conservative max-density pyramid is non-zero anywhere there."""
+    it stays in the box-clamped bounding box of the eyes and the quad, widened for the trilinear support of a coarser
+    density level (``margin`` at the volume's level, times 2^l at tile level l; the tile's apron ring adds a texel).
+    The tile is live when the conservative max-density pyramid is non-zero anywhere there."""
     k = wp.tid()
     t = tiles[k]
+    level = tile_level[k]
     f = t[0]
     h = 2.0 / float(size)
-    u0 = -1.0 + float(t[1]) * h
-    u1 = wp.min(-1.0 + float(t[1] + tile) * h, 1.0)
-    v0 = -1.0 + float(t[2]) * h
-    v1 = wp.min(-1.0 + float(t[2] + tile) * h, 1.0)
+    scale = wp.pow(2.0, float(level))
+    apron = float(0.0)
+    if level > 0:
+        apron = h * scale
+    u0 = wp.max(-1.0 + float(t[1]) * h - apron, -1.0)
+    u1 = wp.min(-1.0 + float(t[1] + tile) * h + apron, 1.0)
+    v0 = wp.max(-1.0 + float(t[2]) * h - apron, -1.0)
+    v1 = wp.min(-1.0 + float(t[2] + tile) * h + apron, 1.0)
     one = wp.vec3(1.0)
     q00 = face_point(f, u0, v0)
     q10 = face_point(f, u1, v0)
@@ -275,8 +314,10 @@ def tile_occupancy_kernel(
     b1 = pyramid_bounds(eye1, q00, q10, q01, q11)
     lo = wp.min(lo, wp.min(wp.vec3(b0[0, 0], b0[0, 1], b0[0, 2]), wp.vec3(b1[0, 0], b1[0, 1], b1[0, 2])))
     hi = wp.max(hi, wp.max(wp.vec3(b0[1, 0], b0[1, 1], b0[1, 2]), wp.vec3(b1[1, 0], b1[1, 1], b1[1, 2])))
-    lo = wp.max(lo - wp.vec3(margin), -one)
-    hi = wp.min(hi + wp.vec3(margin), one)
+    # An apron texel wrapped onto the adjacent face lies up to half a coarse texel off this face's plane.
+    widen = margin * scale + apron
+    lo = wp.max(lo - wp.vec3(widen), -one)
+    hi = wp.min(hi + wp.vec3(widen), one)
     a = wp.vec3i(0)
     b = wp.vec3i(0)
     for axis in range(3):
@@ -289,3 +330,83 @@ def tile_occupancy_kernel(
             for x in range(a[0], b[0] + 1):
                 peak = wp.max(peak, max_density[offset + (z * res[1] + y) * res[0] + x])
     live[k] = int(peak > 0.0)
+
+
+def max_tile_level(tile: int) -> int:
+    """The coarsest tile level that still leaves a tile 2 x 2 coarse texels."""
+    return max(0, min(MAX_TILE_LEVEL, int(math.log2(tile)) - 1))
+
+
+@wp.func
+def projected_span(cam: CameraGPU, a: wp.vec3, b: wp.vec3) -> float:
+    """Pixels the world segment a-b spans in the view; INF when an end is not in front of the near plane."""
+    pa = project_pixel(cam, a)
+    pb = project_pixel(cam, b)
+    if pa[2] <= cam.near or pb[2] <= cam.near:
+        return INF
+    return wp.length(wp.vec2(pa[0] - pb[0], pa[1] - pb[1]))
+
+
+@wp.func
+def tile_pixels_per_texel(cam: CameraGPU, q00: wp.vec3, q10: wp.vec3, q01: wp.vec3, q11: wp.vec3, n_u: float,
+                          n_v: float) -> float:
+    """The largest screen footprint of one texel along the tile's edges: projected edge length / texels along it."""
+    pu = wp.max(projected_span(cam, q00, q10), projected_span(cam, q01, q11)) / n_u
+    pv = wp.max(projected_span(cam, q00, q01), projected_span(cam, q10, q11)) / n_v
+    return wp.max(pu, pv)
+
+
+@wp.kernel
+def tile_lod_kernel(
+    tiles: wp.array(dtype=wp.vec3i),
+    tile: int,
+    size: int,
+    vol: VolumeGPU,
+    cam0: CameraGPU,
+    cam1: CameraGPU,
+    k_u: float,
+    max_level: int,
+    levels: wp.array(dtype=int),
+):
+    """Coarse phase, LOD half (paper 000 §3.1.3, Fig. 4 (b)): the tile level l from the ratio of viewport pixels to
+    tile texels. p = the largest screen footprint of a texel along the tile's edges in either eye; a level-l texel
+    covers 2^l texels, so l = floor(log2(k_u / p)), clamped to [0, max_level]: coarse texels never exceed k_u
+    pixels, the screen up-scaling bound of the per-volume LOD. The paper's l = ceil(log2 max d tiles / d pixels)
+    rounds the other way, which lets a coarse texel cover up to 2 k_u pixels; floor keeps the anti-aliasing bound.
+    A tile with a corner behind an eye's near plane stays at level 0."""
+    k = wp.tid()
+    t = tiles[k]
+    f = t[0]
+    h = 2.0 / float(size)
+    n_u = wp.min(tile, size - t[1])
+    n_v = wp.min(tile, size - t[2])
+    u0 = -1.0 + float(t[1]) * h
+    v0 = -1.0 + float(t[2]) * h
+    u1 = u0 + float(n_u) * h
+    v1 = v0 + float(n_v) * h
+    q00 = wp.transform_point(vol.to_world, face_point(f, u0, v0))
+    q10 = wp.transform_point(vol.to_world, face_point(f, u1, v0))
+    q01 = wp.transform_point(vol.to_world, face_point(f, u0, v1))
+    q11 = wp.transform_point(vol.to_world, face_point(f, u1, v1))
+    p = wp.max(tile_pixels_per_texel(cam0, q00, q10, q01, q11, float(n_u), float(n_v)),
+               tile_pixels_per_texel(cam1, q00, q10, q01, q11, float(n_u), float(n_v)))
+    level = int(0)
+    if p < INF:
+        level = wp.clamp(int(wp.floor(wp.log2(k_u / wp.max(p, 1.0e-9)))), 0, max_level)
+    levels[k] = level
+
+
+def coarse_tiles(tiles: np.ndarray, tile: int, size: int, level: int) -> tuple[np.ndarray, int, int]:
+    """Where level-l texels of the given fine tiles lie: (launch origins in level-l texels with a 1-texel apron,
+    launch width, level-l face size). The apron holds every coarse texel that bilinear filtering at the tile's fine
+    texel centres reads, so a coarse tile is self-contained whatever the levels of its neighbours."""
+    coarse = size >> level
+    scale = coarse / size
+    out = tiles.copy()
+    width = 0
+    for axis in (1, 2):
+        first = np.floor((tiles[:, axis] + 0.5) * scale - 0.5).astype(np.int32)
+        last = np.floor((np.minimum(tiles[:, axis] + tile, size) - 0.5) * scale - 0.5).astype(np.int32) + 1
+        out[:, axis] = first
+        width = max(width, int((last - first).max()) + 1)
+    return out, width, coarse
