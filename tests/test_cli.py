@@ -40,7 +40,7 @@ TINY = (*BASE, "--light-grid", "16")
 """Tiny settings for dssrm and demo (reference takes no --light-grid)."""
 W, H = 24, 16
 SCENES = ("smoke", "cloud", "phantom", "multi")
-COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples")
+COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples")
 GARBAGE = b"this is not a volume \x00\x01\x02\xff" * 8
 
 
@@ -889,12 +889,12 @@ def test_opaque_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: s
     render_error(capfd, tmp_path, extra, fragment)
 
 
-@pytest.mark.parametrize("extra", [[], ["--no-coupling"], ["--no-share"], ["--no-vsa"]])
+@pytest.mark.parametrize("extra", [[], ["--no-coupling"], ["--no-share"], ["--no-vsa"], ["--no-interleave"]])
 def test_cacrm_switches(capfd, tmp_path: Path, extra: list[str]) -> None:
     out = tmp_path / "a"
     render(capfd, out, "--no-hybrid", "--no-lod", *extra, method="cacrm")
     counters = stats_of(out)["frames"][0]["counters"]
-    assert (counters["shared_samples"] > 0) == (extra in ([], ["--no-vsa"]))
+    assert (counters["shared_samples"] > 0) == (extra in ([], ["--no-vsa"], ["--no-interleave"]))
     assert (out / "stereo.png").exists()
 
 

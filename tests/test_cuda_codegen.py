@@ -14,6 +14,11 @@ KERNEL_MODULES = [
     "volren.render.dssrm",
     "volren.render.reference",
     "volren.render.lightmap",
+    "volren.render.surfaces",
+    "volren.render.cubemap",
+    "volren.render.cmsrm",
+    "volren.render.cacrm",
+    "volren.render.interleave",
     "volren.data.loaders",
 ]
 

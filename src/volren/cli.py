@@ -132,6 +132,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--no-coupling", action="store_true", help="cacrm: march each eye alone (same steps)")
     r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
     r.add_argument("--no-vsa", action="store_true", help="cacrm: uniform steps (no variable step amplification)")
+    r.add_argument("--no-interleave", action="store_true", help="cacrm: no interleaved spatial reuse of 2x2 quads")
     r.add_argument("--frames", type=int, default=1, help="render N frames (temporal methods), keep every frame")
     r.add_argument("--seed", type=int, default=0)
     add_device(p)
@@ -256,6 +257,7 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "coupling": (False if args.no_coupling else None, "--no-coupling"),
         "share_voxels": (False if args.no_share else None, "--no-share"),
         "vsa": (False if args.no_vsa else None, "--no-vsa"),
+        "interleave": (False if args.no_interleave else None, "--no-interleave"),
     }
     options = {k: v for k, (v, _) in given.items() if v is not None and k in fields}
     ignored = [flag for k, (v, flag) in given.items() if v is not None and k not in fields]

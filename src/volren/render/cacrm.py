@@ -34,9 +34,7 @@ CPU march 2-3x slower. It was not kept.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 import warp as wp
@@ -50,7 +48,6 @@ from volren.kernels.common import (
     Medium,
     ViewBuffers,
     VolumeGPU,
-    box_hit,
     cell_fraction,
     count,
     gather_cell,
@@ -58,56 +55,14 @@ from volren.kernels.common import (
     grid_coords,
     half_depth,
     interpolate_cell,
-    occluded_end,
 )
 from volren.render.cmsrm import CMSRM, CMSRMConfig, CubeMaps, TileGroup
-from volren.render.cubemap import CubeLOD, texel_index, texel_point, tile_texel
+from volren.render.cubemap import CubeLOD, eye_segment, texel_index, texel_point, tile_texel
 from volren.render.dssrm import MarchParams, lit_step
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, PassClock
+from volren.render.interleave import interleave_tiles, quad_march_kernel
+from volren.render.vsa import VSA_FIT, VSAParams, vsa_multiple
 from volren.upload import DeviceScene, camera_struct
-
-VSA_FIT_FILE = Path(__file__).with_name("vsa_fit.json")
-VSA_FIT: dict[str, float] = json.loads(VSA_FIT_FILE.read_text())["weights"]
-"""Eq. 4-6 weights fitted by ``scripts/fit_vsa.py`` against the reference (the file says how and on what)."""
-
-
-@wp.struct
-class VSAParams:
-    """Eq. 4-6 constants; k_a = 0 with all weights 0 gives uniform steps (as does enabled = 0, without the work)."""
-
-    enabled: int
-    k_a: float
-    k_b: float
-    f_lambda_max: float
-    w_lambda: float
-    w_t: float
-    w_a: float
-
-
-@wp.func
-def weighted(f: float, w: float) -> float:
-    """f^w, without a pow for the common weights 0 and 1 (three per sample and eye otherwise)."""
-    if w == 0.0:
-        return 1.0
-    if w == 1.0:
-        return f
-    return wp.pow(f, w)
-
-
-@wp.func
-def vsa_multiple(vp: VSAParams, t: float, t_max: float, rho: float, drho: float, trans: float,
-                 absorb: float) -> int:
-    """Eq. 4 as a whole number of base steps: max(k_a t / t_max, f_lambda^w_lambda f_T^w_T f_A^w_A, 1), floored.
-    f_lambda = min(k_b / |rho'|, f_lambda_max) (Eq. 5); f_T = 1 - a (rho + rho') with a the optical depth of one
-    base step per unit density, and f_A = 1 - T (Eq. 6). rho' is the change of density per base step."""
-    f_lambda = vp.f_lambda_max
-    if wp.abs(drho) * vp.f_lambda_max > vp.k_b:
-        f_lambda = vp.k_b / wp.abs(drho)
-    f_t = wp.clamp(1.0 - absorb * (rho + drho), 0.0, 1.0)
-    f_a = wp.clamp(1.0 - trans, 0.0, 1.0)
-    product = weighted(f_lambda, vp.w_lambda) * weighted(f_t, vp.w_t) * weighted(f_a, vp.w_a)
-    amp = wp.max(wp.max(vp.k_a * t / t_max, product), 1.0)
-    return int(wp.floor(amp))
 
 
 @dataclass(frozen=True)
@@ -118,6 +73,9 @@ class CACRMConfig(CMSRMConfig):
     """fetch a trilinear cell once when both eyes' samples fall in it"""
     vsa: bool = True
     """variable step amplification (Eq. 4-6); off = uniform steps"""
+    interleave: bool = True
+    """interleaved spatial reuse (§3.1.3): 2x2 texel quads share their samples where their rays run < 1/2 voxel
+    apart (`volren.render.interleave`)"""
     k_a: float = 3.0
     """Eq. 4: ray-length amplification k_a t / t_max"""
     k_b: float = VSA_FIT["k_b"]
@@ -135,24 +93,6 @@ class CACRMConfig(CMSRMConfig):
                 raise VolrenError(f"{name} must be a finite number >= 0, got {value}")
         if self.cube_faces != "interior":
             raise VolrenError("cacrm couples rays on interior cube faces only (--cube-faces interior)")
-
-
-@wp.func
-def eye_segment(cam: CameraGPU, vol: VolumeGPU, x: wp.vec3, buffers: ViewBuffers) -> wp.vec4:
-    """(t_min, t_max, facing, steps-valid flag) of the ray from this eye to the world texel point x: from the box
-    entry or near plane to the texel, cut at the opaque surface of the z-buffer pixel x projects to."""
-    dist = wp.length(x - cam.origin)
-    d = (x - cam.origin) / dist
-    facing = wp.dot(d, cam.forward)
-    if facing <= 0.0:
-        return wp.vec4(0.0, 0.0, facing, 0.0)
-    hb = box_hit(wp.transform_point(vol.to_local, cam.origin), wp.transform_vector(vol.to_local, d))
-    t0 = wp.max(hb[0], cam.near / facing)
-    t1 = occluded_end(cam, buffers, x, dist, facing)
-    valid = float(0.0)
-    if t1 > t0 + 1.0e-6:
-        valid = 1.0
-    return wp.vec4(t0, t1, facing, valid)
 
 
 @wp.func
@@ -391,19 +331,32 @@ class CACRM(CMSRM):
             return super()._view_groups(n)
         return [tuple(range(v, min(v + 2, n))) for v in range(0, n, 2)]
 
-    def _launch_march(self, ds: DeviceScene, views: list[Camera], group: tuple[int, ...], level: VolumeGPU,
+    def _launch_march(self, ds: DeviceScene, views: list[Camera], group: tuple[int, ...], v: int, level: VolumeGPU,
                       tiles: TileGroup, samples: int, dest: list[tuple[CubeMaps, int]], targets: list[ViewBuffers],
                       clock: PassClock) -> None:
         first, last = group[0], group[-1]
         (a, offset_a), (b, offset_b) = dest[0], dest[-1]
-        launch_rows(
-            coupled_march_kernel,
-            len(tiles.origins) * tiles.rows,
-            tiles.rows,
-            [camera_struct(views[first]), camera_struct(views[last]), len(group), int(self.config.share_voxels),
-             level, tiles.origins, tiles.rows, tiles.apron, tiles.size, ds.medium(),
-             self._params(ds, first, samples), self._vsa_params(), targets[first], targets[last],
-             a.color, a.t_half, a.z_end, offset_a, b.color, b.t_half, b.z_end, offset_b],
-            self.device,
-            clock.counters,
-        )
+        # InS: one work item per 2x2 quad in the tiles where some quad can interleave; one per texel elsewhere.
+        routes = [(coupled_march_kernel, tiles.origins, tiles.rows)]
+        if self.config.interleave and self.config.vsa:
+            vol = ds.scene.volumes[v]
+            origins = tiles.origins.numpy()
+            res = np.array([level.res[0], level.res[1], level.res[2]], dtype=float)
+            quad = interleave_tiles(vol.to_world, [views[i].position for i in group], views[first].near, origins,
+                                    tiles.rows, tiles.size, vol.diagonal / float(np.linalg.norm(res)))
+            routes = [(kernel, wp.array(origins[mask], dtype=wp.vec3i, device=self.device), cols)
+                      for kernel, mask, cols in ((coupled_march_kernel, ~quad, tiles.rows),
+                                                 (quad_march_kernel, quad, (tiles.rows + 1) // 2))
+                      if mask.any()]
+        for kernel, origins, cols in routes:
+            launch_rows(
+                kernel,
+                len(origins) * cols,
+                cols,
+                [camera_struct(views[first]), camera_struct(views[last]), len(group), int(self.config.share_voxels),
+                 level, origins, tiles.rows, tiles.apron, tiles.size, ds.medium(),
+                 self._params(ds, first, samples), self._vsa_params(), targets[first], targets[last],
+                 a.color, a.t_half, a.z_end, offset_a, b.color, b.t_half, b.z_end, offset_b],
+                self.device,
+                clock.counters,
+            )

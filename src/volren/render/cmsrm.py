@@ -452,10 +452,11 @@ class CMSRM(Renderer):
         """The views whose cube maps one march launch fills: each view alone."""
         return [(v,) for v in range(n)]
 
-    def _launch_march(self, ds: DeviceScene, views: list[Camera], group: tuple[int, ...], level: VolumeGPU,
+    def _launch_march(self, ds: DeviceScene, views: list[Camera], group: tuple[int, ...], v: int, level: VolumeGPU,
                       tiles: TileGroup, samples: int, dest: list[tuple[CubeMaps, int]], targets: list[ViewBuffers],
                       clock: PassClock) -> None:
-        """March the tiles of one level for the views of a group into ``dest`` (a cube map and offset per view)."""
+        """March the tiles of one level of volume v for the views of a group into ``dest`` (a cube map and offset per
+        view)."""
         (view,) = group
         (cube, offset) = dest[0]
         launch_rows(
@@ -493,7 +494,7 @@ class CMSRM(Renderer):
                     else:
                         texels = FACE_COUNT * tiles.size**2
                         dest = [(self._cube_arrays(texels, [0], [tiles.size]), 0) for _ in group]
-                    self._launch_march(ds, views, group, density, tiles, lod.samples, dest, targets, clock)
+                    self._launch_march(ds, views, group, v, density, tiles, lod.samples, dest, targets, clock)
                     if tiles.level:
                         for i, (coarse, _) in zip(group, dest, strict=True):
                             self._compose(ds, v, views[i], tiles, lod.size, coarse, cubes[i], targets[i], clock)

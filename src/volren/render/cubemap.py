@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from volren.camera import Camera
-from volren.kernels.common import INF, CameraGPU, VolumeGPU, box_hit, project_pixel
+from volren.kernels.common import INF, CameraGPU, ViewBuffers, VolumeGPU, box_hit, occluded_end, project_pixel
 from volren.scene import Volume
 
 FACE_COUNT = 6
@@ -168,6 +168,24 @@ def cube_sample(
         w11 = b11
         total = 1.0
     return (cube[i00] * w00 + cube[i10] * w10 + cube[i01] * w01 + cube[i11] * w11) / total
+
+
+@wp.func
+def eye_segment(cam: CameraGPU, vol: VolumeGPU, x: wp.vec3, buffers: ViewBuffers) -> wp.vec4:
+    """(t_min, t_max, facing, steps-valid flag) of the ray from this eye to the world texel point x: from the box
+    entry or near plane to the texel, cut at the opaque surface of the z-buffer pixel x projects to."""
+    dist = wp.length(x - cam.origin)
+    d = (x - cam.origin) / dist
+    facing = wp.dot(d, cam.forward)
+    if facing <= 0.0:
+        return wp.vec4(0.0, 0.0, facing, 0.0)
+    hb = box_hit(wp.transform_point(vol.to_local, cam.origin), wp.transform_vector(vol.to_local, d))
+    t0 = wp.max(hb[0], cam.near / facing)
+    t1 = occluded_end(cam, buffers, x, dist, facing)
+    valid = float(0.0)
+    if t1 > t0 + 1.0e-6:
+        valid = 1.0
+    return wp.vec4(t0, t1, facing, valid)
 
 
 def visible_faces(eye_local: np.ndarray, faces: str = "interior") -> list[int]:

@@ -1,0 +1,86 @@
+"""Interleaved spatial reuse (paper 000 §3.1.3): 2x2 texel quads share their samples near the eye.
+
+Measured (smoke 64^3, both eyes inside at (0.1, 0, 0.5), stereo 128x96, light grid 32^3, CACRM with VSA against the
+same renderer at 2048 uniform steps): N = 50: 39.5 -> 46.9 dB, N = 100: 53.5 -> 57.9 dB, N = 200: 59.3 -> 61.1 dB,
+each at equal voxel gathers (+-1%). With the eye 1.4 m from the cloud: 45.0 -> 45.2 dB at N = 100. Eyes 3.2 m away:
+no quad interleaves (neighbouring texel rays are a voxel apart from the box entry on).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volren.camera import Camera, make_views
+from volren.data import builtin_scene
+from volren.metrics import psnr
+from volren.render import CACRM, CACRMConfig
+from volren.render import cacrm as cacrm_module
+
+INSIDE = make_views(Camera(position=(0.1, 0.0, 0.5), width=96, height=64), "stereo")
+FAR = make_views(Camera(position=(0.0, 0.3, 3.2), width=96, height=64), "stereo")
+BASE = {"light_grid": 32, "hybrid": False}
+
+
+def render(scene, views, **config):
+    return CACRM(CACRMConfig(**{**BASE, **config}), device="cpu").render(scene, views)
+
+
+def gathers(frame) -> int:
+    return frame.stats.counters["density_samples"] - frame.stats.counters["shared_samples"]
+
+
+@pytest.fixture
+def every_tile_to_quads(monkeypatch):
+    """Route every tile to the quad kernel, so that its own half-voxel test decides."""
+    monkeypatch.setattr(cacrm_module, "interleave_tiles",
+                        lambda *args: np.ones(len(args[3]), dtype=bool))
+
+
+def test_far_eyes_never_interleave_and_march_as_without():
+    scene = builtin_scene("cloud", 64)
+    on, off = render(scene, FAR, samples=100), render(scene, FAR, samples=100, interleave=False)
+    assert on.stats.counters["interleaved_samples"] == 0
+    for a, b in zip(on.images, off.images, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_quads_whose_texels_are_far_apart_do_not_interleave(every_tile_to_quads):
+    """The quad kernel itself keeps interleaving off where the rays are > 1/2 voxel apart; it then marches each lane
+    on the quad's shared lattice, which differs from the texel kernel's by less than a step (measured 54.3 dB apart
+    at N = 100 with VSA, both 43.8 dB from the reference)."""
+    scene = builtin_scene("cloud", 64)
+    quads = render(scene, FAR, samples=100)
+    texels = render(scene, FAR, samples=100, interleave=False)
+    assert quads.stats.counters["interleaved_samples"] == 0
+    assert abs(gathers(quads) / gathers(texels) - 1) < 0.02
+    for a, b in zip(quads.images, texels.images, strict=True):
+        assert psnr(a, b) > 50.0
+
+
+def test_routing_sends_every_interleaving_quad_to_the_quad_kernel(monkeypatch):
+    scene = builtin_scene("cloud", 64)
+    views = make_views(Camera(position=(0.2, 0.2, 1.4), width=96, height=64), "stereo")
+    routed = render(scene, views, samples=100)
+    monkeypatch.setattr(cacrm_module, "interleave_tiles", lambda *args: np.ones(len(args[3]), dtype=bool))
+    everywhere = render(scene, views, samples=100)
+    extra = routed.stats.counters["interleaved_samples"]
+    assert extra > 0 and extra == everywhere.stats.counters["interleaved_samples"]
+
+
+def test_interleaving_only_amplified_steps():
+    """At uniform steps (no VSA) quarter steps would add only the re-interpolation error: InS stays off."""
+    scene = builtin_scene("smoke", 64)
+    assert render(scene, INSIDE, samples=100, vsa=False).stats.counters["interleaved_samples"] == 0
+
+
+@pytest.mark.parametrize(("samples", "gain"), [(50, 4.0), (100, 2.0)])
+def test_interleaving_brings_long_steps_closer_to_dense_sampling(samples, gain):
+    """Floors: gains of 4 and 2 dB for the measured 7.4 and 4.4 dB (module docstring), at equal voxel gathers."""
+    scene = builtin_scene("smoke", 64)
+    dense = render(scene, INSIDE, samples=2048, vsa=False, interleave=False)
+    on, off = render(scene, INSIDE, samples=samples), render(scene, INSIDE, samples=samples, interleave=False)
+    assert on.stats.counters["interleaved_samples"] > 0.5 * on.stats.counters["density_samples"]
+    assert abs(gathers(on) / gathers(off) - 1) < 0.02
+    for d, a, b in zip(dense.images, on.images, off.images, strict=True):
+        assert psnr(d, a) > psnr(d, b) + gain
