@@ -2,10 +2,11 @@
 
 Quality: on a path of stereo frames orbiting each scene, PSNR and SSIM of both eyes against the reference, averaged
 over the path, for DSSRM:360:96, DSSRM:100:48, CMSRM:360:96, CMSRM:100:48 and CACRM (paper: 41.17, 34.87, 39.64,
-34.21 and 39.72 dB). Speed: per stereo frame at three viewport sizes, the same methods plus the ablation columns of
-Table 1: CACRM base (no coupling, no VSA), +VSA, +RCp (= CACRM), and CACRM +TLOD (tile LOD on, quality too); voxel
-gathers (density samples minus those that reused the other eye's fetch) for each. +InS (interleaved spatial reuse)
-is not implemented.
+34.21 and 39.72 dB), and CACRM +TLOD (tile LOD on). Speed: per stereo frame at three viewport sizes, the same methods
+plus the ablation columns of Table 1: CACRM base (each eye alone, uniform steps), +VSA, +InS, +RCp (= CACRM); voxel
+gathers (density samples minus those that reused the other eye's fetch) for each. On the orbit no quad interleaves
+(texel rays are a voxel apart from the box entry on), so +InS = +VSA there; a close-up (both eyes inside the box)
+measures InS: PSNR of CACRM with and without it against the same renderer at 2048 uniform steps, at equal gathers.
 
 The cube methods run with the hybrid choice off: it would march small views directly and compare DSSRM with itself.
 
@@ -66,7 +67,8 @@ def methods(light_grid: int, device: str) -> dict[str, Renderer]:
     return {
         "DSSRM:360:96": dssrm(360, 96), "DSSRM:100:48": dssrm(100, 48),
         "CMSRM:360:96": cmsrm(360, 96), "CMSRM:100:48": cmsrm(100, 48),
-        "CACRM base": cacrm(coupling=False, vsa=False), "CACRM +VSA": cacrm(coupling=False),
+        "CACRM base": cacrm(coupling=False, vsa=False, interleave=False),
+        "CACRM +VSA": cacrm(coupling=False, interleave=False), "CACRM +InS": cacrm(coupling=False),
         "CACRM": cacrm(), "CACRM +TLOD": cacrm(tile_lod=True),
     }
 
@@ -76,6 +78,27 @@ QUALITY_METHODS = ("DSSRM:360:96", "DSSRM:100:48", "CMSRM:360:96", "CMSRM:100:48
 
 def gathers(counters: dict[str, int]) -> int:
     return counters["density_samples"] - counters["shared_samples"]
+
+
+CLOSE_UP = (0.1, 0.0, 0.5)
+"""[m] the close-up eye position: inside the box, where neighbouring texel rays run closest"""
+
+
+def close_up(scene, cfg: dict[str, Any], device: str) -> list[dict[str, Any]]:
+    """InS on and off at the close-up against dense stepping of the same renderer (isolates the depth sampling)."""
+    views = make_views(Camera(position=CLOSE_UP, width=cfg["quality_size"][0], height=cfg["quality_size"][1]),
+                       "stereo")
+    base = {"light_samples": 96, "light_grid": cfg["light_grid"], "hybrid": False}
+    dense = CACRM(CACRMConfig(samples=2048, vsa=False, interleave=False, **base), device).render(scene, views)
+    rows = []
+    for samples in (100, 360):
+        for interleave in (False, True):
+            frame = CACRM(CACRMConfig(samples=samples, interleave=interleave, **base), device).render(scene, views)
+            c = frame.stats.counters
+            rows.append({"table": "close-up", "method": f"CACRM:{samples}:96" + (" +InS" if interleave else " -InS"),
+                         "psnr": sum(psnr(d, f) for d, f in zip(dense.images, frame.images, strict=True)) / 2,
+                         "gathers": gathers(c), "interleaved": c["interleaved_samples"]})
+    return rows
 
 
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
@@ -109,6 +132,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
                 rows.append({"table": "speed", "scene": name, "size": f"{size[0]}x{size[1]}", "method": m,
                              "frame_ms": row["frame_ms"], "frame_min_ms": row["frame_min_ms"],
                              "gathers": fetches[m, size], "density_samples": row["density_samples"]})
+        near = [{"scene": name, **r} for r in close_up(scene, cfg, device)]
+        rows += near
         small, big = cfg["sizes"][0], cfg["sizes"][-1]
         q = {r["method"]: r["psnr"] for r in rows if r["table"] == "quality" and r["scene"] == name}
         summary.append({
@@ -117,12 +142,16 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             "speedup_over_cmsrm360_smallest": times["CMSRM:360:96", small] / times["CACRM", small],
             "speedup_over_cmsrm360_largest": times["CMSRM:360:96", big] / times["CACRM", big],
             "gathers_over_cmsrm100": fetches["CACRM", small] / fetches["CMSRM:100:48", small],
-            "coupling_gather_cut": 1 - fetches["CACRM", small] / fetches["CACRM +VSA", small],
+            "coupling_gather_cut": 1 - fetches["CACRM", small] / fetches["CACRM +InS", small],
+            "ins_gain_db": near[1]["psnr"] - near[0]["psnr"],
+            "tlod_psnr_db": q["CACRM +TLOD"] - q["CACRM"],
+            "tlod_speedup_largest": times["CACRM", big] / times["CACRM +TLOD", big],
         })
     columns = [
         ("table", "table", "s"), ("scene", "scene", "s"), ("size", "stereo view size", "s"), ("method", "method", "s"),
         ("psnr", "PSNR [dB]", ".2f"), ("ssim", "SSIM", ".5f"), ("frame_ms", "frame [ms]", ".1f"),
         ("frame_min_ms", "fastest frame [ms]", ".1f"), ("gathers", "voxel gathers", ","),
+        ("interleaved", "interleaved samples", ","),
     ]
     summary_columns = [
         ("scene", "scene", "s"), ("psnr_cacrm_minus_cmsrm360", "PSNR CACRM - CMSRM:360:96 [dB] (goal >= -0.5)", ".2f"),
@@ -130,6 +159,9 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("speedup_over_cmsrm360_largest", "same, largest", ".2f"),
         ("gathers_over_cmsrm100", "CACRM / CMSRM:100:48 gathers (goal < 1)", ".2f"),
         ("coupling_gather_cut", "gathers cut by coupling (goal >= 0.25)", ".2f"),
+        ("ins_gain_db", "InS gain at the close-up, N = 100 [dB]", ".2f"),
+        ("tlod_psnr_db", "PSNR +TLOD - CACRM [dB]", ".2f"),
+        ("tlod_speedup_largest", "CACRM / +TLOD time, largest", ".2f"),
     ]
     settings = {k: v for k, v in cfg.items() if k not in ("sizes", "quality_size")} | {
         "sizes": [f"{w}x{h}" for w, h in cfg["sizes"]], "quality_size": "x".join(map(str, cfg["quality_size"])),
