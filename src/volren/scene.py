@@ -216,7 +216,34 @@ class PointLight:
         object.__setattr__(self, "intensity", e)
 
 
-Light = DirectionalLight | PointLight
+@dataclass(frozen=True)
+class SpotLight:
+    """A point light limited to a cone: full intensity inside ``inner_angle`` of ``direction``, smoothly falling to
+    zero at ``outer_angle`` (half-angles [deg]), inverse-square falloff."""
+
+    position: tuple[float, float, float] = (0.0, 2.0, 0.0)
+    direction: tuple[float, float, float] = (0.0, -1.0, 0.0)
+    intensity: RGB = (10.0, 10.0, 10.0)
+    """[W/sr] on the axis"""
+    inner_angle: float = 20.0
+    outer_angle: float = 30.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position", tuple(float(v) for v in as_vec3(self.position, "spot light position")))
+        d = as_vec3(self.direction, "spot light direction")
+        if np.linalg.norm(d) < 1e-9:
+            raise VolrenError("spot light direction must not be the zero vector")
+        object.__setattr__(self, "direction", tuple(float(v) for v in d / np.linalg.norm(d)))
+        e = as_rgb(self.intensity, "spot light intensity")
+        if min(e) < 0:
+            raise VolrenError(f"spot light intensity must be >= 0, got {e}")
+        object.__setattr__(self, "intensity", e)
+        if not 0 <= self.inner_angle < self.outer_angle <= 90:
+            raise VolrenError(f"spot light angles need 0 <= inner < outer <= 90 degrees, got {self.inner_angle} and "
+                              f"{self.outer_angle}")
+
+
+Light = DirectionalLight | PointLight | SpotLight
 
 
 def _albedo(value: float | Sequence[float], what: str) -> RGB:
@@ -325,6 +352,76 @@ class Environment:
         return (float(mean[0]), float(mean[1]), float(mean[2]))
 
 
+@dataclass(frozen=True)
+class FogBox:
+    """A local fog volume (Hillaire 2015's participating-media box): an axis-aligned box of extra fog density,
+    modulated by Perlin noise, ``density * (1 - noise_amount + noise_amount * (noise + 1) / 2)``."""
+
+    center: tuple[float, float, float] = (0.0, 0.5, 0.0)
+    half_size: tuple[float, float, float] = (1.0, 0.5, 1.0)
+    """[m]"""
+    density: float = 1.0
+    """multiplies the fog's extinction inside the box"""
+    noise_amount: float = 0.5
+    """in [0, 1]: 0 = uniform"""
+    noise_frequency: float = 1.0
+    """[1/m]"""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", tuple(float(v) for v in as_vec3(self.center, "fog box center")))
+        h = as_vec3(self.half_size, "fog box half size")
+        if min(h) <= 0:
+            raise VolrenError(f"fog box half size must be > 0 on every axis, got {tuple(h)}")
+        object.__setattr__(self, "half_size", tuple(float(v) for v in h))
+        if not (np.isfinite(self.density) and self.density >= 0):
+            raise VolrenError(f"fog box density must be >= 0, got {self.density}")
+        if not 0 <= self.noise_amount <= 1:
+            raise VolrenError(f"fog box noise amount must lie in [0, 1], got {self.noise_amount}")
+        if not (np.isfinite(self.noise_frequency) and self.noise_frequency > 0):
+            raise VolrenError(f"fog box noise frequency must be > 0, got {self.noise_frequency}")
+
+
+@dataclass(frozen=True)
+class Fog:
+    """Participating media for the froxel fog (paper 003, after Hillaire 2015): one material (extinction
+    sigma_t [1/m] at density 1, single-scattering albedo, emission, HG g) whose density is the sum of a global
+    homogeneous term, an exponential height fog ``height_density * exp(-height_falloff * (y - height_base))`` (capped
+    at ``height_density`` below the base) and the local boxes."""
+
+    extinction: float = 0.05
+    """[1/m] sigma_t at density 1"""
+    albedo: RGB = (0.9, 0.9, 0.9)
+    emission: RGB = (0.0, 0.0, 0.0)
+    """[W/(m^3 sr)] per unit density"""
+    g: float = 0.3
+    density: float = 1.0
+    """global homogeneous density"""
+    height_density: float = 0.0
+    height_falloff: float = 0.5
+    """[1/m]"""
+    height_base: float = 0.0
+    """[m]"""
+    boxes: tuple[FogBox, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("extinction", "density", "height_density", "height_falloff"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise VolrenError(f"fog {name.replace('_', ' ')} must be a finite number >= 0, got {value}")
+        object.__setattr__(self, "albedo", _albedo(self.albedo, "fog albedo"))
+        e = as_rgb(self.emission, "fog emission")
+        if min(e) < 0:
+            raise VolrenError(f"fog emission must be >= 0, got {e}")
+        object.__setattr__(self, "emission", e)
+        if not -1 < self.g < 1:
+            raise VolrenError(f"fog g must lie in (-1, 1), got {self.g}")
+        object.__setattr__(self, "boxes", tuple(self.boxes))
+        for b in self.boxes:
+            if not isinstance(b, FogBox):
+                raise VolrenError(f"fog boxes must be FogBox objects, got {type(b).__name__}")
+
+
 @dataclass(frozen=True, eq=False)
 class Scene:
     """What is rendered: volumes, lights, a distant environment (ambient) and a background colour."""
@@ -337,6 +434,8 @@ class Scene:
     name: str = "scene"
     opaque: tuple[Opaque, ...] = ()
     """opaque diffuse surfaces, ray-traced into a colour + depth buffer per view that clips the volumes"""
+    fog: Fog | None = None
+    """participating media of the froxel fog method (a fog scene may have no volumes)"""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "volumes", tuple(self.volumes))
@@ -345,13 +444,15 @@ class Scene:
         for o in self.opaque:
             if not isinstance(o, Sphere | Plane | TriangleMesh):
                 raise VolrenError(f"opaque objects must be Sphere, Plane or TriangleMesh, got {type(o).__name__}")
-        if not self.volumes:
-            raise VolrenError("a scene needs at least one volume")
+        if self.fog is not None and not isinstance(self.fog, Fog):
+            raise VolrenError(f"scene fog must be a Fog, got {type(self.fog).__name__}")
+        if not self.volumes and self.fog is None:
+            raise VolrenError("a scene needs at least one volume (or fog)")
         for v in self.volumes:
             if not isinstance(v, Volume):
                 raise VolrenError(f"scene volumes must be Volume objects, got {type(v).__name__}")
         for light in self.lights:
-            if not isinstance(light, DirectionalLight | PointLight):
+            if not isinstance(light, DirectionalLight | PointLight | SpotLight):
                 raise VolrenError(f"unknown light type {type(light).__name__}")
         object.__setattr__(self, "background", as_rgb(self.background, "background"))
 

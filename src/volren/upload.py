@@ -17,6 +17,7 @@ from volren.errors import VolrenError
 from volren.kernels.common import (
     LIGHT_DIRECTIONAL,
     LIGHT_POINT,
+    LIGHT_SPOT,
     CameraGPU,
     LightGPU,
     Medium,
@@ -24,7 +25,7 @@ from volren.kernels.common import (
     VolumeGPU,
 )
 from volren.render.surfaces import opaque_structs
-from volren.scene import DirectionalLight, Scene, TriangleMesh, Volume
+from volren.scene import DirectionalLight, Scene, SpotLight, TriangleMesh, Volume
 
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
@@ -172,7 +173,7 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         max_grids.append((max_offset, grid.shape[::-1]))
         max_offset += grid.size
     try:
-        density = wp.array(np.concatenate(grids), dtype=float, device=device)
+        density = wp.array(np.concatenate(grids) if grids else np.zeros(1), dtype=float, device=device)
         lightmap = wp.ones(max(light_offset, 1), dtype=float, device=device)
     except (RuntimeError, MemoryError) as exc:
         raise VolrenError(f"cannot allocate the scene on {device}: {exc}") from exc
@@ -183,8 +184,13 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     lights = []
     for light in scene.lights:
         s = LightGPU()
+        s.axis, s.cos_inner, s.cos_outer = wp.vec3(0.0, -1.0, 0.0), 1.0, 0.0
         if isinstance(light, DirectionalLight):
             s.kind, s.vector, s.power = LIGHT_DIRECTIONAL, wp.vec3(*light.direction), wp.vec3(*light.irradiance)
+        elif isinstance(light, SpotLight):
+            s.kind, s.vector, s.power = LIGHT_SPOT, wp.vec3(*light.position), wp.vec3(*light.intensity)
+            s.axis = wp.vec3(*light.direction)
+            s.cos_inner, s.cos_outer = (float(np.cos(np.radians(a))) for a in (light.inner_angle, light.outer_angle))
         else:
             s.kind, s.vector, s.power = LIGHT_POINT, wp.vec3(*light.position), wp.vec3(*light.intensity)
         lights.append(s)

@@ -12,6 +12,7 @@ import warp as wp
 INF = wp.constant(1.0e30)
 LIGHT_DIRECTIONAL = wp.constant(0)
 LIGHT_POINT = wp.constant(1)
+LIGHT_SPOT = wp.constant(2)
 OPAQUE_SPHERE = wp.constant(0)
 OPAQUE_PLANE = wp.constant(1)
 
@@ -53,9 +54,15 @@ class VolumeGPU:
 class LightGPU:
     kind: int
     vector: wp.vec3
-    """unit direction of travel (directional) or position (point)"""
+    """unit direction of travel (directional) or position (point, spot)"""
     power: wp.vec3
-    """irradiance [W/m^2] (directional) or intensity [W/sr] (point)"""
+    """irradiance [W/m^2] (directional) or intensity [W/sr] (point, spot)"""
+    axis: wp.vec3
+    """spot: unit cone axis"""
+    cos_inner: float
+    """spot: cosine of the full-intensity half-angle"""
+    cos_outer: float
+    """spot: cosine of the cut-off half-angle"""
 
 
 @wp.struct
@@ -243,10 +250,14 @@ def light_distance(light: LightGPU, x: wp.vec3) -> float:
 
 @wp.func
 def light_irradiance(light: LightGPU, x: wp.vec3) -> wp.vec3:
-    """Unshadowed irradiance at ``x`` on a plane facing the light (inverse-square for a point light)."""
+    """Unshadowed irradiance at ``x`` on a plane facing the light (inverse-square for a point or spot light, times
+    the spot's smoothstep cone falloff)."""
     if light.kind == LIGHT_DIRECTIONAL:
         return light.power
     r2 = wp.max(wp.length_sq(light.vector - x), 1.0e-8)
+    if light.kind == LIGHT_SPOT:
+        c = wp.dot(light.axis, (x - light.vector) / wp.sqrt(r2))
+        return light.power * wp.smoothstep(light.cos_outer, light.cos_inner, c) / r2
     return light.power / r2
 
 

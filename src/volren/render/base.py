@@ -61,6 +61,7 @@ class Renderer:
     """Base class. A subclass has a frozen config dataclass and implements ``_render_view``."""
 
     name: ClassVar[str] = ""
+    needs_volumes: ClassVar[bool] = True
 
     def __init__(self, config: Any, device: str = "auto") -> None:
         self.config = config
@@ -111,6 +112,8 @@ class Renderer:
         views = list(views)
         if not views:
             raise VolrenError("render needs at least one view")
+        if self.needs_volumes and not scene.volumes:
+            raise VolrenError(f"method '{self.name}' renders volumes and scene '{scene.name}' has none")
         user_depth = list(occluder_depth) if occluder_depth is not None else [None] * len(views)
         if len(user_depth) != len(views):
             raise VolrenError(f"got {len(user_depth)} depth image(s) for {len(views)} view(s)")
