@@ -40,7 +40,8 @@ TINY = (*BASE, "--light-grid", "16")
 """Tiny settings for dssrm and demo (reference takes no --light-grid)."""
 W, H = 24, 16
 SCENES = ("smoke", "cloud", "phantom", "multi")
-COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples")
+COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
+            "shadow_rays", "shadow_voxels")
 GARBAGE = b"this is not a volume \x00\x01\x02\xff" * 8
 
 

@@ -100,7 +100,8 @@ def test_counters_counted_by_hand():
     frame = render("dssrm", scene, [axis_camera(size=(1, 1))], samples=100, light_samples=8, light_grid=4,
                    min_transmittance=0)
     assert frame.stats.counters == {"density_samples": 58, "light_samples": 176, "lightmap_lookups": 58, "rays": 1,
-                                    "shared_samples": 0, "interleaved_samples": 0}
+                                    "shared_samples": 0, "interleaved_samples": 0,
+                                    "shadow_rays": 0, "shadow_voxels": 0}
 
 
 def test_counters_match_host_count_per_pixel(method):

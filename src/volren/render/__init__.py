@@ -4,6 +4,7 @@ from volren.render.base import Renderer
 from volren.render.cacrm import CACRM, CACRMConfig
 from volren.render.cmsrm import CMSRM, CMSRMConfig
 from volren.render.dssrm import DSSRM, DSSRMConfig
+from volren.render.fog import FogConfig, FogRenderer
 from volren.render.frame import COUNTERS, Frame, Stats
 from volren.render.reference import Reference, ReferenceConfig
 
@@ -12,6 +13,7 @@ METHODS: dict[str, tuple[type[Renderer], type]] = {
     "cmsrm": (CMSRM, CMSRMConfig),
     "cacrm": (CACRM, CACRMConfig),
     "reference": (Reference, ReferenceConfig),
+    "fog": (FogRenderer, FogConfig),
 }
 
 __all__ = [
@@ -23,6 +25,8 @@ __all__ = [
     "CACRMConfig",
     "CMSRMConfig",
     "DSSRMConfig",
+    "FogConfig",
+    "FogRenderer",
     "Frame",
     "Reference",
     "ReferenceConfig",

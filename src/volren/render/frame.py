@@ -13,15 +13,19 @@ import warp as wp
 
 from volren.device import MAX_BANDS, synchronize
 
-COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples")
+COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
+            "shadow_rays", "shadow_voxels")
 """Work counters gathered by the kernels (wp.atomic_add into one int64 array, indexed by position here):
 density_samples: trilinear density fetches on view rays; light_samples: density fetches on rays towards lights
 (light-map pass or the reference's per-sample shadow rays); lightmap_lookups: light-map fetches while shading;
 rays: view rays that hit at least one volume box (CMSRM: texel rays marched, plus pixels marched directly);
 shared_samples: density samples that reused the 8 voxels another ray fetched (CACRM's coupled eyes), so the voxel
 gathers are density_samples - shared_samples; interleaved_samples: supplementary samples a CACRM ray took from the
-voxels its 2x2 quad neighbours fetched (interleaved spatial reuse), on top of its density_samples."""
-DENSITY_SAMPLES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, INTERLEAVED_SAMPLES = range(len(COUNTERS))
+voxels its 2x2 quad neighbours fetched (interleaved spatial reuse), on top of its density_samples; shadow_rays:
+ray-traced light-visibility queries of the fog method (one per light and froxel, grid voxel or frustum froxel);
+shadow_voxels: shadow-grid voxels re-traced this frame."""
+(DENSITY_SAMPLES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, INTERLEAVED_SAMPLES, SHADOW_RAYS,
+ SHADOW_VOXELS) = range(len(COUNTERS))
 
 
 @dataclass
