@@ -22,6 +22,8 @@ MAX_EXPOSURE = 64.0
 """[stops] beyond this every pixel is black or white, and 2**exposure overflows soon after."""
 
 DEFAULT_SCENE = "smoke"
+ANIMATION_FPS = 30.0
+"""frames per second of scene time for animated scenes rendered with --frames"""
 
 
 class CliError(VolrenError):
@@ -103,8 +105,9 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     opq.add_argument("--depth-image", type=Path,
                      help=".npy linear depth (H, W), or (views, H, W), of geometry drawn elsewhere; inf = none")
     cam = p.add_argument_group("views")
-    cam.add_argument("--camera-pos", type=vec3, default=(0.0, 0.4, 3.2), help="eye position x,y,z [m]")
-    cam.add_argument("--look-at", type=vec3, default=(0.0, 0.0, 0.0), help="x,y,z")
+    cam.add_argument("--camera-pos", type=vec3, help="eye position x,y,z [m] (default 0,0.4,3.2; fog scenes: their "
+                     "own viewpoint)")
+    cam.add_argument("--look-at", type=vec3, help="x,y,z (default 0,0,0; fog scenes: their own)")
     cam.add_argument("--up", type=vec3, default=(0.0, 1.0, 0.0), help="x,y,z")
     cam.add_argument("--fov", type=float, default=45.0, help="vertical field of view [degrees]")
     cam.add_argument("--width", type=int, default=640)
@@ -133,6 +136,14 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
     r.add_argument("--no-vsa", action="store_true", help="cacrm: uniform steps (no variable step amplification)")
     r.add_argument("--no-interleave", action="store_true", help="cacrm: no interleaved spatial reuse of 2x2 quads")
+    r.add_argument("--fog-sharing", choices=("none", "grid"), help="fog: per-viewer shadow rays (none) or the "
+                   "shared shadow grid (grid, default)")
+    r.add_argument("--voxel-size", type=float, help="fog: shadow-grid voxel edge [m] (default 0.5)")
+    r.add_argument("--slices", type=int, help="fog: depth slices per froxel grid (default 128)")
+    r.add_argument("--froxel-size", type=int, help="fog: froxel width [px] (default 8)")
+    r.add_argument("--fog-far", type=float, help="fog: end of the fog range [m] (default 64)")
+    r.add_argument("--trilinear", action="store_true", help="fog: interpolate 8 shadow-grid voxels, not the nearest")
+    r.add_argument("--no-temporal", action="store_true", help="fog: no jitter and temporal blending")
     r.add_argument("--frames", type=int, default=1, help="render N frames (temporal methods), keep every frame")
     r.add_argument("--seed", type=int, default=0)
     add_device(p)
@@ -161,9 +172,11 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def scene_from_args(args: argparse.Namespace):
-    """The scene the arguments ask for: a built-in or a volume file, with material and light overrides."""
+def scene_from_args(args: argparse.Namespace, time: float = 0.0):
+    """The scene the arguments ask for: a built-in (a fog scene at ``time`` [s]) or a volume file, with material and
+    light overrides."""
     from volren.data import builtin_scene, load_mesh_file, load_volume_file
+    from volren.data.fog_scenes import FOG_SCENES, fog_scene
     from volren.scene import DirectionalLight, Environment, Plane, Scene, Sphere, Volume
 
     if getattr(args, "volume", None) is not None:
@@ -171,6 +184,8 @@ def scene_from_args(args: argparse.Namespace):
             raise CliError("give either --scene or --volume, not both")
         density = load_volume_file(args.volume, shape=args.shape, dtype=args.dtype)
         scene = Scene((Volume(density, name=args.volume.name),), name=args.volume.stem)
+    elif getattr(args, "scene", None) in FOG_SCENES:
+        scene = fog_scene(args.scene, time)
     else:
         name = getattr(args, "scene", None)
         scene = builtin_scene(DEFAULT_SCENE if name is None else name, args.resolution, count=args.count,
@@ -211,9 +226,14 @@ def scene_from_args(args: argparse.Namespace):
 
 def views_from_args(args: argparse.Namespace):
     from volren.camera import Camera, make_views
+    from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera
 
-    cam = Camera(position=args.camera_pos, look_at=args.look_at, up=args.up, fov_y=args.fov, width=args.width,
-                 height=args.height, near=args.near, far=args.far)
+    position, look_at = (0.0, 0.4, 3.2), (0.0, 0.0, 0.0)
+    if getattr(args, "scene", None) in FOG_SCENES:
+        default = fog_scene_camera(args.scene)
+        position, look_at = default["position"], default["look_at"]
+    cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
+                 width=args.width, height=args.height, near=args.near, far=args.far)
     return make_views(cam, args.views, args.ipd)
 
 
@@ -258,6 +278,13 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "share_voxels": (False if args.no_share else None, "--no-share"),
         "vsa": (False if args.no_vsa else None, "--no-vsa"),
         "interleave": (False if args.no_interleave else None, "--no-interleave"),
+        "sharing": (args.fog_sharing, "--fog-sharing"),
+        "voxel_size": (args.voxel_size, "--voxel-size"),
+        "slices": (args.slices, "--slices"),
+        "tile": (args.froxel_size, "--froxel-size"),
+        "far": (args.fog_far, "--fog-far"),
+        "trilinear": (args.trilinear or None, "--trilinear"),
+        "temporal": (False if args.no_temporal else None, "--no-temporal"),
     }
     options = {k: v for k, (v, _) in given.items() if v is not None and k in fields}
     ignored = [flag for k, (v, flag) in given.items() if v is not None and k not in fields]
@@ -289,7 +316,10 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
         raise CliError(f"--frames must be >= 1, got {args.frames}")
     if not (math.isfinite(args.exposure) and abs(args.exposure) <= MAX_EXPOSURE):
         raise CliError(f"--exposure must be a number of stops in [-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
+    from volren.data.fog_scenes import ANIMATED_FOG_SCENES
+
     scene = scene_from_args(args)
+    animated = getattr(args, "scene", None) in ANIMATED_FOG_SCENES
     views = views_from_args(args)
     occluder_depth = depth_images_from_args(args, len(views))
     renderer = renderer_from_args(args, method)
@@ -299,6 +329,8 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     with progress_bar(f"{method} {scene.name}", args.frames * sum(v.height for v in views)) as advance:
         renderer.on_rows = advance
         for i in range(args.frames):
+            if animated and i:
+                scene = scene_from_args(args, i / ANIMATION_FPS)
             frame = renderer.render(scene, views, frame=i, occluder_depth=occluder_depth)
             prefix = f"frame{i:04d}_" if args.frames > 1 else ""
             files += write_frame(frame, out, scene.background, exposure=args.exposure, tonemap=args.tonemap,
@@ -317,10 +349,13 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
 
 def run_scenes() -> int:
     from volren.data import BUILTIN_SCENES
+    from volren.data.fog_scenes import FOG_SCENES
 
-    width = max(len(n) for n in BUILTIN_SCENES)
+    width = max(len(n) for n in [*BUILTIN_SCENES, *FOG_SCENES])
     for name, spec in BUILTIN_SCENES.items():
         print(f"{name:<{width}}  {spec.description}")
+    for name, description in FOG_SCENES.items():
+        print(f"{name:<{width}}  {description} (meshes and fog: --method fog)")
     return 0
 
 
