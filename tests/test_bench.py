@@ -44,3 +44,17 @@ def test_binocular_suite_rows_and_goals():
     assert len(near) == 4 and near[1]["method"].endswith("+InS") and near[1]["interleaved"] > 0
     (goals,), _ = result["summary"]
     assert 0 <= goals["coupling_gather_cut"] < 1  # at toy sizes the hybrid choice may march directly
+
+
+def test_viewers_suite_rows_and_goals():
+    from volren.bench.viewers import run_config
+
+    cfg = {"scenes": ["hall"], "size": (64, 36), "slices": 16, "counts": [1, 2], "voxels": [1.0],
+           "ablation": [2.0, 1.0], "overlaps": [0.5], "repeats": 1}
+    result = run_config(cfg, "cpu")
+    tables = {r["table"] for r in result["rows"]}
+    assert tables == {"viewers", "voxel size", "overlap 50%"}
+    grid = [r for r in result["rows"] if r["table"] == "viewers" and r["method"] == "grid 1 m"]
+    assert all(0 <= r["flip"] < 0.5 and r["shared_bytes"] > 0 and r["shadow_voxels"] > 0 for r in grid)
+    (goals,), _ = result["summary"]
+    assert goals["viewers"] == 2 and goals["ray_ratio"] > 0

@@ -40,6 +40,7 @@ TINY = (*BASE, "--light-grid", "16")
 """Tiny settings for dssrm and demo (reference takes no --light-grid)."""
 W, H = 24, 16
 SCENES = ("smoke", "cloud", "phantom", "multi")
+FOG_SCENE_NAMES = ("hall", "courtyard", "dynamic")
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
             "shadow_rays", "shadow_voxels")
 GARBAGE = b"this is not a volume \x00\x01\x02\xff" * 8
@@ -230,7 +231,8 @@ def test_render_three_views_on_an_arc(capfd, tmp_path: Path) -> None:
     out = tmp_path / "three"
     render(capfd, out, "--views", "3", "--save-linear")
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["stats.json", "view0.npy", "view0.png", "view1.npy", "view1.png", "view2.npy", "view2.png"]
+    assert names == ["contact.png", "stats.json", "view0.npy", "view0.png", "view1.npy", "view1.png", "view2.npy",
+                     "view2.png"]
     settings = stats_of(out)["frames"][0]["settings"]
     assert settings["views"] == 3 and settings["resolution"] == [[W, H]] * 3
     images = [np.load(out / f"view{i}.npy") for i in range(3)]
@@ -448,7 +450,7 @@ def test_environment_image(capfd, tmp_path: Path, baseline: np.ndarray) -> None:
 def test_scenes_lists_builtins(capfd) -> None:
     r = ok(capfd, "scenes")
     names = [line.split()[0] for line in r.out.splitlines() if line.strip()]
-    assert names == list(SCENES)
+    assert names == [*SCENES, *FOG_SCENE_NAMES]
 
 
 def _images(tmp_path: Path) -> tuple[Path, Path]:
@@ -539,7 +541,7 @@ def test_console_script(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert done.stderr == ""
     assert "Traceback" not in done.stdout
-    assert [line.split()[0] for line in done.stdout.splitlines()] == list(SCENES)
+    assert [line.split()[0] for line in done.stdout.splitlines()] == [*SCENES, *FOG_SCENE_NAMES]
     bad = subprocess.run([exe, "render", "--device", "tpu"], capture_output=True, text=True, timeout=120,
                          cwd=tmp_path)
     assert bad.returncode == 2
@@ -924,3 +926,41 @@ def test_mesh_option(capfd, tmp_path: Path) -> None:
     render(capfd, out, "--views", "mono", "--mesh", path, "--mesh-translate", "0,0,2", "--save-linear")
     assert np.load(out / "view0.npy")[H // 2, W // 2, 3] == 1.0  # the box in front is opaque
     render_error(capfd, tmp_path, ["--mesh", tmp_path / "missing.obj"], "mesh file not found")
+
+
+FOG = ("--method", "fog", "--width", "32", "--height", "18", "--slices", "16", "--device", "cpu")
+
+
+def test_fog_render_of_many_viewers_writes_views_and_a_contact_sheet(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "f"
+    ok(capfd, "render", *FOG, "--scene", "hall", "--views", "16", "--out", out)
+    assert all((out / f"view{v}.png").exists() for v in range(16))
+    assert (out / "contact.png").exists()
+    frame = stats_of(out)["frames"][0]
+    assert frame["counters"]["shadow_voxels"] > 0 and "shadow_grid" in frame["times_ms"]
+
+
+def test_fog_options_and_an_animated_scene(capfd, tmp_path: Path) -> None:
+    out = tmp_path / "g"
+    ok(capfd, "render", *FOG, "--scene", "dynamic", "--views", "mono", "--fog-sharing", "none", "--frames", "2",
+       "--no-temporal", "--froxel-size", "4", "--fog-far", "20", "--out", out)
+    frames = stats_of(out)["frames"]
+    assert frames[1]["counters"]["shadow_voxels"] == 0 and frames[1]["settings"]["tile"] == 4
+
+
+@pytest.mark.parametrize(
+    ("extra", "fragment"),
+    [
+        (["--scene", "hall", "--voxel-size", "0"], "voxel size"),
+        (["--scene", "hall", "--slices", "2"], "slices"),
+        (["--scene", "smoke", "--resolution", "64"], "needs a scene with fog"),
+        (["--scene", "hall", "--samples", "8"], "--samples"),
+    ],
+)
+def test_fog_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: str) -> None:
+    assert_error(capfd, ["render", *FOG, "--out", tmp_path / "o", *extra], fragment)
+
+
+def test_volume_methods_refuse_a_fog_scene(capfd, tmp_path: Path) -> None:
+    assert_error(capfd, ["render", "--scene", "hall", "--method", "dssrm", "--width", "8", "--height", "8",
+                         "--device", "cpu", "--out", tmp_path / "o"], "has none")
