@@ -130,7 +130,7 @@ class Renderer:
             buffers = view_buffers(cam, self.device)
             if scene.opaque or user_depth[v] is not None:
                 with clock.measure("surfaces"):
-                    trace_surfaces(ds, camera_struct(cam), cam, user_depth[v], buffers)
+                    trace_surfaces(ds, camera_struct(cam), cam, user_depth[v], buffers, clock.counters)
             targets.append(buffers)
         self._render_views(ds, views, frame, targets, clock)
         with clock.measure("readback"):

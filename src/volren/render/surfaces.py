@@ -15,6 +15,7 @@ import numpy as np
 import warp as wp
 
 from volren.camera import Camera
+from volren.device import launch_rows
 from volren.errors import VolrenError
 from volren.kernels.common import (
     INF,
@@ -96,8 +97,11 @@ def surface_kernel(
     ambient: wp.vec3,
     user_depth: wp.array2d(dtype=float),
     buffers: ViewBuffers,
+    counters: wp.array(dtype=wp.int64),
+    row0: int,
 ):
-    row, col = wp.tid()
+    r, col = wp.tid()
+    row = r + row0
     d = camera_ray(cam, row, col, 0.5, 0.5)
     t = float(INF)
     normal = wp.vec3(0.0)
@@ -184,14 +188,16 @@ def trace_surfaces(
     cam: Camera,
     user_depth: np.ndarray | None,
     buffers: ViewBuffers,
+    counters: wp.array,
 ) -> None:
-    """Fill ``buffers``' surface colour and depth; a no-op when there is nothing opaque."""
+    """Fill ``buffers``' surface colour and depth (rows in parallel bands on the CPU); a no-op when there is nothing
+    opaque. ``counters``: the frame's counter rows (`launch_rows`)."""
     if not ds.scene.opaque and user_depth is None:
         return
     if user_depth is None:
         user = wp.full((cam.height, cam.width), INF, dtype=float, device=ds.device)
     else:
         user = wp.array(user_depth, dtype=float, device=ds.device)
-    wp.launch(surface_kernel, dim=(cam.height, cam.width),
-              inputs=[cam_gpu, ds.opaque, ds.mesh_ids, ds.mesh_albedo, ds.lights, ds.ambient, user, buffers],
-              device=ds.device)
+    launch_rows(surface_kernel, cam.height, cam.width,
+                [cam_gpu, ds.opaque, ds.mesh_ids, ds.mesh_albedo, ds.lights, ds.ambient, user, buffers], ds.device,
+                counters)
