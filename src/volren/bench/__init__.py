@@ -42,7 +42,7 @@ def all_suites() -> dict[str, Suite]:
     return {s.name: s for s in (DSSRM_SUITE, RESOLUTION_SUITE, BINOCULAR_SUITE, VIEWERS_SUITE)}
 
 
-NOT_PASSES = ("upload", "readback")
+NOT_PASSES = ("upload", "readback", "fog_bake")
 """Times that are not the method's per-frame work (one-off upload, copying images to the host)."""
 
 

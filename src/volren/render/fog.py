@@ -60,7 +60,7 @@ from volren.render.froxels import (
     slice_depth,
 )
 from volren.render.surfaces import occluded
-from volren.scene import Scene, Sphere, TriangleMesh
+from volren.scene import Fog, Scene, Sphere, TriangleMesh
 from volren.upload import DeviceScene, camera_struct
 
 SHARING = ("none", "grid")
@@ -447,6 +447,7 @@ class FogRenderer(Renderer):
         self._history: wp.array | None = None
         self._history_key: tuple | None = None
         self._prev_cams: list[CameraGPU] | None = None
+        self._fog: tuple[Fog, FogGPU] | None = None
 
     def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
         if scene.fog is None:
@@ -480,7 +481,10 @@ class FogRenderer(Renderer):
         cams_gpu = wp.array(cams, dtype=CameraGPU, device=self.device)
         grids_gpu = wp.array(grids, dtype=FroxelGrid, device=self.device)
         occ = occluders(ds)
-        fog = fog_struct(ds.scene.fog, self.device)
+        if self._fog is None or self._fog[0] != ds.scene.fog:
+            with clock.measure("fog_bake"):
+                self._fog = (ds.scene.fog, fog_struct(ds.scene.fog, self.device))
+        fog = self._fog[1]
         jitter = halton(frame + c.seed, 2) if c.temporal else 0.5
         shape = (len(views), c.slices, ny, nx)
         # Temporal history: valid for the same viewers' grids as the last frame.
