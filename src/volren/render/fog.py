@@ -407,10 +407,8 @@ def frusta_corners(views: list[Camera], far: float) -> np.ndarray:
     return np.array(out)
 
 
-def shadow_grid_bounds(scene: Scene, views: list[Camera], far: float, voxel: float
-                       ) -> tuple[np.ndarray, tuple[int, int, int]]:
-    """The shadow grid's corner and resolution: the scene's bounds (meshes, spheres, fog boxes), padded by a voxel.
-    A scene with an infinite plane has no bounds; its grid covers the first frame's frusta instead."""
+def scene_bounds(scene: Scene) -> tuple[np.ndarray, np.ndarray] | None:
+    """World bounds of the meshes, spheres and fog boxes; None for a scene with an infinite plane (or nothing)."""
     points = []
     for o in scene.opaque:
         if isinstance(o, TriangleMesh):
@@ -418,17 +416,13 @@ def shadow_grid_bounds(scene: Scene, views: list[Camera], far: float, voxel: flo
         elif isinstance(o, Sphere):
             points.append(np.array([np.subtract(o.center, o.radius), np.add(o.center, o.radius)]))
         else:
-            points = [frusta_corners(views, far)]
-            break
-    else:
-        for b in scene.fog.boxes:
-            points.append(np.array([np.subtract(b.center, b.half_size), np.add(b.center, b.half_size)]))
-        if not points:
-            points = [frusta_corners(views, far)]
+            return None
+    for b in scene.fog.boxes:
+        points.append(np.array([np.subtract(b.center, b.half_size), np.add(b.center, b.half_size)]))
+    if not points:
+        return None
     p = np.concatenate(points)
-    lo, hi = p.min(0) - voxel, p.max(0) + voxel
-    res = tuple(int(n) for n in np.maximum(np.ceil((hi - lo) / voxel), 1))
-    return lo, res
+    return p.min(0), p.max(0)
 
 
 MAX_GRID_VOXELS = 2**28
@@ -458,16 +452,24 @@ class FogRenderer(Renderer):
         return self._upload(scene, clock)
 
     def _shadow_grid(self, ds: DeviceScene, views: list[Camera]) -> tuple[ShadowGrid, bool]:
-        """The persistent shadow grid of this scene (new: every voxel must be traced once)."""
-        key = (id(ds.scene), self.config.voxel_size)
+        """The persistent shadow grid over the scene's bounds, padded by a voxel (new: every voxel must be traced
+        once). It is kept while the bounds stay the same, also across re-built scenes (objects moving inside a fixed
+        room), and re-traced by parity. An unbounded scene (an infinite plane) gets a grid over the frusta of the
+        frame that first needs one, kept for as long as the voxel size."""
+        voxel = self.config.voxel_size
+        bounds = scene_bounds(ds.scene)
+        key = (voxel, None if bounds is None else (tuple(bounds[0]), tuple(bounds[1])))
         if self._grid is not None and self._grid_key == key:
             return self._grid, False
-        lo, res = shadow_grid_bounds(ds.scene, views, self.config.far, self.config.voxel_size)
+        lo, hi = bounds if bounds is not None else (frusta_corners(views, self.config.far).min(0),
+                                                    frusta_corners(views, self.config.far).max(0))
+        lo, hi = lo - voxel, hi + voxel
+        res = tuple(int(n) for n in np.maximum(np.ceil((hi - lo) / voxel), 1))
         if math.prod(res) > MAX_GRID_VOXELS:
             raise VolrenError(f"shadow grid of {res[0]}x{res[1]}x{res[2]} voxels is too large; use a larger "
                               f"--voxel-size than {self.config.voxel_size} m")
         g = ShadowGrid()
-        g.lo, g.voxel_size, g.res = wp.vec3(*lo), self.config.voxel_size, wp.vec3i(*res)
+        g.lo, g.voxel_size, g.res = wp.vec3(*lo), voxel, wp.vec3i(*res)
         g.bits = wp.zeros(res[::-1], dtype=wp.uint8, device=self.device)
         self._grid, self._grid_key = g, key
         return g, True
