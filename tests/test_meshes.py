@@ -88,3 +88,56 @@ def test_mesh_errors(tmp_path):
         TriangleMesh(np.zeros((3, 3)), np.array([[0, 1, 5]]))
     with pytest.raises(VolrenError, match="vertices"):
         TriangleMesh(np.full((3, 3), np.nan), np.array([[0, 1, 2]]))
+
+
+USDA_QUAD = """#usda 1.0
+def Xform "root" (
+)
+{
+    double3 xformOp:translate = (1, 2, 3)
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+    def Mesh "quad"
+    {
+        point3f[] points = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0, 1, 2, 3]
+    }
+}
+"""
+
+
+def test_usd_meshes_load_in_world_coordinates(tmp_path):
+    path = tmp_path / "quad.usda"
+    path.write_text(USDA_QUAD)
+    mesh = load_mesh_file(path)
+    np.testing.assert_allclose(mesh.vertices, [[1, 2, 3], [2, 2, 3], [2, 3, 3], [1, 3, 3]])
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3]])  # the quad fan-triangulated
+
+
+def test_the_bunny_that_ships_with_warp_loads():
+    import os
+
+    import warp
+
+    bunny = os.path.join(os.path.dirname(warp.__file__), "examples", "assets", "bunny.usd")
+    if not os.path.exists(bunny):
+        pytest.skip("this warp-lang build ships no example assets")
+    mesh = load_mesh_file(bunny)
+    assert len(mesh.faces) > 10_000 and np.all(np.isfinite(mesh.vertices))
+
+
+def test_bad_usd_and_non_manifold_meshes(tmp_path):
+    empty = tmp_path / "empty.usda"
+    empty.write_text('#usda 1.0\ndef Xform "root"\n{\n}\n')
+    with pytest.raises(VolrenError, match="no triangles"):
+        load_mesh_file(empty)
+    broken = tmp_path / "broken.usda"
+    broken.write_text("#usda 1.0\ndef Mesh (\n")
+    with pytest.raises(VolrenError, match="cannot read"):
+        load_mesh_file(broken)
+    fin = trimesh.Trimesh(vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]],
+                          faces=[[0, 1, 2], [0, 1, 3], [0, 1, 4]], process=False)  # three sheets on edge 0-1
+    path = tmp_path / "fins.obj"
+    fin.export(path)
+    with pytest.raises(VolrenError, match="non-manifold"):
+        load_mesh_file(path)
