@@ -10,7 +10,7 @@ import pytest
 
 from volren.camera import Camera
 from volren.errors import VolrenError
-from volren.metrics import psnr
+from volren.metrics import flip, psnr
 from volren.render import FogConfig, FogRenderer
 from volren.scene import DirectionalLight, Environment, Fog, Plane, Scene, Sphere
 
@@ -122,9 +122,10 @@ def test_a_viewer_inside_another_frustum_adds_almost_no_grid_work():
 
 def test_shared_pipeline_converges_to_the_reference_as_voxels_shrink():
     ref, _ = render(SHADOWED, sharing="none")
-    scores = [psnr(ref.images[0], render(SHADOWED, sharing="grid", voxel_size=v)[0].images[0])
-              for v in (2.0, 0.5, 0.125)]
-    assert scores[0] < scores[1] < scores[2]
+    images = [render(SHADOWED, sharing="grid", voxel_size=v)[0].images[0] for v in (2.0, 0.5, 0.125)]
+    scores = [psnr(ref.images[0], image) for image in images]
+    errors = [flip(ref.images[0], image) for image in images]
+    assert scores[0] < scores[1] < scores[2] and errors[0] > errors[1] > errors[2]
     assert scores[2] > 35.0
 
 

@@ -46,3 +46,30 @@ def test_bad_rigs():
         overlap_viewers(BASE, 2, 1.5)
     with pytest.raises(VolrenError, match="viewer count"):
         wandering_viewers(BASE, 0, (0, 0, 0), (1, 1, 1))
+
+
+def test_viewers_of_different_sizes_render_as_if_alone():
+    from volren.data.fog_scenes import fog_scene, fog_scene_camera
+    from volren.render import FogConfig, FogRenderer
+
+    spot = fog_scene_camera("courtyard")
+    big = Camera(position=spot["position"], look_at=spot["look_at"], width=64, height=36)
+    small = Camera(position=(0.0, 1.7, 0.0), look_at=(5.0, 1.0, 5.0), width=40, height=40, fov_y=70.0)
+    scene = fog_scene("courtyard")
+    config = FogConfig(sharing="none", slices=16, temporal=False)
+    both = FogRenderer(config, device="cpu").render(scene, [big, small])
+    assert [i.shape for i in both.images] == [(36, 64, 4), (40, 40, 4)]
+    for cam, image in zip([big, small], both.images, strict=True):
+        alone = FogRenderer(config, device="cpu").render(scene, [cam]).images[0]
+        np.testing.assert_array_equal(image, alone)
+
+
+@pytest.mark.parametrize("rig", ["wander", "overlap"])
+def test_rig_option(capfd, tmp_path, rig):
+    from test_cli import ok, stats_of
+
+    out = tmp_path / rig
+    ok(capfd, "render", "--method", "fog", "--scene", "hall", "--width", "32", "--height", "18", "--slices", "16",
+       "--device", "cpu", "--views", "3", "--rig", rig, "--frames", "2", "--out", out)
+    frames = stats_of(out)["frames"]
+    assert len(frames) == 2 and frames[0]["settings"]["views"] == 3

@@ -114,7 +114,11 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     cam.add_argument("--height", type=int, default=360)
     cam.add_argument("--near", type=float, default=0.01, help="[m]")
     cam.add_argument("--far", type=float, default=1000.0, help="[m]")
-    cam.add_argument("--views", default="stereo", help="mono, stereo, or N viewers on an arc")
+    cam.add_argument("--views", default="stereo", help="mono, stereo, or N viewers (placed by --rig)")
+    cam.add_argument("--rig", choices=("arc", "wander", "overlap"), default="arc", help="N viewers: on an arc "
+                     "around --look-at, wandering the scene's area (moving with --frames), or yawed copies of one "
+                     "camera whose neighbours share --overlap of the field of view")
+    cam.add_argument("--overlap", type=float, default=0.5, help="--rig overlap: shared fraction in [0, 1]")
     cam.add_argument("--ipd", type=float, default=0.063, help="stereo eye distance [m]")
     r = p.add_argument_group("method")
     if not demo:
@@ -224,17 +228,31 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
                                background=background, opaque=tuple(opaque))
 
 
-def views_from_args(args: argparse.Namespace):
+def views_from_args(args: argparse.Namespace, time: float = 0.0):
+    """The viewers: one camera from the arguments (a fog scene's own viewpoint by default), made into mono, stereo
+    or N views by ``--rig``; wandering viewers walk the scene's area (a fog scene's extent, else 3 m around the
+    look-at point) and are placed for ``time`` [s]."""
     from volren.camera import Camera, make_views
     from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera
+    from volren.viewers import overlap_viewers, wandering_viewers
 
     position, look_at = (0.0, 0.4, 3.2), (0.0, 0.0, 0.0)
-    if getattr(args, "scene", None) in FOG_SCENES:
+    fog_scene = getattr(args, "scene", None) in FOG_SCENES
+    if fog_scene:
         default = fog_scene_camera(args.scene)
         position, look_at = default["position"], default["look_at"]
     cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
                  width=args.width, height=args.height, near=args.near, far=args.far)
-    return make_views(cam, args.views, args.ipd)
+    if args.rig == "arc" or args.views in ("mono", "stereo"):
+        return make_views(cam, args.views, args.ipd)
+    count = len(make_views(cam, args.views))  # validates N
+    if args.rig == "overlap":
+        return overlap_viewers(cam, count, args.overlap)
+    if fog_scene:
+        lo, hi = fog_scene_camera(args.scene)["extent"]
+    else:
+        lo, hi = tuple(v - 3.0 for v in cam.look_at), tuple(v + 3.0 for v in cam.look_at)
+    return wandering_viewers(cam, count, lo, hi, time=time, seed=args.seed)
 
 
 def depth_images_from_args(args: argparse.Namespace, view_count: int) -> list | None:
@@ -320,6 +338,7 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
 
     scene = scene_from_args(args)
     animated = getattr(args, "scene", None) in ANIMATED_FOG_SCENES
+    walking = args.rig == "wander" and args.views not in ("mono", "stereo")
     views = views_from_args(args)
     occluder_depth = depth_images_from_args(args, len(views))
     renderer = renderer_from_args(args, method)
@@ -331,6 +350,8 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
         for i in range(args.frames):
             if animated and i:
                 scene = scene_from_args(args, i / ANIMATION_FPS)
+            if walking and i:
+                views = views_from_args(args, i / ANIMATION_FPS)
             frame = renderer.render(scene, views, frame=i, occluder_depth=occluder_depth)
             prefix = f"frame{i:04d}_" if args.frames > 1 else ""
             files += write_frame(frame, out, scene.background, exposure=args.exposure, tonemap=args.tonemap,
