@@ -86,10 +86,9 @@ class DeviceScene:
     opaque: wp.array
     """the scene's opaque spheres and planes (`OpaqueGPU`)"""
     meshes: list[wp.Mesh]
-    """the scene's triangle meshes merged into one BVH (kept alive here; kernels see ``mesh_ids``: none or one)"""
+    """the scene's triangle meshes with their BVHs (kept alive here; kernels see ``mesh_ids``)"""
     mesh_ids: wp.array
-    face_albedo: wp.array
-    """diffuse albedo of every triangle of the merged mesh"""
+    mesh_albedo: wp.array
     max_density: wp.array
     """per volume one coarse level of its conservative max-density pyramid, packed (for empty-tile culling)"""
     max_grids: list[tuple[int, tuple[int, int, int]]]
@@ -144,20 +143,6 @@ def volume_struct(
     return s
 
 
-def merged_mesh(meshes: list[TriangleMesh], device: str) -> tuple[list[wp.Mesh], np.ndarray]:
-    """All triangle meshes in one `wp.Mesh` (one BVH per scene: a ray query traverses one tree, not one per mesh),
-    and the albedo of each of its triangles. No meshes: no BVH and one unused albedo."""
-    if not meshes:
-        return [], np.zeros((1, 3), np.float32)
-    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
-    points = np.concatenate([m.vertices for m in meshes])
-    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
-    albedo = np.concatenate([np.tile(np.float32(m.albedo), (len(m.faces), 1)) for m in meshes])
-    bvh = wp.Mesh(points=wp.array(points, dtype=wp.vec3, device=device),
-                  indices=wp.array(faces.reshape(-1), dtype=wp.int32, device=device))
-    return [bvh], albedo
-
-
 def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_levels: bool = False) -> DeviceScene:
     """Pack and copy ``scene`` to ``device``; light grids get ``light_grid`` voxels on their longest axis. With
     ``mip_levels`` every level of each volume's mip pyramid is packed too (for LOD marching)."""
@@ -193,7 +178,9 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     except (RuntimeError, MemoryError) as exc:
         raise VolrenError(f"cannot allocate the scene on {device}: {exc}") from exc
     analytic = opaque_structs(scene)
-    meshes, face_albedo = merged_mesh([o for o in scene.opaque if isinstance(o, TriangleMesh)], device)
+    meshes = [wp.Mesh(points=wp.array(o.vertices, dtype=wp.vec3, device=device),
+                      indices=wp.array(o.faces.reshape(-1), dtype=wp.int32, device=device))
+              for o in scene.opaque if isinstance(o, TriangleMesh)]
     lights = []
     for light in scene.lights:
         s = LightGPU()
@@ -223,7 +210,7 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
                                                                                              device=device),
         meshes=meshes,
         mesh_ids=wp.array([m.id for m in meshes], dtype=wp.uint64, device=device),
-        face_albedo=wp.array(face_albedo, dtype=wp.vec3,
+        mesh_albedo=wp.array([o.albedo for o in scene.opaque if isinstance(o, TriangleMesh)], dtype=wp.vec3,
                              device=device),
         levels=levels,
     )

@@ -92,7 +92,7 @@ def surface_kernel(
     cam: CameraGPU,
     opaque: wp.array(dtype=OpaqueGPU),
     mesh_ids: wp.array(dtype=wp.uint64),
-    face_albedo: wp.array(dtype=wp.vec3),
+    mesh_albedo: wp.array(dtype=wp.vec3),
     lights: wp.array(dtype=LightGPU),
     ambient: wp.vec3,
     user_depth: wp.array2d(dtype=float),
@@ -118,7 +118,7 @@ def surface_kernel(
         if q.result and q.t > SURFACE_EPSILON and q.t < t:
             t = q.t
             normal = q.normal
-            albedo = face_albedo[q.face]
+            albedo = mesh_albedo[k]
     color = wp.vec4(0.0)
     z = float(INF)
     if t < INF:
@@ -199,5 +199,5 @@ def trace_surfaces(
     else:
         user = wp.array(user_depth, dtype=float, device=ds.device)
     launch_rows(surface_kernel, cam.height, cam.width,
-                [cam_gpu, ds.opaque, ds.mesh_ids, ds.face_albedo, ds.lights, ds.ambient, user, buffers], ds.device,
+                [cam_gpu, ds.opaque, ds.mesh_ids, ds.mesh_albedo, ds.lights, ds.ambient, user, buffers], ds.device,
                 counters)
