@@ -86,7 +86,10 @@ class DeviceScene:
     opaque: wp.array
     """the scene's opaque spheres and planes (`OpaqueGPU`)"""
     meshes: list[wp.Mesh]
-    """the scene's triangle meshes with their BVHs (kept alive here; kernels see ``mesh_ids``)"""
+    """the scene's triangle meshes with their BVHs (kept alive here; kernels see ``mesh_ids``). One BVH per mesh, not
+    one merged per scene: measured on the fog scenes (16 viewers, 192x108, CPU), a merged SAH BVH made shadow rays
+    and primary rays 10-40% slower, as a few large triangles (floors, walls) overlap every subtree of a merged
+    tree."""
     mesh_ids: wp.array
     mesh_albedo: wp.array
     max_density: wp.array
