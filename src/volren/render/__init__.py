@@ -7,6 +7,7 @@ from volren.render.dssrm import DSSRM, DSSRMConfig
 from volren.render.fog import FogConfig, FogRenderer
 from volren.render.frame import COUNTERS, Frame, Stats
 from volren.render.reference import Reference, ReferenceConfig
+from volren.render.vpt import VPT, VPTConfig
 
 METHODS: dict[str, tuple[type[Renderer], type]] = {
     "dssrm": (DSSRM, DSSRMConfig),
@@ -14,6 +15,7 @@ METHODS: dict[str, tuple[type[Renderer], type]] = {
     "cacrm": (CACRM, CACRMConfig),
     "reference": (Reference, ReferenceConfig),
     "fog": (FogRenderer, FogConfig),
+    "vpt": (VPT, VPTConfig),
 }
 
 __all__ = [
@@ -22,6 +24,7 @@ __all__ = [
     "COUNTERS",
     "DSSRM",
     "METHODS",
+    "VPT",
     "CACRMConfig",
     "CMSRMConfig",
     "DSSRMConfig",
@@ -32,4 +35,5 @@ __all__ = [
     "ReferenceConfig",
     "Renderer",
     "Stats",
+    "VPTConfig",
 ]

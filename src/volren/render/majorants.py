@@ -1,0 +1,211 @@
+"""Majorants for null-collision tracking (paper 002 §4.3): macrocells with an octree of coarser levels over them.
+
+Level 0 splits the voxel grid into macrocells of ``MACROCELL`` voxels per axis; each holds the range of scalar
+values its trilinear samples can take (its voxels and a one-voxel border), built once per volume. When the transfer
+function changes, each cell's majorant mu_max is the transfer function's largest extinction over that range
+(a range-maximum table over the lookup table, so the rebuild is a gather). Level l + 1 is the max-pool of level l,
+up to a single cell: the octree. Tracking (`track`) walks the ray cell by cell (3D-DDA): at each step it looks for
+the coarsest empty node containing the current point and jumps over it, and otherwise samples free flights against
+the local macrocell's majorant until it leaves the cell.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from volren.kernels.common import INF, box_hit, sample_grid
+
+MACROCELL = 8
+"""voxels per macrocell axis"""
+MAX_LEVELS = 8
+vec8i = wp.types.vector(length=MAX_LEVELS, dtype=wp.int32)
+
+
+@wp.struct
+class MajorantGrid:
+    """One volume's majorant octree; level l has res_x[l] x res_y[l] x res_z[l] cells of cell_voxels * 2^l voxels."""
+
+    levels: int
+    offset: vec8i
+    res_x: vec8i
+    res_y: vec8i
+    res_z: vec8i
+    cell_voxels: wp.vec3
+    """voxels per level-0 cell and axis"""
+    voxels: wp.vec3
+    """the density grid's voxels per axis"""
+
+
+def scalar_ranges(density: np.ndarray, cell: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Per level-0 cell (z, y, x) the min and max of its voxels and their one-voxel border (trilinear support)."""
+    padded = np.pad(density, 1, mode="edge")
+    lo = hi = padded[1:-1, 1:-1, 1:-1]
+    for dz in range(3):
+        for dy in range(3):
+            for dx in range(3):
+                view = padded[dz:dz + density.shape[0], dy:dy + density.shape[1], dx:dx + density.shape[2]]
+                lo, hi = np.minimum(lo, view), np.maximum(hi, view)
+    shape = tuple(math.ceil(n / c) for n, c in zip(density.shape, cell[::-1], strict=True))
+    pad = [(0, s * c - n) for s, c, n in zip(shape, cell[::-1], density.shape, strict=True)]
+    lo = np.pad(lo, pad, mode="edge").reshape(shape[0], cell[2], shape[1], cell[1], shape[2], cell[0])
+    hi = np.pad(hi, pad, mode="edge").reshape(shape[0], cell[2], shape[1], cell[1], shape[2], cell[0])
+    return lo.min(axis=(1, 3, 5)), hi.max(axis=(1, 3, 5))
+
+
+def range_max_table(values: np.ndarray) -> np.ndarray:
+    """M[i, j] = max(values[i : j + 1]) for i <= j (the lookup table's largest extinction over an index range)."""
+    n = len(values)
+    out = np.zeros((n, n), dtype=np.float32)
+    for i in range(n):
+        out[i, i:] = np.maximum.accumulate(values[i:])
+    return out
+
+
+@dataclass
+class Majorants:
+    """Host side of one volume's majorant octree: the scalar ranges (transfer-function independent) and the
+    levels built for the current transfer function."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    cell: tuple[int, int, int]
+    voxels: tuple[int, int, int]
+    scale: float
+    """largest scalar of the volume (u = value / scale)"""
+    levels: list[np.ndarray]
+    build_ms: float = 0.0
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.lo.nbytes + self.hi.nbytes + sum(level.nbytes for level in self.levels))
+
+
+def build_majorants(density: np.ndarray, extinction: np.ndarray, ranges: np.ndarray | None = None,
+                    global_majorant: bool = False) -> Majorants:
+    """The majorant octree of a density grid [z, y, x] under the extinction table (indexed by u = value / max).
+    ``ranges``: the range-maximum table of ``extinction`` (computed if None). ``global_majorant``: one cell for the
+    whole volume (the single global majorant, for comparison)."""
+    start = time.perf_counter()
+    voxels = tuple(density.shape[::-1])
+    cell = voxels if global_majorant else (MACROCELL,) * 3
+    lo, hi = scalar_ranges(density, cell)
+    scale = float(density.max()) or 1.0
+    m = range_max_table(extinction) if ranges is None else ranges
+    n = len(extinction) - 1
+    i = np.clip(np.floor(lo / scale * n), 0, n).astype(np.int64)
+    j = np.clip(np.ceil(hi / scale * n), 0, n).astype(np.int64)
+    level = m[i, j].astype(np.float32)
+    levels = [level]
+    while max(level.shape) > 1 and len(levels) < MAX_LEVELS:
+        shape = tuple(math.ceil(s / 2) for s in level.shape)
+        padded = np.pad(level, [(0, 2 * s - t) for s, t in zip(shape, level.shape, strict=True)])
+        level = padded.reshape(shape[0], 2, shape[1], 2, shape[2], 2).max(axis=(1, 3, 5))
+        levels.append(level)
+    return Majorants(lo, hi, cell, voxels, scale, levels, (time.perf_counter() - start) * 1e3)
+
+
+def majorant_struct(m: Majorants, offset: int) -> MajorantGrid:
+    """The device description of ``m`` whose levels start at ``offset`` in the packed values array."""
+    g = MajorantGrid()
+    g.levels = len(m.levels)
+    offsets, rx, ry, rz = [0] * MAX_LEVELS, [1] * MAX_LEVELS, [1] * MAX_LEVELS, [1] * MAX_LEVELS
+    for k, level in enumerate(m.levels):
+        offsets[k] = offset
+        rz[k], ry[k], rx[k] = level.shape
+        offset += level.size
+    g.offset, g.res_x, g.res_y, g.res_z = vec8i(*offsets), vec8i(*rx), vec8i(*ry), vec8i(*rz)
+    g.cell_voxels, g.voxels = wp.vec3(*m.cell), wp.vec3(*m.voxels)
+    return g
+
+
+@wp.func
+def level_cell(grid: MajorantGrid, level: int, p: wp.vec3) -> wp.vec3i:
+    """The level's cell holding local point p (clamped to the grid)."""
+    size = grid.cell_voxels * float(1 << level)
+    f = wp.cw_div(wp.cw_mul(p + wp.vec3(1.0), grid.voxels) * 0.5, size)
+    return wp.vec3i(wp.clamp(int(wp.floor(f[0])), 0, grid.res_x[level] - 1),
+                    wp.clamp(int(wp.floor(f[1])), 0, grid.res_y[level] - 1),
+                    wp.clamp(int(wp.floor(f[2])), 0, grid.res_z[level] - 1))
+
+
+@wp.func
+def cell_exit(grid: MajorantGrid, level: int, c: wp.vec3i, o: wp.vec3, d: wp.vec3) -> float:
+    """Ray parameter where o + t d leaves cell c of the level (local coordinates)."""
+    size = wp.cw_div(grid.cell_voxels * float(1 << level) * 2.0, grid.voxels)
+    lo = wp.vec3(-1.0) + wp.cw_mul(wp.vec3(float(c[0]), float(c[1]), float(c[2])), size)
+    q = wp.cw_div(o - lo, size) * 2.0 - wp.vec3(1.0)
+    h = box_hit(q, wp.cw_div(d, size) * 2.0)
+    return h[1]
+
+
+@wp.func
+def tf_extinction(table: wp.array(dtype=wp.vec4), first: int, size: int, u: float) -> float:
+    """Extinction of the lookup table ``table[first : first + size]`` at normalised scalar u (linear, clamped)."""
+    x = wp.clamp(u, 0.0, 1.0) * float(size - 1)
+    i = wp.min(int(x), size - 2)
+    a = x - float(i)
+    return (1.0 - a) * table[first + i][0] + a * table[first + i + 1][0]
+
+
+@wp.func
+def track(
+    grid: MajorantGrid,
+    majorants: wp.array(dtype=float),
+    density: wp.array(dtype=float),
+    offset: int,
+    res: wp.vec3i,
+    inv_scale: float,
+    table: wp.array(dtype=wp.vec4),
+    first: int,
+    size: int,
+    o: wp.vec3,
+    d: wp.vec3,
+    t0: float,
+    t1: float,
+    ratio: int,
+    state: wp.uint32,
+):
+    """Null-collision tracking of local ray o + t d over [t0, t1] (t in world units; d the local image of a unit
+    world direction). ratio = 0: delta tracking, returns (collision t or INF, state); ratio = 1: ratio tracking,
+    returns (transmittance, state). Counts tentative collisions in the third value."""
+    t = t0
+    weight = float(1.0)
+    lookups = int(0)
+    while t < t1:
+        p = o + (t + 1.0e-6) * d
+        level = int(0)
+        mu = float(0.0)
+        c = wp.vec3i(0)
+        for k in range(grid.levels):
+            level = grid.levels - 1 - k
+            c = level_cell(grid, level, p)
+            mu = majorants[grid.offset[level] + (c[2] * grid.res_y[level] + c[1]) * grid.res_x[level] + c[0]]
+            if mu == 0.0:
+                break
+        # (at least a little progress: a point on a cell face may round into the cell it just left)
+        t_exit = wp.min(wp.max(cell_exit(grid, level, c, o, d), t + 1.0e-5), t1)
+        if mu == 0.0:
+            t = t_exit
+            continue
+        while True:
+            t = t - wp.log(1.0 - wp.randf(state)) / mu
+            if t >= t_exit:
+                t = t_exit
+                break
+            lookups += 1
+            ext = tf_extinction(table, first, size, sample_grid(density, offset, res, o + t * d) * inv_scale)
+            if ratio == 0:
+                if wp.randf(state) * mu < ext:
+                    return t, state, lookups
+            else:
+                weight = weight * (1.0 - ext / mu)
+                if weight < 1.0e-6:
+                    return 0.0, state, lookups
+    if ratio == 0:
+        return INF, state, lookups
+    return weight, state, lookups

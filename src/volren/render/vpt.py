@@ -1,0 +1,414 @@
+"""Volumetric path tracing for direct volume rendering (paper 002 §4), ``--method vpt``.
+
+Per pixel ``spp`` paths. Free flights by delta (null-collision) tracking against the local majorants of each
+volume's macrocell octree (`volren.render.majorants`); the first collision over all volumes is the nearest of the
+volumes' own first collisions, which is exact for overlapping volumes too (independent null-collision processes).
+At a real collision x: next-event estimation towards every light with ratio-tracked transmittance (opaque surfaces
+block it), plus the uniform ambient of the environment's mean radiance (§6.1), then a new direction; at most
+``max_bounces`` scattering events per path (1 = single scattering).
+
+Shading (§4.2): the transfer function gives albedo A and P_brdf; particles reflect by a Lambertian BRDF about the
+(two-sided) gradient normal, f = max(n.w, 0) / pi, or scatter by Henyey-Greenstein p. Exposure Render (``er``, Eq. 4)
+picks one particle type per collision with probability P_brdf and estimates with that lobe only; the surface-medium
+coexistence model (``coexist``, Eq. 5-7) evaluates the single particle's SDF h = P_brdf f + (1 - P_brdf) p at every
+light sample and picks the bounce lobe with P_b of Eq. 7 (= P_brdf here: one albedo serves both lobes). Both have
+the mean of h; coexist has less variance. Reading of Eq. 4: its printed division by P_brdf (P_phase) would make
+ER's mean f + p; the estimator here is f (p) alone for the picked event, whose mean is h, as the paper's proof of
+equal expectation requires.
+
+The pixel's alpha is the share of primary paths that collided (an unbiased 1 - T); colour is premultiplied, and the
+opaque-surface colour shows through the paths that did not collide. Axis-aligned clipping (§6.1) cuts every volume
+to ``clip`` in its local coordinates.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from volren.camera import Camera
+from volren.device import launch_rows
+from volren.errors import VolrenError
+from volren.kernels.common import (
+    INF,
+    CameraGPU,
+    LightGPU,
+    OpaqueGPU,
+    ViewBuffers,
+    VolumeGPU,
+    box_hit,
+    camera_ray,
+    count,
+    hg_phase,
+    light_distance,
+    light_irradiance,
+    light_travel_dir,
+    occluder_t,
+    sample_grid,
+)
+from volren.render.base import Renderer, frame_seed
+from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, SHADOW_RAYS, PassClock
+from volren.render.majorants import (
+    MajorantGrid,
+    Majorants,
+    build_majorants,
+    majorant_struct,
+    range_max_table,
+    track,
+)
+from volren.render.surfaces import occluded
+from volren.transfer import TransferFunction, linear, load_transfer_function
+from volren.upload import DeviceScene, camera_struct
+
+SHADING = ("coexist", "er")
+MAX_BOUNCES = 64
+MAX_SPP = 4096
+
+
+@dataclass(frozen=True)
+class VPTConfig:
+    spp: int = 8
+    """paths per pixel and frame"""
+    max_bounces: int = 2
+    """scattering events per path (the paper: 2; 1 = single scattering)"""
+    shading: str = "coexist"
+    """coexist (paper 002 Eq. 5-7) or er (Exposure Render's two particle types, Eq. 4)"""
+    transfer: str | None = None
+    """a preset name or JSON file; None = extinction proportional to density (the ray marchers' model)"""
+    global_majorant: bool = False
+    """one majorant per volume instead of the macrocell octree (slower; for comparison)"""
+    environment_light: bool = True
+    """sample the environment as a light at every collision (uniform directions, ratio-tracked, unshadowed only
+    where nothing is in the way)"""
+    ambient: bool = True
+    """also add the environment's mean radiance as a uniform, unshadowed ambient at every collision (§6.1: keeps
+    dark maps from darkening the volume; not physical, off for a furnace test)"""
+    clip: tuple[float, float, float, float, float, float] = (-1.0, 1.0, -1.0, 1.0, -1.0, 1.0)
+    """x0, x1, y0, y1, z0, z1 in each volume's local coordinates [-1, 1]"""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if int(self.spp) != self.spp or not 1 <= self.spp <= MAX_SPP:
+            raise VolrenError(f"spp must be an integer in [1, {MAX_SPP}], got {self.spp}")
+        if int(self.max_bounces) != self.max_bounces or not 1 <= self.max_bounces <= MAX_BOUNCES:
+            raise VolrenError(f"max bounces must be an integer in [1, {MAX_BOUNCES}], got {self.max_bounces}")
+        if self.shading not in SHADING:
+            raise VolrenError(f"shading must be one of {', '.join(SHADING)}, got '{self.shading}'")
+        c = tuple(self.clip)
+        if len(c) != 6 or not all(math.isfinite(v) for v in c) or any(c[2 * a] >= c[2 * a + 1] for a in range(3)):
+            raise VolrenError(f"clip needs x0 < x1, y0 < y1, z0 < z1, got {c}")
+        if self.transfer is not None:
+            load_transfer_function(self.transfer)
+
+
+@wp.struct
+class VPTParams:
+    spp: int
+    max_bounces: int
+    shading: int
+    seed: int
+    environment: wp.vec3
+    """radiance of the environment light (0: none)"""
+    ambient: wp.vec3
+    clip_lo: wp.vec3
+    clip_hi: wp.vec3
+
+
+@wp.struct
+class VPTScene:
+    volumes: wp.array(dtype=VolumeGPU)
+    grids: wp.array(dtype=MajorantGrid)
+    majorants: wp.array(dtype=float)
+    inv_scale: wp.array(dtype=float)
+    density: wp.array(dtype=float)
+    table: wp.array(dtype=wp.vec4)
+    """per volume (``table_size`` entries each) and transfer-function entry: extinction, albedo rgb"""
+    p_brdf: wp.array(dtype=float)
+    table_size: int
+    lights: wp.array(dtype=LightGPU)
+    opaque: wp.array(dtype=OpaqueGPU)
+    mesh_ids: wp.array(dtype=wp.uint64)
+
+
+@wp.func
+def clipped_span(vol: VolumeGPU, params: VPTParams, o: wp.vec3, d: wp.vec3) -> wp.vec2:
+    """Local ray parameters where o + t d (local) is inside the volume's box cut by the clip planes."""
+    c = 0.5 * (params.clip_lo + params.clip_hi)
+    h = 0.5 * (params.clip_hi - params.clip_lo)
+    return box_hit(wp.cw_div(o - c, h), wp.cw_div(d, h))
+
+
+@wp.func
+def free_flight(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, t_max: float, state: wp.uint32):
+    """Nearest real collision along the world ray x + t d, t in (0, t_max): (t or INF, volume index, state, lookups)."""
+    best = t_max
+    hit = int(-1)
+    lookups = int(0)
+    for v in range(sc.volumes.shape[0]):
+        vol = sc.volumes[v]
+        o = wp.transform_point(vol.to_local, x)
+        dl = wp.transform_vector(vol.to_local, d)
+        span = clipped_span(vol, params, o, dl)
+        t0 = wp.max(span[0], 0.0)
+        t1 = wp.min(span[1], best)
+        if t1 > t0:
+            t, s2, n = track(sc.grids[v], sc.majorants, sc.density, vol.offset, vol.res, sc.inv_scale[v], sc.table,
+                             v * sc.table_size, sc.table_size, o, dl, t0, t1, 0, state)
+            state = s2
+            lookups += n
+            if t < best:
+                best = t
+                hit = v
+    if hit < 0:
+        best = INF
+    return best, hit, state, lookups
+
+
+@wp.func
+def transmittance(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, dist: float, state: wp.uint32):
+    """Ratio-tracked transmittance from x towards d over dist through every volume (0 behind an opaque surface)."""
+    if occluded(x, d, dist, sc.opaque, sc.mesh_ids):
+        return 0.0, state, 0
+    tr = float(1.0)
+    lookups = int(0)
+    for v in range(sc.volumes.shape[0]):
+        vol = sc.volumes[v]
+        o = wp.transform_point(vol.to_local, x)
+        dl = wp.transform_vector(vol.to_local, d)
+        span = clipped_span(vol, params, o, dl)
+        t0 = wp.max(span[0], 0.0)
+        t1 = wp.min(span[1], dist)
+        if t1 > t0 and tr > 0.0:
+            w, s2, n = track(sc.grids[v], sc.majorants, sc.density, vol.offset, vol.res, sc.inv_scale[v], sc.table,
+                             v * sc.table_size, sc.table_size, o, dl, t0, t1, 1, state)
+            state = s2
+            lookups += n
+            tr = tr * w
+    return tr, state, lookups
+
+
+@wp.func
+def material(sc: VPTScene, v: int, x: wp.vec3):
+    """(albedo, P_brdf, world gradient) of volume v at world point x; the gradient by central differences."""
+    vol = sc.volumes[v]
+    p = wp.transform_point(vol.to_local, x)
+    u = sample_grid(sc.density, vol.offset, vol.res, p) * sc.inv_scale[v]
+    n = sc.table_size
+    f = wp.clamp(u, 0.0, 1.0) * float(n - 1)
+    i = wp.min(int(f), n - 2) + v * n
+    a = f - float(int(f))
+    e = (1.0 - a) * sc.table[i] + a * sc.table[i + 1]
+    p_brdf = (1.0 - a) * sc.p_brdf[i] + a * sc.p_brdf[i + 1]
+    grad = wp.vec3(0.0)
+    for axis in range(3):
+        h = wp.vec3(0.0)
+        h[axis] = 1.0 / float(vol.res[axis])
+        grad[axis] = (sample_grid(sc.density, vol.offset, vol.res, p + h)
+                      - sample_grid(sc.density, vol.offset, vol.res, p - h)) * float(vol.res[axis]) * 0.5
+    m = vol.to_local
+    world = (grad[0] * wp.vec3(m[0, 0], m[0, 1], m[0, 2]) + grad[1] * wp.vec3(m[1, 0], m[1, 1], m[1, 2])
+             + grad[2] * wp.vec3(m[2, 0], m[2, 1], m[2, 2]))
+    return wp.vec3(e[1], e[2], e[3]), p_brdf, world
+
+
+@wp.func
+def frame_of(n: wp.vec3) -> wp.mat33:
+    """Columns: two tangents and n (an orthonormal basis around unit n)."""
+    a = wp.vec3(1.0, 0.0, 0.0)
+    if wp.abs(n[0]) > 0.9:
+        a = wp.vec3(0.0, 1.0, 0.0)
+    t = wp.normalize(wp.cross(a, n))
+    b = wp.cross(n, t)
+    return wp.mat33(t[0], b[0], n[0], t[1], b[1], n[1], t[2], b[2], n[2])
+
+
+@wp.func
+def sample_hg(d: wp.vec3, g: float, state: wp.uint32):
+    """A direction scattered from travel direction d by Henyey-Greenstein g: (direction, state)."""
+    xi = wp.randf(state)
+    cos_t = 1.0 - 2.0 * xi
+    if wp.abs(g) > 1.0e-3:
+        s = (1.0 - g * g) / (1.0 - g + 2.0 * g * xi)
+        cos_t = (1.0 + g * g - s * s) / (2.0 * g)
+    sin_t = wp.sqrt(wp.max(1.0 - cos_t * cos_t, 0.0))
+    phi = 2.0 * wp.pi * wp.randf(state)
+    return frame_of(d) * wp.vec3(sin_t * wp.cos(phi), sin_t * wp.sin(phi), cos_t), state
+
+
+@wp.func
+def sample_cosine(n: wp.vec3, state: wp.uint32):
+    """A cosine-distributed direction about unit n: (direction, state)."""
+    r = wp.sqrt(wp.randf(state))
+    phi = 2.0 * wp.pi * wp.randf(state)
+    return frame_of(n) * wp.vec3(r * wp.cos(phi), r * wp.sin(phi), wp.sqrt(wp.max(1.0 - r * r, 0.0))), state
+
+
+@wp.kernel
+def vpt_kernel(
+    cam: CameraGPU,
+    sc: VPTScene,
+    params: VPTParams,
+    buffers: ViewBuffers,
+    view: int,
+    counters: wp.array(dtype=wp.int64),
+    row0: int,
+):
+    r, col = wp.tid()
+    row = r + row0
+    state = wp.rand_init(params.seed, ((view * cam.height + row) * cam.width + col) * 7919)
+    radiance = wp.vec3(0.0)
+    hits = int(0)
+    depth_sum = float(0.0)
+    density_lookups = int(0)
+    light_lookups = int(0)
+    shadow_rays = int(0)
+    for _path in range(params.spp):
+        d = camera_ray(cam, row, col, wp.randf(state), wp.randf(state))
+        x = cam.origin
+        t_max = wp.min(occluder_t(buffers, cam, d, row, col), cam.far / wp.dot(d, cam.forward))
+        throughput = wp.vec3(1.0)
+        for bounce in range(params.max_bounces):
+            t, v, s2, n = free_flight(sc, params, x, d, t_max, state)
+            state = s2
+            density_lookups += n
+            if v < 0:
+                break
+            x = x + t * d
+            if bounce == 0:
+                hits += 1
+                depth_sum += t * wp.dot(d, cam.forward)
+            albedo, p_brdf, grad = material(sc, v, x)
+            normal = wp.vec3(0.0)
+            if wp.length(grad) > 1.0e-6:
+                normal = -wp.normalize(grad)
+                if wp.dot(normal, d) > 0.0:
+                    normal = -normal
+            else:
+                p_brdf = 0.0
+            g = sc.volumes[v].g
+            # ER: one particle type for this collision (its light estimate and its bounce).
+            surface = float(p_brdf)
+            if params.shading == 1:
+                surface = wp.where(wp.randf(state) < p_brdf, 1.0, 0.0)
+            radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), params.ambient)
+            if wp.length_sq(params.environment) > 0.0:
+                # The environment as a light: a uniform direction (pdf 1 / 4 pi), ratio-tracked to infinity.
+                z = 1.0 - 2.0 * wp.randf(state)
+                phi = 2.0 * wp.pi * wp.randf(state)
+                rho = wp.sqrt(wp.max(1.0 - z * z, 0.0))
+                w = wp.vec3(rho * wp.cos(phi), rho * wp.sin(phi), z)
+                sdf = (1.0 - surface) * hg_phase(wp.dot(-w, -d), g)
+                if surface > 0.0:
+                    sdf += surface * wp.max(wp.dot(normal, w), 0.0) / wp.pi
+                if sdf > 0.0:
+                    shadow_rays += 1
+                    tr, s4, n3 = transmittance(sc, params, x, w, INF, state)
+                    state = s4
+                    light_lookups += n3
+                    radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), params.environment) * (
+                        sdf * tr * 4.0 * wp.pi)
+            for li in range(sc.lights.shape[0]):
+                light = sc.lights[li]
+                to_light = -light_travel_dir(light, x)
+                sdf = (1.0 - surface) * hg_phase(wp.dot(-to_light, -d), g)
+                if surface > 0.0:
+                    sdf += surface * wp.max(wp.dot(normal, to_light), 0.0) / wp.pi
+                if sdf > 0.0:
+                    shadow_rays += 1
+                    tr, s3, n2 = transmittance(sc, params, x, to_light, light_distance(light, x), state)
+                    state = s3
+                    light_lookups += n2
+                    radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), light_irradiance(light, x)) * (sdf * tr)
+            if bounce + 1 == params.max_bounces:
+                break
+            # New direction: the BRDF lobe with P_b (Eq. 7; here P_brdf, or ER's event), else the phase function;
+            # both lobes are sampled exactly by their pdfs, so the throughput takes the albedo.
+            if wp.randf(state) < surface:
+                d, state = sample_cosine(normal, state)
+            else:
+                d, state = sample_hg(d, g, state)
+            throughput = wp.cw_mul(throughput, albedo)
+            t_max = INF
+    inv = 1.0 / float(params.spp)
+    alpha = float(hits) * inv
+    surface_color = buffers.occluder_color[row, col]
+    rgb = radiance * inv + (1.0 - alpha) * wp.vec3(surface_color[0], surface_color[1], surface_color[2])
+    buffers.image[row, col] = wp.vec4(rgb[0], rgb[1], rgb[2], alpha + (1.0 - alpha) * surface_color[3])
+    depth = buffers.occluder_depth[row, col]
+    if hits > 0:
+        depth = depth_sum / float(hits)
+    buffers.depth[row, col] = depth
+    count(counters, RAYS, params.spp)
+    count(counters, DENSITY_SAMPLES, density_lookups)
+    count(counters, LIGHT_SAMPLES, light_lookups)
+    count(counters, SHADOW_RAYS, shadow_rays)
+
+
+class VPT(Renderer):
+    """Volumetric path tracing; ``config`` is a `VPTConfig`. Majorants are rebuilt when the transfer function or
+    the scene changes (build time and memory in the frame info)."""
+
+    name = "vpt"
+
+    def __init__(self, config: VPTConfig | None = None, device: str = "auto") -> None:
+        super().__init__(config or VPTConfig(), device)
+        self._built: tuple | None = None
+
+    def _transfer(self, scene) -> list[TransferFunction]:
+        """The transfer function of each volume: the configured one, or each volume's density-scale model."""
+        if self.config.transfer is not None:
+            return [load_transfer_function(self.config.transfer)] * len(scene.volumes)
+        return [linear(v.density_scale * float(v.density.max()), v.albedo) for v in scene.volumes]
+
+    def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
+        ds = self._upload(scene, clock)
+        key = (id(scene), self.config.transfer, self.config.global_majorant)
+        if self._built is None or self._built[0] != key:
+            with clock.measure("majorants"):
+                tfs = self._transfer(scene)
+                tables = [tf.table() for tf in tfs]
+                majorants: list[Majorants] = []
+                for vol, table in zip(scene.volumes, tables, strict=True):
+                    majorants.append(build_majorants(vol.density, table[:, 0], range_max_table(table[:, 0]),
+                                                     self.config.global_majorant))
+                self._built = (key, self._device_scene_for(ds, tables, majorants), majorants)
+        self._frame_info["majorant_bytes"] = sum(m.nbytes for m in self._built[2])
+        self._frame_info["majorant_build_ms"] = round(sum(m.build_ms for m in self._built[2]), 3)
+        return ds
+
+    def _device_scene_for(self, ds: DeviceScene, tables: list[np.ndarray], majorants: list[Majorants]) -> VPTScene:
+        """The path tracer's view of the scene: volumes, majorant octrees (packed), one lookup table per volume."""
+        sc = VPTScene()
+        sc.volumes, sc.density, sc.lights = ds.volumes, ds.density, ds.lights
+        sc.opaque, sc.mesh_ids = ds.opaque, ds.mesh_ids
+        structs, values, offset = [], [], 0
+        for m in majorants:
+            structs.append(majorant_struct(m, offset))
+            for level in m.levels:
+                values.append(level.reshape(-1))
+                offset += level.size
+        sc.grids = wp.array(structs, dtype=MajorantGrid, device=self.device)
+        sc.majorants = wp.array(np.concatenate(values), dtype=float, device=self.device)
+        sc.inv_scale = wp.array([1.0 / m.scale for m in majorants], dtype=float, device=self.device)
+        packed = np.concatenate(tables)
+        sc.table = wp.array(packed[:, :4], dtype=wp.vec4, device=self.device)
+        sc.p_brdf = wp.array(packed[:, 4], dtype=float, device=self.device)
+        sc.table_size = len(tables[0])
+        return sc
+
+    def _render_view(self, ds: DeviceScene, cam: Camera, view: int, frame: int, buffers: ViewBuffers,
+                     clock: PassClock) -> None:
+        c = self.config
+        params = VPTParams()
+        params.spp, params.max_bounces, params.shading = c.spp, c.max_bounces, SHADING.index(c.shading)
+        params.seed = frame_seed(c.seed, frame)
+        mean = wp.vec3(*ds.scene.environment.mean_radiance())
+        params.environment = mean if c.environment_light else wp.vec3(0.0)
+        params.ambient = mean if c.ambient else wp.vec3(0.0)
+        params.clip_lo, params.clip_hi = wp.vec3(*c.clip[0::2]), wp.vec3(*c.clip[1::2])
+        with clock.measure("path_tracing"):
+            launch_rows(vpt_kernel, cam.height, cam.width, [camera_struct(cam), self._built[1], params, buffers,
+                                                            view], self.device, clock.counters, self.on_rows)

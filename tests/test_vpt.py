@@ -1,0 +1,167 @@
+"""Volumetric path tracing (paper 002 §4): unbiased tracking against closed forms, majorant structures, the shading
+models, a furnace test and single scattering against the reference ray marcher."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from volren.camera import Camera
+from volren.data import builtin_scene
+from volren.errors import VolrenError
+from volren.render import VPT, Reference, ReferenceConfig, VPTConfig
+from volren.render.majorants import MajorantGrid, build_majorants, majorant_struct, track
+from volren.scene import DirectionalLight, Environment, Scene, Volume
+from volren.transfer import PRESETS, ControlPoint, TransferFunction, linear, load_transfer_function
+
+CAM = Camera(position=(0.0, 0.3, 3.2), width=48, height=32)
+RAYS = 4096
+
+
+@wp.kernel
+def track_kernel(grid: MajorantGrid, majorants: wp.array(dtype=float), density: wp.array(dtype=float),
+                 res: wp.vec3i, inv_scale: float, table: wp.array(dtype=wp.vec4), o: wp.vec3, d: wp.vec3, t1: float,
+                 ratio: int, out: wp.array(dtype=float)):
+    i = wp.tid()
+    value, _state, _n = track(grid, majorants, density, 0, res, inv_scale, table, 0, table.shape[0], o, d, 0.0, t1,
+                              ratio, wp.rand_init(1234, i))
+    out[i] = value
+
+
+def run_track(density: np.ndarray, max_extinction: float, o, d, t1: float, ratio: int, global_majorant=False):
+    table = linear(max_extinction, (1.0, 1.0, 1.0)).table()
+    m = build_majorants(density, table[:, 0], global_majorant=global_majorant)
+    out = wp.zeros(RAYS, dtype=float, device="cpu")
+    wp.launch(track_kernel, dim=RAYS, device="cpu", inputs=[
+        majorant_struct(m, 0), wp.array(np.concatenate([lv.reshape(-1) for lv in m.levels]), dtype=float,
+                                        device="cpu"),
+        wp.array(density.reshape(-1), dtype=float, device="cpu"), wp.vec3i(*density.shape[::-1]), 1.0 / m.scale,
+        wp.array(table[:, :4], dtype=wp.vec4, device="cpu"), wp.vec3(*o), wp.vec3(*d), t1, ratio, out])
+    return out.numpy()
+
+
+def blob(n: int = 32) -> np.ndarray:
+    z, y, x = np.mgrid[0:n, 0:n, 0:n] / (n - 1) * 2 - 1
+    return np.clip(1 - (x**2 + y**2 + z**2) / 0.6, 0, None).astype(np.float32) * (1 + 0.5 * np.sin(6 * x))
+
+
+def optical_depth(density: np.ndarray, max_extinction: float, o, d, t1: float) -> float:
+    """Dense quadrature of the trilinear extinction along the (local = world) ray."""
+    from scipy import ndimage
+
+    t = (np.arange(20000) + 0.5) / 20000 * t1
+    p = np.asarray(o) + t[:, None] * np.asarray(d)
+    n = np.array(density.shape[::-1])
+    f = np.clip((p + 1) * 0.5 * n - 0.5, 0, n - 1)
+    rho = ndimage.map_coordinates(density, [f[:, 2], f[:, 1], f[:, 0]], order=1, mode="nearest")
+    return float((rho / density.max() * max_extinction).sum() * t1 / len(t))
+
+
+@pytest.mark.parametrize("field", ["homogeneous", "heterogeneous"])
+def test_ratio_tracking_is_unbiased(field):
+    density = np.ones((16, 16, 16), np.float32) if field == "homogeneous" else blob()
+    o, d = (-1.0, 0.1, -0.2), tuple(np.array([1.0, 0.05, 0.1]) / np.linalg.norm([1.0, 0.05, 0.1]))
+    t1 = 1.9
+    expected = np.exp(-optical_depth(density, 3.0, o, d, t1))
+    tr = run_track(density, 3.0, o, d, t1, 1)
+    assert abs(tr.mean() - expected) < 4 * tr.std() / np.sqrt(RAYS) + 1e-6
+
+
+@pytest.mark.parametrize("global_majorant", [False, True])
+def test_delta_tracking_collides_with_the_closed_form_probability(global_majorant):
+    """P(collision before t1) = 1 - T with the macrocell octree and with one global majorant alike."""
+    density = blob()
+    o, d, t1 = (-1.0, 0.0, 0.1), (1.0, 0.0, 0.0), 2.0
+    hit = run_track(density, 4.0, o, d, t1, 0, global_majorant) < 1e20
+    expected = 1 - np.exp(-optical_depth(density, 4.0, o, d, t1))
+    assert abs(hit.mean() - expected) < 4 * np.sqrt(expected * (1 - expected) / RAYS)
+
+
+def test_empty_octree_nodes_cover_only_zero_extinction():
+    """Every node with majorant 0, at every level, covers voxels (and their trilinear border) of zero extinction."""
+    density = np.zeros((40, 40, 40), np.float32)
+    density[5:12, 20:33, 8:30] = 1.0
+    table = PRESETS["ct-bone"].table()  # zero extinction below u = 0.45
+    density[30:36, 2:9, 25:39] = 0.3  # classified empty by this function
+    m = build_majorants(density, table[:, 0])
+    assert sum(int((lv == 0).sum()) for lv in m.levels) > 0
+    u = np.clip(density / m.scale * (len(table) - 1), 0, len(table) - 1)
+    ext = np.interp(u, np.arange(len(table)), table[:, 0])
+    for level, values in enumerate(m.levels):
+        size = 8 * 2**level
+        for k, j, i in zip(*np.nonzero(values == 0), strict=True):
+            block = ext[max(k * size - 1, 0):(k + 1) * size + 1, max(j * size - 1, 0):(j + 1) * size + 1,
+                        max(i * size - 1, 0):(i + 1) * size + 1]
+            assert block.max() == 0.0, (level, k, j, i)
+
+
+def uniform_scene(albedo=1.0, **env) -> Scene:
+    vol = Volume(np.ones((16, 16, 16), np.float32), density_scale=1.5, albedo=(albedo,) * 3, g=0.3)
+    return Scene((vol,), lights=(), **env)
+
+
+def test_furnace():
+    """An albedo-1 medium in a uniform environment (no ambient boost) returns the environment's radiance."""
+    scene = uniform_scene(environment=Environment((1.0, 1.0, 1.0)))
+    frame = VPT(VPTConfig(spp=64, max_bounces=64, ambient=False), device="cpu").render(scene, [CAM])
+    image = frame.images[0]
+    seen = image[..., 3] > 0.5
+    assert seen.sum() > 100
+    ratio = image[..., 0][seen] / image[..., 3][seen]
+    assert abs(ratio.mean() - 1.0) < 0.02
+
+
+def test_single_scattering_matches_the_reference():
+    """Extinction proportional to density (the ray marchers' model), one bounce, the ambient as an unshadowed term:
+    the per-channel image means agree within 2% and the images within the path tracer's noise."""
+    scene = builtin_scene("cloud", 64)
+    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device="cpu").render(scene, [CAM])
+    frame = VPT(VPTConfig(spp=256, max_bounces=1, environment_light=False), device="cpu").render(scene, [CAM])
+    a, b = ref.images[0], frame.images[0]
+    np.testing.assert_allclose(b.mean(axis=(0, 1)), a.mean(axis=(0, 1)), rtol=0.02)
+
+
+SURFACE_TF = TransferFunction((ControlPoint(0.0, 0.0, (0.9, 0.8, 0.7), 0.5),
+                               ControlPoint(1.0, 30.0, (0.9, 0.8, 0.7), 0.5)), "half-surface")
+
+
+def test_shading_models_share_the_mean_and_coexistence_has_less_variance(tmp_path):
+    path = tmp_path / "tf.json"
+    path.write_text(SURFACE_TF.to_json())
+    scene = Scene((Volume(builtin_scene("phantom", 64).volumes[0].density),),
+                  lights=(DirectionalLight((-0.5, -1.0, -0.3), (3.0, 3.0, 3.0)),), environment=Environment((0, 0, 0)))
+    frames = {}
+    for shading in ("er", "coexist"):
+        r = VPT(VPTConfig(spp=4, max_bounces=1, shading=shading, transfer=str(path)), device="cpu")
+        frames[shading] = np.stack([r.render(scene, [CAM], f).images[0][..., :3] for f in range(24)])
+    er, co = frames["er"], frames["coexist"]
+    # Means agree within the combined standard error of the two 24-frame means (summed over the image).
+    diff = er.mean(0).sum() - co.mean(0).sum()
+    err = np.sqrt((er.sum(axis=(1, 2, 3)).var() + co.sum(axis=(1, 2, 3)).var()) / 24)
+    assert abs(diff) < 4 * err
+    assert co.var(axis=0).sum() < 0.9 * er.var(axis=0).sum()
+
+
+def test_transfer_functions_round_trip_and_refuse_bad_input(tmp_path):
+    tf = PRESETS["ct-muscle"]
+    path = tmp_path / "muscle.json"
+    path.write_text(tf.to_json())
+    assert load_transfer_function(path) == tf
+    np.testing.assert_allclose(tf.table()[0, 0], 0.0)
+    with pytest.raises(VolrenError, match="positions must not decrease"):
+        TransferFunction((ControlPoint(0.5, 1.0), ControlPoint(0.2, 1.0)))
+    with pytest.raises(VolrenError, match="neither a preset"):
+        load_transfer_function(tmp_path / "missing.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text("{\"points\": 3}")
+    with pytest.raises(VolrenError, match="not a transfer function"):
+        load_transfer_function(bad)
+
+
+@pytest.mark.parametrize(("config", "fragment"), [({"spp": 0}, "spp"), ({"max_bounces": 0}, "bounces"),
+                                                  ({"shading": "pbr"}, "shading"),
+                                                  ({"clip": (0, -1, -1, 1, -1, 1)}, "clip")])
+def test_bad_vpt_settings(config, fragment):
+    with pytest.raises(VolrenError, match=fragment):
+        VPTConfig(**config)
