@@ -964,3 +964,29 @@ def test_fog_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: str)
 def test_volume_methods_refuse_a_fog_scene(capfd, tmp_path: Path) -> None:
     assert_error(capfd, ["render", "--scene", "hall", "--method", "dssrm", "--width", "8", "--height", "8",
                          "--device", "cpu", "--out", tmp_path / "o"], "has none")
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_vpt_renders_every_builtin_scene(capfd, tmp_path: Path, scene: str) -> None:
+    out = tmp_path / scene
+    ok(capfd, "render", "--method", "vpt", "--scene", scene, "--resolution", "64", "--width", "24", "--height", "16",
+       "--spp", "2", "--device", "cpu", "--views", "mono", "--out", out)
+    assert stats_of(out)["frames"][0]["info"]["majorant_bytes"] > 0
+
+
+def test_vpt_options_on_a_loaded_volume(capfd, tmp_path: Path) -> None:
+    volume = tmp_path / "ct.npy"
+    np.save(volume, np.random.default_rng(0).random((32, 32, 32), dtype=np.float32))
+    out = tmp_path / "ct"
+    ok(capfd, "render", "--method", "vpt", "--volume", volume, "--tf", "ct-bone", "--shading", "er",
+       "--max-bounces", "1", "--clip=-1,1,-1,0,-1,1", "--spp", "2", "--width", "24", "--height", "16", "--device",
+       "cpu", "--out", out)
+    settings = stats_of(out)["frames"][0]["settings"]
+    assert settings["transfer"] == "ct-bone" and settings["shading"] == "er"
+
+
+@pytest.mark.parametrize(("extra", "fragment"), [(["--tf", "nope"], "neither a preset"), (["--spp", "0"], "spp"),
+                                                 (["--clip", "1,2,3"], "6 comma-separated")])
+def test_vpt_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: str) -> None:
+    assert_error(capfd, ["render", "--method", "vpt", "--scene", "smoke", "--width", "8", "--height", "8",
+                         "--device", "cpu", "--out", tmp_path / "o", *extra], fragment)

@@ -19,6 +19,9 @@ KERNEL_MODULES = [
     "volren.render.cmsrm",
     "volren.render.cacrm",
     "volren.render.interleave",
+    "volren.render.fog",
+    "volren.render.froxels",
+    "volren.render.vpt",
     "volren.data.loaders",
 ]
 

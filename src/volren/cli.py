@@ -53,6 +53,10 @@ def vec3(text: str) -> tuple[float, ...]:
     return floats(text, 3)
 
 
+def floats6(text: str) -> tuple[float, ...]:
+    return floats(text, 6)
+
+
 def rgb(text: str) -> tuple[float, ...]:
     v = floats(text, (1, 3))
     return v * 3 if len(v) == 1 else v
@@ -140,6 +144,14 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
     r.add_argument("--no-vsa", action="store_true", help="cacrm: uniform steps (no variable step amplification)")
     r.add_argument("--no-interleave", action="store_true", help="cacrm: no interleaved spatial reuse of 2x2 quads")
+    r.add_argument("--spp", type=int, help="vpt: paths per pixel and frame (default 8)")
+    r.add_argument("--max-bounces", type=int, help="vpt: scattering events per path (default 2; 1 = single)")
+    r.add_argument("--shading", choices=("coexist", "er"), help="vpt: surface-medium coexistence (default) or "
+                   "Exposure Render's two particle types")
+    r.add_argument("--tf", help="vpt: transfer function, a preset (ct-bone, ct-muscle, ct-vessels, smoke) or a JSON "
+                   "file (default: extinction proportional to density)")
+    r.add_argument("--clip", type=floats6, help="vpt: x0,x1,y0,y1,z0,z1 clipping box in the volume's [-1, 1] "
+                   "coordinates")
     r.add_argument("--fog-sharing", choices=("none", "grid"), help="fog: per-viewer shadow rays (none) or the "
                    "shared shadow grid (grid, default)")
     r.add_argument("--voxel-size", type=float, help="fog: shadow-grid voxel edge [m] (default 0.5)")
@@ -296,6 +308,11 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "share_voxels": (False if args.no_share else None, "--no-share"),
         "vsa": (False if args.no_vsa else None, "--no-vsa"),
         "interleave": (False if args.no_interleave else None, "--no-interleave"),
+        "spp": (args.spp, "--spp"),
+        "max_bounces": (args.max_bounces, "--max-bounces"),
+        "shading": (args.shading, "--shading"),
+        "transfer": (args.tf, "--tf"),
+        "clip": (args.clip, "--clip"),
         "sharing": (args.fog_sharing, "--fog-sharing"),
         "voxel_size": (args.voxel_size, "--voxel-size"),
         "slices": (args.slices, "--slices"),
