@@ -11,6 +11,7 @@ from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.errors import VolrenError
 from volren.render import VPT, Reference, ReferenceConfig, VPTConfig
+from volren.render.environment import EnvironmentLight, environment_light, sample_environment
 from volren.render.majorants import MajorantGrid, build_majorants, majorant_struct, track
 from volren.scene import DirectionalLight, Environment, Scene, Volume
 from volren.transfer import PRESETS, ControlPoint, TransferFunction, linear, load_transfer_function
@@ -165,3 +166,40 @@ def test_transfer_functions_round_trip_and_refuse_bad_input(tmp_path):
 def test_bad_vpt_settings(config, fragment):
     with pytest.raises(VolrenError, match=fragment):
         VPTConfig(**config)
+
+
+@wp.kernel
+def env_kernel(env: EnvironmentLight, out: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    d, weighted, _state = sample_environment(env, wp.rand_init(77, i))
+    out[i] = weighted
+    dirs[i] = d
+
+
+def test_environment_importance_sampling_is_unbiased_and_follows_the_map():
+    """E[L / pdf] = the integral of L over the sphere = 4 pi (the solid-angle mean); a bright patch draws most
+    samples."""
+    h, w = 32, 64
+    image = np.full((h, w, 3), 0.1, np.float32)
+    image[6:10, 40:46] = 50.0  # a sun-like patch in the upper hemisphere
+    env = Environment(image=image)
+    n = 200_000
+    out = wp.zeros(n, dtype=wp.vec3, device="cpu")
+    dirs = wp.zeros(n, dtype=wp.vec3, device="cpu")
+    wp.launch(env_kernel, dim=n, inputs=[environment_light(env, "cpu"), out, dirs], device="cpu")
+    values = out.numpy()[:, 0]
+    expected = 4 * np.pi * env.mean_radiance()[0]
+    assert abs(values.mean() - expected) < 4 * values.std() / np.sqrt(n)
+    d = dirs.numpy()
+    theta, phi = np.arccos(np.clip(d[:, 1], -1, 1)), np.mod(np.arctan2(d[:, 2], d[:, 0]), 2 * np.pi)
+    in_patch = (theta > 6 / h * np.pi) & (theta < 10 / h * np.pi) & (phi > 40 / w * 2 * np.pi) & (phi < 46 / w * 2
+                                                                                                  * np.pi)
+    weight = image[..., 0] * np.sin((np.arange(h)[:, None] + 0.5) / h * np.pi)
+    assert abs(in_patch.mean() - weight[6:10, 40:46].sum() / weight.sum()) < 0.01
+
+
+def test_furnace_with_a_constant_image_environment():
+    scene = uniform_scene(environment=Environment(image=np.ones((8, 16, 3), np.float32)))
+    image = VPT(VPTConfig(spp=64, max_bounces=64, ambient=False), device="cpu").render(scene, [CAM]).images[0]
+    seen = image[..., 3] > 0.5
+    assert abs((image[..., 0][seen] / image[..., 3][seen]).mean() - 1.0) < 0.02

@@ -317,7 +317,9 @@ Opaque = Sphere | Plane | TriangleMesh
 class Environment:
     """Distant environment: a constant radiance, or an equirectangular HDR image ``(H, W, 3)``.
 
-    Image convention (DESIGN.md): u (column) is the azimuth, v (row) the polar angle from +y.
+    Image convention (DESIGN.md): u (column) is the azimuth, v (row) the polar angle from +y. Pixel (row, col) of an
+    H x W image is the direction (sin t cos p, cos t, sin t sin p) at t = pi (row + 1/2) / H, p = 2 pi (col + 1/2) / W
+    (azimuth 0 on +x, increasing towards +z).
     """
 
     radiance: RGB = (0.0, 0.0, 0.0)

@@ -4,7 +4,8 @@ Per pixel ``spp`` paths. Free flights by delta (null-collision) tracking against
 volume's macrocell octree (`volren.render.majorants`); the first collision over all volumes is the nearest of the
 volumes' own first collisions, which is exact for overlapping volumes too (independent null-collision processes).
 At a real collision x: next-event estimation towards every light with ratio-tracked transmittance (opaque surfaces
-block it), plus the uniform ambient of the environment's mean radiance (§6.1), then a new direction; at most
+block it) and towards the environment (importance-sampled, `volren.render.environment`), plus the uniform ambient of
+the environment's mean radiance (§6.1), then a new direction; at most
 ``max_bounces`` scattering events per path (1 = single scattering).
 
 Shading (§4.2): the transfer function gives albedo A and P_brdf; particles reflect by a Lambertian BRDF about the
@@ -50,6 +51,7 @@ from volren.kernels.common import (
     sample_grid,
 )
 from volren.render.base import Renderer, frame_seed
+from volren.render.environment import ENV_NONE, EnvironmentLight, environment_light, sample_environment
 from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, SHADOW_RAYS, PassClock
 from volren.render.majorants import (
     MajorantGrid,
@@ -81,8 +83,8 @@ class VPTConfig:
     global_majorant: bool = False
     """one majorant per volume instead of the macrocell octree (slower; for comparison)"""
     environment_light: bool = True
-    """sample the environment as a light at every collision (uniform directions, ratio-tracked, unshadowed only
-    where nothing is in the way)"""
+    """sample the environment as a light at every collision (a map by luminance, a constant uniformly; ratio-tracked
+    through the volumes, blocked by opaque surfaces)"""
     ambient: bool = True
     """also add the environment's mean radiance as a uniform, unshadowed ambient at every collision (§6.1: keeps
     dark maps from darkening the volume; not physical, off for a furnace test)"""
@@ -110,8 +112,6 @@ class VPTParams:
     max_bounces: int
     shading: int
     seed: int
-    environment: wp.vec3
-    """radiance of the environment light (0: none)"""
     ambient: wp.vec3
     clip_lo: wp.vec3
     clip_hi: wp.vec3
@@ -131,6 +131,7 @@ class VPTScene:
     lights: wp.array(dtype=LightGPU)
     opaque: wp.array(dtype=OpaqueGPU)
     mesh_ids: wp.array(dtype=wp.uint64)
+    environment: EnvironmentLight
 
 
 @wp.func
@@ -294,12 +295,9 @@ def vpt_kernel(
             if params.shading == 1:
                 surface = wp.where(wp.randf(state) < p_brdf, 1.0, 0.0)
             radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), params.ambient)
-            if wp.length_sq(params.environment) > 0.0:
-                # The environment as a light: a uniform direction (pdf 1 / 4 pi), ratio-tracked to infinity.
-                z = 1.0 - 2.0 * wp.randf(state)
-                phi = 2.0 * wp.pi * wp.randf(state)
-                rho = wp.sqrt(wp.max(1.0 - z * z, 0.0))
-                w = wp.vec3(rho * wp.cos(phi), rho * wp.sin(phi), z)
+            if sc.environment.mode != ENV_NONE:
+                # The environment as a light: an importance-sampled direction, ratio-tracked to infinity.
+                w, weighted, state = sample_environment(sc.environment, state)
                 sdf = (1.0 - surface) * hg_phase(wp.dot(-w, -d), g)
                 if surface > 0.0:
                     sdf += surface * wp.max(wp.dot(normal, w), 0.0) / wp.pi
@@ -308,8 +306,7 @@ def vpt_kernel(
                     tr, s4, n3 = transmittance(sc, params, x, w, INF, state)
                     state = s4
                     light_lookups += n3
-                    radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), params.environment) * (
-                        sdf * tr * 4.0 * wp.pi)
+                    radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), weighted) * (sdf * tr)
             for li in range(sc.lights.shape[0]):
                 light = sc.lights[li]
                 to_light = -light_travel_dir(light, x)
@@ -384,6 +381,8 @@ class VPT(Renderer):
         sc = VPTScene()
         sc.volumes, sc.density, sc.lights = ds.volumes, ds.density, ds.lights
         sc.opaque, sc.mesh_ids = ds.opaque, ds.mesh_ids
+        sc.environment = environment_light(ds.scene.environment if self.config.environment_light else None,
+                                           self.device)
         structs, values, offset = [], [], 0
         for m in majorants:
             structs.append(majorant_struct(m, offset))
@@ -405,9 +404,7 @@ class VPT(Renderer):
         params = VPTParams()
         params.spp, params.max_bounces, params.shading = c.spp, c.max_bounces, SHADING.index(c.shading)
         params.seed = frame_seed(c.seed, frame)
-        mean = wp.vec3(*ds.scene.environment.mean_radiance())
-        params.environment = mean if c.environment_light else wp.vec3(0.0)
-        params.ambient = mean if c.ambient else wp.vec3(0.0)
+        params.ambient = wp.vec3(*ds.scene.environment.mean_radiance()) if c.ambient else wp.vec3(0.0)
         params.clip_lo, params.clip_hi = wp.vec3(*c.clip[0::2]), wp.vec3(*c.clip[1::2])
         with clock.measure("path_tracing"):
             launch_rows(vpt_kernel, cam.height, cam.width, [camera_struct(cam), self._built[1], params, buffers,
