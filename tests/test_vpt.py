@@ -203,3 +203,17 @@ def test_furnace_with_a_constant_image_environment():
     image = VPT(VPTConfig(spp=64, max_bounces=64, ambient=False), device="cpu").render(scene, [CAM]).images[0]
     seen = image[..., 3] > 0.5
     assert abs((image[..., 0][seen] / image[..., 3][seen]).mean() - 1.0) < 0.02
+
+
+def test_a_small_distant_rect_light_acts_as_a_point_light():
+    """Radiance L over area A facing the volume from 10 m: intensity L A (cos > 0.995 over the volume)."""
+    from volren.scene import PointLight, RectLight
+
+    base = builtin_scene("cloud", 64)
+    rect = RectLight((0.0, 10.0, 0.0), (0.05, 0.0, 0.0), (0.0, 0.0, 0.05), (4000.0,) * 3)
+    point = PointLight((0.0, 10.0, 0.0), (4000.0 * 0.01,) * 3)
+    config = VPTConfig(spp=64, max_bounces=1, environment_light=False, ambient=False)
+    a = VPT(config, device="cpu").render(Scene(base.volumes, lights=(rect,)), [CAM]).images[0]
+    b = VPT(config, device="cpu").render(Scene(base.volumes, lights=(point,)), [CAM]).images[0]
+    assert a[..., 0].sum() > 0
+    np.testing.assert_allclose(a[..., 0].sum(), b[..., 0].sum(), rtol=0.03)

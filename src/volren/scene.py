@@ -243,7 +243,30 @@ class SpotLight:
                               f"{self.outer_angle}")
 
 
-Light = DirectionalLight | PointLight | SpotLight
+@dataclass(frozen=True)
+class RectLight:
+    """A one-sided rectangular area light of uniform radiance: centre ``position``, half-edge vectors ``edge_u`` and
+    ``edge_v``; it emits towards edge_u x edge_v. The path tracer samples its area; the other methods treat it as a
+    point at its centre with intensity radiance * area * cos(angle to the normal)."""
+
+    position: tuple[float, float, float] = (0.0, 2.0, 0.0)
+    edge_u: tuple[float, float, float] = (0.5, 0.0, 0.0)
+    edge_v: tuple[float, float, float] = (0.0, 0.0, -0.5)
+    radiance: RGB = (10.0, 10.0, 10.0)
+    """[W/(m^2 sr)]"""
+
+    def __post_init__(self) -> None:
+        for name in ("position", "edge_u", "edge_v"):
+            object.__setattr__(self, name, tuple(float(v) for v in as_vec3(getattr(self, name), f"rect light {name}")))
+        if np.linalg.norm(np.cross(self.edge_u, self.edge_v)) < 1e-12:
+            raise VolrenError("rect light edges must span a rectangle (non-zero, not parallel)")
+        e = as_rgb(self.radiance, "rect light radiance")
+        if min(e) < 0:
+            raise VolrenError(f"rect light radiance must be >= 0, got {e}")
+        object.__setattr__(self, "radiance", e)
+
+
+Light = DirectionalLight | PointLight | SpotLight | RectLight
 
 
 def _albedo(value: float | Sequence[float], what: str) -> RGB:
@@ -454,7 +477,7 @@ class Scene:
             if not isinstance(v, Volume):
                 raise VolrenError(f"scene volumes must be Volume objects, got {type(v).__name__}")
         for light in self.lights:
-            if not isinstance(light, DirectionalLight | PointLight | SpotLight):
+            if not isinstance(light, DirectionalLight | PointLight | SpotLight | RectLight):
                 raise VolrenError(f"unknown light type {type(light).__name__}")
         object.__setattr__(self, "background", as_rgb(self.background, "background"))
 

@@ -17,6 +17,7 @@ from volren.errors import VolrenError
 from volren.kernels.common import (
     LIGHT_DIRECTIONAL,
     LIGHT_POINT,
+    LIGHT_RECT,
     LIGHT_SPOT,
     CameraGPU,
     LightGPU,
@@ -25,7 +26,7 @@ from volren.kernels.common import (
     VolumeGPU,
 )
 from volren.render.surfaces import opaque_structs
-from volren.scene import DirectionalLight, Scene, SpotLight, TriangleMesh, Volume
+from volren.scene import DirectionalLight, RectLight, Scene, SpotLight, TriangleMesh, Volume
 
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
@@ -188,8 +189,12 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     for light in scene.lights:
         s = LightGPU()
         s.axis, s.cos_inner, s.cos_outer = wp.vec3(0.0, -1.0, 0.0), 1.0, 0.0
+        s.edge_u, s.edge_v = wp.vec3(0.0), wp.vec3(0.0)
         if isinstance(light, DirectionalLight):
             s.kind, s.vector, s.power = LIGHT_DIRECTIONAL, wp.vec3(*light.direction), wp.vec3(*light.irradiance)
+        elif isinstance(light, RectLight):
+            s.kind, s.vector, s.power = LIGHT_RECT, wp.vec3(*light.position), wp.vec3(*light.radiance)
+            s.edge_u, s.edge_v = wp.vec3(*light.edge_u), wp.vec3(*light.edge_v)
         elif isinstance(light, SpotLight):
             s.kind, s.vector, s.power = LIGHT_SPOT, wp.vec3(*light.position), wp.vec3(*light.intensity)
             s.axis = wp.vec3(*light.direction)

@@ -13,6 +13,7 @@ INF = wp.constant(1.0e30)
 LIGHT_DIRECTIONAL = wp.constant(0)
 LIGHT_POINT = wp.constant(1)
 LIGHT_SPOT = wp.constant(2)
+LIGHT_RECT = wp.constant(3)
 OPAQUE_SPHERE = wp.constant(0)
 OPAQUE_PLANE = wp.constant(1)
 
@@ -63,6 +64,9 @@ class LightGPU:
     """spot: cosine of the full-intensity half-angle"""
     cos_outer: float
     """spot: cosine of the cut-off half-angle"""
+    edge_u: wp.vec3
+    """rect: half-edge vectors (it emits towards edge_u x edge_v)"""
+    edge_v: wp.vec3
 
 
 @wp.struct
@@ -251,13 +255,18 @@ def light_distance(light: LightGPU, x: wp.vec3) -> float:
 @wp.func
 def light_irradiance(light: LightGPU, x: wp.vec3) -> wp.vec3:
     """Unshadowed irradiance at ``x`` on a plane facing the light (inverse-square for a point or spot light, times
-    the spot's smoothstep cone falloff)."""
+    the spot's smoothstep cone falloff; a rect light as a point at its centre)."""
     if light.kind == LIGHT_DIRECTIONAL:
         return light.power
     r2 = wp.max(wp.length_sq(light.vector - x), 1.0e-8)
     if light.kind == LIGHT_SPOT:
         c = wp.dot(light.axis, (x - light.vector) / wp.sqrt(r2))
         return light.power * wp.smoothstep(light.cos_outer, light.cos_inner, c) / r2
+    if light.kind == LIGHT_RECT:
+        # A point at the centre with intensity radiance * area * cos (the path tracer samples the area instead).
+        n = wp.cross(light.edge_u, light.edge_v)
+        c = wp.max(wp.dot(n, x - light.vector), 0.0) / wp.sqrt(r2)
+        return light.power * (4.0 * c) / r2
     return light.power / r2
 
 

@@ -35,6 +35,7 @@ from volren.device import launch_rows
 from volren.errors import VolrenError
 from volren.kernels.common import (
     INF,
+    LIGHT_RECT,
     CameraGPU,
     LightGPU,
     OpaqueGPU,
@@ -310,15 +311,26 @@ def vpt_kernel(
             for li in range(sc.lights.shape[0]):
                 light = sc.lights[li]
                 to_light = -light_travel_dir(light, x)
+                dist = light_distance(light, x)
+                arriving = light_irradiance(light, x)
+                if light.kind == LIGHT_RECT:
+                    # A uniform point of the rectangle: radiance cos / r^2 over the area pdf 1 / A.
+                    y = light.vector + (2.0 * wp.randf(state) - 1.0) * light.edge_u + (
+                        2.0 * wp.randf(state) - 1.0) * light.edge_v
+                    dist = wp.length(y - x)
+                    to_light = (y - x) / wp.max(dist, 1.0e-9)
+                    facing = wp.cross(light.edge_u, light.edge_v)
+                    arriving = light.power * (4.0 * wp.max(-wp.dot(facing, to_light), 0.0)
+                                              / wp.max(dist * dist, 1.0e-12))
                 sdf = (1.0 - surface) * hg_phase(wp.dot(-to_light, -d), g)
                 if surface > 0.0:
                     sdf += surface * wp.max(wp.dot(normal, to_light), 0.0) / wp.pi
-                if sdf > 0.0:
+                if sdf > 0.0 and wp.length_sq(arriving) > 0.0:
                     shadow_rays += 1
-                    tr, s3, n2 = transmittance(sc, params, x, to_light, light_distance(light, x), state)
+                    tr, s3, n2 = transmittance(sc, params, x, to_light, dist, state)
                     state = s3
                     light_lookups += n2
-                    radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), light_irradiance(light, x)) * (sdf * tr)
+                    radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), arriving) * (sdf * tr)
             if bounce + 1 == params.max_bounces:
                 break
             # New direction: the BRDF lobe with P_b (Eq. 7; here P_brdf, or ER's event), else the phase function;
