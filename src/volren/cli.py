@@ -77,6 +77,7 @@ def add_device(p: argparse.ArgumentParser) -> None:
 
 
 def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
+    animate = p.prog.endswith("animate")
     from volren.render import METHODS
 
     src = p.add_argument_group("data")
@@ -160,7 +161,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--fog-far", type=float, help="fog: end of the fog range [m] (default 64)")
     r.add_argument("--trilinear", action="store_true", help="fog: interpolate 8 shadow-grid voxels, not the nearest")
     r.add_argument("--no-temporal", action="store_true", help="fog: no jitter and temporal blending")
-    r.add_argument("--frames", type=int, default=1, help="render N frames (temporal methods), keep every frame")
+    r.add_argument("--frames", type=int, default=60 if animate else 1, help="render N frames (temporal methods), keep "
+                   "every frame")
     r.add_argument("--seed", type=int, default=0)
     add_device(p)
     o = p.add_argument_group("output")
@@ -175,6 +177,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
     add_render_args(sub.add_parser("demo", help="render the default scene as a stereo pair into out/"), demo=True)
     add_render_args(sub.add_parser("render", help="render a built-in scene or a volume file"))
+    a = sub.add_parser("animate", help="render an interaction sequence (orbit, light rotation, transfer-function "
+                       "switch) to PNG frames and an MP4")
+    add_render_args(a)
+    a.add_argument("--orbit", type=float, default=360.0, help="camera turn over the sequence [deg]")
+    a.add_argument("--light-orbit", type=float, default=0.0, help="light turn over the sequence [deg]")
+    a.add_argument("--switch-tf", help="vpt: FRAME:TF, switch to transfer function TF at frame FRAME")
+    a.add_argument("--fps", type=float, default=30.0, help="MP4 frame rate")
     sub.add_parser("scenes", help="list the built-in scenes")
     c = sub.add_parser("compare", help="PSNR, SSIM, FLIP of TEST against REF, and an error heat map")
     c.add_argument("ref", type=Path)
@@ -344,8 +353,26 @@ def progress_bar(label: str, total_rows: int) -> Iterator[Callable[[int], None] 
         yield lambda rows: bar.advance(task, rows)
 
 
+def sequence_from_args(args: argparse.Namespace):
+    """``volren animate``'s sequence; None for ``render``."""
+    if args.command != "animate":
+        return None
+    from volren.animate import Sequence
+
+    switch_frame = switch_tf = None
+    if args.switch_tf is not None:
+        frame, sep, tf = args.switch_tf.partition(":")
+        if not sep or not frame.strip().isdecimal():
+            raise CliError(f"--switch-tf must be FRAME:TF, got '{args.switch_tf}'")
+        switch_frame, switch_tf = int(frame), tf
+    return Sequence(frames=args.frames, orbit=args.orbit, light_orbit=args.light_orbit, switch_frame=switch_frame,
+                    switch_transfer=switch_tf, fps=args.fps)
+
+
 def run_render(args: argparse.Namespace, method: str, command: str) -> int:
-    from volren.output import prepare_out_dir, write_frame, write_stats
+    from volren.animate import frame_config, frame_scene, frame_views, write_mp4
+    from volren.imageio import composite, to_srgb8
+    from volren.output import contact_sheet, prepare_out_dir, write_frame, write_stats
 
     if args.frames < 1:
         raise CliError(f"--frames must be >= 1, got {args.frames}")
@@ -359,8 +386,12 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     views = views_from_args(args)
     occluder_depth = depth_images_from_args(args, len(views))
     renderer = renderer_from_args(args, method)
+    sequence = sequence_from_args(args)
+    if sequence is not None:
+        frame_config(sequence, renderer.config, sequence.frames - 1)  # refuse a switch the method cannot take
+    base_scene, base_views, base_config = scene, views, renderer.config
     out = prepare_out_dir(args.out)
-    frames, files = [], []
+    frames, files, movie = [], [], []
     start = time.perf_counter()
     with progress_bar(f"{method} {scene.name}", args.frames * sum(v.height for v in views)) as advance:
         renderer.on_rows = advance
@@ -369,12 +400,21 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
                 scene = scene_from_args(args, i / ANIMATION_FPS)
             if walking and i:
                 views = views_from_args(args, i / ANIMATION_FPS)
+            if sequence is not None:
+                scene = frame_scene(sequence, base_scene if not animated else scene, i)
+                views = frame_views(sequence, base_views, i)
+                renderer.config = frame_config(sequence, base_config, i)
             frame = renderer.render(scene, views, frame=i, occluder_depth=occluder_depth)
+            if sequence is not None:
+                shown = frame.images[0] if len(frame.images) == 1 else contact_sheet(frame.images)
+                movie.append(to_srgb8(composite(shown, scene.background), args.exposure, args.tonemap))
             prefix = f"frame{i:04d}_" if args.frames > 1 else ""
             files += write_frame(frame, out, scene.background, exposure=args.exposure, tonemap=args.tonemap,
                                  linear=args.save_linear, prefix=prefix)
             frames.append(frame)
     wall = time.perf_counter() - start
+    if sequence is not None:
+        files.append(write_mp4(out / "animation.mp4", movie, sequence.fps))
     stats = write_stats(out, frames, {"scene": scene.name, "command": command})
     last = frames[-1].stats
     print(f"{method} on {last.device}: {len(views)} view(s) of '{scene.name}', {args.frames} frame(s) in {wall:.2f} s")
@@ -428,7 +468,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         if args.command == "demo":
             return run_render(args, "dssrm", command)
-        if args.command == "render":
+        if args.command in ("render", "animate"):
             return run_render(args, args.method, command)
         if args.command == "scenes":
             return run_scenes()

@@ -364,7 +364,10 @@ class VPT(Renderer):
 
     def __init__(self, config: VPTConfig | None = None, device: str = "auto") -> None:
         super().__init__(config or VPTConfig(), device)
-        self._built: tuple | None = None
+        self._majorants: tuple | None = None
+        """(key, host majorants, VPTScene fields that depend only on densities and the transfer function)"""
+        self._environment: tuple | None = None
+        self._scene: VPTScene | None = None
 
     def _transfer(self, scene) -> list[TransferFunction]:
         """The transfer function of each volume: the configured one, or each volume's density-scale model."""
@@ -373,42 +376,44 @@ class VPT(Renderer):
         return [linear(v.density_scale * float(v.density.max()), v.albedo) for v in scene.volumes]
 
     def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
+        """Upload, then the majorant octrees (rebuilt only when the densities or the transfer function change: not
+        for a new camera or light) and the environment's sampling tables (rebuilt when the environment changes)."""
         ds = self._upload(scene, clock)
-        key = (id(scene), self.config.transfer, self.config.global_majorant)
-        if self._built is None or self._built[0] != key:
+        key = (tuple(id(v) for v in scene.volumes), self.config.transfer, self.config.global_majorant)
+        if self._majorants is None or self._majorants[0] != key:
             with clock.measure("majorants"):
-                tfs = self._transfer(scene)
-                tables = [tf.table() for tf in tfs]
-                majorants: list[Majorants] = []
-                for vol, table in zip(scene.volumes, tables, strict=True):
-                    majorants.append(build_majorants(vol.density, table[:, 0], range_max_table(table[:, 0]),
-                                                     self.config.global_majorant))
-                self._built = (key, self._device_scene_for(ds, tables, majorants), majorants)
-        self._frame_info["majorant_bytes"] = sum(m.nbytes for m in self._built[2])
-        self._frame_info["majorant_build_ms"] = round(sum(m.build_ms for m in self._built[2]), 3)
-        return ds
-
-    def _device_scene_for(self, ds: DeviceScene, tables: list[np.ndarray], majorants: list[Majorants]) -> VPTScene:
-        """The path tracer's view of the scene: volumes, majorant octrees (packed), one lookup table per volume."""
+                tables = [tf.table() for tf in self._transfer(scene)]
+                majorants = [build_majorants(vol.density, table[:, 0], range_max_table(table[:, 0]),
+                                             self.config.global_majorant)
+                             for vol, table in zip(scene.volumes, tables, strict=True)]
+                self._majorants = (key, majorants, self._majorant_arrays(tables, majorants))
+        env = scene.environment if self.config.environment_light else None
+        if self._environment is None or self._environment[0] is not env:
+            self._environment = (env, environment_light(env, self.device))
         sc = VPTScene()
         sc.volumes, sc.density, sc.lights = ds.volumes, ds.density, ds.lights
-        sc.opaque, sc.mesh_ids = ds.opaque, ds.mesh_ids
-        sc.environment = environment_light(ds.scene.environment if self.config.environment_light else None,
-                                           self.device)
+        sc.opaque, sc.mesh_ids, sc.environment = ds.opaque, ds.mesh_ids, self._environment[1]
+        sc.grids, sc.majorants, sc.inv_scale, sc.table, sc.p_brdf, sc.table_size = self._majorants[2]
+        self._scene = sc
+        majorants = self._majorants[1]
+        self._frame_info["majorant_bytes"] = sum(m.nbytes for m in majorants)
+        self._frame_info["majorant_build_ms"] = round(sum(m.build_ms for m in majorants), 3)
+        return ds
+
+    def _majorant_arrays(self, tables: list[np.ndarray], majorants: list[Majorants]) -> tuple:
+        """Device arrays of the majorant octrees (packed) and of one lookup table per volume."""
         structs, values, offset = [], [], 0
         for m in majorants:
             structs.append(majorant_struct(m, offset))
             for level in m.levels:
                 values.append(level.reshape(-1))
                 offset += level.size
-        sc.grids = wp.array(structs, dtype=MajorantGrid, device=self.device)
-        sc.majorants = wp.array(np.concatenate(values), dtype=float, device=self.device)
-        sc.inv_scale = wp.array([1.0 / m.scale for m in majorants], dtype=float, device=self.device)
         packed = np.concatenate(tables)
-        sc.table = wp.array(packed[:, :4], dtype=wp.vec4, device=self.device)
-        sc.p_brdf = wp.array(packed[:, 4], dtype=float, device=self.device)
-        sc.table_size = len(tables[0])
-        return sc
+        return (wp.array(structs, dtype=MajorantGrid, device=self.device),
+                wp.array(np.concatenate(values), dtype=float, device=self.device),
+                wp.array([1.0 / m.scale for m in majorants], dtype=float, device=self.device),
+                wp.array(packed[:, :4], dtype=wp.vec4, device=self.device),
+                wp.array(packed[:, 4], dtype=float, device=self.device), len(tables[0]))
 
     def _render_view(self, ds: DeviceScene, cam: Camera, view: int, frame: int, buffers: ViewBuffers,
                      clock: PassClock) -> None:
@@ -419,5 +424,5 @@ class VPT(Renderer):
         params.ambient = wp.vec3(*ds.scene.environment.mean_radiance()) if c.ambient else wp.vec3(0.0)
         params.clip_lo, params.clip_hi = wp.vec3(*c.clip[0::2]), wp.vec3(*c.clip[1::2])
         with clock.measure("path_tracing"):
-            launch_rows(vpt_kernel, cam.height, cam.width, [camera_struct(cam), self._built[1], params, buffers,
+            launch_rows(vpt_kernel, cam.height, cam.width, [camera_struct(cam), self._scene, params, buffers,
                                                             view], self.device, clock.counters, self.on_rows)
