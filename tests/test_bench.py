@@ -58,3 +58,14 @@ def test_viewers_suite_rows_and_goals():
     assert all(0 <= r["flip"] < 0.5 and r["shared_bytes"] > 0 and r["shadow_voxels"] > 0 for r in grid)
     (goals,), _ = result["summary"]
     assert goals["viewers"] == 2 and goals["ray_ratio"] > 0
+
+
+def test_vpt_suite_rows_and_goals():
+    from volren.bench.vpt import run_config
+
+    cfg = {"resolution": 64, "size": (24, 20), "spp": [1, 2], "variance_frames": 3, "variance_spp": 1, "repeats": 1}
+    result = run_config(cfg, "cpu")
+    tables = {r["table"] for r in result["rows"]}
+    assert tables == {"spp", "global majorant", "shading"}
+    summary, _ = result["summary"]
+    assert len(summary) == 3 and all(s["variance_ratio"] > 0 for s in summary)
