@@ -22,6 +22,7 @@ KERNEL_MODULES = [
     "volren.render.fog",
     "volren.render.froxels",
     "volren.render.vpt",
+    "volren.render.denoise",
     "volren.data.loaders",
 ]
 

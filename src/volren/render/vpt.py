@@ -52,6 +52,7 @@ from volren.kernels.common import (
     sample_grid,
 )
 from volren.render.base import Renderer, frame_seed
+from volren.render.denoise import Denoiser
 from volren.render.environment import ENV_NONE, EnvironmentLight, environment_light, sample_environment
 from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, SHADOW_RAYS, PassClock
 from volren.render.majorants import (
@@ -67,6 +68,7 @@ from volren.transfer import TransferFunction, linear, load_transfer_function
 from volren.upload import DeviceScene, camera_struct
 
 SHADING = ("coexist", "er")
+DENOISERS = ("none", "ours")
 MAX_BOUNCES = 64
 MAX_SPP = 4096
 
@@ -91,9 +93,13 @@ class VPTConfig:
     dark maps from darkening the volume; not physical, off for a furnace test)"""
     clip: tuple[float, float, float, float, float, float] = (-1.0, 1.0, -1.0, 1.0, -1.0, 1.0)
     """x0, x1, y0, y1, z0, z1 in each volume's local coordinates [-1, 1]"""
+    denoise: str = "none"
+    """none, or ours (the spatiotemporal denoiser of §5, `volren.render.denoise`; keeps history across frames)"""
     seed: int = 0
 
     def __post_init__(self) -> None:
+        if self.denoise not in DENOISERS:
+            raise VolrenError(f"denoise must be one of {', '.join(DENOISERS)}, got '{self.denoise}'")
         if int(self.spp) != self.spp or not 1 <= self.spp <= MAX_SPP:
             raise VolrenError(f"spp must be an integer in [1, {MAX_SPP}], got {self.spp}")
         if int(self.max_bounces) != self.max_bounces or not 1 <= self.max_bounces <= MAX_BOUNCES:
@@ -116,6 +122,17 @@ class VPTParams:
     ambient: wp.vec3
     clip_lo: wp.vec3
     clip_hi: wp.vec3
+
+
+@wp.struct
+class SampleRecords:
+    """Per pixel and path (row, col, path): the decoupled radiance F_x, F_L of §5.1, the first collision's linear
+    depth (-1: none) and normalised scalar (for the reprojection depth rule of §5.2)."""
+
+    f_x: wp.array3d(dtype=wp.vec3)
+    f_l: wp.array3d(dtype=wp.vec3)
+    depth: wp.array3d(dtype=float)
+    density: wp.array3d(dtype=float)
 
 
 @wp.struct
@@ -194,7 +211,8 @@ def transmittance(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, dist:
 
 @wp.func
 def material(sc: VPTScene, v: int, x: wp.vec3):
-    """(albedo, P_brdf, world gradient) of volume v at world point x; the gradient by central differences."""
+    """(albedo, P_brdf, world gradient, normalised scalar u) of volume v at world point x; the gradient by central
+    differences."""
     vol = sc.volumes[v]
     p = wp.transform_point(vol.to_local, x)
     u = sample_grid(sc.density, vol.offset, vol.res, p) * sc.inv_scale[v]
@@ -213,7 +231,7 @@ def material(sc: VPTScene, v: int, x: wp.vec3):
     m = vol.to_local
     world = (grad[0] * wp.vec3(m[0, 0], m[0, 1], m[0, 2]) + grad[1] * wp.vec3(m[1, 0], m[1, 1], m[1, 2])
              + grad[2] * wp.vec3(m[2, 0], m[2, 1], m[2, 2]))
-    return wp.vec3(e[1], e[2], e[3]), p_brdf, world
+    return wp.vec3(e[1], e[2], e[3]), p_brdf, world, u
 
 
 @wp.func
@@ -255,6 +273,8 @@ def vpt_kernel(
     params: VPTParams,
     buffers: ViewBuffers,
     view: int,
+    record: int,
+    samples: SampleRecords,
     counters: wp.array(dtype=wp.int64),
     row0: int,
 ):
@@ -267,11 +287,17 @@ def vpt_kernel(
     density_lookups = int(0)
     light_lookups = int(0)
     shadow_rays = int(0)
-    for _path in range(params.spp):
+    for path in range(params.spp):
         d = camera_ray(cam, row, col, wp.randf(state), wp.randf(state))
         x = cam.origin
         t_max = wp.min(occluder_t(buffers, cam, d, row, col), cam.far / wp.dot(d, cam.forward))
+        # The path's radiance is F_x * F_L (paper 002 §5.1): F_x the first collision's albedo, F_L the light
+        # arriving there (each later vertex's contributions carry the throughput after the first albedo).
         throughput = wp.vec3(1.0)
+        f_x = wp.vec3(0.0)
+        f_l = wp.vec3(0.0)
+        first_depth = float(-1.0)
+        first_u = float(0.0)
         for bounce in range(params.max_bounces):
             t, v, s2, n = free_flight(sc, params, x, d, t_max, state)
             state = s2
@@ -279,10 +305,16 @@ def vpt_kernel(
             if v < 0:
                 break
             x = x + t * d
+            albedo, p_brdf, grad, u = material(sc, v, x)
+            # Vertex weight: 1 at the first collision (its albedo is F_x), the albedo afterwards.
+            weight = albedo
             if bounce == 0:
                 hits += 1
-                depth_sum += t * wp.dot(d, cam.forward)
-            albedo, p_brdf, grad = material(sc, v, x)
+                first_depth = t * wp.dot(d, cam.forward)
+                depth_sum += first_depth
+                first_u = u
+                f_x = albedo
+                weight = wp.vec3(1.0)
             normal = wp.vec3(0.0)
             if wp.length(grad) > 1.0e-6:
                 normal = -wp.normalize(grad)
@@ -295,7 +327,7 @@ def vpt_kernel(
             surface = float(p_brdf)
             if params.shading == 1:
                 surface = wp.where(wp.randf(state) < p_brdf, 1.0, 0.0)
-            radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), params.ambient)
+            f_l += wp.cw_mul(wp.cw_mul(throughput, weight), params.ambient)
             if sc.environment.mode != ENV_NONE:
                 # The environment as a light: an importance-sampled direction, ratio-tracked to infinity.
                 w, weighted, state = sample_environment(sc.environment, state)
@@ -307,7 +339,7 @@ def vpt_kernel(
                     tr, s4, n3 = transmittance(sc, params, x, w, INF, state)
                     state = s4
                     light_lookups += n3
-                    radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), weighted) * (sdf * tr)
+                    f_l += wp.cw_mul(wp.cw_mul(throughput, weight), weighted) * (sdf * tr)
             for li in range(sc.lights.shape[0]):
                 light = sc.lights[li]
                 to_light = -light_travel_dir(light, x)
@@ -330,7 +362,7 @@ def vpt_kernel(
                     tr, s3, n2 = transmittance(sc, params, x, to_light, dist, state)
                     state = s3
                     light_lookups += n2
-                    radiance += wp.cw_mul(wp.cw_mul(throughput, albedo), arriving) * (sdf * tr)
+                    f_l += wp.cw_mul(wp.cw_mul(throughput, weight), arriving) * (sdf * tr)
             if bounce + 1 == params.max_bounces:
                 break
             # New direction: the BRDF lobe with P_b (Eq. 7; here P_brdf, or ER's event), else the phase function;
@@ -339,8 +371,14 @@ def vpt_kernel(
                 d, state = sample_cosine(normal, state)
             else:
                 d, state = sample_hg(d, g, state)
-            throughput = wp.cw_mul(throughput, albedo)
+            throughput = wp.cw_mul(throughput, weight)
             t_max = INF
+        radiance += wp.cw_mul(f_x, f_l)
+        if record != 0:
+            samples.f_x[row, col, path] = f_x
+            samples.f_l[row, col, path] = f_l
+            samples.depth[row, col, path] = first_depth
+            samples.density[row, col, path] = first_u
     inv = 1.0 / float(params.spp)
     alpha = float(hits) * inv
     surface_color = buffers.occluder_color[row, col]
@@ -368,6 +406,7 @@ class VPT(Renderer):
         """(key, host majorants, VPTScene fields that depend only on densities and the transfer function)"""
         self._environment: tuple | None = None
         self._scene: VPTScene | None = None
+        self._denoiser = Denoiser(self.device)
 
     def _transfer(self, scene) -> list[TransferFunction]:
         """The transfer function of each volume: the configured one, or each volume's density-scale model."""
@@ -423,6 +462,17 @@ class VPT(Renderer):
         params.seed = frame_seed(c.seed, frame)
         params.ambient = wp.vec3(*ds.scene.environment.mean_radiance()) if c.ambient else wp.vec3(0.0)
         params.clip_lo, params.clip_hi = wp.vec3(*c.clip[0::2]), wp.vec3(*c.clip[1::2])
+        record = c.denoise != "none"
+        shape = (cam.height, cam.width, c.spp) if record else (1, 1, 1)
+        samples = SampleRecords()
+        samples.f_x = wp.zeros(shape, dtype=wp.vec3, device=self.device)
+        samples.f_l = wp.zeros(shape, dtype=wp.vec3, device=self.device)
+        samples.depth = wp.zeros(shape, dtype=float, device=self.device)
+        samples.density = wp.zeros(shape, dtype=float, device=self.device)
+        cam_gpu = camera_struct(cam)
         with clock.measure("path_tracing"):
-            launch_rows(vpt_kernel, cam.height, cam.width, [camera_struct(cam), self._scene, params, buffers,
-                                                            view], self.device, clock.counters, self.on_rows)
+            launch_rows(vpt_kernel, cam.height, cam.width, [cam_gpu, self._scene, params, buffers, view, int(record),
+                                                            samples], self.device, clock.counters, self.on_rows)
+        if record:
+            with clock.measure("denoise"):
+                self._denoiser.run(view, cam_gpu, samples, buffers)

@@ -1,0 +1,354 @@
+"""The spatiotemporal DVR denoiser of paper 002 §5 (``--denoise ours``).
+
+Input per pixel: the path tracer's samples, each decoupled into the high-detail-low-noise F_x (the first collision's
+albedo) and the low-detail-high-noise F_L (the light arriving there, later scatterings included: the paper's F_m is
+denoised with F_L), with the first collision's depth and scalar.
+1. Clustering (§5.1): the hit samples of a pixel split in two at the largest gap of their sorted F_x luminances
+   (one class when max - min < 0.1); each class k keeps n_k and the means F_x(C_k), F_L(C_k).
+   Reprojection depth (§5.2): the nearest first-collision depth whose scalar exceeds 1/4 of the volume's maximum,
+   else the median depth. Opacity alpha = N_p / N.
+2. HDLN (§5.3.1): a 3x3 joint bilateral over every class of the neighbours (Eq. 11, sigma_c = 0.2 on F_x, sigma_d on
+   depth), then a temporal blend with the reprojected previous classes (Eq. 12, sigma_e = 0.2), the current class
+   weighted 1.
+3. LDHN (§5.3.2): two edge-stopping a-trous passes (5x5, then 5x5 dilated by 2 = 9x9) guided by depth and the
+   denoised F_x, then the sigmoid temporal weights of Eq. 13 (a = 3, b = 5).
+4. Opacity: a 5x5 depth-guided bilateral, then Eq. 14 against the reprojected previous opacity.
+5. Compositing (Eq. 15): alpha sum_k n_k F_x(C_k) F_L(C_k) / sum_k n_k + (1 - alpha) B, B the surface behind.
+Departures: depths are in metres, so sigma_d = 0.2 m stands for the paper's 2 decimetres; reprojection picks the
+nearest previous pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import warp as wp
+
+from volren.kernels.common import INF, CameraGPU, ViewBuffers, camera_ray, project_pixel
+
+SIGMA_C = 0.2
+SIGMA_D = 0.2
+"""[m] (the paper's 2 with decimetre units)"""
+SIGMA_E = 0.2
+SIGMOID_A = 3.0
+WEIGHT_B = 5.0
+SINGLE_CLASS = 0.1
+"""one class when the F_x luminances of a pixel span less than this"""
+DENSE = 0.25
+"""reprojection depth: first collisions above this share of the volume's largest scalar"""
+
+
+@wp.struct
+class Classes:
+    """Per pixel, two classes: F_x, F_L, n (float), and the pixel's alpha and reprojection depth."""
+
+    f_x: wp.array3d(dtype=wp.vec3)
+    """[row, col, class]"""
+    f_l: wp.array3d(dtype=wp.vec3)
+    n: wp.array3d(dtype=float)
+    alpha: wp.array2d(dtype=float)
+    depth: wp.array2d(dtype=float)
+
+
+def new_classes(h: int, w: int, device: str) -> Classes:
+    c = Classes()
+    c.f_x = wp.zeros((h, w, 2), dtype=wp.vec3, device=device)
+    c.f_l = wp.zeros((h, w, 2), dtype=wp.vec3, device=device)
+    c.n = wp.zeros((h, w, 2), dtype=float, device=device)
+    c.alpha = wp.zeros((h, w), dtype=float, device=device)
+    c.depth = wp.full((h, w), INF, dtype=float, device=device)
+    return c
+
+
+@wp.func
+def luminance(c: wp.vec3) -> float:
+    return 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+
+
+@wp.kernel
+def cluster_kernel(f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3), depth: wp.array3d(dtype=float),
+                   density: wp.array3d(dtype=float), out: Classes):
+    """Step 1: two classes per pixel by the largest gap of the sorted F_x luminances; alpha; reprojection depth."""
+    row, col = wp.tid()
+    n = f_x.shape[2]
+    hits = int(0)
+    lo = float(INF)
+    hi = float(-INF)
+    dense_depth = float(INF)
+    for i in range(n):
+        if depth[row, col, i] >= 0.0:
+            hits += 1
+            lum = luminance(f_x[row, col, i])
+            lo = wp.min(lo, lum)
+            hi = wp.max(hi, lum)
+            if density[row, col, i] > DENSE:
+                dense_depth = wp.min(dense_depth, depth[row, col, i])
+    out.alpha[row, col] = float(hits) / float(n)
+    for k in range(2):
+        out.f_x[row, col, k] = wp.vec3(0.0)
+        out.f_l[row, col, k] = wp.vec3(0.0)
+        out.n[row, col, k] = 0.0
+    if hits == 0:
+        out.depth[row, col] = INF
+        return
+    # The split: above the largest gap between consecutive sorted luminances (none when they span < 0.1).
+    split = float(INF)
+    if hi - lo >= SINGLE_CLASS:
+        gap = float(-1.0)
+        for i in range(n):
+            if depth[row, col, i] >= 0.0:
+                a = luminance(f_x[row, col, i])
+                nxt = float(INF)
+                for j in range(n):
+                    if depth[row, col, j] >= 0.0:
+                        b = luminance(f_x[row, col, j])
+                        if b > a and b < nxt:
+                            nxt = b
+                if nxt < INF and nxt - a > gap:
+                    gap = nxt - a
+                    split = 0.5 * (a + nxt)
+    for i in range(n):
+        if depth[row, col, i] >= 0.0:
+            k = int(0)
+            if luminance(f_x[row, col, i]) > split:
+                k = 1
+            out.f_x[row, col, k] = out.f_x[row, col, k] + f_x[row, col, i]
+            out.f_l[row, col, k] = out.f_l[row, col, k] + f_l[row, col, i]
+            out.n[row, col, k] = out.n[row, col, k] + 1.0
+    for k in range(2):
+        m = out.n[row, col, k]
+        if m > 0.0:
+            out.f_x[row, col, k] = out.f_x[row, col, k] / m
+            out.f_l[row, col, k] = out.f_l[row, col, k] / m
+    # Reprojection depth: the nearest dense first collision, else the median first-collision depth (by rank).
+    if dense_depth < INF:
+        out.depth[row, col] = dense_depth
+        return
+    target = (hits - 1) / 2
+    for i in range(n):
+        di = depth[row, col, i]
+        if di >= 0.0:
+            below = int(0)
+            for j in range(n):
+                dj = depth[row, col, j]
+                if dj >= 0.0 and (dj < di or (dj == di and j < i)):
+                    below += 1
+            if below == target:
+                out.depth[row, col] = di
+
+
+@wp.func
+def reproject(cam: CameraGPU, prev: CameraGPU, row: int, col: int, depth: float) -> wp.vec2i:
+    """The previous frame's pixel (row, col) holding this pixel's point at linear depth ``depth``; -1 if none."""
+    if depth >= INF:
+        return wp.vec2i(-1, -1)
+    d = camera_ray(cam, row, col, 0.5, 0.5)
+    x = cam.origin + d * (depth / wp.dot(d, cam.forward))
+    p = project_pixel(prev, x)
+    c = int(wp.floor(p[0]))
+    r = int(wp.floor(p[1]))
+    if p[2] <= 0.0 or c < 0 or r < 0 or c >= prev.width or r >= prev.height:
+        return wp.vec2i(-1, -1)
+    return wp.vec2i(r, c)
+
+
+@wp.kernel
+def hdln_kernel(cur: Classes, cam: CameraGPU, prev_cam: CameraGPU, history: Classes, has_history: int,
+                out: wp.array3d(dtype=wp.vec3)):
+    """Step 2: Eq. 11 over the 3x3 neighbours' classes, then Eq. 12 with the reprojected previous classes."""
+    row, col = wp.tid()
+    h = cur.depth.shape[0]
+    w = cur.depth.shape[1]
+    dj = cur.depth[row, col]
+    src = wp.vec2i(-1, -1)
+    if has_history != 0:
+        src = reproject(cam, prev_cam, row, col, dj)
+    for k in range(2):
+        if cur.n[row, col, k] == 0.0:
+            out[row, col, k] = wp.vec3(0.0)
+            continue
+        fk = cur.f_x[row, col, k]
+        acc = wp.vec3(0.0)
+        wsum = float(0.0)
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                r = wp.clamp(row + dy, 0, h - 1)
+                c = wp.clamp(col + dx, 0, w - 1)
+                for m in range(2):
+                    if cur.n[r, c, m] > 0.0:
+                        f = cur.f_x[r, c, m]
+                        wgt = wp.exp(-wp.length(f - fk) / SIGMA_C) * wp.exp(-wp.abs(cur.depth[r, c] - dj) / SIGMA_D)
+                        acc += wgt * f
+                        wsum += wgt
+        spatial = acc / wsum
+        blended = spatial
+        if src[0] >= 0:
+            num = spatial
+            den = float(1.0)
+            for m in range(2):
+                nm = history.n[src[0], src[1], m]
+                if nm > 0.0:
+                    f = history.f_x[src[0], src[1], m]
+                    wgt = wp.sqrt(1.0 / (wp.abs(cur.n[row, col, k] - nm) + 1.0)) * wp.exp(
+                        -wp.length(spatial - f) / SIGMA_E)
+                    num += wgt * f
+                    den += wgt
+            blended = num / den
+        out[row, col, k] = blended
+
+
+@wp.kernel
+def atrous_kernel(cur: Classes, f_x: wp.array3d(dtype=wp.vec3), src: wp.array3d(dtype=wp.vec3), step: int,
+                  out: wp.array3d(dtype=wp.vec3)):
+    """Step 3, spatial: one edge-stopping a-trous pass (B3-spline 5x5 taps ``step`` pixels apart) on F_L, guided by
+    depth and the denoised F_x."""
+    row, col = wp.tid()
+    h = cur.depth.shape[0]
+    w = cur.depth.shape[1]
+    dj = cur.depth[row, col]
+    for k in range(2):
+        if cur.n[row, col, k] == 0.0:
+            out[row, col, k] = wp.vec3(0.0)
+            continue
+        fk = f_x[row, col, k]
+        acc = wp.vec3(0.0)
+        wsum = float(0.0)
+        for dy in range(-2, 3):
+            for dx in range(-2, 3):
+                r = row + dy * step
+                c = col + dx * step
+                if r >= 0 and r < h and c >= 0 and c < w:
+                    kernel = b3(dx) * b3(dy)
+                    for m in range(2):
+                        if cur.n[r, c, m] > 0.0:
+                            wgt = kernel * wp.exp(-wp.length(f_x[r, c, m] - fk) / SIGMA_C) * wp.exp(
+                                -wp.abs(cur.depth[r, c] - dj) / SIGMA_D)
+                            acc += wgt * src[r, c, m]
+                            wsum += wgt
+        out[row, col, k] = acc / wsum
+
+
+@wp.func
+def b3(i: int) -> float:
+    """B3-spline taps 1/16, 1/4, 3/8, 1/4, 1/16 at offsets -2..2."""
+    a = wp.abs(i)
+    if a == 0:
+        return 0.375
+    if a == 1:
+        return 0.25
+    return 0.0625
+
+
+@wp.kernel
+def ldhn_temporal_kernel(cur: Classes, f_l: wp.array3d(dtype=wp.vec3), cam: CameraGPU, prev_cam: CameraGPU,
+                         history: Classes, has_history: int, out: wp.array3d(dtype=wp.vec3)):
+    """Step 3, temporal: Eq. 13's sigmoid weights of the reprojected previous classes against w_k = 1 + b / sum."""
+    row, col = wp.tid()
+    src = wp.vec2i(-1, -1)
+    if has_history != 0:
+        src = reproject(cam, prev_cam, row, col, cur.depth[row, col])
+    for k in range(2):
+        value = f_l[row, col, k]
+        if src[0] >= 0 and cur.n[row, col, k] > 0.0:
+            lu = luminance(value)
+            num = wp.vec3(0.0)
+            den = float(0.0)
+            for m in range(2):
+                if history.n[src[0], src[1], m] > 0.0:
+                    prev = history.f_l[src[0], src[1], m]
+                    wgt = 1.0 / (1.0 / (1.0 + wp.exp(-SIGMOID_A * (wp.abs(lu - luminance(prev)) - 1.0))))
+                    num += wgt * prev
+                    den += wgt
+            wk = 1.0 + WEIGHT_B / (1.0e-6 + den)
+            value = (wk * value + num) / (wk + den)
+        out[row, col, k] = value
+
+
+@wp.kernel
+def alpha_kernel(cur: Classes, cam: CameraGPU, prev_cam: CameraGPU, history: Classes, has_history: int,
+                 out: wp.array2d(dtype=float)):
+    """Step 4: a 5x5 depth-guided bilateral of alpha, then Eq. 14 against the reprojected previous alpha."""
+    row, col = wp.tid()
+    h = cur.depth.shape[0]
+    w = cur.depth.shape[1]
+    dj = cur.depth[row, col]
+    acc = float(0.0)
+    wsum = float(0.0)
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            r = wp.clamp(row + dy, 0, h - 1)
+            c = wp.clamp(col + dx, 0, w - 1)
+            dd = cur.depth[r, c] - dj
+            if dj >= INF and cur.depth[r, c] >= INF:
+                dd = 0.0
+            wgt = b3(dx) * b3(dy) * wp.exp(-wp.min(wp.abs(dd), 1.0e3) / SIGMA_D)
+            acc += wgt * cur.alpha[r, c]
+            wsum += wgt
+    a = acc / wsum
+    if has_history != 0:
+        src = reproject(cam, prev_cam, row, col, dj)
+        if src[0] >= 0:
+            prev = history.alpha[src[0], src[1]]
+            e = wp.exp(-(1.0 + wp.abs(a - prev)))
+            # Eq. 14 as printed subtracts the history; the blend it describes adds it: (a + e prev) / (1 + e).
+            a = (a + e * prev) / (1.0 + e)
+    out[row, col] = a
+
+
+@wp.kernel
+def composite_kernel(cur: Classes, f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3),
+                     alpha: wp.array2d(dtype=float), buffers: ViewBuffers):
+    """Step 5, Eq. 15: the classes' n-weighted F_x F_L, over the surface colour by alpha (premultiplied)."""
+    row, col = wp.tid()
+    shade = wp.vec3(0.0)
+    total = float(0.0)
+    for k in range(2):
+        n = cur.n[row, col, k]
+        shade += n * wp.cw_mul(f_x[row, col, k], f_l[row, col, k])
+        total += n
+    if total > 0.0:
+        shade = shade / total
+    a = alpha[row, col]
+    s = buffers.occluder_color[row, col]
+    rgb = a * shade + (1.0 - a) * wp.vec3(s[0], s[1], s[2])
+    buffers.image[row, col] = wp.vec4(rgb[0], rgb[1], rgb[2], a + (1.0 - a) * s[3])
+
+
+@dataclass
+class History:
+    classes: Classes
+    camera: CameraGPU
+
+
+class Denoiser:
+    """Runs steps 1-5 for one view and keeps that view's history (denoised classes, alpha, camera)."""
+
+    def __init__(self, device: str) -> None:
+        self.device = device
+        self.history: dict[int, History] = {}
+
+    def run(self, view: int, cam: CameraGPU, records, buffers: ViewBuffers) -> None:
+        h, w = buffers.image.shape
+        dev = self.device
+        cur = new_classes(h, w, dev)
+        wp.launch(cluster_kernel, dim=(h, w), inputs=[records.f_x, records.f_l, records.depth, records.density, cur],
+                  device=dev)
+        past = self.history.get(view)
+        valid = int(past is not None and past.classes.alpha.shape == (h, w))
+        prev_classes = past.classes if valid else cur
+        prev_cam = past.camera if valid else cam
+        f_x = wp.empty((h, w, 2), dtype=wp.vec3, device=dev)
+        wp.launch(hdln_kernel, dim=(h, w), inputs=[cur, cam, prev_cam, prev_classes, valid, f_x], device=dev)
+        first = wp.empty((h, w, 2), dtype=wp.vec3, device=dev)
+        second = wp.empty((h, w, 2), dtype=wp.vec3, device=dev)
+        wp.launch(atrous_kernel, dim=(h, w), inputs=[cur, f_x, cur.f_l, 1, first], device=dev)
+        wp.launch(atrous_kernel, dim=(h, w), inputs=[cur, f_x, first, 2, second], device=dev)
+        f_l = wp.empty((h, w, 2), dtype=wp.vec3, device=dev)
+        wp.launch(ldhn_temporal_kernel, dim=(h, w), inputs=[cur, second, cam, prev_cam, prev_classes, valid, f_l],
+                  device=dev)
+        alpha = wp.empty((h, w), dtype=float, device=dev)
+        wp.launch(alpha_kernel, dim=(h, w), inputs=[cur, cam, prev_cam, prev_classes, valid, alpha], device=dev)
+        wp.launch(composite_kernel, dim=(h, w), inputs=[cur, f_x, f_l, alpha, buffers], device=dev)
+        denoised = Classes()
+        denoised.f_x, denoised.f_l, denoised.n, denoised.alpha, denoised.depth = f_x, f_l, cur.n, alpha, cur.depth
+        self.history[view] = History(denoised, cam)
