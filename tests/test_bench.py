@@ -63,9 +63,12 @@ def test_viewers_suite_rows_and_goals():
 def test_vpt_suite_rows_and_goals():
     from volren.bench.vpt import run_config
 
-    cfg = {"resolution": 64, "size": (24, 20), "spp": [1, 2], "variance_frames": 3, "variance_spp": 1, "repeats": 1}
+    cfg = {"resolution": 64, "size": (24, 20), "spp": [1, 2], "variance_frames": 3, "variance_spp": 1, "repeats": 1,
+           "denoise_size": (24, 20), "denoise_spp": 2, "rotation_frames": 3, "reference_spp": 8, "variance_at": 2,
+           "variance_sequences": 3, "orbit_frames": 2, "settle_frames": 3}
     result = run_config(cfg, "cpu")
     tables = {r["table"] for r in result["rows"]}
-    assert tables == {"spp", "global majorant", "shading"}
+    assert tables == {"spp", "global majorant", "shading", "denoiser"}
     summary, _ = result["summary"]
-    assert len(summary) == 3 and all(s["variance_ratio"] > 0 for s in summary)
+    assert len(summary) == 4 and all(s["variance_ratio"] > 0 for s in summary[:3])
+    assert summary[3]["variance_ours_over_svgf"] > 0

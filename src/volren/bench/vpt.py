@@ -3,8 +3,11 @@
 surface-medium coexistence model's per-pixel variance against Exposure Render's at equal spp and equal mean).
 
 Scenes: the phantom with the CT muscle/skin transfer function, the phantom with the bone preset (CT-like, mostly
-empty: where skipping pays), and the smoke plume with extinction proportional to density. The denoiser rows of the
-issue (raw and denoised PSNR along a rotation, output variance, convergence) wait for the denoiser.
+empty: where skipping pays), and the smoke plume with extinction proportional to density.
+Denoisers (phantom, ct-muscle; none, ours, SVGF): (b) PSNR against a high-spp reference per frame along a rotation
+with a rotating light (Fig. 12); (c) §6.4.3's variance test: frame ``variance_at`` rendered with
+``variance_sequences`` random sequences on the same history, the summed per-pixel variance of the outputs; (d)
+§6.4.4's convergence: after an orbit stops, the frames until the RMSE between consecutive frames falls below 0.01.
 Full (GPU): 256^3, 1440x1190 (the paper's viewport), spp 1-32. Quick (CPU): 64^3, 128x106, spp 1-8.
 """
 
@@ -20,14 +23,69 @@ from volren.data import builtin_scene
 from volren.render import VPT, VPTConfig
 
 FULL = {"resolution": 256, "size": (1440, 1190), "spp": [1, 2, 4, 8, 16, 32], "variance_frames": 32,
-        "variance_spp": 4, "repeats": 3}
+        "variance_spp": 4, "repeats": 3, "denoise_size": (480, 396), "denoise_spp": 8, "rotation_frames": 60,
+        "reference_spp": 1024, "variance_at": 30, "variance_sequences": 50, "orbit_frames": 10,
+        "settle_frames": 60}
 QUICK = {"resolution": 64, "size": (128, 106), "spp": [1, 2, 4, 8], "variance_frames": 16, "variance_spp": 2,
-         "repeats": 2}
+         "repeats": 2, "denoise_size": (96, 80), "denoise_spp": 4, "rotation_frames": 12, "reference_spp": 256,
+         "variance_at": 8, "variance_sequences": 8, "orbit_frames": 6, "settle_frames": 30}
+DENOISERS = ("none", "ours", "svgf")
 CASES = [("phantom", "ct-muscle"), ("phantom", "ct-bone"), ("smoke", None)]
 
 
 def case_name(scene: str, transfer: str | None) -> str:
     return f"{scene} ({transfer or 'density'})"
+
+
+def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[str, dict]]:
+    """Rows (b)-(d) for each denoiser, and per denoiser its mean PSNR, variance and convergence frames."""
+    import dataclasses
+
+    from volren.animate import Sequence, frame_scene, frame_views
+    from volren.metrics import psnr
+
+    scene = builtin_scene("phantom", cfg["resolution"])
+    cam = Camera(position=(1.6, 1.2, 2.4), width=cfg["denoise_size"][0], height=cfg["denoise_size"][1], fov_y=40.0)
+    seq = Sequence(frames=cfg["rotation_frames"], orbit=90.0, light_orbit=180.0)
+    reference = VPT(VPTConfig(spp=cfg["reference_spp"], transfer="ct-muscle"), device)
+    refs = [reference.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
+            for i in range(seq.frames)]
+    rows, result = [], {}
+    for name in DENOISERS:
+        config = VPTConfig(spp=cfg["denoise_spp"], transfer="ct-muscle", denoise=name)
+        r = VPT(config, device)
+        scores = [psnr(refs[i], r.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0])
+                  for i in range(seq.frames)]
+        # (c): the same history, different random sequences for one more frame.
+        r = VPT(config, device)
+        for i in range(cfg["variance_at"]):
+            r.render(scene, [cam], i)
+        saved = dict(r._denoiser.history) if name != "none" else {}
+        outputs = []
+        for k in range(cfg["variance_sequences"]):
+            r.config = dataclasses.replace(config, seed=1000 + k)
+            if saved:
+                r._denoiser.history = dict(saved)
+            outputs.append(r.render(scene, [cam], cfg["variance_at"]).images[0][..., :3])
+        variance = float(np.stack(outputs).var(axis=0, ddof=1).sum())
+        # (d): orbit, stop, count frames until consecutive frames differ by RMSE < 0.01.
+        r = VPT(config, device)
+        orbit = Sequence(frames=cfg["orbit_frames"], orbit=30.0)
+        for i in range(orbit.frames):
+            last = r.render(scene, frame_views(orbit, [cam], i), i).images[0]
+        still = frame_views(orbit, [cam], orbit.frames - 1)
+        settle = cfg["settle_frames"]
+        for k in range(1, cfg["settle_frames"] + 1):
+            image = r.render(scene, still, orbit.frames + k).images[0]
+            if float(np.sqrt(np.mean((image - last) ** 2))) < 0.01:
+                settle = k
+                break
+            last = image
+        result[name] = {"psnr": float(np.mean(scores)), "variance": variance, "settle": settle}
+        rows.append({"table": "denoiser", "scene": "phantom (ct-muscle)", "spp": cfg["denoise_spp"], "method": name,
+                     "psnr": float(np.mean(scores)), "psnr_min": float(np.min(scores)),
+                     "output_variance": variance, "settle_frames": settle})
+    return rows, result
 
 
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
@@ -63,20 +121,34 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             "octree_speedup": flat["frame_ms"] / octree["frame_ms"],
             "lookup_ratio": octree["density_lookups"] / max(flat["density_lookups"], 1),
         })
+    denoise_rows, denoisers = denoiser_rows(cfg, device)
+    rows += denoise_rows
+    summary.append({"scene": "phantom (ct-muscle), denoisers",
+                    "psnr_ours_minus_svgf": denoisers["ours"]["psnr"] - denoisers["svgf"]["psnr"],
+                    "psnr_ours_minus_raw": denoisers["ours"]["psnr"] - denoisers["none"]["psnr"],
+                    "variance_ours_over_svgf": denoisers["ours"]["variance"] / denoisers["svgf"]["variance"],
+                    "settle_ours": denoisers["ours"]["settle"], "settle_svgf": denoisers["svgf"]["settle"]})
     columns = [
-        ("table", "table", "s"), ("scene", "scene", "s"), ("spp", "spp", "d"), ("method", "shading", "s"),
+        ("table", "table", "s"), ("scene", "scene", "s"), ("spp", "spp", "d"), ("method", "shading / denoiser", "s"),
         ("frame_ms", "frame [ms]", ".1f"), ("paths_per_s", "paths/s", ",.0f"),
         ("density_lookups", "density lookups", ","), ("light_lookups", "transmittance lookups", ","),
         ("majorant_bytes", "majorant bytes", ","), ("majorant_build_ms", "majorant build [ms]", ".1f"),
         ("image_mean", "image mean", ".5f"), ("pixel_variance_sum", "summed pixel variance", ".4f"),
+        ("psnr", "mean PSNR [dB]", ".2f"), ("psnr_min", "min PSNR [dB]", ".2f"),
+        ("output_variance", "output variance", ".4f"), ("settle_frames", "frames to settle", "d"),
     ]
     summary_columns = [
         ("scene", "scene", "s"), ("variance_ratio", "variance coexist / ER (goal < 1)", ".3f"),
         ("mean_ratio", "mean coexist / ER (goal 1)", ".4f"),
         ("octree_speedup", "time global majorant / octree", ".2f"),
         ("lookup_ratio", "lookups octree / global", ".3f"),
+        ("psnr_ours_minus_svgf", "PSNR ours - SVGF [dB] (goal > 0)", ".2f"),
+        ("psnr_ours_minus_raw", "PSNR ours - raw [dB]", ".2f"),
+        ("variance_ours_over_svgf", "output variance ours / SVGF (goal < 1)", ".3f"),
+        ("settle_ours", "frames to settle, ours (goal < SVGF)", "d"), ("settle_svgf", "same, SVGF", "d"),
     ]
-    settings = {k: v for k, v in cfg.items() if k != "size"} | {"size": "x".join(map(str, cfg["size"])),
+    settings = {k: v for k, v in cfg.items() if k not in ("size", "denoise_size")} | {
+                "size": "x".join(map(str, cfg["size"])), "denoise_size": "x".join(map(str, cfg["denoise_size"])),
                                                                  "cases": [case_name(*c) for c in CASES]}
     return {"settings": settings, "rows": rows, "columns": columns, "summary": (summary, summary_columns)}
 

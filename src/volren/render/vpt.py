@@ -52,7 +52,7 @@ from volren.kernels.common import (
     sample_grid,
 )
 from volren.render.base import Renderer, frame_seed
-from volren.render.denoise import Denoiser
+from volren.render.denoise import SVGF, Denoiser
 from volren.render.environment import ENV_NONE, EnvironmentLight, environment_light, sample_environment
 from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, SHADOW_RAYS, PassClock
 from volren.render.majorants import (
@@ -68,7 +68,7 @@ from volren.transfer import TransferFunction, linear, load_transfer_function
 from volren.upload import DeviceScene, camera_struct
 
 SHADING = ("coexist", "er")
-DENOISERS = ("none", "ours")
+DENOISERS = ("none", "ours", "svgf")
 MAX_BOUNCES = 64
 MAX_SPP = 4096
 
@@ -94,7 +94,8 @@ class VPTConfig:
     clip: tuple[float, float, float, float, float, float] = (-1.0, 1.0, -1.0, 1.0, -1.0, 1.0)
     """x0, x1, y0, y1, z0, z1 in each volume's local coordinates [-1, 1]"""
     denoise: str = "none"
-    """none, or ours (the spatiotemporal denoiser of §5, `volren.render.denoise`; keeps history across frames)"""
+    """none, ours (the spatiotemporal denoiser of §5) or svgf (the baseline), `volren.render.denoise`; both keep
+    history across frames"""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -406,7 +407,7 @@ class VPT(Renderer):
         """(key, host majorants, VPTScene fields that depend only on densities and the transfer function)"""
         self._environment: tuple | None = None
         self._scene: VPTScene | None = None
-        self._denoiser = Denoiser(self.device)
+        self._denoiser = {"ours": Denoiser, "svgf": SVGF}.get(self.config.denoise, Denoiser)(self.device)
 
     def _transfer(self, scene) -> list[TransferFunction]:
         """The transfer function of each volume: the configured one, or each volume's density-scale model."""
