@@ -7,7 +7,8 @@ empty: where skipping pays), and the smoke plume with extinction proportional to
 Denoisers (phantom, ct-muscle; none, ours, SVGF): (b) PSNR against a high-spp reference per frame along a rotation
 with a rotating light (Fig. 12); (c) §6.4.3's variance test: frame ``variance_at`` rendered with
 ``variance_sequences`` random sequences on the same history, the summed per-pixel variance of the outputs; (d)
-§6.4.4's convergence: after an orbit stops, the frames until the RMSE between consecutive frames falls below 0.01.
+§6.4.4's convergence: after an orbit stops, the frames until the RMSE between consecutive frames falls below 0.01;
+(e) ghosting: the mean PSNR of the 3 frames right after the transfer function switches from ct-muscle to ct-bone.
 Full (GPU): 256^3, 1440x1190 (the paper's viewport), spp 1-32. Quick (CPU): 64^3, 128x106, spp 1-8.
 """
 
@@ -50,6 +51,7 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
     reference = VPT(VPTConfig(spp=cfg["reference_spp"], transfer="ct-muscle"), device)
     refs = [reference.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
             for i in range(seq.frames)]
+    switched_ref = VPT(VPTConfig(spp=cfg["reference_spp"], transfer="ct-bone"), device).render(scene, [cam]).images[0]
     rows, result = [], {}
     for name in DENOISERS:
         config = VPTConfig(spp=cfg["denoise_spp"], transfer="ct-muscle", denoise=name)
@@ -81,10 +83,17 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
                 settle = k
                 break
             last = image
-        result[name] = {"psnr": float(np.mean(scores)), "variance": variance, "settle": settle}
+        # Ghosting after a transfer-function switch: PSNR of the frames right after it against the new reference.
+        r = VPT(config, device)
+        for i in range(cfg["variance_at"]):
+            r.render(scene, [cam], i)
+        r.config = dataclasses.replace(config, transfer="ct-bone")
+        after = [psnr(switched_ref, r.render(scene, [cam], cfg["variance_at"] + k).images[0]) for k in range(3)]
+        result[name] = {"psnr": float(np.mean(scores)), "variance": variance, "settle": settle,
+                        "switch": float(np.mean(after))}
         rows.append({"table": "denoiser", "scene": "phantom (ct-muscle)", "spp": cfg["denoise_spp"], "method": name,
                      "psnr": float(np.mean(scores)), "psnr_min": float(np.min(scores)),
-                     "output_variance": variance, "settle_frames": settle})
+                     "output_variance": variance, "settle_frames": settle, "switch_psnr": result[name]["switch"]})
     return rows, result
 
 
@@ -127,7 +136,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
                     "psnr_ours_minus_svgf": denoisers["ours"]["psnr"] - denoisers["svgf"]["psnr"],
                     "psnr_ours_minus_raw": denoisers["ours"]["psnr"] - denoisers["none"]["psnr"],
                     "variance_ours_over_svgf": denoisers["ours"]["variance"] / denoisers["svgf"]["variance"],
-                    "settle_ours": denoisers["ours"]["settle"], "settle_svgf": denoisers["svgf"]["settle"]})
+                    "settle_ours": denoisers["ours"]["settle"], "settle_svgf": denoisers["svgf"]["settle"],
+                    "switch_ours_minus_raw": denoisers["ours"]["switch"] - denoisers["none"]["switch"]})
     columns = [
         ("table", "table", "s"), ("scene", "scene", "s"), ("spp", "spp", "d"), ("method", "shading / denoiser", "s"),
         ("frame_ms", "frame [ms]", ".1f"), ("paths_per_s", "paths/s", ",.0f"),
@@ -136,6 +146,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("image_mean", "image mean", ".5f"), ("pixel_variance_sum", "summed pixel variance", ".4f"),
         ("psnr", "mean PSNR [dB]", ".2f"), ("psnr_min", "min PSNR [dB]", ".2f"),
         ("output_variance", "output variance", ".4f"), ("settle_frames", "frames to settle", "d"),
+        ("switch_psnr", "PSNR after a TF switch [dB]", ".2f"),
     ]
     summary_columns = [
         ("scene", "scene", "s"), ("variance_ratio", "variance coexist / ER (goal < 1)", ".3f"),
@@ -146,6 +157,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("psnr_ours_minus_raw", "PSNR ours - raw [dB]", ".2f"),
         ("variance_ours_over_svgf", "output variance ours / SVGF (goal < 1)", ".3f"),
         ("settle_ours", "frames to settle, ours (goal < SVGF)", "d"), ("settle_svgf", "same, SVGF", "d"),
+        ("switch_ours_minus_raw", "PSNR after a TF switch, ours - raw [dB] (no ghosting: > 0)", ".2f"),
     ]
     settings = {k: v for k, v in cfg.items() if k not in ("size", "denoise_size")} | {
                 "size": "x".join(map(str, cfg["size"])), "denoise_size": "x".join(map(str, cfg["denoise_size"])),
