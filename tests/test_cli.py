@@ -990,3 +990,18 @@ def test_vpt_options_on_a_loaded_volume(capfd, tmp_path: Path) -> None:
 def test_vpt_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: str) -> None:
     assert_error(capfd, ["render", "--method", "vpt", "--scene", "smoke", "--width", "8", "--height", "8",
                          "--device", "cpu", "--out", tmp_path / "o", *extra], fragment)
+
+
+@pytest.mark.parametrize("denoise", ["ours", "svgf"])
+def test_vpt_denoise_and_rect_light_options(capfd, tmp_path: Path, denoise: str) -> None:
+    out = tmp_path / denoise
+    ok(capfd, "render", "--method", "vpt", "--scene", "cloud", "--resolution", "64", "--width", "24", "--height", "16",
+       "--spp", "2", "--frames", "2", "--denoise", denoise, "--rect-light", "0,3,0,1,1,20", "--views", "mono",
+       "--device", "cpu", "--out", out)
+    frame = stats_of(out)["frames"][1]
+    assert frame["settings"]["denoise"] == denoise and "denoise" in frame["times_ms"]
+
+
+def test_bad_rect_light(capfd, tmp_path: Path) -> None:
+    assert_error(capfd, ["render", "--method", "vpt", "--scene", "cloud", "--rect-light", "0,3,0,0,1,20", "--device",
+                         "cpu", "--out", tmp_path / "o"], "positive width")

@@ -95,6 +95,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     mat.add_argument("--emission", type=rgb, help="emitted radiance per unit density per metre: e or r,g,b")
     mat.add_argument("--light-dir", type=vec3, help="direction the light travels: x,y,z")
     mat.add_argument("--light-irradiance", type=rgb, help="directional light irradiance [W/m^2]: e or r,g,b")
+    mat.add_argument("--rect-light", type=floats6, action="append", default=[], help="x,y,z,width,height,radiance: "
+                     "a rectangular area light at x,y,z facing the origin (repeatable)")
     mat.add_argument("--ambient", type=rgb, help="constant environment radiance: l or r,g,b")
     mat.add_argument("--environment", type=Path,
                      help="equirectangular environment (.npy linear, or PNG/JPEG sRGB); its mean is the ambient")
@@ -233,6 +235,7 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
             lights.append(new)
         else:
             lights[idx] = new
+    lights += [rect_light(*r) for r in args.rect_light]
     if args.ambient is not None and args.environment is not None:
         raise CliError("give either --ambient or --environment, not both")
     opaque = list(scene.opaque) + [Sphere(tuple(s[:3]), s[3]) for s in args.sphere]
@@ -249,6 +252,27 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     background = args.background if args.background is not None else scene.background
     return dataclasses.replace(scene, volumes=volumes, lights=tuple(lights), environment=environment,
                                background=background, opaque=tuple(opaque))
+
+
+def rect_light(x: float, y: float, z: float, width: float, height: float, radiance: float):
+    """``--rect-light``: a width x height rectangle at (x, y, z) facing the origin (its height along the world's up,
+    projected)."""
+    import numpy as np
+
+    from volren.scene import RectLight
+
+    if not (width > 0 and height > 0):
+        raise CliError(f"--rect-light needs a positive width and height, got {width} and {height}")
+    position = np.array([x, y, z])
+    if np.linalg.norm(position) < 1e-9:
+        raise CliError("--rect-light cannot sit at the origin it faces")
+    normal = -position / np.linalg.norm(position)
+    up = np.array([0.0, 1.0, 0.0]) if abs(normal[1]) < 0.99 else np.array([1.0, 0.0, 0.0])
+    u = np.cross(up, normal)
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    # Emission faces edge_u x edge_v = normal.
+    return RectLight(tuple(position), tuple(0.5 * width * u), tuple(0.5 * height * v), (radiance,) * 3)
 
 
 def views_from_args(args: argparse.Namespace, time: float = 0.0):
