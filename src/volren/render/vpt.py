@@ -162,9 +162,14 @@ def clipped_span(vol: VolumeGPU, params: VPTParams, o: wp.vec3, d: wp.vec3) -> w
 
 
 @wp.func
-def free_flight(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, t_max: float, state: wp.uint32):
-    """Nearest real collision along the world ray x + t d, t in (0, t_max): (t or INF, volume index, state, lookups)."""
+def track_volumes(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, t_max: float, ratio: int,
+                  state: wp.uint32):
+    """Null-collision tracking of the world ray x + t d, t in (0, t_max), through every volume (`track` per volume).
+    ratio = 0: the nearest real collision, the nearest of the volumes' own (each volume's span is cut at the best so
+    far): (t or INF, volume index, state, lookups). ratio = 1: the product of the volumes' ratio-tracked
+    transmittances: (transmittance, -1, state, lookups)."""
     best = t_max
+    value = float(1.0)
     hit = int(-1)
     lookups = int(0)
     for v in range(sc.volumes.shape[0]):
@@ -174,17 +179,27 @@ def free_flight(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, t_max: 
         span = clipped_span(vol, params, o, dl)
         t0 = wp.max(span[0], 0.0)
         t1 = wp.min(span[1], best)
-        if t1 > t0:
-            t, s2, n = track(sc.grids[v], sc.majorants, sc.density, vol.offset, vol.res, sc.inv_scale[v], sc.table,
-                             v * sc.table_size, sc.table_size, o, dl, t0, t1, 0, state)
+        if t1 > t0 and value > 0.0:
+            w, s2, n = track(sc.grids[v], sc.majorants, sc.density, vol.offset, vol.res, sc.inv_scale[v], sc.table,
+                             v * sc.table_size, sc.table_size, o, dl, t0, t1, ratio, state)
             state = s2
             lookups += n
-            if t < best:
-                best = t
+            if ratio != 0:
+                value = value * w
+            elif w < best:
+                best = w
                 hit = v
+    if ratio != 0:
+        return value, hit, state, lookups
     if hit < 0:
         best = INF
     return best, hit, state, lookups
+
+
+@wp.func
+def free_flight(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, t_max: float, state: wp.uint32):
+    """Nearest real collision along the world ray x + t d, t in (0, t_max): (t or INF, volume index, state, lookups)."""
+    return track_volumes(sc, params, x, d, t_max, 0, state)
 
 
 @wp.func
@@ -192,22 +207,8 @@ def transmittance(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, dist:
     """Ratio-tracked transmittance from x towards d over dist through every volume (0 behind an opaque surface)."""
     if occluded(x, d, dist, sc.opaque, sc.mesh_ids):
         return 0.0, state, 0
-    tr = float(1.0)
-    lookups = int(0)
-    for v in range(sc.volumes.shape[0]):
-        vol = sc.volumes[v]
-        o = wp.transform_point(vol.to_local, x)
-        dl = wp.transform_vector(vol.to_local, d)
-        span = clipped_span(vol, params, o, dl)
-        t0 = wp.max(span[0], 0.0)
-        t1 = wp.min(span[1], dist)
-        if t1 > t0 and tr > 0.0:
-            w, s2, n = track(sc.grids[v], sc.majorants, sc.density, vol.offset, vol.res, sc.inv_scale[v], sc.table,
-                             v * sc.table_size, sc.table_size, o, dl, t0, t1, 1, state)
-            state = s2
-            lookups += n
-            tr = tr * w
-    return tr, state, lookups
+    tr, _hit, s2, lookups = track_volumes(sc, params, x, d, dist, 1, state)
+    return tr, s2, lookups
 
 
 @wp.func
