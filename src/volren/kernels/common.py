@@ -202,6 +202,13 @@ def cell_fraction(f: wp.vec3, cell: wp.vec3i) -> wp.vec3:
 
 
 @wp.func
+def corner_weight(n: int, a: wp.vec3) -> float:
+    """Trilinear weight of corner n of a cell (bit 0: +x, bit 1: +y, bit 2: +z) at fractional position a."""
+    w = wp.where(n % 2 == 1, a[0], 1.0 - a[0]) * wp.where((n / 2) % 2 == 1, a[1], 1.0 - a[1])
+    return w * wp.where(n / 4 == 1, a[2], 1.0 - a[2])
+
+
+@wp.func
 def interpolate_cell(v: vec8, a: wp.vec3) -> float:
     """Trilinear interpolation of a gathered cell at fractional position ``a`` in [0, 1]^3."""
     c00 = wp.lerp(v[0], v[1], a[0])

@@ -37,6 +37,7 @@ from volren.kernels.common import (
     LightGPU,
     OpaqueGPU,
     ViewBuffers,
+    corner_weight,
     count,
     light_distance,
     light_irradiance,
@@ -147,10 +148,9 @@ def in_frusta(cams: wp.array(dtype=CameraGPU), far: float, x: wp.vec3, margin: f
         z = wp.dot(q, cam.forward)
         if z > -margin and z < far + margin:
             zc = wp.max(z, 0.0)
-            rx = zc * cam.tan_half_fov * cam.aspect + margin * wp.sqrt(1.0 + cam.tan_half_fov * cam.tan_half_fov
-                                                                         * (1.0 + cam.aspect * cam.aspect))
-            ry = zc * cam.tan_half_fov + margin * wp.sqrt(1.0 + cam.tan_half_fov * cam.tan_half_fov
-                                                          * (1.0 + cam.aspect * cam.aspect))
+            slack = margin * wp.sqrt(1.0 + cam.tan_half_fov * cam.tan_half_fov * (1.0 + cam.aspect * cam.aspect))
+            rx = zc * cam.tan_half_fov * cam.aspect + slack
+            ry = zc * cam.tan_half_fov + slack
             if wp.abs(wp.dot(q, cam.right)) <= rx and wp.abs(wp.dot(q, cam.up)) <= ry:
                 return True
     return False
@@ -181,6 +181,24 @@ def shadow_grid_kernel(
     count(counters, SHADOW_RAYS, occ.lights.shape[0])
 
 
+@wp.func
+def froxel_centre(cams: wp.array(dtype=CameraGPU), grids: wp.array(dtype=FroxelGrid), slices: int, ny: int, row: int,
+                  ix: int, jitter: float):
+    """Froxel (view, k, iy, ix) of a stacked launch's cell (row, ix), rows ordered (view, slice, iy): (view, k, iy,
+    unit ray direction, world point at the jittered slice depth, 0 past the viewer's own grid else 1)."""
+    view = row / (slices * ny)
+    k = (row / ny) % slices
+    iy = row % ny
+    cam = cams[view]
+    g = grids[view]
+    inside = int(1)
+    if ix >= g.nx or iy >= g.ny:
+        inside = 0
+    d = froxel_ray(cam, g, ix, iy)
+    x = cam.origin + d * (slice_depth(g, float(k) + jitter) / wp.dot(d, cam.forward))
+    return view, k, iy, d, x, inside
+
+
 @wp.kernel
 def shadow_frustum_kernel(
     cams: wp.array(dtype=CameraGPU),
@@ -195,16 +213,9 @@ def shadow_frustum_kernel(
 ):
     """(b) Every viewer's shadow frustum in one launch: coarse froxels over the first ``slices`` slices."""
     r, ix = wp.tid()
-    row = r + row0
-    view = row / (slices * ny)
-    k = (row / ny) % slices
-    iy = row % ny
-    cam = cams[view]
-    g = grids[view]
-    if ix >= g.nx or iy >= g.ny:
+    view, k, iy, _d, x, inside = froxel_centre(cams, grids, slices, ny, r + row0, ix, jitter)
+    if inside == 0:
         return
-    d = froxel_ray(cam, g, ix, iy)
-    x = cam.origin + d * (slice_depth(g, float(k) + jitter) / wp.dot(d, cam.forward))
     bits[view, k, iy, ix] = wp.uint8(visibility_bits(occ, x))
     count(counters, SHADOW_RAYS, occ.lights.shape[0])
 
@@ -231,9 +242,7 @@ def grid_visibility(grid: ShadowGrid, x: wp.vec3, light: int, trilinear: int) ->
         i = wp.clamp(i0 + n % 2, 0, grid.res[0] - 1)
         j = wp.clamp(j0 + (n / 2) % 2, 0, grid.res[1] - 1)
         k = wp.clamp(k0 + n / 4, 0, grid.res[2] - 1)
-        w = wp.where(n % 2 == 1, a[0], 1.0 - a[0]) * wp.where((n / 2) % 2 == 1, a[1], 1.0 - a[1])
-        w = w * wp.where(n / 4 == 1, a[2], 1.0 - a[2])
-        vis += w * float((int(grid.bits[k, j, i]) >> light) & 1)
+        vis += corner_weight(n, a) * float((int(grid.bits[k, j, i]) >> light) & 1)
     return vis
 
 
@@ -263,30 +272,25 @@ def froxel_lighting_kernel(
     """(1) Lighting of every froxel of every viewer: (S, sigma_t), blended with the reprojected history when
     weight < 1. Visibility by shadow rays (mode VIS_TRACE) or from the shadow frustum / grid (VIS_SHARED)."""
     r, ix = wp.tid()
-    row = r + row0
-    view = row / (slices * ny)
-    k = (row / ny) % slices
-    iy = row % ny
-    cam = cams[view]
-    g = grids[view]
-    if ix >= g.nx or iy >= g.ny:
+    view, k, iy, d, x, inside = froxel_centre(cams, grids, slices, ny, r + row0, ix, jitter)
+    if inside == 0:
         return
-    d = froxel_ray(cam, g, ix, iy)
-    x = cam.origin + d * (slice_depth(g, float(k) + jitter) / wp.dot(d, cam.forward))
-    radiance = ambient
+    g = grids[view]
+    # Light bitmask from shadow rays or the shadow frustum; -1: read the shadow grid per light (maybe trilinear).
+    bits = int(-1)
     rays = int(0)
+    if mode == VIS_TRACE:
+        bits = visibility_bits(occ, x)
+        rays = occ.lights.shape[0]
+    elif k < frustum_slices:
+        fx = wp.min(ix * g.tile / frustum_tile, frustum_bits.shape[3] - 1)
+        fy = wp.min(iy * g.tile / frustum_tile, frustum_bits.shape[2] - 1)
+        bits = int(frustum_bits[view, k, fy, fx])
+    radiance = ambient
     for li in range(occ.lights.shape[0]):
         light = occ.lights[li]
-        vis = float(0.0)
-        if mode == VIS_TRACE:
-            rays += 1
-            if not occluded(x, -light_travel_dir(light, x), light_distance(light, x), occ.opaque, occ.mesh_ids):
-                vis = 1.0
-        elif k < frustum_slices:
-            fx = wp.min(ix * g.tile / frustum_tile, frustum_bits.shape[3] - 1)
-            fy = wp.min(iy * g.tile / frustum_tile, frustum_bits.shape[2] - 1)
-            vis = float((int(frustum_bits[view, k, fy, fx]) >> li) & 1)
-        else:
+        vis = float((bits >> li) & 1)
+        if bits < 0:
             vis = grid_visibility(grid, x, li, trilinear)
         if vis > 0.0:
             radiance += vis * light_phase(fog, light_travel_dir(light, x), d) * light_irradiance(light, x)
@@ -349,17 +353,13 @@ def integrated_at(integrated: wp.array4d(dtype=wp.vec4), view: int, g: FroxelGri
     x0 = int(wp.floor(fx))
     y0 = int(wp.floor(fy))
     k0 = wp.min(int(wp.floor(w)), g.slices - 1)
-    ax = fx - float(x0)
-    ay = fy - float(y0)
-    ak = w - float(k0)
+    a = wp.vec3(fx - float(x0), fy - float(y0), w - float(k0))
     acc = wp.vec4(0.0)
     for n in range(8):
         i = wp.clamp(x0 + n % 2, 0, g.nx - 1)
         j = wp.clamp(y0 + (n / 2) % 2, 0, g.ny - 1)
         k = k0 + n / 4
-        wgt = wp.where(n % 2 == 1, ax, 1.0 - ax) * wp.where((n / 2) % 2 == 1, ay, 1.0 - ay)
-        wgt = wgt * wp.where(n / 4 == 1, ak, 1.0 - ak)
-        acc += wgt * integrated[view, k, j, i]
+        acc += corner_weight(n, a) * integrated[view, k, j, i]
     return acc
 
 

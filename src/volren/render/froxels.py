@@ -14,7 +14,7 @@ import math
 import warp as wp
 
 from volren.camera import Camera
-from volren.kernels.common import CameraGPU, hg_phase
+from volren.kernels.common import CameraGPU, corner_weight, hg_phase
 from volren.scene import Fog
 
 
@@ -133,9 +133,7 @@ def baked_density(fog: FogGPU, box: FogBoxGPU, q: wp.vec3) -> float:
         i = wp.clamp(i0 + n % 2, 0, box.res[0] - 1)
         j = wp.clamp(j0 + (n / 2) % 2, 0, box.res[1] - 1)
         k = wp.clamp(k0 + n / 4, 0, box.res[2] - 1)
-        w = wp.where(n % 2 == 1, a[0], 1.0 - a[0]) * wp.where((n / 2) % 2 == 1, a[1], 1.0 - a[1])
-        w = w * wp.where(n / 4 == 1, a[2], 1.0 - a[2])
-        acc += w * fog.baked[box.offset + (k * box.res[1] + j) * box.res[0] + i]
+        acc += corner_weight(n, a) * fog.baked[box.offset + (k * box.res[1] + j) * box.res[0] + i]
     return acc
 
 
