@@ -306,6 +306,23 @@ def alpha_kernel(cur: Classes, cam: CameraGPU, prev_cam: CameraGPU, history: Cla
     out[row, col] = a
 
 
+@wp.func
+def write_over_surface(buffers: ViewBuffers, row: int, col: int, shade: wp.vec3, a: float):
+    """The premultiplied pixel alpha * shade + (1 - alpha) * the opaque surface behind (Eq. 15's background)."""
+    s = buffers.occluder_color[row, col]
+    rgb = a * shade + (1.0 - a) * wp.vec3(s[0], s[1], s[2])
+    buffers.image[row, col] = wp.vec4(rgb[0], rgb[1], rgb[2], a + (1.0 - a) * s[3])
+
+
+@wp.func
+def class_mean(values: wp.array3d(dtype=wp.vec3), n: wp.array3d(dtype=float), row: int, col: int) -> wp.vec3:
+    """The pixel's two classes' values averaged by their sample counts (0 without samples)."""
+    total = n[row, col, 0] + n[row, col, 1]
+    if total > 0.0:
+        return (n[row, col, 0] * values[row, col, 0] + n[row, col, 1] * values[row, col, 1]) / total
+    return wp.vec3(0.0)
+
+
 @wp.kernel
 def composite_kernel(cur: Classes, f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3),
                      alpha: wp.array2d(dtype=float), buffers: ViewBuffers):
@@ -319,10 +336,7 @@ def composite_kernel(cur: Classes, f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array
         total += n
     if total > 0.0:
         shade = shade / total
-    a = alpha[row, col]
-    s = buffers.occluder_color[row, col]
-    rgb = a * shade + (1.0 - a) * wp.vec3(s[0], s[1], s[2])
-    buffers.image[row, col] = wp.vec4(rgb[0], rgb[1], rgb[2], a + (1.0 - a) * s[3])
+    write_over_surface(buffers, row, col, shade, alpha[row, col])
 
 
 @dataclass
@@ -331,19 +345,27 @@ class History:
     camera: CameraGPU
 
 
-class Denoiser:
-    """Runs steps 1-5 for one view and keeps that view's history (denoised classes, alpha, camera)."""
+class TemporalDenoiser:
+    """What both denoisers share: per-view history, and step 1 (the samples clustered into classes)."""
 
     def __init__(self, device: str) -> None:
         self.device = device
-        self.history: dict[int, History] = {}
+        self.history: dict[int, object] = {}
+
+    def classes(self, records, h: int, w: int) -> Classes:
+        cur = new_classes(h, w, self.device)
+        wp.launch(cluster_kernel, dim=(h, w), inputs=[records.f_x, records.f_l, records.depth, records.density, cur],
+                  device=self.device)
+        return cur
+
+
+class Denoiser(TemporalDenoiser):
+    """Runs steps 1-5 for one view and keeps that view's history (denoised classes, alpha, camera)."""
 
     def run(self, view: int, cam: CameraGPU, records, buffers: ViewBuffers) -> None:
         h, w = buffers.image.shape
         dev = self.device
-        cur = new_classes(h, w, dev)
-        wp.launch(cluster_kernel, dim=(h, w), inputs=[records.f_x, records.f_l, records.depth, records.density, cur],
-                  device=dev)
+        cur = self.classes(records, h, w)
         past = self.history.get(view)
         valid = int(past is not None and past.classes.alpha.shape == (h, w))
         prev_classes = past.classes if valid else cur
@@ -383,10 +405,7 @@ def svgf_temporal_kernel(cur: Classes, cam: CameraGPU, prev_cam: CameraGPU, has_
                          illum: wp.array2d(dtype=wp.vec3), moments: wp.array2d(dtype=wp.vec3)):
     """Accumulate illumination and (mean luminance, mean squared luminance, history length)."""
     row, col = wp.tid()
-    total = cur.n[row, col, 0] + cur.n[row, col, 1]
-    light = wp.vec3(0.0)
-    if total > 0.0:
-        light = (cur.n[row, col, 0] * cur.f_l[row, col, 0] + cur.n[row, col, 1] * cur.f_l[row, col, 1]) / total
+    light = class_mean(cur.f_l, cur.n, row, col)
     lum = luminance(light)
     m = wp.vec3(lum, lum * lum, 1.0)
     if has_history != 0:
@@ -452,29 +471,17 @@ def svgf_atrous_kernel(depth: wp.array2d(dtype=float), illum: wp.array2d(dtype=w
 @wp.kernel
 def svgf_composite_kernel(cur: Classes, illum: wp.array2d(dtype=wp.vec3), buffers: ViewBuffers):
     row, col = wp.tid()
-    total = cur.n[row, col, 0] + cur.n[row, col, 1]
-    albedo = wp.vec3(0.0)
-    if total > 0.0:
-        albedo = (cur.n[row, col, 0] * cur.f_x[row, col, 0] + cur.n[row, col, 1] * cur.f_x[row, col, 1]) / total
-    a = cur.alpha[row, col]
-    s = buffers.occluder_color[row, col]
-    rgb = a * wp.cw_mul(albedo, illum[row, col]) + (1.0 - a) * wp.vec3(s[0], s[1], s[2])
-    buffers.image[row, col] = wp.vec4(rgb[0], rgb[1], rgb[2], a + (1.0 - a) * s[3])
+    shade = wp.cw_mul(class_mean(cur.f_x, cur.n, row, col), illum[row, col])
+    write_over_surface(buffers, row, col, shade, cur.alpha[row, col])
 
 
-class SVGF:
+class SVGF(TemporalDenoiser):
     """SVGF for one or more views, with their history (accumulated illumination, moments, camera)."""
-
-    def __init__(self, device: str) -> None:
-        self.device = device
-        self.history: dict[int, tuple] = {}
 
     def run(self, view: int, cam: CameraGPU, records, buffers: ViewBuffers) -> None:
         h, w = buffers.image.shape
         dev = self.device
-        cur = new_classes(h, w, dev)
-        wp.launch(cluster_kernel, dim=(h, w), inputs=[records.f_x, records.f_l, records.depth, records.density, cur],
-                  device=dev)
+        cur = self.classes(records, h, w)
         past = self.history.get(view)
         valid = int(past is not None and past[0].shape == (h, w))
         prev_illum, prev_moments, prev_cam = past if valid else (
