@@ -56,8 +56,8 @@ from volren.kernels.common import (
     half_depth,
     interpolate_cell,
 )
-from volren.render.cmsrm import CMSRM, CMSRMConfig, CubeMaps, TileGroup
-from volren.render.cubemap import CubeLOD, eye_segment, texel_index, texel_point, tile_texel
+from volren.render.cmsrm import CMSRM, CMSRMConfig, TileGroup
+from volren.render.cubemap import CubeLOD, CubeTarget, eye_segment, store_texel, texel_index, texel_point, tile_texel
 from volren.render.dssrm import MarchParams, lit_step
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, PassClock
 from volren.render.interleave import interleave_tiles, quad_march_kernel
@@ -170,14 +170,8 @@ def coupled_march_kernel(
     vp: VSAParams,
     buffers0: ViewBuffers,
     buffers1: ViewBuffers,
-    cube0: wp.array(dtype=wp.vec4),
-    cube0_t: wp.array(dtype=float),
-    cube0_z: wp.array(dtype=float),
-    offset0: int,
-    cube1: wp.array(dtype=wp.vec4),
-    cube1_t: wp.array(dtype=float),
-    cube1_z: wp.array(dtype=float),
-    offset1: int,
+    target0: CubeTarget,
+    target1: CubeTarget,
     counters: wp.array(dtype=wp.int64),
     row0: int,
 ):
@@ -275,13 +269,9 @@ def coupled_march_kernel(
         pos = pos - m
         m = next_m
     texel = texel_index(q[0], q[1], q[2], size)
-    cube0[offset0 + texel] = acc0
-    cube0_t[offset0 + texel] = half0
-    cube0_z[offset0 + texel] = seg0[1] * seg0[2]
+    store_texel(target0, texel, acc0, half0, seg0[1] * seg0[2])
     if eyes == 2:
-        cube1[offset1 + texel] = acc1
-        cube1_t[offset1 + texel] = half1
-        cube1_z[offset1 + texel] = seg1[1] * seg1[2]
+        store_texel(target1, texel, acc1, half1, seg1[1] * seg1[2])
     count(counters, DENSITY_SAMPLES, samples)
     count(counters, SHARED_SAMPLES, shared)
     count(counters, LIGHTMAP_LOOKUPS, shaded * medium.lights.shape[0])
@@ -332,10 +322,9 @@ class CACRM(CMSRM):
         return [tuple(range(v, min(v + 2, n))) for v in range(0, n, 2)]
 
     def _launch_march(self, ds: DeviceScene, views: list[Camera], group: tuple[int, ...], v: int, level: VolumeGPU,
-                      tiles: TileGroup, samples: int, dest: list[tuple[CubeMaps, int]], targets: list[ViewBuffers],
+                      tiles: TileGroup, samples: int, dest: list[CubeTarget], targets: list[ViewBuffers],
                       clock: PassClock) -> None:
         first, last = group[0], group[-1]
-        (a, offset_a), (b, offset_b) = dest[0], dest[-1]
         # InS: one work item per 2x2 quad in the tiles where some quad can interleave; one per texel elsewhere.
         routes = [(coupled_march_kernel, tiles.origins, tiles.rows)]
         if self.config.interleave and self.config.vsa:
@@ -355,8 +344,8 @@ class CACRM(CMSRM):
                 cols,
                 [camera_struct(views[first]), camera_struct(views[last]), len(group), int(self.config.share_voxels),
                  level, origins, tiles.rows, tiles.apron, tiles.size, ds.medium(),
-                 self._params(ds, first, samples), self._vsa_params(), targets[first], targets[last],
-                 a.color, a.t_half, a.z_end, offset_a, b.color, b.t_half, b.z_end, offset_b],
+                 self._params(ds, first, samples), self._vsa_params(), targets[first], targets[last], dest[0],
+                 dest[-1]],
                 self.device,
                 clock.counters,
             )

@@ -59,12 +59,14 @@ from volren.render.cubemap import (
     FACE_COUNT,
     MAX_TILE_LEVEL,
     TILE,
+    CubeTarget,
     coarse_tiles,
     cube_lod,
     cube_sample,
     face_tiles,
     max_tile_level,
     point_face,
+    store_texel,
     texel_index,
     texel_point,
     tile_lod_kernel,
@@ -94,6 +96,12 @@ class CubeMaps:
     offsets: list[int]
     sizes: list[int]
     texels: int
+
+    def target(self, v: int) -> CubeTarget:
+        """Volume v's cube map, as the march kernels write it."""
+        t = CubeTarget()
+        t.color, t.t_half, t.z_end, t.offset = self.color, self.t_half, self.z_end, self.offsets[v]
+        return t
 
 
 @dataclass(frozen=True)
@@ -163,10 +171,7 @@ def cube_march_kernel(
     medium: Medium,
     params: MarchParams,
     buffers: ViewBuffers,
-    cube: wp.array(dtype=wp.vec4),
-    cube_t: wp.array(dtype=float),
-    cube_z: wp.array(dtype=float),
-    offset: int,
+    target: CubeTarget,
     counters: wp.array(dtype=wp.int64),
     row0: int,
 ):
@@ -193,10 +198,8 @@ def cube_march_kernel(
         if t1 > t0:
             count(counters, RAYS, 1)
             s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, medium, params)
-    texel = offset + texel_index(q[0], q[1], q[2], size)
-    cube[texel] = wp.vec4(s.color[0], s.color[1], s.color[2], s.transmittance)
-    cube_t[texel] = s.depth_t
-    cube_z[texel] = t1 * facing
+    store_texel(target, texel_index(q[0], q[1], q[2], size),
+                wp.vec4(s.color[0], s.color[1], s.color[2], s.transmittance), s.depth_t, t1 * facing)
     count(counters, DENSITY_SAMPLES, s.samples)
     count(counters, LIGHTMAP_LOOKUPS, s.shaded * medium.lights.shape[0])
 
@@ -218,16 +221,11 @@ def cube_compose_kernel(
     tiles: wp.array(dtype=wp.vec3i),
     tile: int,
     size: int,
-    coarse: wp.array(dtype=wp.vec4),
-    coarse_t: wp.array(dtype=float),
-    coarse_z: wp.array(dtype=float),
+    coarse: CubeTarget,
     coarse_size: int,
     k_z: float,
     buffers: ViewBuffers,
-    cube: wp.array(dtype=wp.vec4),
-    cube_t: wp.array(dtype=float),
-    cube_z: wp.array(dtype=float),
-    offset: int,
+    target: CubeTarget,
     counters: wp.array(dtype=wp.int64),
     row0: int,
 ):
@@ -246,10 +244,9 @@ def cube_compose_kernel(
     z = dist * facing
     if facing > 0.0:
         z = occluded_end(cam, buffers, x, dist, facing) * facing
-    texel = offset + texel_index(q[0], q[1], q[2], size)
-    cube[texel] = cube_sample(coarse, coarse_z, 0, coarse_size, p, z, k_z)
-    cube_t[texel] = cube_nearest_t(coarse_t, 0, coarse_size, p)
-    cube_z[texel] = z
+    store_texel(target, texel_index(q[0], q[1], q[2], size),
+                cube_sample(coarse.color, coarse.z_end, coarse.offset, coarse_size, p, z, k_z),
+                cube_nearest_t(coarse.t_half, coarse.offset, coarse_size, p), z)
 
 
 @wp.kernel
@@ -434,16 +431,15 @@ class CMSRM(Renderer):
                                         size, tile))
         return groups
 
-    def _compose(self, ds: DeviceScene, v: int, cam: Camera, tiles: TileGroup, size: int, coarse: CubeMaps,
-                 target: CubeMaps, buffers: ViewBuffers, clock: PassClock) -> None:
+    def _compose(self, ds: DeviceScene, v: int, cam: Camera, tiles: TileGroup, size: int, coarse: CubeTarget,
+                 target: CubeTarget, buffers: ViewBuffers, clock: PassClock) -> None:
         """Fill the level-0 texels of level-l tiles from the level-l cube map (`cube_compose_kernel`)."""
         launch_rows(
             cube_compose_kernel,
             len(tiles.fine) * tiles.fine_rows,
             tiles.fine_rows,
-            [camera_struct(cam), ds.levels[v][0], tiles.fine, tiles.fine_rows, size, coarse.color, coarse.t_half,
-             coarse.z_end, tiles.size, self.config.k_z, buffers, target.color, target.t_half, target.z_end,
-             target.offsets[v]],
+            [camera_struct(cam), ds.levels[v][0], tiles.fine, tiles.fine_rows, size, coarse, tiles.size,
+             self.config.k_z, buffers, target],
             self.device,
             clock.counters,
         )
@@ -453,19 +449,17 @@ class CMSRM(Renderer):
         return [(v,) for v in range(n)]
 
     def _launch_march(self, ds: DeviceScene, views: list[Camera], group: tuple[int, ...], v: int, level: VolumeGPU,
-                      tiles: TileGroup, samples: int, dest: list[tuple[CubeMaps, int]], targets: list[ViewBuffers],
+                      tiles: TileGroup, samples: int, dest: list[CubeTarget], targets: list[ViewBuffers],
                       clock: PassClock) -> None:
-        """March the tiles of one level of volume v for the views of a group into ``dest`` (a cube map and offset per
-        view)."""
+        """March the tiles of one level of volume v for the views of a group into ``dest`` (a cube map per view)."""
         (view,) = group
-        (cube, offset) = dest[0]
         launch_rows(
             cube_march_kernel,
             len(tiles.origins) * tiles.rows,
             tiles.rows,
             [camera_struct(views[view]), level, tiles.origins, tiles.rows, tiles.apron, tiles.size,
              int(self.config.cube_faces == "exterior"), ds.medium(), self._params(ds, view, samples), targets[view],
-             cube.color, cube.t_half, cube.z_end, offset],
+             dest[0]],
             self.device,
             clock.counters,
         )
@@ -490,14 +484,15 @@ class CMSRM(Renderer):
                 for tiles in self._tile_groups(ds, v, plan, [views[i] for i in group], clock):
                     density = ds.levels[v][min(lod.level + tiles.level, len(ds.levels[v]) - 1)]
                     if tiles.level == 0:
-                        dest = [(cubes[i], cubes[i].offsets[v]) for i in group]
+                        dest = [cubes[i].target(v) for i in group]
                     else:
                         texels = FACE_COUNT * tiles.size**2
-                        dest = [(self._cube_arrays(texels, [0], [tiles.size]), 0) for _ in group]
+                        dest = [self._cube_arrays(texels, [0], [tiles.size]).target(0) for _ in group]
                     self._launch_march(ds, views, group, v, density, tiles, lod.samples, dest, targets, clock)
                     if tiles.level:
-                        for i, (coarse, _) in zip(group, dest, strict=True):
-                            self._compose(ds, v, views[i], tiles, lod.size, coarse, cubes[i], targets[i], clock)
+                        for i, coarse in zip(group, dest, strict=True):
+                            self._compose(ds, v, views[i], tiles, lod.size, coarse, cubes[i].target(v), targets[i],
+                                          clock)
                 for i in group[1:]:
                     plans[i][v].update({k: plan[k] for k in ("tiles", "live_tiles", "tile_levels")})
 

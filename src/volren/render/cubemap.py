@@ -106,6 +106,26 @@ def tile_texel(tiles: wp.array(dtype=wp.vec3i), rows: int, apron: int, size: int
     return canonical_texel(t[0], i, j, size)
 
 
+@wp.struct
+class CubeTarget:
+    """One volume's cube map in a view's packed arrays: colour + transmittance, half-transmittance distance and end
+    depth per texel, the volume's texels starting at ``offset``."""
+
+    color: wp.array(dtype=wp.vec4)
+    t_half: wp.array(dtype=float)
+    z_end: wp.array(dtype=float)
+    offset: int
+
+
+@wp.func
+def store_texel(target: CubeTarget, texel: int, acc: wp.vec4, t_half: float, z_end: float):
+    """Write a marched texel (index within the volume's faces)."""
+    i = target.offset + texel
+    target.color[i] = acc
+    target.t_half[i] = t_half
+    target.z_end[i] = z_end
+
+
 @wp.func
 def edge_stop(z_pixel: float, z_cube: float, k_z: float) -> float:
     """w_z = max(1 - k_z |z_buffer - z_cube|, 0) (paper 001 §3.2); 1 for a texel that was never marched (a culled,

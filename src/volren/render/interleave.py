@@ -45,7 +45,7 @@ from volren.kernels.common import (
     interpolate_cell,
     vec8,
 )
-from volren.render.cubemap import eye_segment, texel_index, texel_point, tile_texel
+from volren.render.cubemap import CubeTarget, eye_segment, store_texel, texel_index, texel_point, tile_texel
 from volren.render.dssrm import MarchParams, lit_step
 from volren.render.frame import DENSITY_SAMPLES, INTERLEAVED_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES
 from volren.render.vsa import VSAParams, vsa_multiple
@@ -92,14 +92,8 @@ def quad_march_kernel(
     vp: VSAParams,
     buffers0: ViewBuffers,
     buffers1: ViewBuffers,
-    cube0: wp.array(dtype=wp.vec4),
-    cube0_t: wp.array(dtype=float),
-    cube0_z: wp.array(dtype=float),
-    offset0: int,
-    cube1: wp.array(dtype=wp.vec4),
-    cube1_t: wp.array(dtype=float),
-    cube1_z: wp.array(dtype=float),
-    offset1: int,
+    target0: CubeTarget,
+    target1: CubeTarget,
     counters: wp.array(dtype=wp.int64),
     row0: int,
 ):
@@ -279,13 +273,9 @@ def quad_march_kernel(
         if q[0] >= 0 and lane / 4 < eyes:
             texel = texel_index(q[0], q[1], q[2], size)
             if lane < 4:
-                cube0[offset0 + texel] = acc[lane]
-                cube0_t[offset0 + texel] = half[lane]
-                cube0_z[offset0 + texel] = seg[lane, 1] * seg[lane, 2]
+                store_texel(target0, texel, acc[lane], half[lane], seg[lane, 1] * seg[lane, 2])
             else:
-                cube1[offset1 + texel] = acc[lane]
-                cube1_t[offset1 + texel] = half[lane]
-                cube1_z[offset1 + texel] = seg[lane, 1] * seg[lane, 2]
+                store_texel(target1, texel, acc[lane], half[lane], seg[lane, 1] * seg[lane, 2])
             count(counters, RAYS, int(seg[lane, 3]))
     count(counters, DENSITY_SAMPLES, samples)
     count(counters, SHARED_SAMPLES, shared)
