@@ -79,6 +79,7 @@ def add_device(p: argparse.ArgumentParser) -> None:
 def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     animate = p.prog.endswith("animate")
     from volren.render import METHODS
+    from volren.render.gi import GI_METHODS
 
     src = p.add_argument_group("data")
     if not demo:
@@ -99,7 +100,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                      "a rectangular area light at x,y,z facing the origin (repeatable)")
     mat.add_argument("--ambient", type=rgb, help="constant environment radiance: l or r,g,b")
     mat.add_argument("--environment", type=Path,
-                     help="equirectangular environment (.npy linear, or PNG/JPEG sRGB); its mean is the ambient")
+                     help="equirectangular environment (.npy linear, or PNG/JPEG sRGB), or 'sky' (built-in); its mean "
+                     "is the ambient without --gi")
     mat.add_argument("--background", type=rgb, help="background colour (linear): c or r,g,b")
     opq = p.add_argument_group("opaque geometry (clips the volumes)")
     opq.add_argument("--sphere", type=lambda t: floats(t, 4), action="append", default=[],
@@ -147,6 +149,12 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
     r.add_argument("--no-vsa", action="store_true", help="cacrm: uniform steps (no variable step amplification)")
     r.add_argument("--no-interleave", action="store_true", help="cacrm: no interleaved spatial reuse of 2x2 quads")
+    r.add_argument("--gi", choices=GI_METHODS, help="dssrm/cmsrm/cacrm: ambient global illumination (paper 000 "
+                   "§3.2): sresir (ours), restir (strict ReSTIR), prt, major (major direction), brute (ground truth), "
+                   "none (default: constant ambient)")
+    r.add_argument("--gi-order", type=int, help="SH order n of the GI (n^2 coefficients, 1-4, default 3)")
+    r.add_argument("--gi-rays", type=int, help="--gi prt/brute: rays per voxel (default 256)")
+    r.add_argument("--gi-volumes", type=int, help="--gi: volumes whose lighting is updated per frame (default 1)")
     r.add_argument("--spp", type=int, help="vpt: paths per pixel and frame (default 8)")
     r.add_argument("--max-bounces", type=int, help="vpt: scattering events per path (default 2; 1 = single)")
     r.add_argument("--shading", choices=("coexist", "er"), help="vpt: surface-medium coexistence (default) or "
@@ -246,9 +254,13 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     if args.ambient is not None:
         environment = Environment(args.ambient)
     elif args.environment is not None:
+        from volren.data.environments import ENVIRONMENTS
         from volren.imageio import load_image
 
-        environment = Environment(image=load_image(args.environment)[..., :3])
+        if str(args.environment) in ENVIRONMENTS:
+            environment = ENVIRONMENTS[str(args.environment)]()
+        else:
+            environment = Environment(image=load_image(args.environment)[..., :3])
     background = args.background if args.background is not None else scene.background
     return dataclasses.replace(scene, volumes=volumes, lights=tuple(lights), environment=environment,
                                background=background, opaque=tuple(opaque))
@@ -321,6 +333,7 @@ def depth_images_from_args(args: argparse.Namespace, view_count: int) -> list | 
 
 def renderer_from_args(args: argparse.Namespace, method: str):
     from volren.render import METHODS
+    from volren.render.gi import GIConfig
 
     if method not in METHODS:
         raise CliError(f"unknown method '{method}': choose from {', '.join(METHODS)}")
@@ -357,6 +370,13 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "trilinear": (args.trilinear or None, "--trilinear"),
         "temporal": (False if args.no_temporal else None, "--no-temporal"),
     }
+    gi = {"method": (args.gi, "--gi"), "order": (args.gi_order, "--gi-order"), "rays": (args.gi_rays, "--gi-rays"),
+          "volumes_per_frame": (args.gi_volumes, "--gi-volumes")}
+    gi_options = {k: v for k, (v, _) in gi.items() if v is not None}
+    if gi_options:
+        if gi_options.get("method", "none") == "none" and len(gi_options) > (1 if "method" in gi_options else 0):
+            raise CliError("--gi-order, --gi-rays and --gi-volumes need --gi with a method other than none")
+        given["gi"] = (GIConfig(**gi_options), ", ".join(flag for k, (v, flag) in gi.items() if v is not None))
     options = {k: v for k, (v, _) in given.items() if v is not None and k in fields}
     ignored = [flag for k, (v, flag) in given.items() if v is not None and k not in fields]
     if ignored:

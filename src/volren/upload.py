@@ -84,6 +84,9 @@ class DeviceScene:
     light_res: list[tuple[int, int, int]]
     lightmap: wp.array
     ambient: wp.vec3
+    """the environment's mean radiance: the constant ambient without GI"""
+    volume_bvh: wp.Bvh
+    """BVH over the volumes' world boxes, for marches that cross every volume (GI, cross-volume shadows)"""
     opaque: wp.array
     """the scene's opaque spheres and planes (`OpaqueGPU`)"""
     meshes: list[wp.Mesh]
@@ -100,11 +103,20 @@ class DeviceScene:
     levels: list[list[VolumeGPU]]
     """per volume, its struct at each uploaded mip level (level 0 only unless uploaded with ``mip_levels``);
     levels differ only in ``offset`` and ``res``: same box, material and light map"""
+    ambient_grid: wp.array
+    """packed per-voxel ambient radiance (vec3) of the GI passes (`volren.render.gi`); read only when ``gi``"""
+    gi: bool = False
 
     def medium(self) -> Medium:
         m = Medium()
         m.density, m.lightmap, m.lights = self.density, self.lightmap, self.lights
+        m.ambient, m.gi = self.ambient_grid, int(self.gi)
         return m
+
+    @property
+    def light_voxels(self) -> list[int]:
+        """Voxels of each volume's light (and ambient) grid."""
+        return [int(np.prod(r)) for r in self.light_res]
 
     @property
     def volume_count(self) -> int:
@@ -128,10 +140,12 @@ def coarse_max_level(vol: Volume) -> np.ndarray:
 
 
 def volume_struct(
-    vol: Volume, offset: int, res: tuple[int, int, int], light_offset: int, light_res: tuple[int, int, int]
+    vol: Volume, offset: int, res: tuple[int, int, int], light_offset: int, light_res: tuple[int, int, int],
+    ambient_offset: int,
 ) -> VolumeGPU:
     """The device description of ``vol`` whose (mip level of the) grid of ``res`` voxels (x, y, z) starts at
-    ``offset`` in the packed density array."""
+    ``offset`` in the packed density array (its light grids at ``light_offset``, its ambient grid at
+    ``ambient_offset``)."""
     s = VolumeGPU()
     s.to_local = _mat44(vol.to_local)
     s.to_world = _mat44(vol.to_world)
@@ -139,12 +153,21 @@ def volume_struct(
     s.res = wp.vec3i(*res)
     s.light_offset = light_offset
     s.light_res = wp.vec3i(*light_res)
+    s.ambient_offset = ambient_offset
     s.density_scale = vol.density_scale
     s.albedo = wp.vec3(*vol.albedo)
     s.g = vol.g
     s.emission = wp.vec3(*vol.emission)
     s.diagonal = vol.diagonal
     return s
+
+
+def volume_bvh(scene: Scene, device: str) -> wp.Bvh:
+    """A BVH over the world-space bounding boxes of the scene's volumes (one item per volume)."""
+    corners = [v.corners_world for v in scene.volumes] or [np.zeros((1, 3))]
+    lo = np.array([c.min(axis=0) for c in corners], np.float32)
+    hi = np.array([c.max(axis=0) for c in corners], np.float32)
+    return wp.Bvh(wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device))
 
 
 def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_levels: bool = False) -> DeviceScene:
@@ -156,18 +179,20 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     levels = []
     offset = 0
     light_offset = 0
+    ambient_offset = 0
     light_res = []
     for vol in scene.volumes:
         lres = light_grid_resolution(vol.resolution, light_grid)
         per_level = []
         for grid in vol.mip_pyramid if mip_levels else vol.mip_pyramid[:1]:
-            per_level.append(volume_struct(vol, offset, grid.shape[::-1], light_offset, lres))
+            per_level.append(volume_struct(vol, offset, grid.shape[::-1], light_offset, lres, ambient_offset))
             grids.append(grid.reshape(-1))
             offset += grid.size
         levels.append(per_level)
         structs.append(per_level[0])
         light_res.append(lres)
         light_offset += n_lights * int(np.prod(lres))
+        ambient_offset += int(np.prod(lres))
     if offset > MAX_PACKED or light_offset > MAX_PACKED:
         raise VolrenError(f"scene too large: {offset} voxels (at most {MAX_PACKED} in all volumes together)")
     check_allocation(4 * (offset + light_offset), device, f"scene '{scene.name}' (density and light maps)")
@@ -211,6 +236,7 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         light_res=light_res,
         lightmap=lightmap,
         ambient=wp.vec3(*scene.environment.mean_radiance()),
+        volume_bvh=volume_bvh(scene, device),
         max_density=wp.array(np.concatenate([g.reshape(-1) for g in max_levels]) if max_levels else np.zeros(1),
                              dtype=float, device=device),
         max_grids=max_grids,
@@ -221,4 +247,5 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         mesh_albedo=wp.array([o.albedo for o in scene.opaque if isinstance(o, TriangleMesh)], dtype=wp.vec3,
                              device=device),
         levels=levels,
+        ambient_grid=wp.zeros(1, dtype=wp.vec3, device=device),
     )

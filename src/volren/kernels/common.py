@@ -43,6 +43,8 @@ class VolumeGPU:
     light_offset: int
     """first voxel of this volume's light grids in the packed light-map array (one grid per light)"""
     light_res: wp.vec3i
+    ambient_offset: int
+    """first voxel of this volume's ambient (GI) grid in the packed ambient array; same resolution as its light grid"""
     density_scale: float
     albedo: wp.vec3
     g: float
@@ -71,11 +73,14 @@ class LightGPU:
 
 @wp.struct
 class Medium:
-    """What a light-map-lit march reads: the packed density grids, the packed light maps and the lights."""
+    """What a light-map-lit march reads: the packed density grids, the packed light maps and the lights, and with
+    ambient GI on (``gi`` = 1) the packed per-voxel ambient radiance grids that replace the constant ambient."""
 
     density: wp.array(dtype=float)
     lightmap: wp.array(dtype=float)
     lights: wp.array(dtype=LightGPU)
+    ambient: wp.array(dtype=wp.vec3)
+    gi: int
 
 
 @wp.struct
@@ -227,6 +232,19 @@ def sample_grid(data: wp.array(dtype=float), offset: int, res: wp.vec3i, p: wp.v
 
 
 @wp.func
+def sample_grid_rgb(data: wp.array(dtype=wp.vec3), offset: int, res: wp.vec3i, p: wp.vec3) -> wp.vec3:
+    """Trilinear sample of a packed [z, y, x] vec3 grid at local ``p`` in [-1, 1]^3, clamped at the border."""
+    f = grid_coords(res, p)
+    cell = grid_cell(res, f)
+    a = cell_fraction(f, cell)
+    i = offset + (cell[2] * res[1] + cell[1]) * res[0] + cell[0]
+    out = wp.vec3(0.0)
+    for n in range(8):
+        out += corner_weight(n, a) * data[i + (n / 4) * res[0] * res[1] + ((n / 2) % 2) * res[0] + n % 2]
+    return out
+
+
+@wp.func
 def voxel_center(i: int, j: int, k: int, res: wp.vec3i) -> wp.vec3:
     """Local position of voxel (x=i, y=j, z=k)."""
     return wp.vec3(
@@ -366,6 +384,32 @@ def transmittance_toward(
     tau = float(0.0)
     fetched = float(0.0)
     for v in range(v_begin, v_end):
+        r = optical_depth(volumes[v], x, toward, t_limit, density, samples)
+        tau += r[0]
+        fetched += r[1]
+    count(counters, counter_index, int(fetched))
+    return wp.exp(-tau)
+
+
+@wp.func
+def transmittance_bvh(
+    x: wp.vec3,
+    toward: wp.vec3,
+    t_limit: float,
+    bvh: wp.uint64,
+    volumes: wp.array(dtype=VolumeGPU),
+    density: wp.array(dtype=float),
+    samples: int,
+    counters: wp.array(dtype=wp.int64),
+    counter_index: int,
+) -> float:
+    """`transmittance_toward` through every volume whose world box the ray hits, found by a BVH over the boxes
+    (paper 000 §3.2.3's any-hit traversal: the optical depths add in any order)."""
+    tau = float(0.0)
+    fetched = float(0.0)
+    query = wp.bvh_query_ray(bvh, x, toward)
+    v = int(0)
+    while wp.bvh_query_next(query, v):
         r = optical_depth(volumes[v], x, toward, t_limit, density, samples)
         tau += r[0]
         fetched += r[1]

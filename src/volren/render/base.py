@@ -13,6 +13,8 @@ from volren.device import check_allocation, resolve_device
 from volren.errors import VolrenError
 from volren.kernels.common import ViewBuffers
 from volren.render.frame import Frame, PassClock, Stats
+from volren.render.gi import AmbientGI, GIConfig
+from volren.render.lightmap import compute_light_map
 from volren.render.surfaces import check_user_depth, trace_surfaces, view_buffers
 from volren.scene import Scene
 from volren.upload import DeviceScene, camera_struct, upload_scene
@@ -50,8 +52,12 @@ class LightMapMarchConfig:
     seed: int = 0
     min_transmittance: float = 1e-3
     """early ray termination threshold"""
+    gi: GIConfig = GIConfig()  # noqa: RUF009 (frozen, so one shared default is safe)
+    """ambient global illumination (paper 000 §3.2); off by default (constant ambient)"""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.gi, GIConfig):
+            raise VolrenError(f"gi must be a GIConfig, got {type(self.gi).__name__}")
         check_sample_count("samples (V)", self.samples)
         check_sample_count("light samples (L)", self.light_samples)
         check_transmittance_threshold(self.min_transmittance)
@@ -141,3 +147,26 @@ class Renderer:
         settings = {"views": len(views), "resolution": [[c.width, c.height] for c in views], **asdict(self.config)}
         stats = Stats(self.device, self.name, settings, clock.times_ms, clock.counter_values(), self._frame_info)
         return Frame(images, depths, stats, frame)
+
+
+class LightMapRenderer(Renderer):
+    """A ray marcher shaded from the light map (DSSRM, CMSRM, CACRM): its lighting passes are the light map and,
+    with ``config.gi`` on, the ambient GI passes, whose state persists across frames (and animated densities)."""
+
+    def __init__(self, config: LightMapMarchConfig, device: str = "auto") -> None:
+        super().__init__(config, device)
+        self._gi: AmbientGI | None = None
+
+    def _lighting(self, ds: DeviceScene, clock: PassClock) -> None:
+        gi = self.config.gi
+        compute_light_map(ds, self.config.light_samples, clock, cross_volume=gi.on)
+        if not gi.on:
+            return
+        if self._gi is None or not self._gi.fits(ds, gi):
+            self._gi = AmbientGI(gi, ds, self.config.seed)
+        self._frame_info["gi"] = self._gi.update(ds, self.config.light_samples, clock)
+
+    @property
+    def gi_state(self) -> AmbientGI | None:
+        """The GI lighting grids of the last frame (None with GI off)."""
+        return self._gi

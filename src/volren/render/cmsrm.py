@@ -54,7 +54,7 @@ from volren.kernels.common import (
     pixel_ray,
     write_pixel,
 )
-from volren.render.base import LightMapMarchConfig, Renderer
+from volren.render.base import LightMapMarchConfig, LightMapRenderer
 from volren.render.cubemap import (
     FACE_COUNT,
     MAX_TILE_LEVEL,
@@ -76,7 +76,6 @@ from volren.render.cubemap import (
 )
 from volren.render.dssrm import MarchParams, march_volume_light_map
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
-from volren.render.lightmap import compute_light_map
 from volren.upload import DeviceScene, camera_struct, depth_order
 
 SCHEME_DIRECT = 0
@@ -321,7 +320,7 @@ def projected_pixels(vol_corners: np.ndarray, cam: Camera) -> float:
     return float(w * h)
 
 
-class CMSRM(Renderer):
+class CMSRM(LightMapRenderer):
     """Cube-map-space ray marching; ``config`` is a `CMSRMConfig`."""
 
     name = "cmsrm"
@@ -331,7 +330,7 @@ class CMSRM(Renderer):
 
     def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
         ds = self._upload(scene, clock, self.config.light_grid, mip_levels=True)
-        compute_light_map(ds, self.config.light_samples, clock)
+        self._lighting(ds, clock)
         self._frame_info["volumes"] = []
         return ds
 

@@ -33,13 +33,13 @@ from volren.kernels.common import (
     pixel_ray,
     ray_jitter,
     sample_grid,
+    sample_grid_rgb,
     state_accumulator,
     with_accumulator,
     write_pixel,
 )
-from volren.render.base import LightMapMarchConfig, Renderer, frame_seed
+from volren.render.base import LightMapMarchConfig, LightMapRenderer, frame_seed
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
-from volren.render.lightmap import compute_light_map
 from volren.upload import DeviceScene, camera_struct, depth_order
 
 
@@ -68,9 +68,12 @@ def shade_light_map(
     d: wp.vec3,
     ambient: wp.vec3,
 ) -> wp.vec3:
-    """Radiance scattered towards -d per unit sigma_s at local p / world x: ambient + sum_l phase T_l E_l."""
-    radiance = ambient
+    """Radiance scattered towards -d per unit sigma_s at local p / world x: ambient + sum_l phase T_l E_l, the
+    ambient from the GI grid when GI is on (paper 000 §3.2's lighting-integration output), else the constant."""
     res = vol.light_res
+    radiance = ambient
+    if medium.gi != 0:
+        radiance = sample_grid_rgb(medium.ambient, vol.ambient_offset, res, p)
     count = res[0] * res[1] * res[2]
     for li in range(medium.lights.shape[0]):
         light = medium.lights[li]
@@ -175,7 +178,7 @@ def dssrm_kernel(
     write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
 
-class DSSRM(Renderer):
+class DSSRM(LightMapRenderer):
     """Direct screen-space ray marching with a light map; ``config`` is a `DSSRMConfig`."""
 
     name = "dssrm"
@@ -185,7 +188,7 @@ class DSSRM(Renderer):
 
     def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
         ds = self._upload(scene, clock, self.config.light_grid)
-        compute_light_map(ds, self.config.light_samples, clock)
+        self._lighting(ds, clock)
         return ds
 
     def _render_view(

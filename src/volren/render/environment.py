@@ -101,3 +101,20 @@ def sample_environment(env: EnvironmentLight, state: wp.uint32):
     direction = wp.vec3(s * wp.cos(phi), wp.cos(theta), s * wp.sin(phi))
     pdf = p * float(h * w) / (2.0 * wp.pi * wp.pi * wp.max(s, 1.0e-6))
     return direction, env.image[row, col] / wp.max(pdf, 1.0e-12), state
+
+
+@wp.func
+def environment_radiance(env: EnvironmentLight, d: wp.vec3) -> wp.vec3:
+    """Radiance arriving from unit direction ``d`` (towards the environment): the map's pixel holding ``d``."""
+    if env.mode == ENV_NONE:
+        return wp.vec3(0.0)
+    if env.mode == ENV_CONSTANT:
+        return env.radiance
+    h = env.image.shape[0]
+    w = env.image.shape[1]
+    phi = wp.atan2(d[2], d[0])
+    if phi < 0.0:
+        phi += 2.0 * wp.pi
+    row = wp.min(int(wp.acos(wp.clamp(d[1], -1.0, 1.0)) / wp.pi * float(h)), h - 1)
+    col = wp.min(int(phi / (2.0 * wp.pi) * float(w)), w - 1)
+    return env.image[row, col]

@@ -1,8 +1,9 @@
 """Light-map pass (paper 001 §3, first pass): per light-grid voxel, march towards each light for its transmittance.
 
 The light grid has its own resolution (e.g. 128^3 for 256^3 density) and one channel per light (directional or
-point). Marching uses L uniform samples at most across the box diagonal ("L" of the papers' METHOD:V:L). Only the
-volume's own density attenuates: shadows cast between volumes come with the GI issue's BVH march (paper 000 §3.2).
+point). Marching uses L uniform samples at most across the box diagonal ("L" of the papers' METHOD:V:L). Without GI
+only the volume's own density attenuates (paper 001); with GI on, the march crosses every volume its ray hits, found
+through the BVH over the volumes' boxes (paper 000 §3.2.3's lighting update: shadows between volumes).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from volren.kernels.common import (
     VolumeGPU,
     light_distance,
     light_travel_dir,
+    transmittance_bvh,
     transmittance_toward,
     voxel_center,
 )
@@ -29,6 +31,8 @@ def light_map_kernel(
     density: wp.array(dtype=float),
     lights: wp.array(dtype=LightGPU),
     light_samples: int,
+    bvh: wp.uint64,
+    cross_volume: int,
     lightmap: wp.array(dtype=float),
     counters: wp.array(dtype=wp.int64),
     row0: int,
@@ -43,15 +47,19 @@ def light_map_kernel(
     count = res[0] * res[1] * res[2]
     for li in range(lights.shape[0]):
         light = lights[li]
-        t = transmittance_toward(
-            x, -light_travel_dir(light, x), light_distance(light, x), volumes, v, v + 1, density, light_samples,
-            counters, LIGHT_SAMPLES,
-        )
+        toward = -light_travel_dir(light, x)
+        reach = light_distance(light, x)
+        t = float(0.0)
+        if cross_volume != 0:
+            t = transmittance_bvh(x, toward, reach, bvh, volumes, density, light_samples, counters, LIGHT_SAMPLES)
+        else:
+            t = transmittance_toward(x, toward, reach, volumes, v, v + 1, density, light_samples, counters,
+                                     LIGHT_SAMPLES)
         lightmap[vol.light_offset + li * count + (k * res[1] + j) * res[0] + i] = t
 
 
-def compute_light_map(ds: DeviceScene, light_samples: int, clock: PassClock) -> None:
-    """Fill ``ds.lightmap`` for every volume and light."""
+def compute_light_map(ds: DeviceScene, light_samples: int, clock: PassClock, cross_volume: bool = False) -> None:
+    """Fill ``ds.lightmap`` for every volume and light (``cross_volume``: through every volume, not just its own)."""
     if ds.light_count == 0:
         return
     with clock.measure("light_map"):
@@ -60,7 +68,8 @@ def compute_light_map(ds: DeviceScene, light_samples: int, clock: PassClock) -> 
                 light_map_kernel,
                 nz * ny,
                 nx,
-                [ds.volumes, v, ds.density, ds.lights, light_samples, ds.lightmap],
+                [ds.volumes, v, ds.density, ds.lights, light_samples, ds.volume_bvh.id, int(cross_volume),
+                 ds.lightmap],
                 ds.device,
                 clock.counters,
             )

@@ -1,0 +1,234 @@
+"""Dynamic ambient global illumination with spherical harmonics (paper 000 §3.2), for every light-map marcher.
+
+``GIConfig.method`` picks how each volume's lighting grid gets the SH coefficients of its phase-weighted
+visibility (`volren.render.gi_passes`):
+
+- ``sresir`` (ours, the paper's): per frame a sample pass (one uniform direction per voxel, coarse transmittance with
+  ``coarse_factor`` times the fine step), an SH-transform pass (simplified reservoir resampling over the 3x3x3
+  neighbours, Eq. 12, one fine march, variance clamp and adaptive temporal accumulation, Eq. 8-11) and the lighting
+  integration (Eq. 7);
+- ``restir``: strict ReSTIR, the same passes with fine transmittance as the resampling target and the voxel's
+  temporal reservoir merged in (M capped at ``reservoir_cap`` times the spatial M), then our accumulation;
+- ``prt``: precomputed radiance transfer, ``rays`` stratified fine marches per voxel projected to SH, recomputed only
+  when the scene's density changes;
+- ``major``: paper 001's major-direction approximation (one march along the negative density gradient);
+- ``brute``: the ground truth, ``rays`` fine marches per voxel integrated against the environment directly (no SH);
+- ``none``: the constant, unshadowed ambient (the environment's mean radiance).
+
+The lighting update is amortised over volumes: ``volumes_per_frame`` volumes per frame in turn (§3.2.3), every volume
+on the first frame. Marches cross every volume (shadowing between volumes), and with GI on the direct light map does
+too. The environment enters through its SH projection of order ``order`` (n^2 coefficients, `volren.sh`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from volren.device import launch_rows
+from volren.errors import VolrenError
+from volren.render.environment import environment_light
+from volren.render.frame import PassClock
+from volren.render.gi_passes import (
+    Accumulation,
+    GIBuffers,
+    GIScene,
+    integrate_kernel,
+    major_kernel,
+    sample_kernel,
+    sphere_kernel,
+    transform_kernel,
+)
+from volren.sh import MAX_ORDER, check_order, project_environment
+from volren.upload import DeviceScene
+
+GI_METHODS = ("none", "major", "prt", "restir", "sresir", "brute")
+MAX_RAYS = 1 << 20
+COSINE_LOBE = (1.0, 2.0 / 3.0, 1.0 / 4.0, 0.0)
+"""A_l / pi per band l: the clamped-cosine kernel's SH convolution factors (Ramamoorthi and Hanrahan 2001)."""
+
+
+@dataclass(frozen=True)
+class GIConfig:
+    method: str = "none"
+    order: int = 3
+    """SH order n: n^2 coefficients per voxel (1 to 4)"""
+    coarse_factor: int = 4
+    """ours: the sample pass marches with this many times the fine step (the paper's quadruple step)"""
+    frames: int = 32
+    """N of lambda(n) = 1 / min(n + 1, N): the frame count regarded as converged"""
+    k_gamma: float = 0.5
+    """Eq. 9's variance-clamp adjustment"""
+    k_lambda: float = 0.5
+    """Eq. 11's adjustment of lambda"""
+    w_dst: float = 0.125
+    """Eq. 10's weights (the paper's initial values; `scripts/fit_gi.py` fits them)"""
+    w_clamped: float = 0.875
+    w_poly: float = 0.0
+    poly: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """(a, b, c) of Eq. 10's cubic"""
+    rays: int = 256
+    """brute force and PRT: rays per voxel (the paper: 393,216 and 24,576 on a GPU)"""
+    volumes_per_frame: int = 1
+    reservoir_cap: float = 20.0
+    """strict ReSTIR: temporal reservoir's M at most this times the spatial M"""
+
+    def __post_init__(self) -> None:
+        if self.method not in GI_METHODS:
+            raise VolrenError(f"unknown GI method '{self.method}': choose from {', '.join(GI_METHODS)}")
+        check_order(self.order)
+        for name in ("coarse_factor", "frames", "rays", "volumes_per_frame"):
+            value = getattr(self, name)
+            if int(value) != value or value < 1:
+                raise VolrenError(f"GI {name.replace('_', ' ')} must be an integer >= 1, got {value}")
+        if self.rays > MAX_RAYS:
+            raise VolrenError(f"GI rays per voxel must be at most {MAX_RAYS}, got {self.rays}")
+        weights = (self.w_dst, self.w_clamped, self.w_poly)
+        if not all(math.isfinite(w) for w in (*weights, *self.poly, self.k_gamma, self.k_lambda)):
+            raise VolrenError("GI weights must be finite")
+        if abs(sum(weights) - 1.0) > 1e-6:
+            raise VolrenError(f"Eq. 10's weights must sum to 1, got {sum(weights):.6g}")
+        if self.k_gamma <= 0 or self.k_lambda < 0 or self.reservoir_cap <= 0:
+            raise VolrenError("GI k_gamma and the reservoir cap must be > 0 and k_lambda >= 0")
+
+    @property
+    def on(self) -> bool:
+        return self.method != "none"
+
+
+def environment_coefficients(ds: DeviceScene, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """(16, 3) SH coefficients of the scene's environment (zero beyond order^2), and the same scaled by the
+    clamped-cosine factors A_l / pi for the major-direction method."""
+    sh = np.zeros((MAX_ORDER**2, 3), np.float32)
+    sh[: order * order] = project_environment(ds.scene.environment, order)
+    band = np.repeat(np.arange(MAX_ORDER), [2 * band + 1 for band in range(MAX_ORDER)])
+    return sh, sh * np.asarray(COSINE_LOBE, np.float32)[band][:, None]
+
+
+class AmbientGI:
+    """The lighting grids of one scene's volumes and their history across frames; ``update`` runs one frame."""
+
+    def __init__(self, config: GIConfig, ds: DeviceScene, seed: int = 0) -> None:
+        self.config = config
+        self.seed = seed
+        self.light_res = list(ds.light_res)
+        voxels = ds.light_voxels
+        total = max(sum(voxels), 1)
+        n2 = config.order**2
+        dev = ds.device
+        b = GIBuffers()
+        b.dirs = wp.zeros(total, dtype=wp.vec3, device=dev)
+        b.values = wp.zeros(total, dtype=float, device=dev)
+        b.sh = wp.zeros(total * n2, dtype=float, device=dev)
+        b.mu = wp.zeros(total * n2, dtype=float, device=dev)
+        strict = config.method == "restir"
+        b.res_dir = wp.zeros(total if strict else 1, dtype=wp.vec3, device=dev)
+        b.res_value = wp.zeros(total if strict else 1, dtype=float, device=dev)
+        b.res_wsum = wp.zeros(total if strict else 1, dtype=float, device=dev)
+        b.res_m = wp.zeros(total if strict else 1, dtype=float, device=dev)
+        b.ambient = wp.zeros(total, dtype=wp.vec3, device=dev)
+        self.buffers = b
+        self.updates = [0] * len(voxels)
+        """per volume: lighting updates so far (Eq. 8's n)"""
+        self.tick = 0
+        self._next = 0
+        self._static_scene: object | None = None
+        self._env: tuple[object, np.ndarray, np.ndarray] | None = None
+
+    def fits(self, ds: DeviceScene, config: GIConfig) -> bool:
+        """Whether this state can carry on with ``ds`` (same grids, same settings): animated densities keep history."""
+        return config == self.config and list(ds.light_res) == self.light_res
+
+    def _environment(self, ds: DeviceScene) -> tuple[wp.array, wp.array]:
+        env = ds.scene.environment
+        if self._env is None or self._env[0] is not env:
+            sh, cosine = environment_coefficients(ds, self.config.order)
+            self._env = (env, sh, cosine)
+        _, sh, cosine = self._env
+        return wp.array(sh, dtype=wp.vec3, device=ds.device), wp.array(cosine, dtype=wp.vec3, device=ds.device)
+
+    def _volumes_this_frame(self, n: int) -> list[int]:
+        if self.tick == 0:
+            return list(range(n))
+        k = min(self.config.volumes_per_frame, n)
+        chosen = [(self._next + i) % n for i in range(k)]
+        self._next = (self._next + k) % n
+        return chosen
+
+    def _scene(self, ds: DeviceScene, v: int, samples: int) -> GIScene:
+        s = GIScene()
+        s.volumes, s.density, s.bvh, s.v, s.samples = ds.volumes, ds.density, ds.volume_bvh.id, v, samples
+        return s
+
+    def _accumulation(self, v: int) -> Accumulation:
+        c = self.config
+        a = Accumulation()
+        a.order2, a.n, a.frames = c.order**2, self.updates[v], c.frames
+        a.k_gamma, a.k_lambda = c.k_gamma, c.k_lambda
+        a.w_dst, a.w_clamped, a.w_poly, a.poly = c.w_dst, c.w_clamped, c.w_poly, wp.vec3(*c.poly)
+        a.strict, a.cap = int(c.method == "restir"), c.reservoir_cap
+        a.seed = self._seed(1)
+        return a
+
+    def _seed(self, stream: int) -> int:
+        return (self.seed * 1_000_003 + self.tick * 7_919 + stream * 104_729 + 12_345) % (2**31 - 1)
+
+    def update(self, ds: DeviceScene, light_samples: int, clock: PassClock) -> dict[str, object]:
+        """One frame's lighting passes; afterwards ``ds`` shades with the ambient grids. Returns what it did."""
+        c = self.config
+        env_sh, env_cosine = self._environment(ds)
+        b = self.buffers
+        n2 = c.order**2
+        launch = self._launcher(ds, clock)
+        updated: list[int] = []
+        if c.method in ("prt", "brute"):
+            # Precomputation: only when the density (the scene) changes.
+            if self._static_scene is not ds.scene:
+                env = environment_light(ds.scene.environment, ds.device)
+                updated = list(range(ds.volume_count))
+                for v in updated:
+                    launch("gi_precompute", v, sphere_kernel, light_samples,
+                           [b, env, c.rays, n2, self._seed(0)])
+                self._static_scene = ds.scene
+        else:
+            updated = self._volumes_this_frame(ds.volume_count)
+            for v in updated:
+                if c.method == "major":
+                    launch("gi_major", v, major_kernel, light_samples, [b, env_cosine])
+                    continue
+                coarse = light_samples if c.method == "restir" else max(1, light_samples // c.coarse_factor)
+                launch("gi_sample", v, sample_kernel, coarse, [b, self._seed(0)])
+                launch("gi_transform", v, transform_kernel, light_samples, [b, self._accumulation(v)])
+                self.updates[v] += 1
+        if c.method in ("prt", "restir", "sresir"):
+            for v in updated:
+                launch("gi_integrate", v, integrate_kernel, light_samples, [b, env_sh, n2])
+        self.tick += 1
+        ds.ambient_grid, ds.gi = b.ambient, True
+        return {"method": c.method, "updated_volumes": updated}
+
+    def _launcher(self, ds: DeviceScene, clock: PassClock):
+        def launch(name: str, v: int, kernel, samples: int, inputs: list) -> None:
+            nx, ny, nz = ds.light_res[v]
+            with clock.measure(name):
+                launch_rows(kernel, nz * ny, nx, [self._scene(ds, v, samples), *inputs], ds.device, clock.counters)
+        return launch
+
+    def sh_grid(self, v: int, ds: DeviceScene) -> np.ndarray:
+        """Volume v's SH coefficients as (z, y, x, order^2) (tests and the fitting script)."""
+        return self._grid(self.buffers.sh, v, ds, self.config.order**2)
+
+    def ambient_grid(self, v: int, ds: DeviceScene) -> np.ndarray:
+        """Volume v's ambient radiance per unit sigma_s as (z, y, x, 3)."""
+        return self._grid(self.buffers.ambient, v, ds, 1)
+
+    def _grid(self, array: wp.array, v: int, ds: DeviceScene, per_voxel: int) -> np.ndarray:
+        start = sum(ds.light_voxels[:v])
+        nx, ny, nz = ds.light_res[v]
+        flat = array.numpy()
+        if flat.ndim == 2:
+            return flat[start: start + nx * ny * nz].reshape(nz, ny, nx, flat.shape[1])
+        return flat[start * per_voxel: (start + nx * ny * nz) * per_voxel].reshape(nz, ny, nx, per_voxel)
