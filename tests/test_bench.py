@@ -72,3 +72,20 @@ def test_vpt_suite_rows_and_goals():
     summary, _ = result["summary"]
     assert len(summary) == 4 and all(s["variance_ratio"] > 0 for s in summary[:3])
     assert summary[3]["variance_ours_over_svgf"] > 0
+
+
+def test_gi_suite_rows_and_goals():
+    from volren.bench.gi import METHODS, run_config
+
+    cfg = {"scenes": ["smoke"], "resolution": 64, "light_grid": 8, "size": (24, 16), "frames": 4, "warmup": 2,
+           "gt_rays": 64, "prt_rays": 32, "dynamic_frames": 4, "gt_every": 2}
+    result = run_config(cfg, "cpu")
+    rows = result["rows"]
+    assert [r["method"] for r in rows] == list(METHODS) * 3
+    assert {r["scene"] for r in rows} == {"smoke", "smoke advected 60 fps", "smoke advected 30 fps"}
+    assert all(r["psnr"] > 20 and 0 < r["ssim"] <= 1 and r["gi_rays"] > 0 for r in rows)
+    prt = [r for r in rows if r["method"] == "prt"]
+    assert prt[0]["precompute_ms"] > 0 and prt[0]["psnr"] > max(r["psnr"] for r in rows[:4] if r["method"] != "prt")
+    summary, _ = result["summary"]
+    assert [s["scene"] for s in summary] == ["smoke", "smoke advected 60 fps", "smoke advected 30 fps"]
+    assert summary[0]["time_vs_restir"] > 0 and summary[1]["settle_frame"] is not None

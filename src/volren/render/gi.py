@@ -58,7 +58,7 @@ class GIConfig:
     """SH order n: n^2 coefficients per voxel (1 to 4)"""
     coarse_factor: int = 4
     """ours: the sample pass marches with this many times the fine step (the paper's quadruple step)"""
-    frames: int = 32
+    convergence_frames: int = 32
     """N of lambda(n) = 1 / min(n + 1, N): the frame count regarded as converged"""
     k_gamma: float = 0.5
     """Eq. 9's variance-clamp adjustment"""
@@ -80,7 +80,7 @@ class GIConfig:
         if self.method not in GI_METHODS:
             raise VolrenError(f"unknown GI method '{self.method}': choose from {', '.join(GI_METHODS)}")
         check_order(self.order)
-        for name in ("coarse_factor", "frames", "rays", "volumes_per_frame"):
+        for name in ("coarse_factor", "convergence_frames", "rays", "volumes_per_frame"):
             value = getattr(self, name)
             if int(value) != value or value < 1:
                 raise VolrenError(f"GI {name.replace('_', ' ')} must be an integer >= 1, got {value}")
@@ -166,7 +166,7 @@ class AmbientGI:
     def _accumulation(self, v: int) -> Accumulation:
         c = self.config
         a = Accumulation()
-        a.order2, a.n, a.frames = c.order**2, self.updates[v], c.frames
+        a.order2, a.n, a.frames = c.order**2, self.updates[v], c.convergence_frames
         a.k_gamma, a.k_lambda = c.k_gamma, c.k_lambda
         a.w_dst, a.w_clamped, a.w_poly, a.poly = c.w_dst, c.w_clamped, c.w_poly, wp.vec3(*c.poly)
         a.strict, a.cap = int(c.method == "restir"), c.reservoir_cap

@@ -30,8 +30,8 @@ from volren.render.frame import LIGHT_SAMPLES, RAYS
 from volren.sh import sh_basis16, vec16
 
 FOUR_PI = 4.0 * 3.14159265358979
-SH_Y0 = 0.28209479
-"""Y_00 = 1 / (2 sqrt(pi)); also 1 / (4 pi Y_00), so L_00 * SH_Y0 is the environment's mean radiance"""
+NEGLIGIBLE = 1.0e-12
+"""transmittances below this are no candidates for the resampling (keeps w_p = sum f / (M f*) finite)"""
 
 
 @wp.struct
@@ -182,10 +182,11 @@ def transform_kernel(sc: GIScene, buf: GIBuffers, acc: Accumulation, counters: w
             mean += y
             square += wp.cw_mul(y, y)
             neighbours += 1.0
-            wsum += f
-            if f > 0.0 and wp.randf(state) * wsum < f:
-                chosen = d
-                chosen_f = f
+            if f > NEGLIGIBLE:
+                wsum += f
+                if wp.randf(state) * wsum < f:
+                    chosen = d
+                    chosen_f = f
     mean = mean / neighbours
     var = square / neighbours - wp.cw_mul(mean, mean)
     m = neighbours
@@ -202,7 +203,7 @@ def transform_kernel(sc: GIScene, buf: GIBuffers, acc: Accumulation, counters: w
     fine = float(0.0)
     if wsum > 0.0:
         fine = visibility(sc, x, chosen, sc.samples, counters)
-        estimate = sh_basis16(chosen) * (FOUR_PI * fine * wsum / (m * chosen_f))
+        estimate = sh_basis16(chosen) * (FOUR_PI * fine * (wsum / chosen_f) / m)
         count(counters, RAYS, 1)
     if acc.strict != 0:
         buf.res_dir[idx] = chosen
@@ -267,7 +268,7 @@ def major_kernel(
     """Paper 001's simplified GI (the "M" of paper 000 Fig. 10): one march along the major direction n, the
     density's negative gradient (towards thinner medium), and the environment's cosine-weighted radiance about n
     (SH coefficients scaled by A_l / pi: an unoccluded voxel in a constant environment gets L) times T(x, n).
-    Where the density is flat (no gradient) the voxel gets the unshadowed mean radiance."""
+    Where the density is flat (no gradient) n is +y, the sky."""
     r, i = wp.tid()
     row = r + row0
     idx = voxel_index(sc, row, i)
@@ -293,13 +294,13 @@ def major_kernel(
         m[0, 1] * g[0] + m[1, 1] * g[1] + m[2, 1] * g[2],
         m[0, 2] * g[0] + m[1, 2] * g[1] + m[2, 2] * g[2],
     )
-    out = env_cosine[0] * SH_Y0
+    n = wp.vec3(0.0, 1.0, 0.0)
     if wp.length(gw) > 1.0e-6:
         n = -wp.normalize(gw)
-        y = sh_basis16(n)
-        lit = wp.vec3(0.0)
-        for c in range(16):
-            lit += y[c] * env_cosine[c]
-        out = visibility(sc, x, n, sc.samples, counters) * lit
-        count(counters, RAYS, 1)
+    y = sh_basis16(n)
+    lit = wp.vec3(0.0)
+    for c in range(16):
+        lit += y[c] * env_cosine[c]
+    out = visibility(sc, x, n, sc.samples, counters) * lit
+    count(counters, RAYS, 1)
     buf.ambient[idx] = wp.vec3(wp.max(out[0], 0.0), wp.max(out[1], 0.0), wp.max(out[2], 0.0))
