@@ -23,6 +23,8 @@ KERNEL_MODULES = [
     "volren.render.froxels",
     "volren.render.vpt",
     "volren.render.denoise",
+    "volren.render.gi_passes",
+    "volren.simulate",
     "volren.data.loaders",
 ]
 

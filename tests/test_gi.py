@@ -36,7 +36,7 @@ def run_gi(scene: Scene, method: str, frames: int = 1, light_grid: int = 8, ligh
 
 def ambient(scene: Scene, method: str, v: int = 0, **kw) -> np.ndarray:
     r, ds = run_gi(scene, method, **kw)
-    return r.gi_state.ambient_grid(v, ds).copy()
+    return r.gi_state.ambient_grid(v)
 
 
 def test_empty_volume_converges_to_the_environment_projection():
@@ -51,11 +51,11 @@ def test_empty_volume_converges_to_the_environment_projection():
     means = []
     for f in range(48):
         r.render(scene, [axis_camera(size=(8, 8))], frame=f)
-        means.append(r.gi_state.sh_grid(0, r._device_scene).reshape(-1, 9).mean(axis=0))
-    sh = r.gi_state.sh_grid(0, r._device_scene).reshape(-1, 9)
+        means.append(r.gi_state.sh_grid(0).reshape(-1, 9).mean(axis=0))
+    sh = r.gi_state.sh_grid(0).reshape(-1, 9)
     np.testing.assert_allclose(sh[:, 0], math.sqrt(4 * math.pi), rtol=1e-5)
     np.testing.assert_allclose(np.mean(means[32:], axis=0)[1:], 0.0, atol=0.1)
-    a = r.gi_state.ambient_grid(0, r._device_scene).reshape(-1, 3)
+    a = r.gi_state.ambient_grid(0).reshape(-1, 3)
     np.testing.assert_allclose(a.mean(axis=0), SKY.mean_radiance(), rtol=0.05)
 
 
@@ -178,7 +178,7 @@ def test_animated_density_keeps_the_history_and_follows_the_change():
     for f in range(8, 40):
         r.render(dataclasses.replace(block, volumes=(homogeneous_volume(0.0),)), cam, frame=f)
     assert r.gi_state is state
-    np.testing.assert_allclose(state.ambient_grid(0, r._device_scene), 0.5, rtol=0.02)
+    np.testing.assert_allclose(state.ambient_grid(0), 0.5, rtol=0.02)
 
 
 @pytest.mark.parametrize("cls,config", [(CMSRM, CMSRMConfig), (CACRM, CACRMConfig)])

@@ -58,7 +58,7 @@ def run_sequence(scenes: Iterable[Scene], gi: GIConfig, cfg: dict[str, Any], dev
         keep = measured is None or i in measured
         out.append({
             "image": frame.images[0] if keep else None,
-            "ambient": r.gi_state.ambient_grid(0, r._device_scene).copy() if keep else None,
+            "ambient": r.gi_state.ambient_grid(0) if keep else None,
             "gi_ms": gi_time(frame),
             "precompute_ms": frame.stats.times_ms.get("gi_precompute", 0.0),
             "light_samples": frame.stats.counters["light_samples"],

@@ -217,18 +217,18 @@ class AmbientGI:
                 launch_rows(kernel, nz * ny, nx, [self._scene(ds, v, samples), *inputs], ds.device, clock.counters)
         return launch
 
-    def sh_grid(self, v: int, ds: DeviceScene) -> np.ndarray:
-        """Volume v's SH coefficients as (z, y, x, order^2) (tests and the fitting script)."""
-        return self._grid(self.buffers.sh, v, ds, self.config.order**2)
+    def sh_grid(self, v: int) -> np.ndarray:
+        """Volume v's SH coefficients as (z, y, x, order^2), a copy."""
+        return self._grid(self.buffers.sh, v, self.config.order**2)
 
-    def ambient_grid(self, v: int, ds: DeviceScene) -> np.ndarray:
-        """Volume v's ambient radiance per unit sigma_s as (z, y, x, 3)."""
-        return self._grid(self.buffers.ambient, v, ds, 1)
+    def ambient_grid(self, v: int) -> np.ndarray:
+        """Volume v's ambient radiance per unit sigma_s as (z, y, x, 3), a copy."""
+        return self._grid(self.buffers.ambient, v, 1)
 
-    def _grid(self, array: wp.array, v: int, ds: DeviceScene, per_voxel: int) -> np.ndarray:
-        start = sum(ds.light_voxels[:v])
-        nx, ny, nz = ds.light_res[v]
-        flat = array.numpy()
+    def _grid(self, array: wp.array, v: int, per_voxel: int) -> np.ndarray:
+        start = sum(int(np.prod(r)) for r in self.light_res[:v])
+        nx, ny, nz = self.light_res[v]
+        flat = array.numpy().copy()
         if flat.ndim == 2:
             return flat[start: start + nx * ny * nz].reshape(nz, ny, nx, flat.shape[1])
         return flat[start * per_voxel: (start + nx * ny * nz) * per_voxel].reshape(nz, ny, nx, per_voxel)
