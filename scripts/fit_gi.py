@@ -25,7 +25,7 @@ from volren.render.gi import GIConfig
 from volren.simulate import advected_frames
 
 WEIGHTS = [(0.125, 0.875), (0.25, 0.75), (0.5, 0.5), (0.75, 0.25), (1.0, 0.0)]
-K_GAMMA = [0.5, 1.0, 2.0]
+K_GAMMA = [0.125, 0.25, 0.5, 1.0, 2.0]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     moving_truth = ground_truth(moving, moving_frames, cfg, "cpu", camera)
     results = []
     for w_dst, w_clamped in WEIGHTS:
-        for k_gamma in K_GAMMA if w_clamped > 0 else K_GAMMA[:1]:
+        for k_gamma in K_GAMMA if w_clamped > 0 else [0.5]:
             gi = GIConfig(method="sresir", w_dst=w_dst, w_clamped=w_clamped, k_gamma=k_gamma)
             s = run_sequence(static, gi, cfg, "cpu", camera, set(static_frames))
             m = run_sequence(moving, gi, cfg, "cpu", camera, set(moving_frames))

@@ -35,26 +35,29 @@ def run_gi(scene: Scene, method: str, frames: int = 1, light_grid: int = 8, ligh
 
 
 def ambient(scene: Scene, method: str, v: int = 0, **kw) -> np.ndarray:
-    r, ds = run_gi(scene, method, **kw)
+    r, _ = run_gi(scene, method, **kw)
     return r.gi_state.ambient_grid(v)
 
 
-def test_empty_volume_converges_to_the_environment_projection():
+@pytest.mark.parametrize("clamp,tolerance", [(False, 0.1), (True, 0.15)])
+def test_empty_volume_converges_to_the_environment_projection(clamp, tolerance):
     """No density: f_p = 1 in every direction, so SH_j -> integral of y_j = (sqrt(4 pi), 0, ...) and the ambient is
-    the environment's mean. SH_0 is exact at once (y_0 is constant). Tolerance for the others: a frame's estimate
-    of coefficient j averaged over the 512 voxels has a standard deviation of about sqrt(4 pi / 512) = 0.16, the
-    accumulation averages about 20 frames (lambda ~ 1.5 / 32), and the variance clamp pulls towards the
-    neighbours' mean, which doubles the spatially correlated part (measured): averaged over the last 16 frames as
-    well, each coefficient's mean lies within 0.1 of 0."""
+    the environment's mean. SH_0 is exact at once (y_0 is constant). The others, averaged over the 1728 voxels and
+    the last 16 of 48 frames: a frame's voxel mean has a standard deviation of about sqrt(4 pi / 1728) = 0.085,
+    the accumulation averages ~20 frames (lambda ~ 1.5 / 32) and neighbours share samples, which leaves ~0.025
+    (measured without the clamp on 8^3: within 0.08 for three seeds); 0.1 is four of those. The variance clamp
+    (Eq. 9-10, paper weights) adds a bias where the estimates are skewed: Y_20's (3 z^2 - 1 in [-1, 2]) is pulled
+    towards its median, measured -0.08 to -0.1, hence 0.15 with it."""
+    gi = GIConfig(method="sresir") if clamp else GIConfig(method="sresir", w_dst=1.0, w_clamped=0.0)
     scene = Scene((homogeneous_volume(0.0),), (), SKY)
-    r = DSSRM(DSSRMConfig(light_grid=8, light_samples=32, gi=GIConfig(method="sresir")), device="cpu")
+    r = DSSRM(DSSRMConfig(light_grid=12, light_samples=16, gi=gi), device="cpu")
     means = []
     for f in range(48):
         r.render(scene, [axis_camera(size=(8, 8))], frame=f)
         means.append(r.gi_state.sh_grid(0).reshape(-1, 9).mean(axis=0))
     sh = r.gi_state.sh_grid(0).reshape(-1, 9)
     np.testing.assert_allclose(sh[:, 0], math.sqrt(4 * math.pi), rtol=1e-5)
-    np.testing.assert_allclose(np.mean(means[32:], axis=0)[1:], 0.0, atol=0.1)
+    np.testing.assert_allclose(np.mean(means[32:], axis=0)[1:], 0.0, atol=tolerance)
     a = r.gi_state.ambient_grid(0).reshape(-1, 3)
     np.testing.assert_allclose(a.mean(axis=0), SKY.mean_radiance(), rtol=0.05)
 
@@ -87,18 +90,19 @@ def test_prt_matches_brute_force_up_to_sh_truncation():
 
 
 def test_temporal_accumulation_converges_to_brute_force():
-    """A static half-dense block: ours after 48 frames against 1024 rays per voxel. The relative RMS error bound
-    (0.08 of the mean ambient) is about three times the per-voxel noise of an exponential average with
-    lambda = 1/32 of the resampled estimate, whose relative variance is below 1 for this medium."""
+    """A static half-dense block: ours after 48 frames against 1024 rays per voxel. One frame's estimate has a
+    relative RMS error of ~0.83 (measured, asserted below to be far above the converged one); the accumulation
+    averages with lambda ~ 1.5 / 32, which leaves 0.83 sqrt(lambda / (2 - lambda)) = 0.13, and the clamp towards the
+    neighbours' coarse mean adds a little bias (measured 0.149 in all): bound 0.2."""
     rho = np.zeros((12, 12, 12), np.float32)
     rho[:, :6] = 1.0
     scene = Scene((Volume(rho, density_scale=3.0),), (), SKY)
     truth = ambient(scene, "brute", rays=1024)
     ours = ambient(scene, "sresir", frames=48)
     rel = np.sqrt(np.mean((ours - truth) ** 2)) / truth.mean()
-    assert rel < 0.08
+    assert rel < 0.2
     first = ambient(scene, "sresir", frames=1)
-    assert np.sqrt(np.mean((first - truth) ** 2)) / truth.mean() > 2 * rel  # accumulation did something
+    assert np.sqrt(np.mean((first - truth) ** 2)) / truth.mean() > 4 * rel  # the accumulation did the work
 
 
 @wp.kernel

@@ -29,9 +29,11 @@ from volren.render.gi import GIConfig
 from volren.scene import Scene
 from volren.simulate import advected_frames
 
-FULL = {"scenes": ["smoke", "cloud", "phantom", "multi"], "resolution": 256, "light_grid": 128, "size": (1280, 720), "frames": 60, "warmup": 30, "gt_rays": 4096,
+FULL = {"scenes": ["smoke", "cloud", "phantom", "multi"],
+        "resolution": 256, "light_grid": 128, "size": (1280, 720), "frames": 60, "warmup": 30, "gt_rays": 4096,
         "prt_rays": 1024, "dynamic_frames": 60, "gt_every": 6}
-QUICK = {"scenes": ["smoke", "cloud", "phantom", "multi"], "resolution": 64, "light_grid": 32, "size": (96, 64), "frames": 40, "warmup": 24, "gt_rays": 1024,
+QUICK = {"scenes": ["smoke", "cloud", "phantom", "multi"],
+         "resolution": 64, "light_grid": 32, "size": (96, 64), "frames": 40, "warmup": 24, "gt_rays": 1024,
          "prt_rays": 256, "dynamic_frames": 36, "gt_every": 4}
 METHODS = ("major", "prt", "restir", "sresir")
 LIGHT_SAMPLES = 96
