@@ -30,8 +30,8 @@ from volren.scene import Scene
 from volren.simulate import advected_frames
 
 FULL = {"scenes": ["smoke", "cloud", "phantom", "multi"],
-        "resolution": 256, "light_grid": 128, "size": (1280, 720), "frames": 60, "warmup": 30, "gt_rays": 4096,
-        "prt_rays": 1024, "dynamic_frames": 60, "gt_every": 6}
+        "resolution": 256, "light_grid": 128, "size": (1280, 720), "frames": 60, "warmup": 30, "gt_rays": 2048,
+        "prt_rays": 1024, "dynamic_frames": 60, "gt_every": 10}
 QUICK = {"scenes": ["smoke", "cloud", "phantom", "multi"],
          "resolution": 64, "light_grid": 32, "size": (96, 64), "frames": 40, "warmup": 24, "gt_rays": 1024,
          "prt_rays": 256, "dynamic_frames": 36, "gt_every": 4}
