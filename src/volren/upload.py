@@ -141,7 +141,7 @@ def coarse_max_level(vol: Volume) -> np.ndarray:
 
 def volume_struct(
     vol: Volume, offset: int, res: tuple[int, int, int], light_offset: int, light_res: tuple[int, int, int],
-    ambient_offset: int,
+    ambient_offset: int = 0,
 ) -> VolumeGPU:
     """The device description of ``vol`` whose (mip level of the) grid of ``res`` voxels (x, y, z) starts at
     ``offset`` in the packed density array (its light grids at ``light_offset``, its ambient grid at
