@@ -115,7 +115,7 @@ class AmbientGI:
         self.config = config
         self.seed = seed
         self.light_res = list(ds.light_res)
-        voxels = ds.light_voxels
+        voxels = self.light_voxels = ds.light_voxels
         total = max(sum(voxels), 1)
         n2 = config.order**2
         dev = ds.device
@@ -136,7 +136,8 @@ class AmbientGI:
         self.tick = 0
         self._next = 0
         self._static_scene: object | None = None
-        self._env: tuple[object, np.ndarray, np.ndarray] | None = None
+        self._env: tuple[object, wp.array, wp.array] | None = None
+        """(environment, its SH on the device, cosine-convolved SH on the device), uploaded once per environment"""
 
     def fits(self, ds: DeviceScene, config: GIConfig) -> bool:
         """Whether this state can carry on with ``ds`` (same grids, same settings): animated densities keep history."""
@@ -146,9 +147,9 @@ class AmbientGI:
         env = ds.scene.environment
         if self._env is None or self._env[0] is not env:
             sh, cosine = environment_coefficients(ds, self.config.order)
-            self._env = (env, sh, cosine)
-        _, sh, cosine = self._env
-        return wp.array(sh, dtype=wp.vec3, device=ds.device), wp.array(cosine, dtype=wp.vec3, device=ds.device)
+            self._env = (env, wp.array(sh, dtype=wp.vec3, device=ds.device),
+                         wp.array(cosine, dtype=wp.vec3, device=ds.device))
+        return self._env[1], self._env[2]
 
     def _volumes_this_frame(self, n: int) -> list[int]:
         if self.tick == 0:
@@ -226,7 +227,7 @@ class AmbientGI:
         return self._grid(self.buffers.ambient, v, 1)
 
     def _grid(self, array: wp.array, v: int, per_voxel: int) -> np.ndarray:
-        start = sum(int(np.prod(r)) for r in self.light_res[:v])
+        start = sum(self.light_voxels[:v])
         nx, ny, nz = self.light_res[v]
         flat = array.numpy().copy()
         if flat.ndim == 2:
