@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 PIP_FLAGS := --disable-pip-version-check --quiet
 
-.PHONY: demo test lint clean
+.PHONY: demo test lint mutations clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -27,6 +27,10 @@ lint: $(VENV)/.installed-dev
 
 test: lint
 	$(BIN)/python -m pytest -n 2 -q
+
+# Every paper part's deliberate breakage must fail its tests (tests/mutations.toml); slow, not part of `make test`.
+mutations: $(VENV)/.installed-dev
+	$(BIN)/python scripts/mutations.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache
