@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
 from volren.camera import Camera
 from volren.render import DSSRM, DSSRMConfig, Reference, ReferenceConfig
 from volren.scene import DirectionalLight, Environment, Scene, Volume, scale_translate
+
+DEVICE = os.environ.get("VOLREN_TEST_DEVICE", "cpu")
+"""Where the renderers under test run: the CPU here and in CI; `VOLREN_TEST_DEVICE=cuda` runs the suite on a GPU."""
 
 
 def homogeneous_volume(sigma: float, *, n: int = 8, albedo=0.0, g: float = 0.0, emission=0.0, scale=1.0,
@@ -49,8 +54,8 @@ def face_point_np(f: int, u, v) -> np.ndarray:
 
 def render(method: str, scene: Scene, cams, **config):
     if method == "dssrm":
-        return DSSRM(DSSRMConfig(**config), device="cpu").render(scene, list(cams))
-    return Reference(ReferenceConfig(**config), device="cpu").render(scene, list(cams))
+        return DSSRM(DSSRMConfig(**config), device=DEVICE).render(scene, list(cams))
+    return Reference(ReferenceConfig(**config), device=DEVICE).render(scene, list(cams))
 
 
 @pytest.fixture(params=["dssrm", "reference"])

@@ -16,6 +16,7 @@ from functools import cache
 import numpy as np
 import pytest
 
+from conftest import DEVICE
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.metrics import psnr, ssim
@@ -32,13 +33,13 @@ def scene(name: str):
 
 @cache
 def reference(name: str, samples: int = 256) -> np.ndarray:
-    return Reference(ReferenceConfig(samples=samples, light_samples=samples), device="cpu").render(
+    return Reference(ReferenceConfig(samples=samples, light_samples=samples), device=DEVICE).render(
         scene(name), VIEWS).images[0]
 
 
 def dssrm(name: str, view_samples: int, light_samples: int) -> np.ndarray:
     config = DSSRMConfig(samples=view_samples, light_samples=light_samples, light_grid=64)
-    return DSSRM(config, device="cpu").render(scene(name), VIEWS).images[0]
+    return DSSRM(config, device=DEVICE).render(scene(name), VIEWS).images[0]
 
 
 @pytest.mark.parametrize("name", SCENES)
@@ -58,7 +59,7 @@ def test_wrong_light_direction_fails_the_floor():
 
     s = scene("cloud")
     flipped = replace(s, lights=(DirectionalLight((0.5, 1.0, 0.35), s.lights[0].irradiance),))
-    img = DSSRM(DSSRMConfig(samples=256, light_samples=256, light_grid=64), device="cpu").render(flipped, VIEWS)
+    img = DSSRM(DSSRMConfig(samples=256, light_samples=256, light_grid=64), device=DEVICE).render(flipped, VIEWS)
     assert psnr(reference("cloud"), img.images[0]) < 35.0
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import DEVICE
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.errors import VolrenError
@@ -22,7 +23,7 @@ FIXED = {"samples": 256, "light_samples": 64, "light_grid": 32, "hybrid": False,
 
 
 def cacrm(scene, views=STEREO, **config):
-    return CACRM(CACRMConfig(**{**FIXED, **config}), device="cpu").render(scene, views)
+    return CACRM(CACRMConfig(**{**FIXED, **config}), device=DEVICE).render(scene, views)
 
 
 def test_coupled_marching_without_sharing_equals_independent_marches():
@@ -61,7 +62,7 @@ def test_sharing_grows_as_the_eyes_converge():
 @pytest.mark.parametrize("name", ["smoke", "cloud", "phantom", "multi"])
 def test_cacrm_against_the_reference(name):
     scene = builtin_scene(name, 64, count=4)
-    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device="cpu").render(scene, STEREO)
+    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device=DEVICE).render(scene, STEREO)
     frame = cacrm(scene, light_samples=256, light_grid=64, adaptive_lod=True)
     for r, img in zip(ref.images, frame.images, strict=True):
         assert psnr(r, img) > 40.0
@@ -94,7 +95,7 @@ def test_vsa_takes_fewer_samples_at_the_same_quality():
     """The fitted weights (scripts/fit_vsa.py) halve the samples; PSNR against the reference stays within 0.5 dB of
     uniform steps (measured: 46.21 vs 46.18 dB over three scenes at 192x108)."""
     scene = builtin_scene("cloud", 64)
-    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device="cpu").render(scene, STEREO)
+    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device=DEVICE).render(scene, STEREO)
     uniform = cacrm(scene, samples=360)
     adaptive = cacrm(scene, samples=360, vsa=True)
     assert adaptive.stats.counters["density_samples"] < 0.6 * uniform.stats.counters["density_samples"]

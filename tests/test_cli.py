@@ -30,6 +30,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from conftest import DEVICE
 from volren.cli import main
 from volren.device import init_warp
 
@@ -321,7 +322,7 @@ def write_volume(path: Path, a: np.ndarray) -> None:
         nib.save(nib.Nifti1Image(xyz, np.eye(4)), path)
     elif name.endswith(".nvdb"):
         init_warp()
-        wp.Volume.load_from_numpy(xyz, bg_value=0.0, device="cpu").save_to_nvdb(str(path))
+        wp.Volume.load_from_numpy(xyz, bg_value=0.0, device=DEVICE).save_to_nvdb(str(path))
     else:
         raise AssertionError(name)
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from conftest import face_point_np
+from conftest import DEVICE, face_point_np
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
@@ -44,9 +44,9 @@ def test_texel_round_trip():
     """Every texel centre maps back to its own face and index (direction -> face, uv -> texel)."""
     size = 8
     n = 6 * size * size
-    faces = wp.zeros(n, dtype=int, device="cpu")
-    index = wp.zeros(n, dtype=int, device="cpu")
-    wp.launch(addressing_kernel, dim=(6, size, size), inputs=[size, faces, index], device="cpu")
+    faces = wp.zeros(n, dtype=int, device=DEVICE)
+    index = wp.zeros(n, dtype=int, device=DEVICE)
+    wp.launch(addressing_kernel, dim=(6, size, size), inputs=[size, faces, index], device=DEVICE)
     np.testing.assert_array_equal(faces.numpy(), np.repeat(np.arange(6), size * size))
     np.testing.assert_array_equal(index.numpy(), np.arange(n))
 
@@ -58,10 +58,10 @@ def test_texels_past_an_edge_wrap_onto_the_adjacent_face(face):
     size = 8
     h = 2.0 / size
     ij = [(size, 3), (-1, 5), (2, size), (6, -1)]
-    i = wp.array([p[0] for p in ij], dtype=int, device="cpu")
-    j = wp.array([p[1] for p in ij], dtype=int, device="cpu")
-    out = wp.zeros(len(ij), dtype=int, device="cpu")
-    wp.launch(wrap_kernel, dim=len(ij), inputs=[size, face, i, j, out], device="cpu")
+    i = wp.array([p[0] for p in ij], dtype=int, device=DEVICE)
+    j = wp.array([p[1] for p in ij], dtype=int, device=DEVICE)
+    out = wp.zeros(len(ij), dtype=int, device=DEVICE)
+    wp.launch(wrap_kernel, dim=len(ij), inputs=[size, face, i, j, out], device=DEVICE)
     for (ti, tj), idx in zip(ij, out.numpy(), strict=True):
         g, gj, gi = idx // size**2, (idx // size) % size, idx % size
         assert g // 2 != face // 2  # an adjacent face, not this one or its opposite
@@ -87,9 +87,9 @@ def test_visible_face_mask_truth_table(eye, interior, exterior):
 
 
 def render_pair(scene, cam, **cmsrm):
-    a = DSSRM(DSSRMConfig(**MATCHED), device="cpu").render(scene, [cam])
+    a = DSSRM(DSSRMConfig(**MATCHED), device=DEVICE).render(scene, [cam])
     config = {"hybrid": False, "adaptive_lod": False, **MATCHED, **cmsrm}
-    b = CMSRM(CMSRMConfig(**config), device="cpu").render(scene, [cam])
+    b = CMSRM(CMSRMConfig(**config), device=DEVICE).render(scene, [cam])
     return a, b
 
 
@@ -144,7 +144,7 @@ def test_hybrid_marches_directly_when_pixels_are_fewer_than_texels():
     schemes = {}
     for size in ((96, 64), (768, 512)):
         cam = Camera(position=(0.0, 0.0, 3.2), width=size[0], height=size[1])
-        info = CMSRM(CMSRMConfig(**MATCHED), device="cpu").render(scene, [cam]).stats.info["volumes"][0][0]
+        info = CMSRM(CMSRMConfig(**MATCHED), device=DEVICE).render(scene, [cam]).stats.info["volumes"][0][0]
         schemes[size] = info["scheme"]
         assert (info["scheme"] == "direct") == (info["projected_pixels"] < info["visible_texels"])
     assert schemes == {(96, 64): "direct", (768, 512): "cube"}
@@ -152,7 +152,7 @@ def test_hybrid_marches_directly_when_pixels_are_fewer_than_texels():
 
 def test_stereo_cube_maps_per_eye():
     views = make_views(Camera(position=(0.0, 0.4, 2.6), width=64, height=48), "stereo", ipd=0.2)
-    frame = CMSRM(CMSRMConfig(hybrid=False, **MATCHED), device="cpu").render(builtin_scene("smoke", 64), views)
+    frame = CMSRM(CMSRMConfig(hybrid=False, **MATCHED), device=DEVICE).render(builtin_scene("smoke", 64), views)
     assert len(frame.images) == 2 and np.abs(frame.images[0] - frame.images[1]).max() > 0.01
     assert len(frame.stats.info["volumes"]) == 2
     assert frame.stats.info["cube_map_bytes"] == 2 * 6 * 64 * 64 * 24

@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 from scipy import ndimage
 
-from conftest import face_point_np
+from conftest import DEVICE, face_point_np
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig
@@ -38,12 +38,12 @@ def test_culled_tiles_only_see_zero_density(eye, level):
     eye = np.array(eye)
     faces = visible_faces(eye)
     tiles = np.array([(f, a, b) for f in faces for b in range(0, size, tile) for a in range(0, size, tile)], np.int32)
-    live = wp.zeros(len(tiles), dtype=int, device="cpu")
+    live = wp.zeros(len(tiles), dtype=int, device=DEVICE)
     wp.launch(tile_occupancy_kernel, dim=len(tiles),
-              inputs=[wp.array(tiles, dtype=wp.vec3i, device="cpu"), tile, size, wp.vec3(*eye), wp.vec3(*eye), 0.0,
-                      wp.full(len(tiles), level, dtype=int, device="cpu"),
-                      wp.array(grid.reshape(-1), dtype=float, device="cpu"), 0, wp.vec3i(*grid.shape[::-1]), live],
-              device="cpu")
+              inputs=[wp.array(tiles, dtype=wp.vec3i, device=DEVICE), tile, size, wp.vec3(*eye), wp.vec3(*eye), 0.0,
+                      wp.full(len(tiles), level, dtype=int, device=DEVICE),
+                      wp.array(grid.reshape(-1), dtype=float, device=DEVICE), 0, wp.vec3i(*grid.shape[::-1]), live],
+              device=DEVICE)
     live = live.numpy()
     assert live.sum() > 0
     if level == 0:  # (wider level-2 bounds may keep every tile live, which is sound)
@@ -74,8 +74,8 @@ def test_culled_tiles_only_see_zero_density(eye, level):
 def test_culling_leaves_the_image_unchanged_and_saves_samples(method, config):
     scene = builtin_scene("cloud", 128)
     views = make_views(Camera(position=(0.0, 0.4, 3.2), width=96, height=64), "stereo")
-    full = method(config(hybrid=False, light_grid=32, cull_tiles=False), device="cpu").render(scene, views)
-    culled = method(config(hybrid=False, light_grid=32), device="cpu").render(scene, views)
+    full = method(config(hybrid=False, light_grid=32, cull_tiles=False), device=DEVICE).render(scene, views)
+    culled = method(config(hybrid=False, light_grid=32), device=DEVICE).render(scene, views)
     for a, b in zip(full.images, culled.images, strict=True):
         np.testing.assert_array_equal(a, b)
     assert culled.stats.counters["density_samples"] < 0.8 * full.stats.counters["density_samples"]

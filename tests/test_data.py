@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from conftest import DEVICE
 from volren.data import BUILTIN_SCENES, builtin_scene, density_field, load_volume_file, multi_layout
 from volren.device import init_warp
 from volren.errors import VolrenError
@@ -230,7 +231,7 @@ def test_nifti_singleton_4d_and_scaled_integers(tmp_path: Path) -> None:
 
 def _write_nvdb(path: Path, grid_xyz: np.ndarray, bg_value: object = 0.0) -> None:
     init_warp()
-    wp.Volume.load_from_numpy(np.ascontiguousarray(grid_xyz), bg_value=bg_value, device="cpu").save_to_nvdb(path)
+    wp.Volume.load_from_numpy(np.ascontiguousarray(grid_xyz), bg_value=bg_value, device=DEVICE).save_to_nvdb(path)
 
 
 def test_nvdb_round_trip(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from conftest import DEVICE
 from volren.camera import Camera
 from volren.errors import VolrenError
 from volren.metrics import flip, psnr
@@ -23,7 +24,7 @@ column (measured: 0.28% off Beer-Lambert inside, 4.6% at the corners)"""
 
 
 def render(scene, views=(CAM,), frames=1, **config):
-    r = FogRenderer(FogConfig(**{**BASE, **config}), device="cpu")
+    r = FogRenderer(FogConfig(**{**BASE, **config}), device=DEVICE)
     for f in range(frames):
         frame = r.render(scene, list(views), f)
     return frame, r
@@ -134,7 +135,7 @@ def test_temporal_integration_supersamples_the_slices():
     frame sampled at slice centres."""
     fine, _ = render(SHADOWED, slices=512)
     still, _ = render(SHADOWED, slices=32)
-    r = FogRenderer(FogConfig(**{**BASE, "temporal": True, "slices": 32, "temporal_weight": 0.1}), device="cpu")
+    r = FogRenderer(FogConfig(**{**BASE, "temporal": True, "slices": 32, "temporal_weight": 0.1}), device=DEVICE)
     for f in range(32):
         accumulated = r.render(SHADOWED, [CAM], f).images[0]
     assert psnr(fine.images[0], accumulated) > psnr(fine.images[0], still.images[0]) + 1.0
@@ -155,9 +156,9 @@ def test_fog_needs_a_fog_scene_and_volume_methods_need_volumes():
     from volren.render import DSSRM
 
     with pytest.raises(VolrenError, match="needs a scene with fog"):
-        FogRenderer(device="cpu").render(builtin_scene("smoke", 64), [CAM])
+        FogRenderer(device=DEVICE).render(builtin_scene("smoke", 64), [CAM])
     with pytest.raises(VolrenError, match="has none"):
-        DSSRM(device="cpu").render(SHADOWED, [CAM])
+        DSSRM(device=DEVICE).render(SHADOWED, [CAM])
 
 
 def test_moving_objects_keep_the_grid_and_move_their_shadows():
@@ -165,7 +166,7 @@ def test_moving_objects_keep_the_grid_and_move_their_shadows():
 
     spot = fog_scene_camera("dynamic")
     cam = Camera(position=spot["position"], look_at=spot["look_at"], width=64, height=36)
-    r = FogRenderer(FogConfig(voxel_size=0.5, slices=32, temporal=False), device="cpu")
+    r = FogRenderer(FogConfig(voxel_size=0.5, slices=32, temporal=False), device=DEVICE)
     a = r.render(fog_scene("dynamic", 0.0), [cam], 0)
     b = r.render(fog_scene("dynamic", 2.0), [cam], 1)
     # The re-built scene keeps the room's bounds, so the grid is kept and re-traced by parity (about half).

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from conftest import axis_camera, homogeneous_volume, scene_of
+from conftest import DEVICE, axis_camera, homogeneous_volume, scene_of
 from volren.cli import main
 from volren.data.environments import sky_environment
 from volren.errors import VolrenError
@@ -28,7 +28,7 @@ def run_gi(scene: Scene, method: str, frames: int = 1, light_grid: int = 8, ligh
     """Render ``frames`` tiny frames with GI; returns the renderer (its ``gi_state`` holds the grids) and the
     device scene."""
     r = DSSRM(DSSRMConfig(light_grid=light_grid, light_samples=light_samples, gi=GIConfig(method=method, **gi)),
-              device="cpu")
+              device=DEVICE)
     for f in range(frames):
         r.render(scene, [axis_camera(size=(8, 8))], frame=f)
     return r, r._device_scene
@@ -50,7 +50,7 @@ def test_empty_volume_converges_to_the_environment_projection(clamp, tolerance):
     towards its median, measured -0.08 to -0.1, hence 0.15 with it."""
     gi = GIConfig(method="sresir") if clamp else GIConfig(method="sresir", w_dst=1.0, w_clamped=0.0)
     scene = Scene((homogeneous_volume(0.0),), (), SKY)
-    r = DSSRM(DSSRMConfig(light_grid=12, light_samples=16, gi=gi), device="cpu")
+    r = DSSRM(DSSRMConfig(light_grid=12, light_samples=16, gi=gi), device=DEVICE)
     means = []
     for f in range(48):
         r.render(scene, [axis_camera(size=(8, 8))], frame=f)
@@ -121,9 +121,9 @@ def accumulation(n: int = 10, **kw) -> Accumulation:
 
 
 def run_accumulate(prev, x, mu, mu_prev, var, acc):
-    out = wp.zeros(len(prev), dtype=float, device="cpu")
-    wp.launch(accumulate_kernel, dim=len(prev), inputs=[wp.array(prev, dtype=float, device="cpu"), x, mu, mu_prev,
-                                                       var, acc, out], device="cpu")
+    out = wp.zeros(len(prev), dtype=float, device=DEVICE)
+    wp.launch(accumulate_kernel, dim=len(prev), inputs=[wp.array(prev, dtype=float, device=DEVICE), x, mu, mu_prev,
+                                                       var, acc, out], device=DEVICE)
     return out.numpy()
 
 
@@ -156,7 +156,7 @@ def test_cross_volume_shadowing_darkens_a_volume_behind_another():
     r, ds = run_gi(shadowed, "brute", rays=16)
     lit = ds.lightmap.numpy()[: ds.light_voxels[0]]
     assert lit.max() < 0.01
-    r = DSSRM(DSSRMConfig(light_grid=8), device="cpu")
+    r = DSSRM(DSSRMConfig(light_grid=8), device=DEVICE)
     r.render(shadowed, [axis_camera(size=(8, 8))])
     assert r._device_scene.lightmap.numpy()[: ds.light_voxels[0]].min() > 0.3
 
@@ -174,7 +174,7 @@ def test_animated_density_keeps_the_history_and_follows_the_change():
     """A new scene object with the same grids keeps the accumulation (no reset); after the block vanishes the
     ambient recovers towards the unoccluded value."""
     block = Scene((homogeneous_volume(200.0),), (), Environment(0.5))
-    r = DSSRM(DSSRMConfig(light_grid=8, light_samples=32, gi=GIConfig(method="sresir")), device="cpu")
+    r = DSSRM(DSSRMConfig(light_grid=8, light_samples=32, gi=GIConfig(method="sresir")), device=DEVICE)
     cam = [axis_camera(size=(8, 8))]
     for f in range(8):
         r.render(block, cam, frame=f)
@@ -194,9 +194,9 @@ def test_cube_map_marchers_shade_with_the_gi_grids(cls, config):
     cams = [axis_camera(size=(48, 40)), axis_camera(position=(0.063, 0.0, 3.0), size=(48, 40))]
     gi = GIConfig(method="brute", rays=64)
     kw = {"light_grid": 8, "samples": 256}
-    base = DSSRM(DSSRMConfig(gi=gi, **kw), device="cpu").render(scene, cams).images[0]
-    cube = cls(config(gi=gi, **kw), device="cpu").render(scene, cams).images[0]
-    flat = cls(config(**kw), device="cpu").render(scene, cams).images[0]
+    base = DSSRM(DSSRMConfig(gi=gi, **kw), device=DEVICE).render(scene, cams).images[0]
+    cube = cls(config(gi=gi, **kw), device=DEVICE).render(scene, cams).images[0]
+    flat = cls(config(**kw), device=DEVICE).render(scene, cams).images[0]
     assert psnr(base, cube) > 35.0
     assert psnr(base, flat) < psnr(base, cube) - 6.0
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import DEVICE
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
@@ -23,7 +24,7 @@ BASE = {"light_grid": 32, "hybrid": False}
 
 
 def render(scene, views, **config):
-    return CACRM(CACRMConfig(**{**BASE, **config}), device="cpu").render(scene, views)
+    return CACRM(CACRMConfig(**{**BASE, **config}), device=DEVICE).render(scene, views)
 
 
 def gathers(frame) -> int:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from conftest import axis_camera, homogeneous_volume, scene_of
+from conftest import DEVICE, axis_camera, homogeneous_volume, scene_of
 from volren.camera import Camera
 from volren.data import builtin_scene, load_mesh_file
 from volren.errors import VolrenError
@@ -19,7 +19,7 @@ CAM = Camera(position=(0.0, 0.4, 3.2), width=64, height=48)
 
 
 def render(scene, cams=(CAM,)):
-    return DSSRM(DSSRMConfig(samples=64, light_samples=32, light_grid=16), device="cpu").render(scene, list(cams))
+    return DSSRM(DSSRMConfig(samples=64, light_samples=32, light_grid=16), device=DEVICE).render(scene, list(cams))
 
 
 def ground_quad(y: float, half: float = 50.0) -> TriangleMesh:

@@ -14,6 +14,7 @@ from functools import cache
 import numpy as np
 import pytest
 
+from conftest import DEVICE
 from volren.camera import Camera
 from volren.metrics import psnr
 from volren.render import CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
@@ -22,9 +23,9 @@ from volren.scene import Environment, Scene, Volume, scale_translate
 
 STEPS = 128
 METHODS = {
-    "dssrm": lambda: DSSRM(DSSRMConfig(samples=STEPS, light_samples=16), device="cpu"),
-    "cmsrm": lambda: CMSRM(CMSRMConfig(samples=STEPS, light_samples=16, adaptive_lod=False), device="cpu"),
-    "cacrm": lambda: CACRM(CACRMConfig(samples=STEPS, light_samples=16, adaptive_lod=False, vsa=False), device="cpu"),
+    "dssrm": lambda: DSSRM(DSSRMConfig(samples=STEPS, light_samples=16), device=DEVICE),
+    "cmsrm": lambda: CMSRM(CMSRMConfig(samples=STEPS, light_samples=16, adaptive_lod=False), device=DEVICE),
+    "cacrm": lambda: CACRM(CACRMConfig(samples=STEPS, light_samples=16, adaptive_lod=False, vsa=False), device=DEVICE),
 }
 
 
@@ -66,7 +67,7 @@ FLOOR = 35.0
 @cache
 def reference(layout: str) -> np.ndarray:
     scene, cam = {**LAYOUTS, **ISSUE_14}[layout]
-    return Reference(ReferenceConfig(samples=512, light_samples=16), device="cpu").render(scene, [cam]).images[0]
+    return Reference(ReferenceConfig(samples=512, light_samples=16), device=DEVICE).render(scene, [cam]).images[0]
 
 
 def rendered(method: str, layout: str) -> np.ndarray:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from conftest import axis_camera, homogeneous_volume, scene_of
+from conftest import DEVICE, axis_camera, homogeneous_volume, scene_of
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.errors import VolrenError
@@ -18,11 +18,11 @@ from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMCo
 from volren.scene import DirectionalLight, Plane, Sphere, Volume
 
 METHODS = {
-    "dssrm": lambda: DSSRM(DSSRMConfig(samples=128, light_samples=32, light_grid=16), device="cpu"),
-    "reference": lambda: Reference(ReferenceConfig(samples=128, light_samples=32), device="cpu"),
-    "cmsrm": lambda: CMSRM(CMSRMConfig(samples=128, light_samples=32, light_grid=16, hybrid=False), device="cpu"),
+    "dssrm": lambda: DSSRM(DSSRMConfig(samples=128, light_samples=32, light_grid=16), device=DEVICE),
+    "reference": lambda: Reference(ReferenceConfig(samples=128, light_samples=32), device=DEVICE),
+    "cmsrm": lambda: CMSRM(CMSRMConfig(samples=128, light_samples=32, light_grid=16, hybrid=False), device=DEVICE),
     "cacrm": lambda: CACRM(CACRMConfig(samples=128, light_samples=32, light_grid=16, hybrid=False, vsa=False),
-                           device="cpu"),
+                           device=DEVICE),
 }
 
 
@@ -74,8 +74,8 @@ def occluded_cloud():
 def test_methods_agree_with_the_reference_around_opaque_objects():
     cam = Camera(position=(0.0, 0.4, 3.2), width=96, height=64)
     scene = occluded_cloud()
-    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device="cpu").render(scene, [cam]).images[0]
-    d = DSSRM(DSSRMConfig(samples=256, light_samples=256, light_grid=64), device="cpu").render(scene, [cam]).images[0]
+    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device=DEVICE).render(scene, [cam]).images[0]
+    d = DSSRM(DSSRMConfig(samples=256, light_samples=256, light_grid=64), device=DEVICE).render(scene, [cam]).images[0]
     assert psnr(ref, d) > 45.0
 
 
@@ -85,15 +85,15 @@ def test_bilateral_filter_removes_the_occlusion_halo():
     cam = Camera(position=(0.0, 0.4, 3.2), width=192, height=128)
     scene = occluded_cloud()
     matched = {"samples": 256, "light_samples": 64, "light_grid": 32}
-    exact = DSSRM(DSSRMConfig(**matched), device="cpu").render(scene, [cam])
+    exact = DSSRM(DSSRMConfig(**matched), device=DEVICE).render(scene, [cam])
     empty = dataclasses.replace(scene, volumes=(Volume(np.zeros((2, 2, 2)), density_scale=0.0),))
-    surfaces = DSSRM(DSSRMConfig(samples=4, light_samples=4), device="cpu").render(empty, [cam]).depths[0]
+    surfaces = DSSRM(DSSRMConfig(samples=4, light_samples=4), device=DEVICE).render(empty, [cam]).depths[0]
     z = np.where(np.isfinite(surfaces), surfaces, 100.0)
     band = ndimage.binary_dilation(np.hypot(ndimage.sobel(z, 0), ndimage.sobel(z, 1)) > 0.5, iterations=2)
     errors = {}
     for k_z in (0.0, 0.5):
         config = CMSRMConfig(**matched, hybrid=False, adaptive_lod=False, k_z=k_z)
-        img = CMSRM(config, device="cpu").render(scene, [cam]).images[0]
+        img = CMSRM(config, device=DEVICE).render(scene, [cam]).images[0]
         errors[k_z] = np.abs(img[..., :3] - exact.images[0][..., :3]).mean(-1)[band].mean()
     assert errors[0.5] < 0.8 * errors[0.0]
 
@@ -105,8 +105,8 @@ def test_coupled_eyes_each_stop_at_their_own_z_buffer():
     views = make_views(Camera(position=(0.0, 0.4, 3.2), width=96, height=64), "stereo", ipd=0.3)
     scene = occluded_cloud()
     matched = {"samples": 256, "light_samples": 64, "light_grid": 32}
-    exact = DSSRM(DSSRMConfig(**matched), device="cpu").render(scene, views)
-    coupled = CACRM(CACRMConfig(**matched, hybrid=False, adaptive_lod=False, vsa=False), device="cpu").render(scene,
+    exact = DSSRM(DSSRMConfig(**matched), device=DEVICE).render(scene, views)
+    coupled = CACRM(CACRMConfig(**matched, hybrid=False, adaptive_lod=False, vsa=False), device=DEVICE).render(scene,
                                                                                                              views)
     assert coupled.stats.counters["shared_samples"] > 0
     for a, b in zip(exact.images, coupled.images, strict=True):

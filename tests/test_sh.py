@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from conftest import DEVICE
 from volren.errors import VolrenError
 from volren.scene import Environment
 from volren.sh import (
@@ -85,9 +86,9 @@ def basis_kernel(d: wp.array(dtype=wp.vec3), out: wp.array(dtype=vec16)):
 
 def test_warp_basis_matches_numpy():
     d, _ = sphere_quadrature()
-    out = wp.zeros(len(d), dtype=vec16, device="cpu")
-    wp.launch(basis_kernel, dim=len(d), inputs=[wp.array(d.astype(np.float32), dtype=wp.vec3, device="cpu"), out],
-              device="cpu")
+    out = wp.zeros(len(d), dtype=vec16, device=DEVICE)
+    wp.launch(basis_kernel, dim=len(d), inputs=[wp.array(d.astype(np.float32), dtype=wp.vec3, device=DEVICE), out],
+              device=DEVICE)
     np.testing.assert_allclose(out.numpy(), basis(d, 4), atol=1e-5)
 
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from conftest import DEVICE
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
@@ -44,12 +45,12 @@ def test_tile_level_is_the_coarsest_whose_texels_stay_within_k_u_pixels(z):
     cams = stereo(z)
     eye = (vol.to_local @ np.r_[cams[0].position, 1.0])[:3]
     tiles = face_tiles(visible_faces(eye), size)
-    levels = wp.zeros(len(tiles), dtype=int, device="cpu")
+    levels = wp.zeros(len(tiles), dtype=int, device=DEVICE)
     wp.launch(tile_lod_kernel, dim=len(tiles),
-              inputs=[wp.array(tiles, dtype=wp.vec3i, device="cpu"), tile, size,
+              inputs=[wp.array(tiles, dtype=wp.vec3i, device=DEVICE), tile, size,
                       volume_struct(vol, 0, vol.resolution, 0, vol.resolution), camera_struct(cams[0]),
                       camera_struct(cams[1]), k_u, max_tile_level(tile), levels],
-              device="cpu")
+              device=DEVICE)
     levels = levels.numpy()
     h = 2.0 / size
     for (f, i0, j0), level in zip(tiles, levels, strict=True):
@@ -78,9 +79,9 @@ def test_tile_lod_marches_fewer_samples_above_a_psnr_floor():
     """Floor 33 dB: 3.3 dB under the measured 36.3 dB of the module docstring's case."""
     scene = builtin_scene("cloud", 64)
     views = stereo(5.0)
-    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device="cpu").render(scene, views)
-    full = CACRM(CACRMConfig(**FIXED), device="cpu").render(scene, views)
-    tiled = CACRM(CACRMConfig(**FIXED, tile_lod=True), device="cpu").render(scene, views)
+    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device=DEVICE).render(scene, views)
+    full = CACRM(CACRMConfig(**FIXED), device=DEVICE).render(scene, views)
+    tiled = CACRM(CACRMConfig(**FIXED, tile_lod=True), device=DEVICE).render(scene, views)
     levels = tiled.stats.info["volumes"][0][0]["tile_levels"]
     assert levels[1] + levels[2] > 0 and sum(levels) == tiled.stats.info["volumes"][0][0]["live_tiles"]
     assert tiled.stats.counters["density_samples"] < 0.6 * full.stats.counters["density_samples"]
@@ -97,8 +98,8 @@ def test_coarse_tiles_of_a_uniform_medium_match_level_zero(method):
     cls, config = (CMSRM, CMSRMConfig) if method == "cmsrm" else (CACRM, CACRMConfig)
     fixed = {k: v for k, v in FIXED.items() if k != "vsa" or method == "cacrm"}
     views = stereo(8.0)
-    full = cls(config(**fixed), device="cpu").render(scene, views)
-    tiled = cls(config(**fixed, tile_lod=True), device="cpu").render(scene, views)
+    full = cls(config(**fixed), device=DEVICE).render(scene, views)
+    tiled = cls(config(**fixed, tile_lod=True), device=DEVICE).render(scene, views)
     assert tiled.stats.info["volumes"][0][0]["tile_levels"][0] == 0
     for a, b in zip(full.images, tiled.images, strict=True):
         assert psnr(a, b) > 60.0
@@ -107,7 +108,7 @@ def test_coarse_tiles_of_a_uniform_medium_match_level_zero(method):
 def test_culling_with_tile_lod_leaves_the_image_unchanged():
     scene = builtin_scene("cloud", 64)
     views = stereo(5.0)
-    culled = CACRM(CACRMConfig(**FIXED, tile_lod=True), device="cpu").render(scene, views)
-    full = CACRM(CACRMConfig(**FIXED, tile_lod=True, cull_tiles=False), device="cpu").render(scene, views)
+    culled = CACRM(CACRMConfig(**FIXED, tile_lod=True), device=DEVICE).render(scene, views)
+    full = CACRM(CACRMConfig(**FIXED, tile_lod=True, cull_tiles=False), device=DEVICE).render(scene, views)
     for a, b in zip(full.images, culled.images, strict=True):
         np.testing.assert_array_equal(a, b)

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from conftest import DEVICE
 from volren.camera import Camera
 from volren.errors import VolrenError
 from volren.viewers import EYE_HEIGHT, overlap_viewers, wandering_viewers
@@ -57,10 +58,10 @@ def test_viewers_of_different_sizes_render_as_if_alone():
     small = Camera(position=(0.0, 1.7, 0.0), look_at=(5.0, 1.0, 5.0), width=40, height=40, fov_y=70.0)
     scene = fog_scene("courtyard")
     config = FogConfig(sharing="none", slices=16, temporal=False)
-    both = FogRenderer(config, device="cpu").render(scene, [big, small])
+    both = FogRenderer(config, device=DEVICE).render(scene, [big, small])
     assert [i.shape for i in both.images] == [(36, 64, 4), (40, 40, 4)]
     for cam, image in zip([big, small], both.images, strict=True):
-        alone = FogRenderer(config, device="cpu").render(scene, [cam]).images[0]
+        alone = FogRenderer(config, device=DEVICE).render(scene, [cam]).images[0]
         np.testing.assert_array_equal(image, alone)
 
 

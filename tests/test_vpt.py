@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from conftest import DEVICE
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.errors import VolrenError
@@ -37,12 +38,12 @@ def track_kernel(grid: MajorantGrid, majorants: wp.array(dtype=float), density: 
 def run_track(density: np.ndarray, max_extinction: float, o, d, t1: float, ratio: int, global_majorant=False):
     table = linear(max_extinction, (1.0, 1.0, 1.0)).table()
     m = build_majorants(density, table[:, 0], global_majorant=global_majorant)
-    out = wp.zeros(RAYS, dtype=float, device="cpu")
+    out = wp.zeros(RAYS, dtype=float, device=DEVICE)
     wp.launch(track_kernel, dim=RAYS, device="cpu", inputs=[
         majorant_struct(m, 0), wp.array(np.concatenate([lv.reshape(-1) for lv in m.levels]), dtype=float,
-                                        device="cpu"),
-        wp.array(density.reshape(-1), dtype=float, device="cpu"), wp.vec3i(*density.shape[::-1]), 1.0 / m.scale,
-        wp.array(table[:, :4], dtype=wp.vec4, device="cpu"), wp.vec3(*o), wp.vec3(*d), t1, ratio, out])
+                                        device=DEVICE),
+        wp.array(density.reshape(-1), dtype=float, device=DEVICE), wp.vec3i(*density.shape[::-1]), 1.0 / m.scale,
+        wp.array(table[:, :4], dtype=wp.vec4, device=DEVICE), wp.vec3(*o), wp.vec3(*d), t1, ratio, out])
     return out.numpy()
 
 
@@ -109,7 +110,7 @@ def uniform_scene(albedo=1.0, **env) -> Scene:
 def test_furnace():
     """An albedo-1 medium in a uniform environment (no ambient boost) returns the environment's radiance."""
     scene = uniform_scene(environment=Environment((1.0, 1.0, 1.0)))
-    frame = VPT(VPTConfig(spp=64, max_bounces=64, ambient=False), device="cpu").render(scene, [CAM])
+    frame = VPT(VPTConfig(spp=64, max_bounces=64, ambient=False), device=DEVICE).render(scene, [CAM])
     image = frame.images[0]
     seen = image[..., 3] > 0.5
     assert seen.sum() > 100
@@ -121,8 +122,8 @@ def test_single_scattering_matches_the_reference():
     """Extinction proportional to density (the ray marchers' model), one bounce, the ambient as an unshadowed term:
     the per-channel image means agree within 2% and the images within the path tracer's noise."""
     scene = builtin_scene("cloud", 64)
-    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device="cpu").render(scene, [CAM])
-    frame = VPT(VPTConfig(spp=256, max_bounces=1, environment_light=False), device="cpu").render(scene, [CAM])
+    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device=DEVICE).render(scene, [CAM])
+    frame = VPT(VPTConfig(spp=256, max_bounces=1, environment_light=False), device=DEVICE).render(scene, [CAM])
     a, b = ref.images[0], frame.images[0]
     np.testing.assert_allclose(b.mean(axis=(0, 1)), a.mean(axis=(0, 1)), rtol=0.02)
 
@@ -138,7 +139,7 @@ def test_shading_models_share_the_mean_and_coexistence_has_less_variance(tmp_pat
                   lights=(DirectionalLight((-0.5, -1.0, -0.3), (3.0, 3.0, 3.0)),), environment=Environment((0, 0, 0)))
     frames = {}
     for shading in ("er", "coexist"):
-        r = VPT(VPTConfig(spp=4, max_bounces=1, shading=shading, transfer=str(path)), device="cpu")
+        r = VPT(VPTConfig(spp=4, max_bounces=1, shading=shading, transfer=str(path)), device=DEVICE)
         frames[shading] = np.stack([r.render(scene, [CAM], f).images[0][..., :3] for f in range(24)])
     er, co = frames["er"], frames["coexist"]
     # Means agree within the combined standard error of the two 24-frame means (summed over the image).
@@ -188,9 +189,9 @@ def test_environment_importance_sampling_is_unbiased_and_follows_the_map():
     image[6:10, 40:46] = 50.0  # a sun-like patch in the upper hemisphere
     env = Environment(image=image)
     n = 200_000
-    out = wp.zeros(n, dtype=wp.vec3, device="cpu")
-    dirs = wp.zeros(n, dtype=wp.vec3, device="cpu")
-    wp.launch(env_kernel, dim=n, inputs=[environment_light(env, "cpu"), out, dirs], device="cpu")
+    out = wp.zeros(n, dtype=wp.vec3, device=DEVICE)
+    dirs = wp.zeros(n, dtype=wp.vec3, device=DEVICE)
+    wp.launch(env_kernel, dim=n, inputs=[environment_light(env, "cpu"), out, dirs], device=DEVICE)
     values = out.numpy()[:, 0]
     expected = 4 * np.pi * env.mean_radiance()[0]
     assert abs(values.mean() - expected) < 4 * values.std() / np.sqrt(n)
@@ -204,7 +205,7 @@ def test_environment_importance_sampling_is_unbiased_and_follows_the_map():
 
 def test_furnace_with_a_constant_image_environment():
     scene = uniform_scene(environment=Environment(image=np.ones((8, 16, 3), np.float32)))
-    image = VPT(VPTConfig(spp=64, max_bounces=64, ambient=False), device="cpu").render(scene, [CAM]).images[0]
+    image = VPT(VPTConfig(spp=64, max_bounces=64, ambient=False), device=DEVICE).render(scene, [CAM]).images[0]
     seen = image[..., 3] > 0.5
     assert abs((image[..., 0][seen] / image[..., 3][seen]).mean() - 1.0) < 0.02
 
@@ -217,8 +218,8 @@ def test_a_small_distant_rect_light_acts_as_a_point_light():
     rect = RectLight((0.0, 10.0, 0.0), (0.05, 0.0, 0.0), (0.0, 0.0, 0.05), (4000.0,) * 3)
     point = PointLight((0.0, 10.0, 0.0), (4000.0 * 0.01,) * 3)
     config = VPTConfig(spp=64, max_bounces=1, environment_light=False, ambient=False)
-    a = VPT(config, device="cpu").render(Scene(base.volumes, lights=(rect,)), [CAM]).images[0]
-    b = VPT(config, device="cpu").render(Scene(base.volumes, lights=(point,)), [CAM]).images[0]
+    a = VPT(config, device=DEVICE).render(Scene(base.volumes, lights=(rect,)), [CAM]).images[0]
+    b = VPT(config, device=DEVICE).render(Scene(base.volumes, lights=(point,)), [CAM]).images[0]
     assert a[..., 0].sum() > 0
     np.testing.assert_allclose(a[..., 0].sum(), b[..., 0].sum(), rtol=0.03)
 
@@ -230,8 +231,8 @@ def reproject_kernel(cam: CameraGPU, depth: float, out: wp.array2d(dtype=wp.vec2
 
 
 def test_reprojection_maps_a_pixel_to_itself_for_a_static_camera():
-    out = wp.zeros((CAM.height, CAM.width), dtype=wp.vec2i, device="cpu")
-    wp.launch(reproject_kernel, dim=(CAM.height, CAM.width), inputs=[camera_struct(CAM), 2.7, out], device="cpu")
+    out = wp.zeros((CAM.height, CAM.width), dtype=wp.vec2i, device=DEVICE)
+    wp.launch(reproject_kernel, dim=(CAM.height, CAM.width), inputs=[camera_struct(CAM), 2.7, out], device=DEVICE)
     rows, cols = np.mgrid[0:CAM.height, 0:CAM.width]
     np.testing.assert_array_equal(out.numpy(), np.stack([rows, cols], -1))
 
@@ -241,9 +242,9 @@ def test_denoiser_beats_the_raw_frames_and_steadies_them():
     change 0.030 raw, 0.0064 denoised. Floors: +3 dB and half the change."""
     scene = builtin_scene("phantom", 64)
     cam = Camera(position=(1.6, 1.2, 2.4), width=48, height=40, fov_y=40.0)
-    ref = VPT(VPTConfig(spp=256, transfer="ct-muscle"), device="cpu").render(scene, [cam]).images[0]
-    raw = VPT(VPTConfig(spp=4, transfer="ct-muscle"), device="cpu")
-    den = VPT(VPTConfig(spp=4, transfer="ct-muscle", denoise="ours"), device="cpu")
+    ref = VPT(VPTConfig(spp=256, transfer="ct-muscle"), device=DEVICE).render(scene, [cam]).images[0]
+    raw = VPT(VPTConfig(spp=4, transfer="ct-muscle"), device=DEVICE)
+    den = VPT(VPTConfig(spp=4, transfer="ct-muscle", denoise="ours"), device=DEVICE)
     raws = [raw.render(scene, [cam], f).images[0] for f in range(6)]
     dens = [den.render(scene, [cam], f).images[0] for f in range(6)]
     assert psnr(ref, dens[-1]) > psnr(ref, raws[-1]) + 3.0
