@@ -1,5 +1,13 @@
-"""Empty-tile culling (paper 000 §3, coarse phase): sound (a culled tile's rays meet only zero density), effective,
-and invisible in the image."""
+"""Empty-tile culling (paper 000 §3, coarse phase) on interior and exterior faces, and per-view frustum culling of
+whole volumes (paper 001 §3.4's culling pass): sound (a culled tile's rays meet only zero density, a culled box no
+ray of the view), effective (culled work costs zero rays, samples, tiles and cube-map bytes), and invisible in the
+image.
+
+Measured (cloud 64^3, 96x64, hybrid off): exterior faces from (1.3, 1.2, 1.3) culled all 12 tiles before the fix
+(an empty image); now 10 of 12 are live and the image equals --no-cull's, 28.7 dB against the reference (interior
+faces: 46.2 dB). A second cloud 30 m to the side added 8,192 texel rays, 1.23 M samples and 16 tiles before frustum
+culling, one behind the eye 20 tiles and 590 KB of cube maps; both now add nothing.
+"""
 
 from __future__ import annotations
 
@@ -11,9 +19,11 @@ from scipy import ndimage
 from conftest import DEVICE, face_point_np
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
-from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig
+from volren.metrics import psnr
+from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig, Reference, ReferenceConfig
+from volren.render.cmsrm import frustum_visible
 from volren.render.cubemap import tile_occupancy_kernel, visible_faces
-from volren.scene import Volume
+from volren.scene import Scene, Volume, scale_translate
 from volren.upload import coarse_max_level
 
 
@@ -25,23 +35,32 @@ def sampled_density(density: np.ndarray, p: np.ndarray) -> np.ndarray:
                                    mode="nearest").reshape(p.shape[:-1])
 
 
-@pytest.mark.parametrize("level", [0, 2])
-@pytest.mark.parametrize("eye", [(0.3, 0.2, 3.0), (2.5, 1.5, -2.0), (0.2, -0.1, 0.3)])
-def test_culled_tiles_only_see_zero_density(eye, level):
-    """At tile level l > 0 the tile also marches an apron ring of one level-l texel (2^l texels) around it, wrapped
-    onto the adjacent face at an edge: those rays must see zero density too."""
+OUTSIDE = [(0.3, 0.2, 3.0), (2.5, 1.5, -2.0), (1.3, 1.2, 1.3)]
+INSIDE = (0.2, -0.1, 0.3)
+
+
+@pytest.mark.parametrize(
+    ("faces", "level", "eye"),
+    [("interior", level, eye) for level in (0, 2) for eye in [*OUTSIDE, INSIDE]]
+    + [("exterior", 0, eye) for eye in OUTSIDE],
+)
+def test_culled_tiles_only_see_zero_density(faces, level, eye):
+    """Interior rays run from the box entry to the texel, exterior rays from the texel to the box exit. At tile level
+    l > 0 the tile also marches an apron ring of one level-l texel (2^l texels) around it, wrapped onto the adjacent
+    face at an edge: those rays must see zero density too."""
     size, tile = 32, 8
     density = np.zeros((32, 32, 32), np.float32)
     density[20:28, 18:30, 4:14] = 1.0  # one block: most tiles' rays miss it
     vol = Volume(density)
     grid = coarse_max_level(vol)
     eye = np.array(eye)
-    faces = visible_faces(eye)
-    tiles = np.array([(f, a, b) for f in faces for b in range(0, size, tile) for a in range(0, size, tile)], np.int32)
+    exterior = faces == "exterior"
+    tiles = np.array([(f, a, b) for f in visible_faces(eye, faces) for b in range(0, size, tile)
+                      for a in range(0, size, tile)], np.int32)
     live = wp.zeros(len(tiles), dtype=int, device=DEVICE)
     wp.launch(tile_occupancy_kernel, dim=len(tiles),
-              inputs=[wp.array(tiles, dtype=wp.vec3i, device=DEVICE), tile, size, wp.vec3(*eye), wp.vec3(*eye), 0.0,
-                      wp.full(len(tiles), level, dtype=int, device=DEVICE),
+              inputs=[wp.array(tiles, dtype=wp.vec3i, device=DEVICE), tile, size, wp.vec3(*eye), wp.vec3(*eye),
+                      int(exterior), 0.0, wp.full(len(tiles), level, dtype=int, device=DEVICE),
                       wp.array(grid.reshape(-1), dtype=float, device=DEVICE), 0, wp.vec3i(*grid.shape[::-1]), live],
               device=DEVICE)
     live = live.numpy()
@@ -64,8 +83,11 @@ def test_culled_tiles_only_see_zero_density(eye, level):
         d = q - eye
         with np.errstate(divide="ignore", invalid="ignore"):
             ta, tb = (-1 - eye) / d, (1 - eye) / d
-        t0 = np.clip(np.nanmax(np.minimum(ta, tb), axis=-1), 0, 1)
-        s = t0[..., None] + (1 - t0[..., None]) * np.linspace(0, 1, 96)
+        if exterior:  # from the texel (t = 1) to the box exit
+            t0, t1 = np.ones(q.shape[:-1]), np.maximum(np.nanmin(np.maximum(ta, tb), axis=-1), 1)
+        else:  # from the box entry (or the eye inside) to the texel
+            t0, t1 = np.clip(np.nanmax(np.minimum(ta, tb), axis=-1), 0, 1), np.ones(q.shape[:-1])
+        s = t0[..., None] + (t1 - t0)[..., None] * np.linspace(0, 1, 96)
         points = eye + s[..., None] * d[..., None, :]
         assert sampled_density(density, points).max() == 0.0, (f, i0, j0)
 
@@ -81,3 +103,108 @@ def test_culling_leaves_the_image_unchanged_and_saves_samples(method, config):
     assert culled.stats.counters["density_samples"] < 0.8 * full.stats.counters["density_samples"]
     plan = culled.stats.info["volumes"][0][0]
     assert plan["live_tiles"] < plan["tiles"]
+
+
+def reference_image(scene, cam: Camera) -> np.ndarray:
+    return Reference(ReferenceConfig(samples=256, light_samples=256), device=DEVICE).render(scene, [cam]).images[0]
+
+
+def test_exterior_faces_cull_only_empty_tiles():
+    """The README's exterior-face example: culling must keep the tiles whose rays run on from the face into the
+    cloud, so the image equals --no-cull's and stays within 3.7 dB under the measured 28.7 dB of the reference (the
+    exterior scheme's texel aliasing, paper 001 Fig. 2 (a)); the bug left an empty image."""
+    scene = builtin_scene("cloud", 64)
+    cam = Camera(position=(1.3, 1.2, 1.3), width=96, height=64)
+    config = {"cube_faces": "exterior", "hybrid": False, "light_grid": 32, "light_samples": 64}
+    culled = CMSRM(CMSRMConfig(**config), device=DEVICE).render(scene, [cam])
+    full = CMSRM(CMSRMConfig(**config, cull_tiles=False), device=DEVICE).render(scene, [cam])
+    np.testing.assert_array_equal(culled.images[0], full.images[0])
+    plan = culled.stats.info["volumes"][0][0]
+    assert 0 < plan["live_tiles"] < plan["tiles"]
+    assert culled.stats.counters["density_samples"] < full.stats.counters["density_samples"]
+    assert psnr(reference_image(scene, cam), culled.images[0]) > 25.0
+
+
+def box_chords(cam: Camera, vol: Volume, n: int = 48) -> np.ndarray:
+    """Length of the in-box part, between the near and far planes, of n x n rays spread over the whole viewport
+    rectangle, its edges included (so over the whole frustum, not only pixel centres)."""
+    right, up, forward = cam.basis()
+    tx, ty = cam.tan_half_fov * cam.width / cam.height, cam.tan_half_fov
+    u, v = np.meshgrid(np.linspace(-1, 1, n), np.linspace(-1, 1, n))
+    d = forward + u[..., None] * tx * right + v[..., None] * ty * up  # unit linear depth per unit t
+    o = (vol.to_local @ np.r_[cam.position, 1.0])[:3]
+    d = d @ vol.to_local[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (-1 - o) / d, (1 - o) / d
+    t0 = np.maximum(np.nanmax(np.minimum(ta, tb), axis=-1), cam.near)
+    t1 = np.minimum(np.nanmin(np.maximum(ta, tb), axis=-1), cam.far)
+    return np.clip(t1 - t0, 0, None)
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.diag(r))
+
+
+def test_frustum_culling_is_conservative_and_culls_what_it_should():
+    """Random boxes: a culled one meets no ray of the frustum; a kept one rarely misses it (measured: 233 of 300
+    culled, every kept box hit)."""
+    cam = Camera(position=(0.5, 1.0, 4.0), look_at=(0.0, 0.0, 0.0), width=96, height=64, near=0.05, far=60.0)
+    rng = np.random.default_rng(7)
+    culled, kept_missed = 0, 0
+    for _ in range(300):
+        m = np.eye(4)
+        m[:3, :3] = random_rotation(rng) * rng.uniform(0.05, 3.0, 3)
+        m[:3, 3] = rng.uniform(-15, 15, 3)
+        vol = Volume(np.ones((2, 2, 2), np.float32), m)
+        if not frustum_visible(vol, cam):
+            culled += 1
+            assert box_chords(cam, vol).max() == 0.0, m
+        else:
+            kept_missed += box_chords(cam, vol).max() == 0.0
+    assert 100 < culled < 290 and kept_missed <= 3
+    ones = np.ones((2, 2, 2), np.float32)
+    back = 2 * np.asarray(cam.position)  # behind the eye
+    assert not frustum_visible(Volume(ones, scale_translate(1.0, back)), cam)
+    assert not frustum_visible(Volume(ones, scale_translate(1.0, (30.0, 0.0, 0.0))), cam)
+    assert not frustum_visible(Volume(ones, scale_translate(1.0, (0.0, 0.0, -80.0))), cam)  # beyond the far plane
+    assert frustum_visible(Volume(ones, scale_translate(1.0, cam.position)), cam)  # the eye inside
+    assert frustum_visible(Volume(ones, scale_translate((40.0, 0.1, 0.1), (0.0, 0.0, 0.0))), cam)  # corners all out
+    assert frustum_visible(Volume(ones, scale_translate(1.0, (2.2, 0.0, 0.0))), cam)  # partly in view
+
+
+def shifted(vol: Volume, offset) -> Volume:
+    m = vol.to_world.copy()
+    m[:3, 3] += offset
+    return Volume(vol.density, m, vol.density_scale, vol.albedo, vol.g, vol.emission, "extra")
+
+
+@pytest.mark.parametrize("offset", [(30.0, 0.0, 0.0), (0.0, 0.0, 8.0)])
+def test_volumes_outside_the_frustum_cost_nothing(offset):
+    """30 m to the side, and behind the eye: no cube map, no tiles, no rays, not one sample; the image is unchanged."""
+    scene = builtin_scene("cloud", 64)
+    extra = Scene((scene.volumes[0], shifted(scene.volumes[0], offset)), scene.lights, scene.environment)
+    cam = Camera(position=(0.0, 0.4, 3.2), width=96, height=64)
+    renderer = CMSRM(CMSRMConfig(hybrid=False, light_grid=32), device=DEVICE)
+    alone, both = renderer.render(scene, [cam]), renderer.render(extra, [cam])
+    plan = both.stats.info["volumes"][0][1]
+    assert (plan["scheme"], plan["tiles"], plan["visible_texels"], plan["projected_pixels"]) == ("culled", 0, 0, 0)
+    for key in ("rays", "density_samples", "lightmap_lookups"):
+        assert both.stats.counters[key] == alone.stats.counters[key], key
+    assert both.stats.info["cube_map_bytes"] == alone.stats.info["cube_map_bytes"]
+    np.testing.assert_array_equal(both.images[0], alone.images[0])
+
+
+@pytest.mark.parametrize("method", ["cmsrm", "cacrm"])
+def test_a_volume_partly_in_view_is_kept(method):
+    """Half of the cloud past the viewport's right edge: marched (cube scheme, hybrid off) and within 40 dB of the
+    reference (measured: CMSRM 44.9 dB, CACRM 44.9 dB)."""
+    base = builtin_scene("cloud", 64)
+    scene = Scene((shifted(base.volumes[0], (1.6, 0.0, 0.0)),), base.lights, base.environment)
+    cam = Camera(position=(0.0, 0.4, 3.2), look_at=(0.0, 0.4, 0.0), width=96, height=64)
+    cls, config = (CMSRM, CMSRMConfig) if method == "cmsrm" else (CACRM, CACRMConfig)
+    frame = cls(config(hybrid=False, light_grid=32, light_samples=64), device=DEVICE).render(scene, [cam])
+    assert frame.stats.info["volumes"][0][0]["scheme"] == "cube"
+    image = frame.images[0]
+    assert image[:, -8:, 3].max() > 0.5 and image[:, :8, 3].max() == 0.0
+    assert psnr(reference_image(scene, cam), image) > 40.0

@@ -17,9 +17,15 @@ Mesh occlusion (§3.2): each texel ray stops at the opaque surface of the z-buff
 edge-stopping w_z = max(1 - k_z |z_buffer - z_cube|, 0) (k_z = 0.5) so that texels cut at a different depth than
 the pixel's own ray do not bleed across occlusion edges (the halo of plain bilinear).
 
+Frustum culling (§3.4's culling pass, per volume and view): a box that a frustum plane or a box face plane separates
+from the view frustum (`frustum_visible`) gets no cube map, no tiles and no rays, and is left out of the per-pixel
+loop; without it a box behind the eye counted as covering the viewport, and with the hybrid off a cloud 30 m to the
+side cost 8,192 texel rays for no visible pixel.
+
 Empty-tile culling (paper 000 §3's coarse phase, shared with CACRM): faces are marched in 32x32-texel tiles, and a
 coarse pass drops the tiles whose rays can only meet zero density according to the conservative max-density pyramid
 (`tile_occupancy_kernel`). Culled texels keep the transparent fill, which is what marching them would have given.
+Interior rays end at their texel, exterior rays start there and run on to the box exit, and the bound follows.
 
 Tile LOD (paper 000 §3.1.3, ``tile_lod``): the same coarse pass gives each tile a level l in {0, 1, 2} from its texels'
 screen footprint (`tile_lod_kernel`: coarse texels stay within k_u pixels, like the per-volume LOD); a level-l tile
@@ -76,10 +82,15 @@ from volren.render.cubemap import (
 )
 from volren.render.dssrm import MarchParams, march_volume_light_map
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
+from volren.scene import Volume
 from volren.upload import DeviceScene, camera_struct, depth_order
 
+SCHEME_CULLED = -1
+"""outside the view frustum: no cube map, no tiles, no rays (below the others so that CACRM's per-pair max keeps
+the scheme of an eye that sees the volume)"""
 SCHEME_DIRECT = 0
 SCHEME_CUBE = 1
+SCHEME_NAMES = {SCHEME_CULLED: "culled", SCHEME_DIRECT: "direct", SCHEME_CUBE: "cube"}
 
 
 @dataclass
@@ -304,6 +315,29 @@ def cube_resample_kernel(
     write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
 
+def frustum_visible(vol: Volume, cam: Camera) -> bool:
+    """Viewport-visibility culling of a whole volume (paper 001 §3.4's culling pass): False when one of the 12
+    candidate separating planes has the box and the view frustum (near to far plane, through the viewport's edges)
+    on opposite sides, i.e. all 8 box corners lie outside one frustum plane or all 8 frustum corners lie outside one
+    face plane of the box. Conservative: a box kept may still miss the frustum near a frustum edge (the planes
+    tested are not every separating axis), but a culled box meets no ray of the view, so culling never changes the
+    image. Points on a plane (within 1e-6 relative) count as inside."""
+    tx = cam.tan_half_fov * cam.width / cam.height
+    ty = cam.tan_half_fov
+    c = np.c_[vol.corners_world, np.ones(8)] @ cam.view_matrix().T
+    x, y, depth = c[:, 0], c[:, 1], -c[:, 2]
+    tol = 1e-6 * max(1.0, float(np.abs(c[:, :3]).max()))
+    outside = (cam.near - depth, depth - cam.far, x - tx * depth, -x - tx * depth, y - ty * depth, -y - ty * depth)
+    if any(np.all(o > tol) for o in outside):
+        return False
+    right, up, forward = cam.basis()
+    corners = np.array([np.asarray(cam.position) + z * (forward + sx * tx * right + sy * ty * up)
+                        for z in (cam.near, cam.far) for sx in (-1, 1) for sy in (-1, 1)])
+    local = (np.c_[corners, np.ones(8)] @ vol.to_local.T)[:, :3]
+    tol = 1e-6 * max(1.0, float(np.abs(local).max()))
+    return not any(np.all(local[:, a] > 1 + tol) or np.all(local[:, a] < -1 - tol) for a in range(3))
+
+
 def projected_pixels(vol_corners: np.ndarray, cam: Camera) -> float:
     """Viewport pixels covered by the box's projection, estimated by the bounding rectangle of its projected corners
     clipped to the viewport; the whole viewport when a corner is behind the near plane."""
@@ -345,17 +379,24 @@ class CMSRM(LightMapRenderer):
         return params
 
     def _plan(self, ds: DeviceScene, cam: Camera) -> list[dict]:
-        """Per volume: visible faces (Eq. 1), LOD (§3.3) and scheme (hybrid, §3.4)."""
+        """Per volume, the culling pass of §3.4: frustum culling, visible faces (Eq. 1), LOD (§3.3) and scheme
+        (hybrid). A culled volume has no visible faces, texels or pixels."""
         c = self.config
         plans = []
         for vol in ds.scene.volumes:
+            visible = frustum_visible(vol, cam)
             eye = (vol.to_local @ np.r_[cam.position, 1.0])[:3]
-            faces = visible_faces(eye, c.cube_faces)
+            faces = visible_faces(eye, c.cube_faces) if visible else []
             base = c.cube_size or max(vol.resolution)
             lod = cube_lod(vol, cam, base, c.samples, c.k_u, c.k_c, c.adaptive_lod)
             texels = len(faces) * lod.size**2
-            pixels = projected_pixels(vol.corners_world, cam)
-            scheme = SCHEME_DIRECT if (c.hybrid and pixels < texels) or not faces else SCHEME_CUBE
+            pixels = projected_pixels(vol.corners_world, cam) if visible else 0.0
+            if not visible:
+                scheme = SCHEME_CULLED
+            elif (c.hybrid and pixels < texels) or not faces:
+                scheme = SCHEME_DIRECT
+            else:
+                scheme = SCHEME_CUBE
             plans.append({"faces": faces, "lod": lod, "texels": texels, "pixels": pixels, "scheme": scheme})
         return plans
 
@@ -410,7 +451,8 @@ class CMSRM(LightMapRenderer):
             occupied = wp.zeros(len(tiles), dtype=int, device=self.device)
             with clock.measure("tile_cull"):
                 wp.launch(tile_occupancy_kernel, dim=len(tiles),
-                          inputs=[device_tiles, tile, lod.size, wp.vec3(*eyes[0]), wp.vec3(*eyes[-1]), margin, levels,
+                          inputs=[device_tiles, tile, lod.size, wp.vec3(*eyes[0]), wp.vec3(*eyes[-1]),
+                                  int(c.cube_faces == "exterior"), margin, levels,
                                   ds.max_density, offset, wp.vec3i(*res), occupied], device=self.device)
             live = occupied.numpy() > 0
         plan["live_tiles"] = int(live.sum())
@@ -507,7 +549,9 @@ class CMSRM(LightMapRenderer):
             c = cubes[view]
             per_volume = [wp.array(a, dtype=int, device=self.device)
                           for a in ([p["scheme"] for p in plans[view]], c.offsets, c.sizes)]
-            order = wp.array(depth_order(ds.scene, cam), dtype=int, device=self.device)
+            # Culled volumes are left out of the per-pixel loop: no ray of the view meets them.
+            order = wp.array([v for v in depth_order(ds.scene, cam) if plans[view][v]["scheme"] != SCHEME_CULLED],
+                             dtype=int, device=self.device)
             with clock.measure("resample"):
                 launch_rows(
                     cube_resample_kernel,
@@ -521,7 +565,7 @@ class CMSRM(LightMapRenderer):
                     self.on_rows,
                 )
             self._frame_info["volumes"].append([
-                {"view": view, "volume": v, "scheme": "cube" if p["scheme"] == SCHEME_CUBE else "direct",
+                {"view": view, "volume": v, "scheme": SCHEME_NAMES[p["scheme"]],
                  "faces": p["faces"], "level": p["lod"].level, "face_size": p["lod"].size,
                  "samples": p["lod"].samples, "visible_texels": p["texels"], "projected_pixels": round(p["pixels"]),
                  "tiles": p.get("tiles", 0), "live_tiles": p.get("live_tiles", 0),

@@ -281,29 +281,37 @@ def face_tiles(faces: list[int], size: int) -> np.ndarray:
 
 
 @wp.func
-def ray_entry(eye: wp.vec3, q: wp.vec3) -> wp.vec3:
-    """Where the segment from the eye to the box-surface point q enters the box (the eye itself when inside)."""
+def ray_box_point(eye: wp.vec3, q: wp.vec3, exterior: int) -> wp.vec3:
+    """Where the line from the eye through the box-surface point q enters the box (the eye itself when inside), or,
+    for ``exterior`` rays that start at q, where it leaves the box."""
     h = box_hit(eye, q - eye)
+    if exterior != 0:
+        return eye + h[1] * (q - eye)
     return eye + wp.max(h[0], 0.0) * (q - eye)
 
 
 @wp.func
-def pyramid_bounds(eye: wp.vec3, q00: wp.vec3, q10: wp.vec3, q01: wp.vec3, q11: wp.vec3) -> wp.mat33:
-    """Rows 0 and 1: a box bounding the entry side of the rays from ``eye`` to the quad q00..q11 inside [-1, 1]^3.
-    The rays' in-box segments run from their entry points to the quad, so when the four corner rays enter through
-    one face (or the eye is inside) the entry points and the quad span them all; otherwise the entry patch may bend
-    over a box edge and the eye clamped into the box is used instead (looser, still conservative)."""
-    a = ray_entry(eye, q00)
-    b = ray_entry(eye, q10)
-    c = ray_entry(eye, q01)
-    d = ray_entry(eye, q11)
+def pyramid_bounds(eye: wp.vec3, q00: wp.vec3, q10: wp.vec3, q01: wp.vec3, q11: wp.vec3, exterior: int) -> wp.mat33:
+    """Rows 0 and 1: a box bounding, inside [-1, 1]^3, the far end of the rays' in-box segments that run between the
+    quad q00..q11 and the box surface: interior rays run from their entry points to the quad, exterior rays from the
+    quad to their exit points. When the four corner rays meet the box surface on one face (or an interior eye is
+    inside) those points and the quad span the segments (the box is convex); otherwise the patch may bend over a box
+    edge, and the bound falls back to the eye clamped into the box (interior: the rays converge there) or to the whole
+    box (exterior: they diverge). Looser, still conservative."""
+    a = ray_box_point(eye, q00, exterior)
+    b = ray_box_point(eye, q10, exterior)
+    c = ray_box_point(eye, q01, exterior)
+    d = ray_box_point(eye, q11, exterior)
     one = wp.vec3(1.0)
     inside = wp.abs(eye[0]) <= 1.0 and wp.abs(eye[1]) <= 1.0 and wp.abs(eye[2]) <= 1.0
     fa = point_face(a)
     same = point_face(b) == fa and point_face(c) == fa and point_face(d) == fa
     lo = wp.min(wp.min(a, b), wp.min(c, d))
     hi = wp.max(wp.max(a, b), wp.max(c, d))
-    if not (inside or same):
+    if exterior != 0 and not same:
+        lo = -one
+        hi = one
+    elif not (inside or same):
         e = wp.max(wp.min(eye, one), -one)
         lo = wp.min(lo, e)
         hi = wp.max(hi, e)
@@ -317,6 +325,7 @@ def tile_occupancy_kernel(
     size: int,
     eye0: wp.vec3,
     eye1: wp.vec3,
+    exterior: int,
     margin: float,
     tile_level: wp.array(dtype=int),
     max_density: wp.array(dtype=float),
@@ -324,8 +333,9 @@ def tile_occupancy_kernel(
     res: wp.vec3i,
     live: wp.array(dtype=int),
 ):
-    """Coarse pass of empty-tile culling: every ray of a tile runs from an eye to the tile's quad, so inside the box
-    it stays in the box-clamped bounding box of the eyes and the quad, widened for the trilinear support of a coarser
+    """Coarse pass of empty-tile culling: every ray of a tile runs from an eye to the tile's quad (interior faces) or
+    from the quad on to the box exit (``exterior`` faces), so inside the box it stays in the box-clamped bounding box
+    of the quad and the rays' other ends (`pyramid_bounds`), widened for the trilinear support of a coarser
     density level (``margin`` at the volume's level, times 2^l at tile level l; the tile's apron ring adds a texel).
     The tile is live when the conservative max-density pyramid is non-zero anywhere there."""
     k = wp.tid()
@@ -348,8 +358,8 @@ def tile_occupancy_kernel(
     q11 = face_point(f, u1, v1)
     lo = wp.min(wp.min(q00, q10), wp.min(q01, q11))
     hi = wp.max(wp.max(q00, q10), wp.max(q01, q11))
-    b0 = pyramid_bounds(eye0, q00, q10, q01, q11)
-    b1 = pyramid_bounds(eye1, q00, q10, q01, q11)
+    b0 = pyramid_bounds(eye0, q00, q10, q01, q11, exterior)
+    b1 = pyramid_bounds(eye1, q00, q10, q01, q11, exterior)
     lo = wp.min(lo, wp.min(wp.vec3(b0[0, 0], b0[0, 1], b0[0, 2]), wp.vec3(b1[0, 0], b1[0, 1], b1[0, 2])))
     hi = wp.max(hi, wp.max(wp.vec3(b0[1, 0], b0[1, 1], b0[1, 2]), wp.vec3(b1[1, 0], b1[1, 1], b1[1, 2])))
     # An apron texel wrapped onto the adjacent face lies up to half a coarse texel off this face's plane.
