@@ -18,7 +18,7 @@ from conftest import DEVICE, face_point_np
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
-from volren.render import CMSRM, DSSRM, CMSRMConfig, DSSRMConfig
+from volren.render import CMSRM, DSSRM, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
 from volren.render.cubemap import face_point, point_face, texel_index, visible_faces
 
 MATCHED = {"samples": 256, "light_samples": 64, "light_grid": 32}
@@ -156,3 +156,45 @@ def test_stereo_cube_maps_per_eye():
     assert len(frame.images) == 2 and np.abs(frame.images[0] - frame.images[1]).max() > 0.01
     assert len(frame.stats.info["volumes"]) == 2
     assert frame.stats.info["cube_map_bytes"] == 2 * 6 * 64 * 64 * 24
+
+
+def lod_formula(scene, cam: Camera, base: int, n_max: int, k_u: float = 1.0, k_c: float = 3.0) -> tuple[int, int]:
+    """(N, level) of paper 001 §3.3, steps 1-5, from the camera's matrices (numpy): the longest of the 12 projected
+    box edges in pixels, S_ideal = edge / k_u, N_ideal = k_c S_ideal / sqrt 3, N = min(ceil N_ideal, N_max),
+    S = sqrt 3 min(N_ideal, N) / k_c, level = floor(log2(S_0 / S))."""
+    c = np.c_[scene.volumes[0].corners_world, np.ones(8)] @ cam.view_matrix().T
+    px = c[:, :2] / -c[:, 2:3] * cam.height / (2 * cam.tan_half_fov)
+    edge = max(np.linalg.norm(px[i] - px[i ^ b]) for i in range(8) for b in (1, 2, 4))
+    n_ideal = k_c * edge / k_u / np.sqrt(3)
+    n = min(int(np.ceil(n_ideal)), n_max)
+    return n, max(int(np.floor(np.log2(base / (np.sqrt(3) * min(n_ideal, n) / k_c)))), 0)
+
+
+def test_lod_marches_the_formula_n_steps_on_a_distant_volume():
+    """Adaptive LOD (§3.3) at 8 m: N and the level follow the formula, and every texel ray takes exactly
+    ceil(length N / diagonal) steps (early termination off; measured equal, 0.1% allowed for float rounding), so the
+    density samples are those of N, not N_max; the
+    image stays within 38 dB of the reference (measured 41.6 dB at N = 39, level 1)."""
+    scene = builtin_scene("cloud", 64)
+    cam = Camera(position=(0.0, 0.0, 8.0), width=96, height=64)
+    config = CMSRMConfig(**MATCHED, hybrid=False, cull_tiles=False, min_transmittance=0.0)
+    frame = CMSRM(config, device=DEVICE).render(scene, [cam])
+    info = frame.stats.info["volumes"][0][0]
+    n, level = lod_formula(scene, cam, 64, MATCHED["samples"])
+    assert (info["samples"], info["level"], info["face_size"]) == (n, level, 64 >> level)
+    assert level >= 1 and n < MATCHED["samples"] // 4
+    # Every texel ray of the visible faces, from its box entry to its texel, in ceil(length N / diagonal) steps.
+    vol, size = scene.volumes[0], info["face_size"]
+    h = 2.0 / size
+    u, v = np.meshgrid(-1 + (np.arange(size) + 0.5) * h, -1 + (np.arange(size) + 0.5) * h)
+    texels = np.concatenate([face_point_np(f, u, v).reshape(-1, 3) for f in info["faces"]])
+    eye = (vol.to_local @ np.r_[cam.position, 1.0])[:3]
+    d = texels - eye
+    with np.errstate(divide="ignore"):
+        t0 = np.max(np.minimum((-1 - eye) / d, (1 - eye) / d), axis=1)  # in units of the eye-texel distance
+    length = (1 - t0) * np.linalg.norm((np.c_[d, np.zeros(len(d))] @ vol.to_world.T)[:, :3], axis=1)
+    steps = np.maximum(np.ceil(length * n / vol.diagonal - 1e-6), 1)
+    assert frame.stats.counters["rays"] == len(texels)
+    assert frame.stats.counters["density_samples"] == pytest.approx(steps.sum(), rel=1e-3)
+    ref = Reference(ReferenceConfig(samples=256, light_samples=256), device=DEVICE).render(scene, [cam])
+    assert psnr(ref.images[0], frame.images[0]) > 38.0
