@@ -278,8 +278,8 @@ def cube_resample_kernel(
     counters: wp.array(dtype=wp.int64),
     row0: int,
 ):
-    """Per pixel, front to back over the volumes: a cube-scheme volume is looked up bilinearly where the pixel's ray
-    leaves its box (enters, for exterior faces); a direct-scheme volume is marched here, as in DSSRM."""
+    """Per pixel, front to back over the volumes not culled: a cube-scheme volume is looked up bilinearly where the
+    pixel's ray leaves its box (enters, for exterior faces); a direct-scheme volume is marched here, as in DSSRM."""
     r, col = wp.tid()
     row = r + row0
     d, planes = pixel_ray(cam, buffers, row, col)
@@ -287,6 +287,8 @@ def cube_resample_kernel(
     direct = int(0)
     for k in range(order.shape[0]):
         v = order[k]
+        if scheme[v] == SCHEME_CULLED:
+            continue  # outside the frustum: no ray of the view meets it
         vol = volumes[v]
         o_l = wp.transform_point(vol.to_local, cam.origin)
         d_l = wp.transform_vector(vol.to_local, d)
@@ -549,9 +551,7 @@ class CMSRM(LightMapRenderer):
             c = cubes[view]
             per_volume = [wp.array(a, dtype=int, device=self.device)
                           for a in ([p["scheme"] for p in plans[view]], c.offsets, c.sizes)]
-            # Culled volumes are left out of the per-pixel loop: no ray of the view meets them.
-            order = wp.array([v for v in depth_order(ds.scene, cam) if plans[view][v]["scheme"] != SCHEME_CULLED],
-                             dtype=int, device=self.device)
+            order = wp.array(depth_order(ds.scene, cam), dtype=int, device=self.device)
             with clock.measure("resample"):
                 launch_rows(
                     cube_resample_kernel,
