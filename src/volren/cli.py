@@ -161,8 +161,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                    "Exposure Render's two particle types")
     r.add_argument("--tf", help="vpt: transfer function, a preset (ct-bone, ct-muscle, ct-vessels, smoke) or a JSON "
                    "file (default: extinction proportional to density)")
-    r.add_argument("--denoise", choices=("none", "ours", "svgf"), help="vpt: the spatiotemporal denoiser of paper "
-                   "002 §5 (ours) or SVGF; both keep history across --frames")
+    r.add_argument("--denoise", choices=("none", "ours", "svgf", "wrls"), help="vpt: the spatiotemporal denoiser of "
+                   "paper 002 §5 (ours), or the baselines SVGF and WRLS; all keep history across --frames")
     r.add_argument("--clip", type=floats6, help="vpt: x0,x1,y0,y1,z0,z1 clipping box in the volume's [-1, 1] "
                    "coordinates")
     r.add_argument("--fog-sharing", choices=("none", "grid"), help="fog: per-viewer shadow rays (none) or the "

@@ -1,25 +1,32 @@
-"""The spatiotemporal DVR denoiser of paper 002 §5 (``--denoise ours``).
+"""The spatiotemporal DVR denoiser of paper 002 §5 (``--denoise ours``) and its baselines SVGF and WRLS.
 
-Input per pixel: the path tracer's samples, each decoupled into the high-detail-low-noise F_x (the first collision's
-albedo) and the low-detail-high-noise F_L (the light arriving there, later scatterings included: the paper's F_m is
-denoised with F_L), with the first collision's depth and scalar.
-1. Clustering (§5.1): the hit samples of a pixel split in two at the largest gap of their sorted F_x luminances
-   (one class when max - min < 0.1); each class k keeps n_k and the means F_x(C_k), F_L(C_k).
+Input per pixel: the path tracer's samples, each decoupled into two parts (Eq. 8, `volren.render.vpt.SampleRecords`),
+a high-detail-low-noise F_x times a low-detail-high-noise F_L each: part 0 the first collision's light samples
+(F_x = A h, the albedo times the phase/BRDF value; F_L = T L / p), part 1 the rest (F_x = A, F_L = F_m: the uniform
+ambient and every later scattering, denoised like F_L as the paper says), with the first collision's depth and
+scalar. The paper's second product, the specular part, is here part 0 too: one SDF h holds both lobes (Eq. 5).
+1. Clustering (§5.1): the hit samples of a pixel split in two at the largest gap of their sorted part-0 F_x
+   luminances (one class when max - min < 0.1); each class k keeps n_k and per part the means F_x(C_k), F_L(C_k).
    Reprojection depth (§5.2): the nearest first-collision depth whose scalar exceeds 1/4 of the volume's maximum,
    else the median depth. Opacity alpha = N_p / N.
-2. HDLN (§5.3.1): a 3x3 joint bilateral over every class of the neighbours (Eq. 11, sigma_c = 0.2 on F_x, sigma_d on
-   depth), then a temporal blend with the reprojected previous classes (Eq. 12, sigma_e = 0.2), the current class
-   weighted 1.
-3. LDHN (§5.3.2): two edge-stopping a-trous passes (5x5, then 5x5 dilated by 2 = 9x9) guided by depth and the
-   denoised F_x, then the sigmoid temporal weights of Eq. 13 (a = 3, b = 5), w_hat = 1 / S(a (change - 1)) written
-   as 1 + exp(-a (change - 1)). Departure: the change is |lu - lu_prev| relative to the two values' mean, in units of
-   a 10% difference (CHANGE_UNIT). The paper's absolute difference assumes its own radiance scale: with
-   display-range values it never leaves the sigmoid's flat end, the history keeps ~95% weight and the output lags
-   (measured along bench vpt's orbit with a turning light, 96x80, 4 spp, against 256 spp: absolute 19.6 dB, relative
-   in units of 1 21.1 dB, of 0.2 25.6 dB, of 0.1 26.3 dB; SVGF 22.6 dB, raw 23.4 dB; static views unchanged at
-   26.2-26.4 dB).
+   Holes (departure, not in the paper): a pixel none of whose samples hit has no classes and no depth, so neither
+   the bilateral filters nor the reprojection reach it and it stays a black dot. When at least HOLE_NEIGHBOURS of
+   its 8 neighbours have hits, it takes one class, their n-weighted mean, and their mean depth; alpha keeps its own
+   0, which the opacity filter then averages with the neighbours'. Fewer neighbours (outside a silhouette) leave it
+   empty, so silhouettes do not grow a halo.
+2. HDLN (§5.3.1), per part: a 3x3 joint bilateral over every class of the neighbours (Eq. 11, sigma_c = 0.2 on
+   F_x, sigma_d on depth), then a temporal blend with the reprojected previous classes (Eq. 12, sigma_e = 0.2), the
+   current class weighted 1.
+3. LDHN (§5.3.2), per part: two edge-stopping a-trous passes (5x5, then 5x5 dilated by 2 = 9x9) guided by depth and
+   the part's denoised F_x, then the sigmoid temporal weights of Eq. 13 (a = 3, b = 5), w_hat = 1 / S(a (change -
+   1)) written as 1 + exp(-a (change - 1)). Departure: the change is |lu - lu_prev| relative to the two values'
+   mean, in units of a 10% difference (CHANGE_UNIT). The paper's absolute difference assumes its own radiance
+   scale: with display-range values it never leaves the sigmoid's flat end, the history keeps ~95% weight and the
+   output lags (measured along bench vpt's orbit with a turning light, 96x80, 4 spp, against 256 spp: absolute
+   19.6 dB, relative in units of 1 21.1 dB, of 0.2 25.6 dB, of 0.1 26.3 dB; SVGF 22.6 dB, raw 23.4 dB).
 4. Opacity: a 5x5 depth-guided bilateral, then Eq. 14 against the reprojected previous opacity.
-5. Compositing (Eq. 15): alpha sum_k n_k F_x(C_k) F_L(C_k) / sum_k n_k + (1 - alpha) B, B the surface behind.
+5. Compositing (Eq. 15): alpha sum_k n_k sum_parts F_x(C_k) F_L(C_k) / sum_k n_k + (1 - alpha) B, B the surface
+   behind.
 Departures: depths are in metres, so sigma_d = 0.2 m stands for the paper's 2 decimetres; reprojection picks the
 nearest previous pixel.
 """
@@ -44,28 +51,37 @@ SINGLE_CLASS = 0.1
 """one class when the F_x luminances of a pixel span less than this"""
 DENSE = 0.25
 """reprojection depth: first collisions above this share of the volume's largest scalar"""
+PARTS = 2
+"""products F_x F_L per sample: the first collision's light samples, and the albedo times the rest (F_m)"""
+HOLE_NEIGHBOURS = 4
+"""a pixel without hits is filled from its 8 neighbours when at least this many have hits"""
 
 
 @wp.struct
 class Classes:
-    """Per pixel, two classes: F_x, F_L, n (float), and the pixel's alpha and reprojection depth."""
+    """Per pixel, two classes: per part F_x, F_L; n (float); and the pixel's alpha and reprojection depth."""
 
-    f_x: wp.array3d(dtype=wp.vec3)
-    """[row, col, class]"""
-    f_l: wp.array3d(dtype=wp.vec3)
+    f_x: wp.array4d(dtype=wp.vec3)
+    """[row, col, class, part]"""
+    f_l: wp.array4d(dtype=wp.vec3)
     n: wp.array3d(dtype=float)
+    """[row, col, class]"""
     alpha: wp.array2d(dtype=float)
     depth: wp.array2d(dtype=float)
 
 
 def new_classes(h: int, w: int, device: str) -> Classes:
     c = Classes()
-    c.f_x = wp.zeros((h, w, 2), dtype=wp.vec3, device=device)
-    c.f_l = wp.zeros((h, w, 2), dtype=wp.vec3, device=device)
+    c.f_x = wp.zeros((h, w, 2, PARTS), dtype=wp.vec3, device=device)
+    c.f_l = wp.zeros((h, w, 2, PARTS), dtype=wp.vec3, device=device)
     c.n = wp.zeros((h, w, 2), dtype=float, device=device)
     c.alpha = wp.zeros((h, w), dtype=float, device=device)
     c.depth = wp.full((h, w), INF, dtype=float, device=device)
     return c
+
+
+def part_arrays(h: int, w: int, device: str) -> wp.array4d:
+    return wp.zeros((h, w, 2, PARTS), dtype=wp.vec3, device=device)
 
 
 @wp.func
@@ -74,7 +90,8 @@ def luminance(c: wp.vec3) -> float:
 
 
 @wp.kernel
-def cluster_kernel(f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3), depth: wp.array3d(dtype=float),
+def cluster_kernel(f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3), albedo: wp.array3d(dtype=wp.vec3),
+                   f_m: wp.array3d(dtype=wp.vec3), depth: wp.array3d(dtype=float),
                    density: wp.array3d(dtype=float), out: Classes):
     """Step 1: two classes per pixel by the largest gap of the sorted F_x luminances; alpha; reprojection depth."""
     row, col = wp.tid()
@@ -92,10 +109,6 @@ def cluster_kernel(f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3
             if density[row, col, i] > DENSE:
                 dense_depth = wp.min(dense_depth, depth[row, col, i])
     out.alpha[row, col] = float(hits) / float(n)
-    for k in range(2):
-        out.f_x[row, col, k] = wp.vec3(0.0)
-        out.f_l[row, col, k] = wp.vec3(0.0)
-        out.n[row, col, k] = 0.0
     if hits == 0:
         out.depth[row, col] = INF
         return
@@ -120,14 +133,17 @@ def cluster_kernel(f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3
             k = int(0)
             if luminance(f_x[row, col, i]) > split:
                 k = 1
-            out.f_x[row, col, k] = out.f_x[row, col, k] + f_x[row, col, i]
-            out.f_l[row, col, k] = out.f_l[row, col, k] + f_l[row, col, i]
+            out.f_x[row, col, k, 0] = out.f_x[row, col, k, 0] + f_x[row, col, i]
+            out.f_l[row, col, k, 0] = out.f_l[row, col, k, 0] + f_l[row, col, i]
+            out.f_x[row, col, k, 1] = out.f_x[row, col, k, 1] + albedo[row, col, i]
+            out.f_l[row, col, k, 1] = out.f_l[row, col, k, 1] + f_m[row, col, i]
             out.n[row, col, k] = out.n[row, col, k] + 1.0
     for k in range(2):
         m = out.n[row, col, k]
         if m > 0.0:
-            out.f_x[row, col, k] = out.f_x[row, col, k] / m
-            out.f_l[row, col, k] = out.f_l[row, col, k] / m
+            for p in range(PARTS):
+                out.f_x[row, col, k, p] = out.f_x[row, col, k, p] / m
+                out.f_l[row, col, k, p] = out.f_l[row, col, k, p] / m
     # Reprojection depth: the nearest dense first collision, else the median first-collision depth (by rank).
     if dense_depth < INF:
         out.depth[row, col] = dense_depth
@@ -143,6 +159,54 @@ def cluster_kernel(f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3
                     below += 1
             if below == target:
                 out.depth[row, col] = di
+
+
+@wp.kernel
+def fill_holes_kernel(cur: Classes, out: Classes):
+    """Step 1, holes: a pixel without hits but with >= HOLE_NEIGHBOURS hit neighbours of 8 gets one class, their
+    n-weighted mean, and their mean depth (module docstring); every other pixel is copied."""
+    row, col = wp.tid()
+    h = cur.depth.shape[0]
+    w = cur.depth.shape[1]
+    out.alpha[row, col] = cur.alpha[row, col]
+    out.depth[row, col] = cur.depth[row, col]
+    for k in range(2):
+        out.n[row, col, k] = cur.n[row, col, k]
+        for p in range(PARTS):
+            out.f_x[row, col, k, p] = cur.f_x[row, col, k, p]
+            out.f_l[row, col, k, p] = cur.f_l[row, col, k, p]
+    if cur.n[row, col, 0] + cur.n[row, col, 1] > 0.0:
+        return
+    neighbours = int(0)
+    total = float(0.0)
+    depth = float(0.0)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            r = row + dy
+            c = col + dx
+            if r >= 0 and r < h and c >= 0 and c < w and (dy != 0 or dx != 0):
+                m = cur.n[r, c, 0] + cur.n[r, c, 1]
+                if m > 0.0:
+                    neighbours += 1
+                    depth += cur.depth[r, c]
+                    total += m
+    if neighbours < HOLE_NEIGHBOURS:
+        return
+    for p in range(PARTS):
+        fx = wp.vec3(0.0)
+        fl = wp.vec3(0.0)
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                r = row + dy
+                c = col + dx
+                if r >= 0 and r < h and c >= 0 and c < w:
+                    for k in range(2):
+                        fx += cur.n[r, c, k] * cur.f_x[r, c, k, p]
+                        fl += cur.n[r, c, k] * cur.f_l[r, c, k, p]
+        out.f_x[row, col, 0, p] = fx / total
+        out.f_l[row, col, 0, p] = fl / total
+    out.n[row, col, 0] = 1.0
+    out.depth[row, col] = depth / float(neighbours)
 
 
 @wp.func
@@ -162,8 +226,9 @@ def reproject(cam: CameraGPU, prev: CameraGPU, row: int, col: int, depth: float)
 
 @wp.kernel
 def hdln_kernel(cur: Classes, cam: CameraGPU, prev_cam: CameraGPU, history: Classes, has_history: int,
-                out: wp.array3d(dtype=wp.vec3)):
-    """Step 2: Eq. 11 over the 3x3 neighbours' classes, then Eq. 12 with the reprojected previous classes."""
+                out: wp.array4d(dtype=wp.vec3)):
+    """Step 2, per part: Eq. 11 over the 3x3 neighbours' classes, then Eq. 12 with the reprojected previous
+    classes."""
     row, col = wp.tid()
     h = cur.depth.shape[0]
     w = cur.depth.shape[1]
@@ -172,68 +237,39 @@ def hdln_kernel(cur: Classes, cam: CameraGPU, prev_cam: CameraGPU, history: Clas
     if has_history != 0:
         src = reproject(cam, prev_cam, row, col, dj)
     for k in range(2):
-        if cur.n[row, col, k] == 0.0:
-            out[row, col, k] = wp.vec3(0.0)
-            continue
-        fk = cur.f_x[row, col, k]
-        acc = wp.vec3(0.0)
-        wsum = float(0.0)
-        for dy in range(-1, 2):
-            for dx in range(-1, 2):
-                r = wp.clamp(row + dy, 0, h - 1)
-                c = wp.clamp(col + dx, 0, w - 1)
-                for m in range(2):
-                    if cur.n[r, c, m] > 0.0:
-                        f = cur.f_x[r, c, m]
-                        wgt = wp.exp(-wp.length(f - fk) / SIGMA_C) * wp.exp(-wp.abs(cur.depth[r, c] - dj) / SIGMA_D)
-                        acc += wgt * f
-                        wsum += wgt
-        spatial = acc / wsum
-        blended = spatial
-        if src[0] >= 0:
-            num = spatial
-            den = float(1.0)
-            for m in range(2):
-                nm = history.n[src[0], src[1], m]
-                if nm > 0.0:
-                    f = history.f_x[src[0], src[1], m]
-                    wgt = wp.sqrt(1.0 / (wp.abs(cur.n[row, col, k] - nm) + 1.0)) * wp.exp(
-                        -wp.length(spatial - f) / SIGMA_E)
-                    num += wgt * f
-                    den += wgt
-            blended = num / den
-        out[row, col, k] = blended
-
-
-@wp.kernel
-def atrous_kernel(cur: Classes, f_x: wp.array3d(dtype=wp.vec3), src: wp.array3d(dtype=wp.vec3), step: int,
-                  out: wp.array3d(dtype=wp.vec3)):
-    """Step 3, spatial: one edge-stopping a-trous pass (B3-spline 5x5 taps ``step`` pixels apart) on F_L, guided by
-    depth and the denoised F_x."""
-    row, col = wp.tid()
-    h = cur.depth.shape[0]
-    w = cur.depth.shape[1]
-    dj = cur.depth[row, col]
-    for k in range(2):
-        if cur.n[row, col, k] == 0.0:
-            out[row, col, k] = wp.vec3(0.0)
-            continue
-        fk = f_x[row, col, k]
-        acc = wp.vec3(0.0)
-        wsum = float(0.0)
-        for dy in range(-2, 3):
-            for dx in range(-2, 3):
-                r = row + dy * step
-                c = col + dx * step
-                if r >= 0 and r < h and c >= 0 and c < w:
-                    kernel = b3(dx) * b3(dy)
+        for p in range(PARTS):
+            if cur.n[row, col, k] == 0.0:
+                out[row, col, k, p] = wp.vec3(0.0)
+                continue
+            fk = cur.f_x[row, col, k, p]
+            acc = wp.vec3(0.0)
+            wsum = float(0.0)
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    r = wp.clamp(row + dy, 0, h - 1)
+                    c = wp.clamp(col + dx, 0, w - 1)
                     for m in range(2):
                         if cur.n[r, c, m] > 0.0:
-                            wgt = kernel * wp.exp(-wp.length(f_x[r, c, m] - fk) / SIGMA_C) * wp.exp(
+                            f = cur.f_x[r, c, m, p]
+                            wgt = wp.exp(-wp.length(f - fk) / SIGMA_C) * wp.exp(
                                 -wp.abs(cur.depth[r, c] - dj) / SIGMA_D)
-                            acc += wgt * src[r, c, m]
+                            acc += wgt * f
                             wsum += wgt
-        out[row, col, k] = acc / wsum
+            spatial = acc / wsum
+            blended = spatial
+            if src[0] >= 0:
+                num = spatial
+                den = float(1.0)
+                for m in range(2):
+                    nm = history.n[src[0], src[1], m]
+                    if nm > 0.0:
+                        f = history.f_x[src[0], src[1], m, p]
+                        wgt = wp.sqrt(1.0 / (wp.abs(cur.n[row, col, k] - nm) + 1.0)) * wp.exp(
+                            -wp.length(spatial - f) / SIGMA_E)
+                        num += wgt * f
+                        den += wgt
+                blended = num / den
+            out[row, col, k, p] = blended
 
 
 @wp.func
@@ -248,31 +284,65 @@ def b3(i: int) -> float:
 
 
 @wp.kernel
-def ldhn_temporal_kernel(cur: Classes, f_l: wp.array3d(dtype=wp.vec3), cam: CameraGPU, prev_cam: CameraGPU,
-                         history: Classes, has_history: int, out: wp.array3d(dtype=wp.vec3)):
-    """Step 3, temporal: Eq. 13's sigmoid weights of the reprojected previous classes against w_k = 1 + b / sum."""
+def atrous_kernel(cur: Classes, f_x: wp.array4d(dtype=wp.vec3), src: wp.array4d(dtype=wp.vec3), step: int,
+                  out: wp.array4d(dtype=wp.vec3)):
+    """Step 3, spatial, per part: one edge-stopping a-trous pass (B3-spline 5x5 taps ``step`` pixels apart) on F_L,
+    guided by depth and the part's denoised F_x."""
+    row, col = wp.tid()
+    h = cur.depth.shape[0]
+    w = cur.depth.shape[1]
+    dj = cur.depth[row, col]
+    for k in range(2):
+        for p in range(PARTS):
+            if cur.n[row, col, k] == 0.0:
+                out[row, col, k, p] = wp.vec3(0.0)
+                continue
+            fk = f_x[row, col, k, p]
+            acc = wp.vec3(0.0)
+            wsum = float(0.0)
+            for dy in range(-2, 3):
+                for dx in range(-2, 3):
+                    r = row + dy * step
+                    c = col + dx * step
+                    if r >= 0 and r < h and c >= 0 and c < w:
+                        kernel = b3(dx) * b3(dy)
+                        for m in range(2):
+                            if cur.n[r, c, m] > 0.0:
+                                wgt = kernel * wp.exp(-wp.length(f_x[r, c, m, p] - fk) / SIGMA_C) * wp.exp(
+                                    -wp.abs(cur.depth[r, c] - dj) / SIGMA_D)
+                                acc += wgt * src[r, c, m, p]
+                                wsum += wgt
+            out[row, col, k, p] = acc / wsum
+
+
+@wp.kernel
+def ldhn_temporal_kernel(cur: Classes, f_l: wp.array4d(dtype=wp.vec3), cam: CameraGPU, prev_cam: CameraGPU,
+                         history: Classes, has_history: int, out: wp.array4d(dtype=wp.vec3)):
+    """Step 3, temporal, per part: Eq. 13's sigmoid weights of the reprojected previous classes against
+    w_k = 1 + b / sum."""
     row, col = wp.tid()
     src = wp.vec2i(-1, -1)
     if has_history != 0:
         src = reproject(cam, prev_cam, row, col, cur.depth[row, col])
     for k in range(2):
-        value = f_l[row, col, k]
-        if src[0] >= 0 and cur.n[row, col, k] > 0.0:
-            lu = luminance(value)
-            num = wp.vec3(0.0)
-            den = float(0.0)
-            for m in range(2):
-                if history.n[src[0], src[1], m] > 0.0:
-                    prev = history.f_l[src[0], src[1], m]
-                    # |lu - lu_prev| relative to their mean, in units of CHANGE_UNIT (module docstring).
-                    lp = luminance(prev)
-                    change = wp.abs(lu - lp) / wp.max(CHANGE_UNIT * 0.5 * (lu + lp), 1.0e-4)
-                    wgt = 1.0 + wp.exp(-SIGMOID_A * (change - 1.0))
-                    num += wgt * prev
-                    den += wgt
-            wk = 1.0 + WEIGHT_B / (1.0e-6 + den)
-            value = (wk * value + num) / (wk + den)
-        out[row, col, k] = value
+        for p in range(PARTS):
+            value = f_l[row, col, k, p]
+            if src[0] >= 0 and cur.n[row, col, k] > 0.0:
+                lu = luminance(value)
+                num = wp.vec3(0.0)
+                den = float(0.0)
+                for m in range(2):
+                    if history.n[src[0], src[1], m] > 0.0:
+                        prev = history.f_l[src[0], src[1], m, p]
+                        # |lu - lu_prev| relative to their mean, in units of CHANGE_UNIT (module docstring).
+                        lp = luminance(prev)
+                        change = wp.abs(lu - lp) / wp.max(CHANGE_UNIT * 0.5 * (lu + lp), 1.0e-4)
+                        wgt = 1.0 + wp.exp(-SIGMOID_A * (change - 1.0))
+                        num += wgt * prev
+                        den += wgt
+                wk = 1.0 + WEIGHT_B / (1.0e-6 + den)
+                value = (wk * value + num) / (wk + den)
+            out[row, col, k, p] = value
 
 
 @wp.kernel
@@ -315,24 +385,50 @@ def write_over_surface(buffers: ViewBuffers, row: int, col: int, shade: wp.vec3,
 
 
 @wp.func
-def class_mean(values: wp.array3d(dtype=wp.vec3), n: wp.array3d(dtype=float), row: int, col: int) -> wp.vec3:
-    """The pixel's two classes' values averaged by their sample counts (0 without samples)."""
+def class_radiance(f_x: wp.array4d(dtype=wp.vec3), f_l: wp.array4d(dtype=wp.vec3), row: int, col: int,
+                   k: int) -> wp.vec3:
+    """sum over the parts of F_x F_L for class k (Eq. 8)."""
+    r = wp.vec3(0.0)
+    for p in range(PARTS):
+        r += wp.cw_mul(f_x[row, col, k, p], f_l[row, col, k, p])
+    return r
+
+
+@wp.func
+def class_mean(values: wp.array4d(dtype=wp.vec3), n: wp.array3d(dtype=float), row: int, col: int,
+               part: int) -> wp.vec3:
+    """The pixel's two classes' values of one part averaged by their sample counts (0 without samples)."""
     total = n[row, col, 0] + n[row, col, 1]
     if total > 0.0:
-        return (n[row, col, 0] * values[row, col, 0] + n[row, col, 1] * values[row, col, 1]) / total
+        return (n[row, col, 0] * values[row, col, 0, part] + n[row, col, 1] * values[row, col, 1, part]) / total
     return wp.vec3(0.0)
 
 
+@wp.func
+def pixel_radiance(cur: Classes, row: int, col: int) -> wp.vec3:
+    """The pixel's mean hit radiance, sum_k n_k sum_parts F_x F_L / sum_k n_k (0 without hits)."""
+    shade = wp.vec3(0.0)
+    total = float(0.0)
+    for k in range(2):
+        n = cur.n[row, col, k]
+        shade += n * class_radiance(cur.f_x, cur.f_l, row, col, k)
+        total += n
+    if total > 0.0:
+        shade = shade / total
+    return shade
+
+
 @wp.kernel
-def composite_kernel(cur: Classes, f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3),
+def composite_kernel(cur: Classes, f_x: wp.array4d(dtype=wp.vec3), f_l: wp.array4d(dtype=wp.vec3),
                      alpha: wp.array2d(dtype=float), buffers: ViewBuffers):
-    """Step 5, Eq. 15: the classes' n-weighted F_x F_L, over the surface colour by alpha (premultiplied)."""
+    """Step 5, Eq. 15: the classes' n-weighted sum of F_x F_L over the parts, over the surface colour by alpha
+    (premultiplied)."""
     row, col = wp.tid()
     shade = wp.vec3(0.0)
     total = float(0.0)
     for k in range(2):
         n = cur.n[row, col, k]
-        shade += n * wp.cw_mul(f_x[row, col, k], f_l[row, col, k])
+        shade += n * class_radiance(f_x, f_l, row, col, k)
         total += n
     if total > 0.0:
         shade = shade / total
@@ -346,7 +442,7 @@ class History:
 
 
 class TemporalDenoiser:
-    """What both denoisers share: per-view history, and step 1 (the samples clustered into classes)."""
+    """What the denoisers share: per-view history, and step 1 (the samples clustered into classes, holes filled)."""
 
     def __init__(self, device: str) -> None:
         self.device = device
@@ -354,9 +450,11 @@ class TemporalDenoiser:
 
     def classes(self, records, h: int, w: int) -> Classes:
         cur = new_classes(h, w, self.device)
-        wp.launch(cluster_kernel, dim=(h, w), inputs=[records.f_x, records.f_l, records.depth, records.density, cur],
-                  device=self.device)
-        return cur
+        wp.launch(cluster_kernel, dim=(h, w), inputs=[records.f_x, records.f_l, records.albedo, records.f_m,
+                                                       records.depth, records.density, cur], device=self.device)
+        filled = new_classes(h, w, self.device)
+        wp.launch(fill_holes_kernel, dim=(h, w), inputs=[cur, filled], device=self.device)
+        return filled
 
 
 class Denoiser(TemporalDenoiser):
@@ -370,13 +468,13 @@ class Denoiser(TemporalDenoiser):
         valid = int(past is not None and past.classes.alpha.shape == (h, w))
         prev_classes = past.classes if valid else cur
         prev_cam = past.camera if valid else cam
-        f_x = wp.empty((h, w, 2), dtype=wp.vec3, device=dev)
+        f_x = part_arrays(h, w, dev)
         wp.launch(hdln_kernel, dim=(h, w), inputs=[cur, cam, prev_cam, prev_classes, valid, f_x], device=dev)
-        first = wp.empty((h, w, 2), dtype=wp.vec3, device=dev)
-        second = wp.empty((h, w, 2), dtype=wp.vec3, device=dev)
+        first = part_arrays(h, w, dev)
+        second = part_arrays(h, w, dev)
         wp.launch(atrous_kernel, dim=(h, w), inputs=[cur, f_x, cur.f_l, 1, first], device=dev)
         wp.launch(atrous_kernel, dim=(h, w), inputs=[cur, f_x, first, 2, second], device=dev)
-        f_l = wp.empty((h, w, 2), dtype=wp.vec3, device=dev)
+        f_l = part_arrays(h, w, dev)
         wp.launch(ldhn_temporal_kernel, dim=(h, w), inputs=[cur, second, cam, prev_cam, prev_classes, valid, f_l],
                   device=dev)
         alpha = wp.empty((h, w), dtype=float, device=dev)
@@ -387,16 +485,25 @@ class Denoiser(TemporalDenoiser):
         self.history[view] = History(denoised, cam)
 
 
-# --- SVGF (Schied et al. 2017), the comparison baseline (``--denoise svgf``) ---------------------------------------
-# On the albedo-demodulated illumination (per pixel: the hit samples' mean F_L, the albedo their mean F_x): temporal
-# accumulation of the illumination and of its first two luminance moments (exponential weight 0.2, reprojected by the
-# same depth as ours), variance from the moments (a 3x3 spatial estimate while the history is shorter than 4
-# frames), then 5 a-trous iterations (steps 1, 2, 4, 8, 16) with SVGF's edge-stopping on depth and on luminance
-# relative to the filtered standard deviation (sigma_l = 4), the variance filtered along. Depth stands in for
-# SVGF's normal and depth-gradient terms (volumes have no surface normal per pixel). Alpha is the raw N_p / N.
+# --- SVGF (Schied et al. 2017), a comparison baseline (``--denoise svgf``) -----------------------------------------
+# On the albedo-demodulated illumination (per pixel: the hit samples' mean radiance over their mean first albedo A):
+# temporal accumulation of the illumination and of its first two luminance moments (exponential weight 0.2,
+# reprojected by the same depth as ours), variance from the moments (a 3x3 spatial estimate while the history is
+# shorter than 4 frames), then 5 a-trous iterations (steps 1, 2, 4, 8, 16) with SVGF's edge-stopping on depth and on
+# luminance relative to the filtered standard deviation (sigma_l = 4), the variance filtered along. Depth stands in
+# for SVGF's normal and depth-gradient terms (volumes have no surface normal per pixel). Alpha is the raw N_p / N.
 SVGF_ALPHA = 0.2
 SVGF_SIGMA_L = 4.0
 SVGF_LEVELS = 5
+
+
+@wp.func
+def demodulated(cur: Classes, row: int, col: int) -> wp.vec3:
+    """The pixel's mean hit radiance divided by its mean first albedo, per channel (0 where the albedo is 0)."""
+    a = class_mean(cur.f_x, cur.n, row, col, 1)
+    r = pixel_radiance(cur, row, col)
+    return wp.vec3(wp.where(a[0] > 0.0, r[0] / a[0], 0.0), wp.where(a[1] > 0.0, r[1] / a[1], 0.0),
+                   wp.where(a[2] > 0.0, r[2] / a[2], 0.0))
 
 
 @wp.kernel
@@ -405,7 +512,7 @@ def svgf_temporal_kernel(cur: Classes, cam: CameraGPU, prev_cam: CameraGPU, has_
                          illum: wp.array2d(dtype=wp.vec3), moments: wp.array2d(dtype=wp.vec3)):
     """Accumulate illumination and (mean luminance, mean squared luminance, history length)."""
     row, col = wp.tid()
-    light = class_mean(cur.f_l, cur.n, row, col)
+    light = demodulated(cur, row, col)
     lum = luminance(light)
     m = wp.vec3(lum, lum * lum, 1.0)
     if has_history != 0:
@@ -471,7 +578,7 @@ def svgf_atrous_kernel(depth: wp.array2d(dtype=float), illum: wp.array2d(dtype=w
 @wp.kernel
 def svgf_composite_kernel(cur: Classes, illum: wp.array2d(dtype=wp.vec3), buffers: ViewBuffers):
     row, col = wp.tid()
-    shade = wp.cw_mul(class_mean(cur.f_x, cur.n, row, col), illum[row, col])
+    shade = wp.cw_mul(class_mean(cur.f_x, cur.n, row, col, 1), illum[row, col])
     write_over_surface(buffers, row, col, shade, cur.alpha[row, col])
 
 
@@ -504,3 +611,134 @@ class SVGF(TemporalDenoiser):
                 feedback = out  # SVGF feeds the first a-trous level back as the colour history
         wp.launch(svgf_composite_kernel, dim=(h, w), inputs=[cur, src, buffers], device=dev)
         self.history[view] = (feedback, moments, cam)
+
+
+# --- WRLS (Iglesias-Guitian, Mane, Moon 2020, paper 002's [8]), a comparison baseline (``--denoise wrls``) -------
+# Per pixel a linear model of the mean hit radiance c over the noisy features x = (1, lum(A) - lum(A_j),
+# (d - d_j) / sigma_d) (first albedo and reprojection depth, centred on the pixel's own), fitted by weighted
+# recursive least squares: each frame the reprojected model (beta, P) is aged by the forgetting factor lambda
+# (P <- P / lambda) and updated with the 3x3 neighbours' observations, each weighted by a Gaussian in pixel distance
+# (k = w P x / (1 + w x^T P x), beta += (c - beta x) k^T, P -= k (P x)^T). The estimate is the model at the
+# pixel's own features (beta's first column), and a final 3x3 depth/albedo bilateral smooths it (paper 002 §6.4.2:
+# "WRLS incorporates bilateral filtering in the final stage"). A pixel whose model cannot be reprojected starts
+# from beta = 0, P = WRLS_P0 I. When the centre moves, the model is re-expressed exactly (x_new = M x_old,
+# beta_new = beta_old M^-1 (rows), P_new = M^-T P M^-1). Alpha is the raw N_p / N, as for SVGF. Departure: the
+# original also fits the gradient normal; no per-pixel normal is recorded here.
+WRLS_LAMBDA = 0.7
+WRLS_P0 = 100.0
+WRLS_SIGMA_X = 1.0
+"""[px] the Gaussian weight of a neighbour's observation"""
+
+
+@wp.struct
+class WRLSModel:
+    beta: wp.array2d(dtype=wp.mat33)
+    """rows: the RGB channels' coefficients of (1, albedo luminance, depth)"""
+    p: wp.array2d(dtype=wp.mat33)
+    centre: wp.array2d(dtype=wp.vec2)
+    """the features (albedo luminance, depth) the model is centred on; depth INF: no model"""
+
+
+def new_wrls_model(h: int, w: int, device: str) -> WRLSModel:
+    m = WRLSModel()
+    m.beta = wp.zeros((h, w), dtype=wp.mat33, device=device)
+    m.p = wp.zeros((h, w), dtype=wp.mat33, device=device)
+    m.centre = wp.full((h, w), wp.vec2(0.0, INF), dtype=wp.vec2, device=device)
+    return m
+
+
+@wp.func
+def wrls_features(cur: Classes, row: int, col: int) -> wp.vec2:
+    return wp.vec2(luminance(class_mean(cur.f_x, cur.n, row, col, 1)), cur.depth[row, col])
+
+
+@wp.kernel
+def wrls_update_kernel(cur: Classes, cam: CameraGPU, prev_cam: CameraGPU, has_history: int, prev: WRLSModel,
+                       out: WRLSModel, estimate: wp.array2d(dtype=wp.vec3)):
+    """Reproject, age and update the pixel's model with its 3x3 neighbours' observations; estimate at its features."""
+    row, col = wp.tid()
+    h = cur.depth.shape[0]
+    w = cur.depth.shape[1]
+    centre = wrls_features(cur, row, col)
+    out.centre[row, col] = centre
+    if cur.n[row, col, 0] + cur.n[row, col, 1] == 0.0:
+        out.beta[row, col] = wp.mat33(0.0)
+        out.p[row, col] = wp.mat33(0.0)
+        out.centre[row, col] = wp.vec2(0.0, INF)
+        estimate[row, col] = wp.vec3(0.0)
+        return
+    beta = wp.mat33(0.0)
+    p = WRLS_P0 * wp.identity(n=3, dtype=float)
+    src = wp.vec2i(-1, -1)
+    if has_history != 0:
+        src = reproject(cam, prev_cam, row, col, centre[1])
+    if src[0] >= 0:
+        old = prev.centre[src[0], src[1]]
+        if old[1] < INF:
+            # x_new = M x_old with M = [[1, 0, 0], [-da, 1, 0], [-dd, 0, 1]] (the centre moved by da, dd).
+            m = wp.mat33(1.0, 0.0, 0.0, -(centre[0] - old[0]), 1.0, 0.0, -(centre[1] - old[1]) / SIGMA_D, 0.0, 1.0)
+            inv = wp.inverse(m)
+            beta = prev.beta[src[0], src[1]] * inv
+            p = wp.transpose(inv) * prev.p[src[0], src[1]] * inv / WRLS_LAMBDA
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            r = row + dy
+            c = col + dx
+            if r < 0 or r >= h or c < 0 or c >= w:
+                continue  # no short-circuit evaluation in kernels: the bounds test comes first
+            if cur.n[r, c, 0] + cur.n[r, c, 1] > 0.0:
+                f = wrls_features(cur, r, c)
+                x = wp.vec3(1.0, f[0] - centre[0], (f[1] - centre[1]) / SIGMA_D)
+                wgt = wp.exp(-float(dx * dx + dy * dy) / (2.0 * WRLS_SIGMA_X * WRLS_SIGMA_X))
+                px = p * x
+                k = px * (wgt / (1.0 + wgt * wp.dot(x, px)))
+                e = pixel_radiance(cur, r, c) - beta * x
+                beta = beta + wp.outer(e, k)
+                p = p - wp.outer(k, px)
+    out.beta[row, col] = beta
+    out.p[row, col] = p
+    estimate[row, col] = wp.vec3(beta[0, 0], beta[1, 0], beta[2, 0])
+
+
+@wp.kernel
+def wrls_composite_kernel(cur: Classes, estimate: wp.array2d(dtype=wp.vec3), buffers: ViewBuffers):
+    """The final 3x3 bilateral (depth and albedo luminance) of the estimates, over the surface by the raw alpha."""
+    row, col = wp.tid()
+    h = cur.depth.shape[0]
+    w = cur.depth.shape[1]
+    fj = wrls_features(cur, row, col)
+    acc = wp.vec3(0.0)
+    wsum = float(0.0)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            r = row + dy
+            c = col + dx
+            if r < 0 or r >= h or c < 0 or c >= w:
+                continue
+            if cur.n[r, c, 0] + cur.n[r, c, 1] > 0.0:
+                f = wrls_features(cur, r, c)
+                wgt = wp.exp(-wp.abs(f[0] - fj[0]) / SIGMA_C - wp.abs(f[1] - fj[1]) / SIGMA_D)
+                acc += wgt * estimate[r, c]
+                wsum += wgt
+    shade = wp.vec3(0.0)
+    if wsum > 0.0:
+        shade = acc / wsum
+    write_over_surface(buffers, row, col, shade, cur.alpha[row, col])
+
+
+class WRLS(TemporalDenoiser):
+    """WRLS for one or more views, with their history (per-pixel models, camera)."""
+
+    def run(self, view: int, cam: CameraGPU, records, buffers: ViewBuffers) -> None:
+        h, w = buffers.image.shape
+        dev = self.device
+        cur = self.classes(records, h, w)
+        past = self.history.get(view)
+        valid = int(past is not None and past[0].beta.shape == (h, w))
+        prev, prev_cam = past if valid else (new_wrls_model(h, w, dev), cam)
+        model = new_wrls_model(h, w, dev)
+        estimate = wp.empty((h, w), dtype=wp.vec3, device=dev)
+        wp.launch(wrls_update_kernel, dim=(h, w), inputs=[cur, cam, prev_cam, valid, prev, model, estimate],
+                  device=dev)
+        wp.launch(wrls_composite_kernel, dim=(h, w), inputs=[cur, estimate, buffers], device=dev)
+        self.history[view] = (model, cam)

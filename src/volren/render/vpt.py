@@ -52,7 +52,7 @@ from volren.kernels.common import (
     sample_grid,
 )
 from volren.render.base import Renderer, frame_seed
-from volren.render.denoise import SVGF, Denoiser
+from volren.render.denoise import SVGF, WRLS, Denoiser, luminance
 from volren.render.environment import ENV_NONE, EnvironmentLight, environment_light, sample_environment
 from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, SHADOW_RAYS, PassClock
 from volren.render.majorants import (
@@ -68,7 +68,7 @@ from volren.transfer import TransferFunction, linear, load_transfer_function
 from volren.upload import DeviceScene, camera_struct
 
 SHADING = ("coexist", "er")
-DENOISERS = ("none", "ours", "svgf")
+DENOISERS = ("none", "ours", "svgf", "wrls")
 MAX_BOUNCES = 64
 MAX_SPP = 4096
 
@@ -94,8 +94,8 @@ class VPTConfig:
     clip: tuple[float, float, float, float, float, float] = (-1.0, 1.0, -1.0, 1.0, -1.0, 1.0)
     """x0, x1, y0, y1, z0, z1 in each volume's local coordinates [-1, 1]"""
     denoise: str = "none"
-    """none, ours (the spatiotemporal denoiser of §5) or svgf (the baseline), `volren.render.denoise`; both keep
-    history across frames"""
+    """none, ours (the spatiotemporal denoiser of §5), or the baselines svgf and wrls, `volren.render.denoise`; all
+    keep history across frames"""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -127,11 +127,22 @@ class VPTParams:
 
 @wp.struct
 class SampleRecords:
-    """Per pixel and path (row, col, path): the decoupled radiance F_x, F_L of §5.1, the first collision's linear
-    depth (-1: none) and normalised scalar (for the reprojection depth rule of §5.2)."""
+    """Per pixel and path (row, col, path): the decoupled radiance of §5.1, F_x F_L + A F_m (Eq. 8), the first
+    collision's linear depth (-1: none) and normalised scalar (for the reprojection depth rule of §5.2).
+
+    F_x, F_L: the first collision's light samples (lights and environment), split as the paper's F_L = T L / p and
+    F_x = A h, the SDF h (phase and BRDF) being the detail the wide filter must not blur. With several light samples
+    h is their mean weighted by the unshadowed luminance of L / p (weights without the noisy transmittance), and
+    F_L = sum_i T_i (L_i / p_i) h_i / h, so that F_x F_L is exact. F_x is scaled by 4 pi (F_L by 1 / (4 pi)) so that
+    an isotropic medium has F_x = A: the scale of the paper's sigma_c = 0.2 and clustering threshold 0.1. Without
+    light samples F_x = A and F_L = 0.
+    A, F_m: the first collision's albedo and the rest, demodulated by it: the uniform ambient there and every later
+    scattering (the paper's F_m, denoised like F_L; the bounce direction is drawn from h, so no h factor is left)."""
 
     f_x: wp.array3d(dtype=wp.vec3)
     f_l: wp.array3d(dtype=wp.vec3)
+    albedo: wp.array3d(dtype=wp.vec3)
+    f_m: wp.array3d(dtype=wp.vec3)
     depth: wp.array3d(dtype=float)
     density: wp.array3d(dtype=float)
 
@@ -293,11 +304,14 @@ def vpt_kernel(
         d = camera_ray(cam, row, col, wp.randf(state), wp.randf(state))
         x = cam.origin
         t_max = wp.min(occluder_t(buffers, cam, d, row, col), cam.far / wp.dot(d, cam.forward))
-        # The path's radiance is F_x * F_L (paper 002 §5.1): F_x the first collision's albedo, F_L the light
-        # arriving there (each later vertex's contributions carry the throughput after the first albedo).
+        # The path's radiance is F_x F_L + A F_m (SampleRecords; each later vertex's contributions carry the
+        # throughput after the first albedo A).
         throughput = wp.vec3(1.0)
-        f_x = wp.vec3(0.0)
+        albedo0 = wp.vec3(0.0)
         f_l = wp.vec3(0.0)
+        f_m = wp.vec3(0.0)
+        sdf_weight = float(0.0)
+        light_weight = float(0.0)
         first_depth = float(-1.0)
         first_u = float(0.0)
         for bounce in range(params.max_bounces):
@@ -315,7 +329,7 @@ def vpt_kernel(
                 first_depth = t * wp.dot(d, cam.forward)
                 depth_sum += first_depth
                 first_u = u
-                f_x = albedo
+                albedo0 = albedo
                 weight = wp.vec3(1.0)
             normal = wp.vec3(0.0)
             if wp.length(grad) > 1.0e-6:
@@ -329,19 +343,24 @@ def vpt_kernel(
             surface = float(p_brdf)
             if params.shading == 1:
                 surface = wp.where(wp.randf(state) < p_brdf, 1.0, 0.0)
-            f_l += wp.cw_mul(wp.cw_mul(throughput, weight), params.ambient)
+            f_m += wp.cw_mul(wp.cw_mul(throughput, weight), params.ambient)
+            direct = wp.vec3(0.0)
+            vertex_sdf = float(0.0)
+            vertex_light = float(0.0)
             if sc.environment.mode != ENV_NONE:
                 # The environment as a light: an importance-sampled direction, ratio-tracked to infinity.
                 w, weighted, state = sample_environment(sc.environment, state)
                 sdf = (1.0 - surface) * hg_phase(wp.dot(-w, -d), g)
                 if surface > 0.0:
                     sdf += surface * wp.max(wp.dot(normal, w), 0.0) / wp.pi
+                vertex_sdf += sdf * luminance(weighted)
+                vertex_light += luminance(weighted)
                 if sdf > 0.0:
                     shadow_rays += 1
                     tr, s4, n3 = transmittance(sc, params, x, w, INF, state)
                     state = s4
                     light_lookups += n3
-                    f_l += wp.cw_mul(wp.cw_mul(throughput, weight), weighted) * (sdf * tr)
+                    direct += weighted * (sdf * tr)
             for li in range(sc.lights.shape[0]):
                 light = sc.lights[li]
                 to_light = -light_travel_dir(light, x)
@@ -359,12 +378,20 @@ def vpt_kernel(
                 sdf = (1.0 - surface) * hg_phase(wp.dot(-to_light, -d), g)
                 if surface > 0.0:
                     sdf += surface * wp.max(wp.dot(normal, to_light), 0.0) / wp.pi
+                vertex_sdf += sdf * luminance(arriving)
+                vertex_light += luminance(arriving)
                 if sdf > 0.0 and wp.length_sq(arriving) > 0.0:
                     shadow_rays += 1
                     tr, s3, n2 = transmittance(sc, params, x, to_light, dist, state)
                     state = s3
                     light_lookups += n2
-                    f_l += wp.cw_mul(wp.cw_mul(throughput, weight), arriving) * (sdf * tr)
+                    direct += arriving * (sdf * tr)
+            if bounce == 0:
+                f_l = direct
+                sdf_weight = vertex_sdf
+                light_weight = vertex_light
+            else:
+                f_m += wp.cw_mul(wp.cw_mul(throughput, weight), direct)
             if bounce + 1 == params.max_bounces:
                 break
             # New direction: the BRDF lobe with P_b (Eq. 7; here P_brdf, or ER's event), else the phase function;
@@ -375,10 +402,17 @@ def vpt_kernel(
                 d, state = sample_hg(d, g, state)
             throughput = wp.cw_mul(throughput, weight)
             t_max = INF
-        radiance += wp.cw_mul(f_x, f_l)
+        radiance += wp.cw_mul(albedo0, f_l + f_m)
         if record != 0:
+            f_x = albedo0
+            if sdf_weight > 0.0:
+                scale = 4.0 * wp.pi * sdf_weight / light_weight
+                f_x = albedo0 * scale
+                f_l = f_l / scale
             samples.f_x[row, col, path] = f_x
             samples.f_l[row, col, path] = f_l
+            samples.albedo[row, col, path] = albedo0
+            samples.f_m[row, col, path] = f_m
             samples.depth[row, col, path] = first_depth
             samples.density[row, col, path] = first_u
     inv = 1.0 / float(params.spp)
@@ -408,7 +442,7 @@ class VPT(Renderer):
         """(key, host majorants, VPTScene fields that depend only on densities and the transfer function)"""
         self._environment: tuple | None = None
         self._scene: VPTScene | None = None
-        self._denoiser = {"ours": Denoiser, "svgf": SVGF}.get(self.config.denoise, Denoiser)(self.device)
+        self._denoiser = {"ours": Denoiser, "svgf": SVGF, "wrls": WRLS}.get(self.config.denoise, Denoiser)(self.device)
 
     def _transfer(self, scene) -> list[TransferFunction]:
         """The transfer function of each volume: the configured one, or each volume's density-scale model."""
@@ -469,6 +503,8 @@ class VPT(Renderer):
         samples = SampleRecords()
         samples.f_x = wp.zeros(shape, dtype=wp.vec3, device=self.device)
         samples.f_l = wp.zeros(shape, dtype=wp.vec3, device=self.device)
+        samples.albedo = wp.zeros(shape, dtype=wp.vec3, device=self.device)
+        samples.f_m = wp.zeros(shape, dtype=wp.vec3, device=self.device)
         samples.depth = wp.zeros(shape, dtype=float, device=self.device)
         samples.density = wp.zeros(shape, dtype=float, device=self.device)
         cam_gpu = camera_struct(cam)
