@@ -8,9 +8,9 @@ unit sigma_s, (1 / 4 pi) sum_j SH_j L_j, with L_j the environment's coefficients
 an unoccluded voxel gets the environment's mean radiance, the constant ambient of GI off).
 
 Passes: `sample_kernel` (a uniform direction per voxel and its coarse or fine transmittance), `transform_kernel`
-(3x3x3 reservoir resampling, Eq. 12; fine march; SH projection; variance clamp and temporal accumulation,
-Eq. 8-11), `integrate_kernel` (Eq. 7); the baselines `sphere_kernel` (brute force and PRT) and `major_kernel`
-(paper 001's major direction).
+(3x3x3 reservoir resampling, Eq. 12, as resampled importance sampling: see `target`; fine march; SH projection
+f y W; variance clamp and temporal accumulation, Eq. 8-11), `integrate_kernel` (Eq. 7); the baselines
+`sphere_kernel` (brute force and PRT) and `major_kernel` (paper 001's major direction).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from volren.sh import sh_basis16, vec16
 
 FOUR_PI = 4.0 * 3.14159265358979
 NEGLIGIBLE = 1.0e-12
-"""transmittances below this are no candidates for the resampling (keeps w_p = sum f / (M f*) finite)"""
+"""Eq. 12 as printed: transmittances below this are no candidates (keeps w_p = sum f / (M f*) finite)"""
 
 
 @wp.struct
@@ -86,6 +86,11 @@ class Accumulation:
     """(a, b, c) of Eq. 10's cubic"""
     strict: int
     """1: strict ReSTIR (temporal reservoir reuse, fine targets)"""
+    resampling: int
+    """0: the voxel's own direction (no reuse); 1: Eq. 12 as printed (neighbours' coarse T, candidates with T below
+    NEGLIGIBLE dropped); 2: RIS with the defensive target r = T~ l(w) + alpha"""
+    alpha: float
+    """the defensive term of the RIS target (relative to the environment's mean luminance)"""
     cap: float
     """strict ReSTIR: the temporal reservoir's M is capped at cap times the spatial M"""
     seed: int
@@ -151,11 +156,30 @@ def accumulate(prev: float, x: float, mu: float, mu_prev: float, var: float, acc
     return (1.0 - lam) * star + lam * x
 
 
+@wp.func
+def target(f: float, basis: vec16, luminance: vec16, acc: Accumulation) -> float:
+    """The resampling weight r of a candidate direction w with transmittance f = T~(w). ``ris``: the target
+    T~(w) l(w) / l_mean (l: the environment's luminance from its SH, so bright sky directions are preferred) plus
+    the defensive alpha, positive for every candidate: whatever a neighbour's coarse T~ says, the RIS estimate stays
+    unbiased (each candidate is a uniform direction and the selection probability r_i / sum r cancels in W) and
+    bounded, f W <= 4 pi (1 + alpha) / alpha in a constant environment. ``eq12`` (as printed): r = T~, candidates
+    below NEGLIGIBLE dropped, so W = sum T~ / (M T~*) grows without bound as T~* -> 0."""
+    if acc.resampling == 1:
+        if f > NEGLIGIBLE:
+            return f
+        return 0.0
+    return f * wp.max(wp.dot(basis, luminance), 0.0) + acc.alpha
+
+
 @wp.kernel
-def transform_kernel(sc: GIScene, buf: GIBuffers, acc: Accumulation, counters: wp.array(dtype=wp.int64), row0: int):
-    """SH-transform pass: simplified reservoir resampling over the 3x3x3 neighbours' samples (Eq. 12; strict ReSTIR
-    also merges the voxel's temporal reservoir), a fine march along the chosen direction, its SH projection
-    f y w_p / p, and the temporal accumulation with the neighbours' coarse mean and variance (Eq. 8-11)."""
+def transform_kernel(
+    sc: GIScene, buf: GIBuffers, acc: Accumulation, luminance: vec16, counters: wp.array(dtype=wp.int64), row0: int,
+):
+    """SH-transform pass: simplified reservoir resampling over the 3x3x3 neighbours' samples (Eq. 12 with the weights
+    of `target`; strict ReSTIR also merges the voxel's temporal reservoir; ``resampling`` 0 keeps the voxel's own
+    direction), a fine march along the chosen direction, its SH projection f y W (Eq. 8's w_p / p = W), and the
+    temporal accumulation with the neighbours' coarse mean and variance (Eq. 8-11). ``luminance``: the
+    environment's luminance over its mean, as SH coefficients."""
     r, i = wp.tid()
     row = r + row0
     idx = voxel_index(sc, row, i)
@@ -178,18 +202,25 @@ def transform_kernel(sc: GIScene, buf: GIBuffers, acc: Accumulation, counters: w
             other = idx + ((kk - k) * res[1] + (jj - j)) * res[0] + (ii - i)
             d = buf.dirs[other]
             f = buf.values[other]
-            y = sh_basis16(d) * (FOUR_PI * f)
+            basis = sh_basis16(d)
+            y = basis * (FOUR_PI * f)
             mean += y
             square += wp.cw_mul(y, y)
             neighbours += 1.0
-            if f > NEGLIGIBLE:
-                wsum += f
-                if wp.randf(state) * wsum < f:
+            w = target(f, basis, luminance, acc)
+            if w > 0.0:
+                wsum += w
+                if wp.randf(state) * wsum < w:
                     chosen = d
-                    chosen_f = f
+                    chosen_f = w
     mean = mean / neighbours
     var = square / neighbours - wp.cw_mul(mean, mean)
     m = neighbours
+    if acc.resampling == 0:
+        chosen = buf.dirs[idx]
+        chosen_f = float(1.0)
+        wsum = float(1.0)
+        m = float(1.0)
     if acc.strict != 0:
         m_t = wp.min(buf.res_m[idx], acc.cap * neighbours)
         w_t = buf.res_wsum[idx] * m_t / wp.max(buf.res_m[idx], 1.0)
@@ -201,13 +232,16 @@ def transform_kernel(sc: GIScene, buf: GIBuffers, acc: Accumulation, counters: w
                 chosen_f = buf.res_value[idx]
     estimate = vec16()
     fine = float(0.0)
+    basis = sh_basis16(chosen)
     if wsum > 0.0:
+        # RIS: f(y) W with the unbiased contribution weight W = (1 / M) sum_i w_i / r(y), w_i = r_i / p and
+        # p = 1 / 4 pi the uniform pdf every candidate was drawn with.
         fine = visibility(sc, x, chosen, sc.samples, counters)
-        estimate = sh_basis16(chosen) * (FOUR_PI * fine * (wsum / chosen_f) / m)
+        estimate = basis * (FOUR_PI * fine * (wsum / chosen_f) / m)
         count(counters, RAYS, 1)
     if acc.strict != 0:
         buf.res_dir[idx] = chosen
-        buf.res_value[idx] = wp.max(fine, 1.0e-6)
+        buf.res_value[idx] = wp.max(target(fine, basis, luminance, acc), 1.0e-6)
         buf.res_wsum[idx] = wsum
         buf.res_m[idx] = m
     base = idx * acc.order2
