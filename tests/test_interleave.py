@@ -20,7 +20,10 @@ from volren.render import cacrm as cacrm_module
 
 INSIDE = make_views(Camera(position=(0.1, 0.0, 0.5), width=96, height=64), "stereo")
 FAR = make_views(Camera(position=(0.0, 0.3, 3.2), width=96, height=64), "stereo")
-BASE = {"light_grid": 32, "hybrid": False}
+BASE = {"light_grid": 32, "hybrid": False, "k_a": 3.0, "k_b": 0.2, "f_lambda_max": 2.0, "w_t": 0.0, "w_a": 0.0}
+"""VSA that doubles the step wherever the density is smooth, the eye's surroundings included: InS needs long steps
+near the eye, and the fitted VSA keeps them short there in thin media (f_A = 1 - T is about 0 until the medium has
+absorbed something)."""
 
 
 def render(scene, views, **config):

@@ -7,6 +7,10 @@ plus the ablation columns of Table 1: CACRM base (each eye alone, uniform steps)
 gathers (density samples minus those that reused the other eye's fetch) for each. On the orbit no quad interleaves
 (texel rays are a voxel apart from the box entry on), so +InS = +VSA there; a close-up (both eyes inside the box)
 measures InS: PSNR of CACRM with and without it against the same renderer at 2048 uniform steps, at equal gathers.
+Equal gathers (issue 12): CACRM with VSA at base counts N = 64 and 360 against CACRM with uniform steps at the count
+that matches its voxel gathers on the first frame (found by two secant steps), both on the whole path against the same
+reference. At N = 360 both sit on the error floor of the light grid and the cube map (uniform 100 and 180 steps agree
+within 0.05 dB); N = 64 is where depth sampling decides and VSA has to earn its keep.
 
 The cube methods run with the hybrid choice off: it would march small views directly and compare DSSRM with itself.
 
@@ -101,23 +105,50 @@ def close_up(scene, cfg: dict[str, Any], device: str) -> list[dict[str, Any]]:
     return rows
 
 
+VSA_BUDGETS = (64, 360)
+"""VSA base counts N of the equal-gathers comparison"""
+
+
+def equal_gathers(scene, views: list[Camera], light_grid: int, device: str) -> dict[str, Renderer]:
+    """Per VSA base count N: CACRM with VSA, and CACRM with uniform steps at the count whose voxel gathers on ``views``
+    match (two secant steps on gathers ~ N; measured within 1%)."""
+    def cacrm(samples: int, vsa: bool) -> CACRM:
+        return CACRM(CACRMConfig(samples=samples, light_samples=96, light_grid=light_grid, hybrid=False, vsa=vsa),
+                     device)
+
+    def cost(r: Renderer) -> int:
+        return gathers(r.render(scene, views).stats.counters)
+
+    out: dict[str, Renderer] = {}
+    for n in VSA_BUDGETS:
+        target = cost(cacrm(n, True))
+        m = n
+        for _ in range(2):
+            m = max(2, round(m * target / cost(cacrm(m, False))))
+        out[f"CACRM:{n} VSA"] = cacrm(n, True)
+        out[f"CACRM:{m} uniform"] = cacrm(m, False)
+    return out
+
+
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     rows, summary = [], []
     for name in cfg["scenes"]:
         scene = builtin_scene(name, cfg["resolution"])
         renderers = methods(cfg["light_grid"], device)
         reference = Reference(ReferenceConfig(samples=cfg["reference"], light_samples=cfg["reference"]), device)
-        quality = {m: {"psnr": [], "ssim": [], "gathers": []} for m in QUALITY_METHODS}
+        matched = equal_gathers(scene, make_views(path_camera(0, cfg["frames"], cfg["quality_size"]), "stereo"),
+                                cfg["light_grid"], device)
+        quality = {m: {"psnr": [], "ssim": [], "gathers": []} for m in (*QUALITY_METHODS, *matched)}
         for f in range(cfg["frames"]):
             views = make_views(path_camera(f, cfg["frames"], cfg["quality_size"]), "stereo")
             ref = reference.render(scene, views).images
-            for m in QUALITY_METHODS:
-                frame = renderers[m].render(scene, views)
+            for m in quality:
+                frame = (matched[m] if m in matched else renderers[m]).render(scene, views)
                 quality[m]["psnr"] += [psnr(a, b) for a, b in zip(ref, frame.images, strict=True)]
                 quality[m]["ssim"] += [ssim(a, b) for a, b in zip(ref, frame.images, strict=True)]
                 quality[m]["gathers"].append(gathers(frame.stats.counters))
         for m, q in quality.items():
-            rows.append({"table": "quality", "scene": name, "method": m,
+            rows.append({"table": "quality" if m in QUALITY_METHODS else "equal gathers", "scene": name, "method": m,
                          "psnr": sum(q["psnr"]) / len(q["psnr"]), "ssim": sum(q["ssim"]) / len(q["ssim"]),
                          "gathers": sum(q["gathers"]) // len(q["gathers"])})
         times: dict[tuple[str, tuple[int, int]], float] = {}
@@ -135,7 +166,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         near = [{"scene": name, **r} for r in close_up(scene, cfg, device)]
         rows += near
         small, big = cfg["sizes"][0], cfg["sizes"][-1]
-        q = {r["method"]: r["psnr"] for r in rows if r["table"] == "quality" and r["scene"] == name}
+        q = {r["method"]: r["psnr"] for r in rows if r["table"] in ("quality", "equal gathers") and r["scene"] == name}
+        pairs = list(zip(list(matched)[0::2], list(matched)[1::2], strict=True))
         summary.append({
             "scene": name,
             "psnr_cacrm_minus_cmsrm360": q["CACRM"] - q["CMSRM:360:96"],
@@ -146,6 +178,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             "ins_gain_db": near[1]["psnr"] - near[0]["psnr"],
             "tlod_psnr_db": q["CACRM +TLOD"] - q["CACRM"],
             "tlod_speedup_largest": times["CACRM", big] / times["CACRM +TLOD", big],
+            **{f"vsa_gain_{n}_db": q[vsa] - q[uni] for n, (vsa, uni) in zip(VSA_BUDGETS, pairs, strict=True)},
         })
     columns = [
         ("table", "table", "s"), ("scene", "scene", "s"), ("size", "stereo view size", "s"), ("method", "method", "s"),
@@ -162,6 +195,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("ins_gain_db", "InS gain at the close-up, N = 100 [dB]", ".2f"),
         ("tlod_psnr_db", "PSNR +TLOD - CACRM [dB]", ".2f"),
         ("tlod_speedup_largest", "CACRM / +TLOD time, largest", ".2f"),
+        *[(f"vsa_gain_{n}_db", f"PSNR VSA - uniform at equal gathers, N = {n} [dB]", ".2f") for n in VSA_BUDGETS],
     ]
     settings = {k: v for k, v in cfg.items() if k not in ("sizes", "quality_size")} | {
         "sizes": [f"{w}x{h}" for w, h in cfg["sizes"]], "quality_size": "x".join(map(str, cfg["quality_size"])),

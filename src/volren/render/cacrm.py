@@ -17,10 +17,12 @@ same images; ``share_voxels=False`` keeps coupling but fetches per ray.
 Variable step amplification (§3.1.3, Eq. 4-6): after each sample, each eye proposes the next step as
 Delta t (N) max(k_a t / t_max, f_lambda^w_lambda f_T^w_T f_A^w_A, 1) with the base step Delta t = diagonal / N (the
 paper's (t_max - t_min) / N; here the same base step as DSSRM and CMSRM, so that N means the same in all three), and
-the pair takes the larger proposal. Departure: the amplification is floored to a whole number of base steps, so both
-eyes stay on their texel-anchored lattices and uniform stepping is the special case k_a = 0, w = 0 exactly. rho' is
-the backward difference of the last two samples per base step (the paper uses Bergner et al.'s estimate). The
-weights k_b, w_lambda, w_T, w_A come from ``scripts/fit_vsa.py`` (``vsa_fit.json``).
+the pair takes the larger proposal (`volren.render.vsa`). Steps are real multiples of the base step counted back from
+the texel, so uniform stepping (k_a = 0, w = 0) is exactly the texel-anchored lattice. An earlier version floored the
+multiple to whole base steps: with f_lambda_max = 2 and f_T, f_A <= 1 every product below 2 became a uniform step, VSA
+degenerated into a fixed 2x step and the density derivative never changed the image (issue 12). rho' is the
+difference of the last two samples per base step (the paper uses Bergner et al.'s estimate). The constants come from
+``scripts/fit_vsa.py`` (``vsa_fit.json``), fitted for quality at equal voxel gathers.
 
 Empty-tile culling and tile LOD (32x32 tiles, the coarse phase) come from CMSRM; with a coupled pair a tile's level
 bounds the footprint in both eyes. Not here: interleaved spatial reuse. A trial of it (one work item per 2x2 quad
@@ -61,7 +63,7 @@ from volren.render.cubemap import CubeLOD, CubeTarget, eye_segment, store_texel,
 from volren.render.dssrm import MarchParams, lit_step
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, PassClock
 from volren.render.interleave import interleave_tiles, quad_march_kernel
-from volren.render.vsa import VSA_FIT, VSAParams, vsa_multiple
+from volren.render.vsa import END, VSA_FIT, VSAParams, vsa_amplification
 from volren.upload import DeviceScene, camera_struct
 
 
@@ -76,11 +78,12 @@ class CACRMConfig(CMSRMConfig):
     interleave: bool = True
     """interleaved spatial reuse (§3.1.3): 2x2 texel quads share their samples where their rays run < 1/2 voxel
     apart (`volren.render.interleave`)"""
-    k_a: float = 3.0
-    """Eq. 4: ray-length amplification k_a t / t_max"""
+    k_a: float = VSA_FIT["k_a"]
+    """Eq. 4: ray-length amplification k_a t / t_max (paper: 3; fitted: 1.5, see vsa_fit.json)"""
     k_b: float = VSA_FIT["k_b"]
     """Eq. 5: wave-length factor f_lambda = min(k_b / |rho'|, f_lambda_max), rho' per base step"""
-    f_lambda_max: float = 2.0
+    f_lambda_max: float = VSA_FIT["f_lambda_max"]
+    """Eq. 5's cap (paper: 2; fitted: 4)"""
     w_lambda: float = VSA_FIT["w_lambda"]
     w_t: float = VSA_FIT["w_t"]
     w_a: float = VSA_FIT["w_a"]
@@ -104,11 +107,11 @@ def anchored_steps(seg: wp.vec4, dt: float) -> int:
 
 
 @wp.func
-def lattice_step(seg: wp.vec4, pos: int, m: int, dt: float) -> wp.vec2:
-    """(midpoint, length) of the step covering base cells [pos - m, pos) counted back from the texel:
+def lattice_step(seg: wp.vec4, pos: float, m: float, dt: float) -> wp.vec2:
+    """(midpoint, length) of the step covering [pos - m, pos) base steps counted back from the texel:
     [t_max - pos dt, t_max - (pos - m) dt], clipped at t_min (a step wholly before t_min has length <= 0)."""
-    hi = seg[1] - float(pos - m) * dt
-    lo = wp.max(seg[1] - float(pos) * dt, seg[0])
+    hi = seg[1] - (pos - m) * dt
+    lo = wp.max(seg[1] - pos * dt, seg[0])
     return wp.vec2(0.5 * (lo + hi), hi - lo)
 
 
@@ -132,8 +135,8 @@ def eye_update(
     ambient: wp.vec3,
 ):
     """One eye's step of the coupled march: composite the sample (density rho at local p / world x, step midpoint and
-    length ``step``) and propose the next step multiple by VSA. Returns (acc, half-transmittance distance, previous
-    density, previous distance, 1 if the sample was lit, step multiple)."""
+    length ``step``) and propose the next step's amplification by VSA. Returns (acc, half-transmittance distance,
+    previous density, previous distance, 1 if the sample was lit, amplification)."""
     out = acc
     out_half = half
     lit = int(0)
@@ -141,14 +144,14 @@ def eye_update(
         lit = 1
         out = lit_step(acc, rho, vol, medium, p, x, d, step[1], ambient)
         out_half = half_depth(half, acc[3], out[3], step[0])
-    m = int(1)
+    m = float(1.0)
     out_prev = prev
     out_prev_t = prev_t
     if vp.enabled != 0:
         drho = float(0.0)
         if prev >= 0.0:
             drho = (rho - prev) * dt / wp.max(step[0] - prev_t, 1.0e-9)
-        m = vsa_multiple(vp, step[0], seg[1], rho, drho, out[3], absorb)
+        m = vsa_amplification(vp, step[0], seg[1], rho, drho, out[3], absorb)
         out_prev = rho
         out_prev_t = step[0]
     return out, out_half, out_prev, out_prev_t, lit, m
@@ -208,14 +211,14 @@ def coupled_march_kernel(
     prev_t0 = float(0.0)
     prev_t1 = float(0.0)
     absorb = vol.density_scale * dt
-    # The pair walks the base-step lattice anchored at each eye's texel, front to back: pos base steps remain before
-    # the texel, and each step covers m of them (m = 1: uniform steps).
-    pos = n
-    m = int(1)
-    while pos > 0:
+    # The pair walks back from each eye's texel in units of the base step, front to back: pos base steps remain
+    # before the texel, and each step covers m of them (m = 1: uniform steps on the texel-anchored lattice).
+    pos = float(n)
+    m = float(1.0)
+    while pos > END:
         m = wp.min(m, pos)
-        in0 = pos - m < n0 and acc0[3] >= params.min_transmittance
-        in1 = pos - m < n1 and acc1[3] >= params.min_transmittance
+        in0 = pos - m < float(n0) and acc0[3] >= params.min_transmittance
+        in1 = pos - m < float(n1) and acc1[3] >= params.min_transmittance
         if not in0 and not in1:
             break
         # Each eye's work only while it is inside its segment (eye 1 is absent when marching one view alone).
@@ -249,7 +252,7 @@ def coupled_march_kernel(
                 rho0 = interpolate_cell(gather_cell(medium.density, vol.offset, vol.res, c0), cell_fraction(f0, c0))
             if in1:
                 rho1 = interpolate_cell(gather_cell(medium.density, vol.offset, vol.res, c1), cell_fraction(f1, c1))
-        next_m = int(1)
+        next_m = float(1.0)
         if in0:
             samples += 1
             acc0, half0, prev0, prev_t0, lit, m0 = eye_update(

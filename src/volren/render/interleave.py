@@ -48,7 +48,7 @@ from volren.kernels.common import (
 from volren.render.cubemap import CubeTarget, eye_segment, store_texel, texel_index, texel_point, tile_texel
 from volren.render.dssrm import MarchParams, lit_step
 from volren.render.frame import DENSITY_SAMPLES, INTERLEAVED_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES
-from volren.render.vsa import VSAParams, vsa_multiple
+from volren.render.vsa import END, VSAParams, vsa_amplification
 
 LANES = 8
 """2 eyes x 2 x 2 texels"""
@@ -169,15 +169,15 @@ def quad_march_kernel(
     shared = int(0)
     shaded = int(0)
     absorb = vol.density_scale * dt
-    pos = wp.max(n0, n1)
-    m = int(1)
-    while pos > 0:
+    pos = float(wp.max(n0, n1))
+    m = float(1.0)
+    while pos > END:
         m = wp.min(m, pos)
-        lo = wp.vec2(anchor[0] - float(pos) * dt, anchor[1] - float(pos) * dt)
-        hi = wp.vec2(anchor[0] - float(pos - m) * dt, anchor[1] - float(pos - m) * dt)
+        lo = wp.vec2(anchor[0] - pos * dt, anchor[1] - pos * dt)
+        hi = wp.vec2(anchor[0] - (pos - m) * dt, anchor[1] - (pos - m) * dt)
         inter = wp.vec2(0.0)
         for e in range(2):
-            if hi[e] <= t_s[e] and float(m) * dt >= step_floor:
+            if hi[e] <= t_s[e] and m * dt >= step_floor:
                 inter[e] = 1.0
         # A lane is live while its transmittance counts and the step overlaps its segment; an eye fetches while any
         # of its lanes is live (interleaved: all its lanes fetch, the others need their samples). The march ends
@@ -220,7 +220,7 @@ def quad_march_kernel(
                 fetched[lane] = 1.0
                 samples += 1
         # Composite: four quarter steps from the quad's samples, or the lane's own step.
-        next_m = int(1)
+        next_m = float(1.0)
         for lane in range(LANES):
             if live[lane] > 0.0:
                 e = lane / 4
@@ -263,7 +263,7 @@ def quad_march_kernel(
                     drho = float(0.0)
                     if prev[lane] >= 0.0:
                         drho = (own[lane] - prev[lane]) * dt / wp.max(t - prev_t[lane], 1.0e-9)
-                    next_m = wp.max(next_m, vsa_multiple(vp, t, seg[lane, 1], own[lane], drho, a[3], absorb))
+                    next_m = wp.max(next_m, vsa_amplification(vp, t, seg[lane, 1], own[lane], drho, a[3], absorb))
                     prev[lane] = own[lane]
                     prev_t[lane] = t
         pos = pos - m

@@ -1,4 +1,4 @@
-"""Variable step amplification (VSA, paper 000 §3.1.3, Eq. 4-6): the step multiple each ray proposes."""
+"""Variable step amplification (VSA, paper 000 §3.1.3, Eq. 4-6): the step amplification each ray proposes."""
 
 from __future__ import annotations
 
@@ -9,7 +9,10 @@ import warp as wp
 
 VSA_FIT_FILE = Path(__file__).with_name("vsa_fit.json")
 VSA_FIT: dict[str, float] = json.loads(VSA_FIT_FILE.read_text())["weights"]
-"""Eq. 4-6 weights fitted by ``scripts/fit_vsa.py`` against the reference (the file says how and on what)."""
+"""Eq. 4-6 constants fitted by ``scripts/fit_vsa.py`` (quality at equal voxel gathers; the file says how, on what)."""
+
+END = wp.constant(1.0e-4)
+"""[base steps] what may remain of a ray (floating-point rest) when its last step has been taken"""
 
 
 @wp.struct
@@ -36,16 +39,37 @@ def weighted(f: float, w: float) -> float:
 
 
 @wp.func
-def vsa_multiple(vp: VSAParams, t: float, t_max: float, rho: float, drho: float, trans: float,
-                 absorb: float) -> int:
-    """Eq. 4 as a whole number of base steps: max(k_a t / t_max, f_lambda^w_lambda f_T^w_T f_A^w_A, 1), floored.
-    f_lambda = min(k_b / |rho'|, f_lambda_max) (Eq. 5); f_T = 1 - a (rho + rho') with a the optical depth of one
-    base step per unit density, and f_A = 1 - T (Eq. 6). rho' is the change of density per base step."""
-    f_lambda = vp.f_lambda_max
+def wave_length_factor(vp: VSAParams, drho: float) -> float:
+    """Eq. 5: f_lambda = min(k_b / |rho'|, f_lambda_max), rho' the change of density per base step."""
     if wp.abs(drho) * vp.f_lambda_max > vp.k_b:
-        f_lambda = vp.k_b / wp.abs(drho)
-    f_t = wp.clamp(1.0 - absorb * (rho + drho), 0.0, 1.0)
-    f_a = wp.clamp(1.0 - trans, 0.0, 1.0)
+        return vp.k_b / wp.abs(drho)
+    return vp.f_lambda_max
+
+
+@wp.func
+def transparency_factor(rho: float, drho: float, absorb: float) -> float:
+    """Eq. 6: f_T = 1 - a rho~(t + Delta t), the next density predicted as rho + rho' (clamped to [0, 1])."""
+    return wp.clamp(1.0 - absorb * (rho + drho), 0.0, 1.0)
+
+
+@wp.func
+def attenuation_factor(trans: float) -> float:
+    """Eq. 6: f_A = 1 - T(t), the opacity accumulated up to the current sample."""
+    return wp.clamp(1.0 - trans, 0.0, 1.0)
+
+
+@wp.func
+def vsa_amplification(vp: VSAParams, t: float, t_max: float, rho: float, drho: float, trans: float,
+                      absorb: float) -> float:
+    """Eq. 4's amplification of the base step: max(k_a t / t_max, f_lambda^w_lambda f_T^w_T f_A^w_A, 1).
+
+    a (Eq. 6) is the optical depth of one base step per unit density, so f_T is the transparency of the next base
+    step. f_T and f_A lie in [0, 1], so they only take back what f_lambda grants (at most f_lambda_max): long steps
+    need smooth density (f_lambda), thin medium ahead (f_T) and opacity already accumulated (f_A; none in front of
+    the medium, where a step over a dense feature would cost the most). The result is a real number: steps are not
+    rounded to whole base steps (rounding made every product below 2 a uniform step)."""
+    f_lambda = wave_length_factor(vp, drho)
+    f_t = transparency_factor(rho, drho, absorb)
+    f_a = attenuation_factor(trans)
     product = weighted(f_lambda, vp.w_lambda) * weighted(f_t, vp.w_t) * weighted(f_a, vp.w_a)
-    amp = wp.max(wp.max(vp.k_a * t / t_max, product), 1.0)
-    return int(wp.floor(amp))
+    return wp.max(wp.max(vp.k_a * t / t_max, product), 1.0)
