@@ -25,8 +25,9 @@ from volren.data import builtin_scene
 from volren.data.environments import sky_environment
 from volren.metrics import psnr, ssim
 from volren.render import DSSRM, DSSRMConfig
+from volren.render.gi import RESAMPLING as RESAMPLING_MODES
 from volren.render.gi import GIConfig
-from volren.scene import Scene
+from volren.scene import Environment, Scene
 from volren.simulate import advected_frames
 
 FULL = {"scenes": ["smoke", "cloud", "phantom", "multi"],
@@ -36,6 +37,8 @@ QUICK = {"scenes": ["smoke", "cloud", "phantom", "multi"],
          "resolution": 64, "light_grid": 32, "size": (96, 64), "frames": 40, "warmup": 24, "gt_rays": 1024,
          "prt_rays": 256, "dynamic_frames": 36, "gt_every": 4}
 METHODS = ("major", "prt", "restir", "sresir")
+RESAMPLING = {"scenes": ["cloud", "smoke"], "frames": [1, 8, 32], "seeds": 3}
+"""Eq. 12's study: ours with each resampling (``GIConfig.resampling``) after 1, 8 and 32 frames, mean of 3 seeds"""
 LIGHT_SAMPLES = 96
 SETTLE = 1.25
 
@@ -50,10 +53,11 @@ def gi_time(frame) -> float:
 
 
 def run_sequence(scenes: Iterable[Scene], gi: GIConfig, cfg: dict[str, Any], device: str, camera: Camera,
-                 measured: set[int] | None = None) -> list[dict[str, Any]]:
+                 measured: set[int] | None = None, seed: int = 0) -> list[dict[str, Any]]:
     """Render each scene of a sequence with one renderer (its GI history carries over); per frame the image (on the
     ``measured`` frames, all if None), the ambient grid of volume 0, GI times and counters."""
-    r = DSSRM(DSSRMConfig(light_grid=cfg["light_grid"], light_samples=LIGHT_SAMPLES, gi=gi), device=device)
+    r = DSSRM(DSSRMConfig(light_grid=cfg["light_grid"], light_samples=LIGHT_SAMPLES, gi=gi, seed=seed),
+              device=device)
     out = []
     for i, scene in enumerate(scenes):
         frame = r.render(scene, [camera], frame=i)
@@ -113,6 +117,36 @@ def settle_frame(errors: list[float], frames: list[int]) -> int | None:
     return None
 
 
+def ambient_psnr(test: np.ndarray, truth: np.ndarray) -> float:
+    """PSNR of an ambient grid, peak = the ground truth's maximum."""
+    return float(10 * np.log10(float(truth.max()) ** 2 / max(float(np.mean((test - truth) ** 2)), 1e-30)))
+
+
+def resampling_rows(name: str, scene: Scene, truth: dict[str, Any], cfg: dict[str, Any], device: str,
+                    camera: Camera) -> list[dict[str, Any]]:
+    """Ours with Eq. 12 as printed, own directions and RIS: image and ambient-grid PSNR against brute force after
+    1/8/32 frames (mean over seeds), and the first frame's largest ambient in a constant environment of radiance 1
+    (the truth is the mean transmittance, <= 1)."""
+    frames = RESAMPLING["frames"]
+    white = dataclasses.replace(scene, environment=Environment(1.0))
+    rows = []
+    for mode in RESAMPLING_MODES:
+        gi = GIConfig(method="sresir", resampling=mode)
+        image, grid = [], []
+        for seed in range(RESAMPLING["seeds"]):
+            seq = run_sequence([scene] * frames[-1], gi, cfg, device, camera, {f - 1 for f in frames}, seed)
+            image.append([psnr(truth["image"], seq[f - 1]["image"]) for f in frames])
+            grid.append([ambient_psnr(seq[f - 1]["ambient"], truth["ambient"]) for f in frames])
+        first = max(float(run_sequence([white], gi, cfg, device, camera, None, seed)[0]["ambient"].max())
+                    for seed in range(RESAMPLING["seeds"]))
+        row = {"scene": name, "resampling": mode, "max_first_frame": first}
+        for k, f in enumerate(frames):
+            row[f"image_psnr_{f}"] = float(np.mean([s[k] for s in image]))
+            row[f"ambient_psnr_{f}"] = float(np.mean([s[k] for s in grid]))
+        rows.append(row)
+    return rows
+
+
 def run(quick: bool, device: str) -> dict[str, Any]:
     return run_config(QUICK if quick else FULL, device)
 
@@ -121,6 +155,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     w, h = cfg["size"]
     camera = Camera(position=(0.0, 0.4, 3.2), width=w, height=h)
     rows = []
+    resampling: list[dict[str, Any]] = []
     measured = list(range(cfg["warmup"], cfg["frames"]))
     for name in cfg["scenes"]:
         scene = gi_scene(name, cfg["resolution"])
@@ -130,6 +165,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             gi = GIConfig(method=method, rays=cfg["prt_rays"])
             seq = run_sequence([scene] * cfg["frames"], gi, cfg, device, camera, set(measured))
             rows.append(method_row(name, method, seq, score(seq, truth), cfg))
+        if name in RESAMPLING["scenes"]:
+            resampling += resampling_rows(name, scene, truth_frame, cfg, device, camera)
     for fps in (60, 30):
         scenes = list(advected_frames(gi_scene("smoke", cfg["resolution"]), cfg["dynamic_frames"], fps,
                                       device=device))
@@ -158,6 +195,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         "settings": {**cfg, "light_samples": LIGHT_SAMPLES, "environment": "sky", "view": "mono 'left' camera",
                      "renderer": "dssrm", "settle": SETTLE},
         "rows": rows,
+        "resampling": resampling,
         "columns": [("scene", "scene", ""), ("method", "GI", ""), ("gi_ms", "GI ms/frame", ".2f"),
                     ("precompute_ms", "PRT precompute ms", ".1f"), ("gi_rays", "GI rays", ","),
                     ("light_samples", "light samples", ","), ("psnr", "PSNR dB", ".2f"), ("ssim", "SSIM", ".4f"),
