@@ -4,8 +4,11 @@ surface-medium coexistence model's per-pixel variance against Exposure Render's 
 
 Scenes: the phantom with the CT muscle/skin transfer function, the phantom with the bone preset (CT-like, mostly
 empty: where skipping pays), and the smoke plume with extinction proportional to density.
-Denoisers (phantom, ct-muscle; none, ours, SVGF): (b) PSNR against a high-spp reference per frame along a rotation
-with a rotating light (Fig. 12); (c) §6.4.3's variance test: frame ``variance_at`` rendered with
+Denoisers (phantom, ct-muscle; none, ours, SVGF, WRLS): (b) PSNR and FLIP against a high-spp reference per frame
+along a rotation with a rotating light (Fig. 12; the paper's LPIPS needs network weights that cannot be fetched
+offline, so FLIP stands in as the perceptual metric), the detail kept (`detail_kept`) and the holes filled (pixels
+none of whose paths hit although the reference's alpha is >= 0.25, filled when the output's alpha reaches half the
+reference's); (c) §6.4.3's variance test: frame ``variance_at`` rendered with
 ``variance_sequences`` random sequences on the same history, the summed per-pixel variance of the outputs; (d)
 §6.4.4's convergence: after an orbit stops, the frames until the RMSE between consecutive frames falls below 0.01;
 (e) ghosting: the mean PSNR of the 3 frames right after the transfer function switches from ct-muscle to ct-bone.
@@ -30,7 +33,9 @@ FULL = {"resolution": 256, "size": (1440, 1190), "spp": [1, 2, 4, 8, 16, 32], "v
 QUICK = {"resolution": 64, "size": (128, 106), "spp": [1, 2, 4, 8], "variance_frames": 16, "variance_spp": 2,
          "repeats": 2, "denoise_size": (96, 80), "denoise_spp": 4, "rotation_frames": 12, "reference_spp": 256,
          "variance_at": 8, "variance_sequences": 8, "orbit_frames": 6, "settle_frames": 30}
-DENOISERS = ("none", "ours", "svgf")
+DENOISERS = ("none", "ours", "svgf", "wrls")
+HOLE_ALPHA = 0.25
+"""a pixel without hits counts as a hole where the reference's alpha is at least this"""
 CASES = [("phantom", "ct-muscle"), ("phantom", "ct-bone"), ("smoke", None)]
 
 
@@ -38,12 +43,26 @@ def case_name(scene: str, transfer: str | None) -> str:
     return f"{scene} ({transfer or 'density'})"
 
 
+def detail_kept(reference: np.ndarray, image: np.ndarray) -> float:
+    """The share of the reference's finest detail the image keeps: the regression slope of the image's 0-1 px band
+    (luminance minus its Gaussian blur of sigma 1 px) on the reference's. Noise uncorrelated with the reference
+    leaves it unbiased (the raw frames score ~1); blur lowers it."""
+    from scipy import ndimage
+
+    def band(x: np.ndarray) -> np.ndarray:
+        lum = x[..., :3] @ np.array([0.2126, 0.7152, 0.0722])
+        return lum - ndimage.gaussian_filter(lum, 1.0)
+
+    b = band(reference)
+    return float((band(image) * b).sum() / max((b * b).sum(), 1e-30))
+
+
 def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[str, dict]]:
     """Rows (b)-(d) for each denoiser, and per denoiser its mean PSNR, variance and convergence frames."""
     import dataclasses
 
     from volren.animate import Sequence, frame_scene, frame_views
-    from volren.metrics import psnr
+    from volren.metrics import flip, psnr
 
     scene = builtin_scene("phantom", cfg["resolution"])
     cam = Camera(position=(1.6, 1.2, 2.4), width=cfg["denoise_size"][0], height=cfg["denoise_size"][1], fov_y=40.0)
@@ -52,12 +71,20 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
     refs = [reference.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
             for i in range(seq.frames)]
     switched_ref = VPT(VPTConfig(spp=cfg["reference_spp"], transfer="ct-bone"), device).render(scene, [cam]).images[0]
-    rows, result = [], {}
+    rows, result, raw_alpha = [], {}, []
     for name in DENOISERS:
         config = VPTConfig(spp=cfg["denoise_spp"], transfer="ct-muscle", denoise=name)
         r = VPT(config, device)
-        scores = [psnr(refs[i], r.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0])
+        images = [r.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
                   for i in range(seq.frames)]
+        scores = [psnr(refs[i], images[i]) for i in range(seq.frames)]
+        flips = [flip(refs[i], images[i]) for i in range(seq.frames)]
+        kept = [detail_kept(refs[i], images[i]) for i in range(seq.frames)]
+        if name == "none":  # the same seeds: these frames' alphas are every denoiser's raw input
+            raw_alpha = [image[..., 3] for image in images]
+        holes = [(raw_alpha[i] == 0) & (refs[i][..., 3] >= HOLE_ALPHA) for i in range(seq.frames)]
+        filled = sum(int((images[i][..., 3][holes[i]] >= 0.5 * refs[i][..., 3][holes[i]]).sum())
+                     for i in range(seq.frames))
         # (c): the same history, different random sequences for one more frame.
         r = VPT(config, device)
         for i in range(cfg["variance_at"]):
@@ -89,10 +116,12 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
             r.render(scene, [cam], i)
         r.config = dataclasses.replace(config, transfer="ct-bone")
         after = [psnr(switched_ref, r.render(scene, [cam], cfg["variance_at"] + k).images[0]) for k in range(3)]
-        result[name] = {"psnr": float(np.mean(scores)), "variance": variance, "settle": settle,
-                        "switch": float(np.mean(after))}
+        result[name] = {"psnr": float(np.mean(scores)), "flip": float(np.mean(flips)), "variance": variance,
+                        "settle": settle, "switch": float(np.mean(after))}
         rows.append({"table": "denoiser", "scene": "phantom (ct-muscle)", "spp": cfg["denoise_spp"], "method": name,
-                     "psnr": float(np.mean(scores)), "psnr_min": float(np.min(scores)),
+                     "psnr": float(np.mean(scores)), "psnr_min": float(np.min(scores)), "flip": float(np.mean(flips)),
+                     "detail_kept": float(np.mean(kept)), "holes": sum(int(h.sum()) for h in holes),
+                     "holes_filled": filled,
                      "output_variance": variance, "settle_frames": settle, "switch_psnr": result[name]["switch"]})
     return rows, result
 
@@ -134,6 +163,9 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     rows += denoise_rows
     summary.append({"scene": "phantom (ct-muscle), denoisers",
                     "psnr_ours_minus_svgf": denoisers["ours"]["psnr"] - denoisers["svgf"]["psnr"],
+                    "psnr_ours_minus_wrls": denoisers["ours"]["psnr"] - denoisers["wrls"]["psnr"],
+                    "flip_ours_minus_best_baseline": denoisers["ours"]["flip"] - min(
+                        denoisers["svgf"]["flip"], denoisers["wrls"]["flip"]),
                     "psnr_ours_minus_raw": denoisers["ours"]["psnr"] - denoisers["none"]["psnr"],
                     "variance_ours_over_svgf": denoisers["ours"]["variance"] / denoisers["svgf"]["variance"],
                     "settle_ours": denoisers["ours"]["settle"], "settle_svgf": denoisers["svgf"]["settle"],
@@ -144,7 +176,9 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("density_lookups", "density lookups", ","), ("light_lookups", "transmittance lookups", ","),
         ("majorant_bytes", "majorant bytes", ","), ("majorant_build_ms", "majorant build [ms]", ".1f"),
         ("image_mean", "image mean", ".5f"), ("pixel_variance_sum", "summed pixel variance", ".4f"),
-        ("psnr", "mean PSNR [dB]", ".2f"), ("psnr_min", "min PSNR [dB]", ".2f"),
+        ("psnr", "mean PSNR [dB]", ".2f"), ("psnr_min", "min PSNR [dB]", ".2f"), ("flip", "mean FLIP", ".4f"),
+        ("detail_kept", "detail kept (0-1 px band)", ".3f"), ("holes", "holes", "d"),
+        ("holes_filled", "holes filled", "d"),
         ("output_variance", "output variance", ".4f"), ("settle_frames", "frames to settle", "d"),
         ("switch_psnr", "PSNR after a TF switch [dB]", ".2f"),
     ]
@@ -154,6 +188,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("octree_speedup", "time global majorant / octree", ".2f"),
         ("lookup_ratio", "lookups octree / global", ".3f"),
         ("psnr_ours_minus_svgf", "PSNR ours - SVGF [dB] (goal > 0)", ".2f"),
+        ("psnr_ours_minus_wrls", "PSNR ours - WRLS [dB] (goal > 0)", ".2f"),
+        ("flip_ours_minus_best_baseline", "FLIP ours - best baseline (goal < 0)", ".4f"),
         ("psnr_ours_minus_raw", "PSNR ours - raw [dB]", ".2f"),
         ("variance_ours_over_svgf", "output variance ours / SVGF (goal < 1)", ".3f"),
         ("settle_ours", "frames to settle, ours (goal < SVGF)", "d"), ("settle_svgf", "same, SVGF", "d"),
