@@ -289,11 +289,12 @@ def rect_light(x: float, y: float, z: float, width: float, height: float, radian
 
 def views_from_args(args: argparse.Namespace, time: float = 0.0):
     """The viewers: one camera from the arguments (a fog scene's own viewpoint by default), made into mono, stereo
-    or N views by ``--rig``; wandering viewers walk the scene's area (a fog scene's extent, else 3 m around the
-    look-at point) and are placed for ``time`` [s]."""
+    or N views by ``--rig``; in a fog scene the arc and the wandering viewers keep to its walkable space (the arc
+    only when the camera stands in it), elsewhere viewers wander 3 m around the look-at point; wandering viewers are
+    placed for ``time`` [s]."""
     from volren.camera import Camera, make_views
-    from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera
-    from volren.viewers import overlap_viewers, wandering_viewers
+    from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera, fog_scene_walk_area
+    from volren.viewers import WalkArea, arc_viewers, overlap_viewers, wandering_viewers
 
     position, look_at = (0.0, 0.4, 3.2), (0.0, 0.0, 0.0)
     fog_scene = getattr(args, "scene", None) in FOG_SCENES
@@ -302,16 +303,18 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
         position, look_at = default["position"], default["look_at"]
     cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
                  width=args.width, height=args.height, near=args.near, far=args.far)
-    if args.rig == "arc" or args.views in ("mono", "stereo"):
+    if args.views in ("mono", "stereo"):
         return make_views(cam, args.views, args.ipd)
     count = len(make_views(cam, args.views))  # validates N
     if args.rig == "overlap":
         return overlap_viewers(cam, count, args.overlap)
-    if fog_scene:
-        lo, hi = fog_scene_camera(args.scene)["extent"]
-    else:
-        lo, hi = tuple(v - 3.0 for v in cam.look_at), tuple(v + 3.0 for v in cam.look_at)
-    return wandering_viewers(cam, count, lo, hi, time=time, seed=args.seed)
+    area = fog_scene_walk_area(args.scene) if fog_scene else None
+    if args.rig == "arc":
+        return arc_viewers(cam, count, area)
+    if area is None:
+        x, y, z = cam.look_at
+        area = WalkArea((x - 3.0, z - 3.0), (x + 3.0, z + 3.0), floor=y - 3.0)
+    return wandering_viewers(cam, count, area, time=time, seed=args.seed)
 
 
 def depth_images_from_args(args: argparse.Namespace, view_count: int) -> list | None:

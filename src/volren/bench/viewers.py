@@ -22,7 +22,7 @@ import numpy as np
 
 from volren.bench import Suite, measure
 from volren.camera import Camera
-from volren.data.fog_scenes import fog_scene, fog_scene_camera
+from volren.data.fog_scenes import fog_scene, fog_scene_camera, fog_scene_walk_area
 from volren.metrics import flip
 from volren.render import FogConfig, FogRenderer
 from volren.viewers import overlap_viewers, wandering_viewers
@@ -60,12 +60,12 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         spot = fog_scene_camera(name)
         base = Camera(position=spot["position"], look_at=spot["look_at"], width=cfg["size"][0],
                       height=cfg["size"][1], fov_y=60.0)
-        lo, hi = spot["extent"]
+        area = fog_scene_walk_area(name)
         times: dict[tuple[str, int], float] = {}
         rays: dict[tuple[str, int], int] = {}
         flips: dict[tuple[str, int], float] = {}
         for n in cfg["counts"]:
-            views = wandering_viewers(base, n, lo, hi, seed=n)
+            views = wandering_viewers(base, n, area, seed=n)
             ref = run_method(scene, views, cfg, device, "none", 1.0, None)
             runs = [("reference", ref)] + [
                 (f"grid {v:g} m", run_method(scene, views, cfg, device, "grid", v, ref["images"]))
@@ -75,7 +75,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
                 times[method, n], rays[method, n] = r["fog_ms"], r["shadow_rays"]
                 flips[method, n] = r.get("flip", 0.0)
                 rows.append({"table": "viewers", "scene": name, "viewers": n, "method": method, **r})
-        views = wandering_viewers(base, 4, lo, hi, seed=4)
+        views = wandering_viewers(base, 4, area, seed=4)
         ref = run_method(scene, views, cfg, device, "none", 1.0, None)
         for v in cfg["ablation"]:
             r = run_method(scene, views, cfg, device, "grid", v, ref["images"])

@@ -18,9 +18,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from functools import cache
 
 import numpy as np
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from volren.errors import VolrenError
 from volren.scene import (
@@ -34,6 +37,7 @@ from volren.scene import (
     SpotLight,
     TriangleMesh,
 )
+from volren.viewers import EYE_HEIGHT, WalkArea
 
 Part = tuple[np.ndarray, np.ndarray]
 """(vertices (N, 3) float64, faces (M, 3) int64) of one closed primitive."""
@@ -204,7 +208,7 @@ def _dynamic(time: float) -> Scene:
 _BUILDERS: dict[str, Callable[[float], Scene]] = {"hall": _hall, "courtyard": _courtyard, "dynamic": _dynamic}
 
 _CAMERAS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
-    "hall": ((-11.0, 1.7, -2.0), (4.0, 2.6, 1.5)),
+    "hall": ((-11.0, 1.7, -1.5), (4.0, 2.6, 1.5)),
     "courtyard": ((-10.0, 2.0, 8.5), (3.0, 2.5, -4.0)),
     "dynamic": ((-5.0, 1.7, -5.0), (0.5, 1.8, 4.0)),
 }
@@ -232,3 +236,51 @@ def fog_scene_camera(name: str) -> dict:
     position, look_at = _CAMERAS[name]
     return {"position": position, "look_at": look_at,
             "extent": (tuple(round(float(v), 6) for v in lo), tuple(round(float(v), 6) for v in hi))}
+
+
+_WALK_BOUNDS: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
+    "hall": ((-12.0, -5.0), (12.0, 5.0)),
+    "courtyard": ((-15.0, -15.0), (15.0, 15.0)),
+    "dynamic": ((-6.0, -6.0), (6.0, 6.0)),
+}
+"""[m] (x, z) of each scene's floor: the hall's and the room's interiors, the courtyard's ground"""
+STEP_HEIGHT = 0.05
+"""[m] parts lower than this above the floor (the floor slab) can be walked over"""
+HEADROOM = 0.3
+"""[m] above the eyes: parts higher than EYE_HEIGHT + this (beams, ceilings, the fan) pass overhead"""
+WALK_PERIOD = 24.0
+"""[s] the common period of the dynamic scene's movers: their footprints are swept over it"""
+
+
+def part_footprints(mesh: TriangleMesh, floor: float) -> list[tuple[float, float, float, float] | None]:
+    """(x0, z0, x1, z1) bounds of each closed part (connected component) of ``mesh``, None for a part a walker does
+    not bump into (no higher than STEP_HEIGHT above the floor, or starting above the head)."""
+    n = len(mesh.vertices)
+    edges = np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]]])
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    parts, label = connected_components(graph, directed=False)
+    out = []
+    for c in range(parts):
+        v = mesh.vertices[label == c]
+        lo, hi = v.min(0), v.max(0)
+        bump = hi[1] > floor + STEP_HEIGHT and lo[1] < floor + EYE_HEIGHT + HEADROOM
+        out.append((float(lo[0]), float(lo[2]), float(hi[0]), float(hi[2])) if bump else None)
+    return out
+
+
+@cache
+def fog_scene_walk_area(name: str) -> WalkArea:
+    """Where viewers may stand in fog scene ``name``: its floor (`_WALK_BOUNDS`) minus the footprints of every part
+    in the way (walls, columns, buildings, the fountain, lamp posts, props; the dynamic scene's movers swept over
+    their period)."""
+    _check_name(name)
+    times = np.linspace(0.0, WALK_PERIOD, 97) if name in ANIMATED_FOG_SCENES else [0.0]
+    swept: dict[tuple[int, int], np.ndarray] = {}  # (mesh, part) -> footprint bounds over time
+    for t in times:
+        for m, mesh in enumerate(fog_scene(name, float(t)).opaque):
+            for p, f in enumerate(part_footprints(mesh, 0.0)):
+                if f is not None:
+                    b = swept.setdefault((m, p), np.array(f))
+                    b[:2], b[2:] = np.minimum(b[:2], f[:2]), np.maximum(b[2:], f[2:])
+    lo, hi = _WALK_BOUNDS[name]
+    return WalkArea(lo, hi, floor=0.0, obstacles=tuple(tuple(float(v) for v in b) for b in swept.values()))
