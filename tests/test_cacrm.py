@@ -107,7 +107,7 @@ def vsa_psnr(name: str, **config) -> tuple[float, int]:
 
 def test_vsa_beats_uniform_steps_at_equal_gathers():
     """VSA at N = 64 against uniform steps at N = 52, the count with the same voxel gathers (phantom 64^3, 96x64).
-    Measured: 38.6 vs 38.0 dB (mean of the eyes), gathers 573,651 vs 569,283; the floor asks for 0.25 dB."""
+    Measured: 38.41 vs 37.92 dB (mean of the eyes), gathers 573,651 vs 569,283; the floor asks for 0.25 dB."""
     adaptive, g_vsa = vsa_psnr("phantom")
     uniform, g_uni = vsa_psnr("phantom", samples=52, vsa=False)
     assert abs(g_vsa / g_uni - 1) < 0.02
@@ -121,8 +121,8 @@ def test_vsa_beats_uniform_steps_at_equal_gathers():
 ])
 def test_each_factor_of_eq_4_matters(name, drop, loss):
     """Each factor only shortens steps where it should (Eq. 5-6), so dropping one lengthens steps and costs PSNR at
-    the same N. Measured (worst eye): rho' on the cloud 45.52 -> 45.23 dB, f_T on the phantom 38.41 -> 37.69 dB,
-    f_A on the cloud 45.52 -> 32.27 dB (f_A keeps steps short in front of the medium, where T = 1)."""
+    the same N. Measured (mean of the eyes): rho' on the cloud 45.55 -> 45.36 dB, f_T on the phantom 38.41 ->
+    37.74 dB, f_A on the cloud 45.55 -> 32.38 dB (f_A keeps steps short in front of the medium, where T = 1)."""
     full, _ = vsa_psnr(name)
     dropped, _ = vsa_psnr(name, **drop)
     assert full > dropped + loss
