@@ -279,6 +279,16 @@ def sample_cosine(n: wp.vec3, state: wp.uint32):
     return frame_of(n) * wp.vec3(r * wp.cos(phi), r * wp.sin(phi), wp.sqrt(wp.max(1.0 - r * r, 0.0))), state
 
 
+@wp.func
+def scatter_direction(d: wp.vec3, normal: wp.vec3, g: float, p_b: float, state: wp.uint32):
+    """The bounce after a real collision (§4.2): the BRDF lobe (cosine about the unit normal) with probability p_b
+    (Eq. 7), else Henyey-Greenstein g about the travel direction d: (direction, state). Each lobe is sampled by its
+    own pdf, so the throughput takes just the albedo when the light samples weigh the lobes by the same p_b."""
+    if wp.randf(state) < p_b:
+        return sample_cosine(normal, state)
+    return sample_hg(d, g, state)
+
+
 @wp.kernel
 def vpt_kernel(
     cam: CameraGPU,
@@ -394,12 +404,8 @@ def vpt_kernel(
                 f_m += wp.cw_mul(wp.cw_mul(throughput, weight), direct)
             if bounce + 1 == params.max_bounces:
                 break
-            # New direction: the BRDF lobe with P_b (Eq. 7; here P_brdf, or ER's event), else the phase function;
-            # both lobes are sampled exactly by their pdfs, so the throughput takes the albedo.
-            if wp.randf(state) < surface:
-                d, state = sample_cosine(normal, state)
-            else:
-                d, state = sample_hg(d, g, state)
+            # New direction: P_b of Eq. 7 is P_brdf here (one albedo serves both lobes), or ER's event.
+            d, state = scatter_direction(d, normal, g, surface, state)
             throughput = wp.cw_mul(throughput, weight)
             t_max = INF
         radiance += wp.cw_mul(albedo0, f_l + f_m)
