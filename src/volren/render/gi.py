@@ -80,6 +80,8 @@ class GIConfig:
     defensive target r = T~ l / l_mean + alpha), ``none`` (each voxel its own direction), ``eq12`` (as printed)"""
     alpha: float = 0.5
     """the defensive term of the RIS target"""
+    record: bool = False
+    """keep Eq. 10's inputs (SH_dst, SH_clamped, mu~) of each update for fitting its weights (`scripts/fit_gi.py`)"""
     rays: int = 256
     """brute force and PRT: rays per voxel (the paper: 393,216 and 24,576 on a GPU)"""
     volumes_per_frame: int = 1
@@ -152,6 +154,7 @@ class AmbientGI:
         b.res_value = wp.zeros(total if strict else 1, dtype=float, device=dev)
         b.res_wsum = wp.zeros(total if strict else 1, dtype=float, device=dev)
         b.res_m = wp.zeros(total if strict else 1, dtype=float, device=dev)
+        b.terms = wp.zeros(total * n2 if config.record else 1, dtype=wp.vec3, device=dev)
         b.ambient = wp.zeros(total, dtype=wp.vec3, device=dev)
         self.buffers = b
         self.updates = [0] * len(voxels)
@@ -197,6 +200,7 @@ class AmbientGI:
         a.w_dst, a.w_clamped, a.w_poly, a.poly = c.w_dst, c.w_clamped, c.w_poly, wp.vec3(*c.poly)
         a.strict, a.cap = int(c.method == "restir"), c.reservoir_cap
         a.resampling, a.alpha = {"none": 0, "eq12": 1, "ris": 2}[c.resampling], c.alpha
+        a.record = int(c.record)
         a.seed = self._seed(1)
         return a
 
@@ -248,6 +252,13 @@ class AmbientGI:
     def sh_grid(self, v: int) -> np.ndarray:
         """Volume v's SH coefficients as (z, y, x, order^2), a copy."""
         return self._grid(self.buffers.sh, v, self.config.order**2)
+
+    def terms_grid(self, v: int) -> np.ndarray:
+        """With ``record``: volume v's Eq. 10 inputs of its last update as (z, y, x, order^2, 3), a copy."""
+        n2 = self.config.order**2
+        start = sum(self.light_voxels[:v])
+        nx, ny, nz = self.light_res[v]
+        return self.buffers.terms.numpy()[start * n2: (start + nx * ny * nz) * n2].reshape(nz, ny, nx, n2, 3).copy()
 
     def ambient_grid(self, v: int) -> np.ndarray:
         """Volume v's ambient radiance per unit sigma_s as (z, y, x, 3), a copy."""

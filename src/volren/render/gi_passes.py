@@ -64,6 +64,8 @@ class GIBuffers:
     res_value: wp.array(dtype=float)
     res_wsum: wp.array(dtype=float)
     res_m: wp.array(dtype=float)
+    terms: wp.array(dtype=wp.vec3)
+    """with ``record``: Eq. 10's inputs of the last update per coefficient, (SH_dst, SH_clamped, mu~)"""
     ambient: wp.array(dtype=wp.vec3)
     """output: ambient in-scattered radiance per unit sigma_s (Eq. 7)"""
 
@@ -89,6 +91,8 @@ class Accumulation:
     resampling: int
     """0: the voxel's own direction (no reuse); 1: Eq. 12 as printed (neighbours' coarse T, candidates with T below
     NEGLIGIBLE dropped); 2: RIS with the defensive target r = T~ l(w) + alpha"""
+    record: int
+    """1: write Eq. 10's inputs to ``terms`` (for fitting its weights)"""
     alpha: float
     """the defensive term of the RIS target (relative to the environment's mean luminance)"""
     cap: float
@@ -140,16 +144,24 @@ def sample_kernel(sc: GIScene, buf: GIBuffers, seed: int, counters: wp.array(dty
 
 
 @wp.func
-def accumulate(prev: float, x: float, mu: float, mu_prev: float, var: float, acc: Accumulation) -> float:
-    """Eq. 8-11 for one coefficient: the history prev calibrated by the variance clamp (Eq. 9) and the combination
-    of Eq. 10, blended with this frame's estimate x by lambda(n) of Eq. 11. With uniform sphere sampling p is
-    constant, so Eq. 8's w_SH stays 1 / p and SH_dst(n - 1) = SH(n - 1)."""
-    if acc.n == 0:
-        return x
+def clamp_history(prev: float, mu: float, mu_prev: float, var: float, acc: Accumulation) -> float:
+    """Eq. 9: SH_clamped, the history prev clamped to mu -+ gamma sigma with gamma = k_gamma / |mu(n) - mu(n - 1)|."""
     delta = wp.abs(mu - mu_prev)
     gamma = acc.k_gamma / wp.max(delta, 1.0e-6)
     spread = gamma * wp.sqrt(wp.max(var, 0.0))
     clamped = wp.clamp(prev, mu - spread, mu + spread)
+    return clamped
+
+
+@wp.func
+def accumulate(prev: float, x: float, mu: float, mu_prev: float, var: float, acc: Accumulation) -> float:
+    """Eq. 8-11 for one coefficient: the history prev calibrated by the variance clamp (Eq. 9) and the combination
+    of Eq. 10, blended with this frame's estimate x by lambda(n) of Eq. 11. Eq. 8's w_SH stays 1 / p (x carries
+    its own weight W, Eq. 12), so SH_dst(n - 1) = SH(n - 1)."""
+    if acc.n == 0:
+        return x
+    delta = wp.abs(mu - mu_prev)
+    clamped = clamp_history(prev, mu, mu_prev, var, acc)
     poly = ((mu + acc.poly[0]) * mu + acc.poly[1]) * mu + acc.poly[2]
     star = acc.w_dst * prev + acc.w_clamped * clamped + acc.w_poly * poly
     lam = wp.min((1.0 + acc.k_lambda * delta) / float(wp.min(acc.n + 1, acc.frames)), 1.0)
@@ -247,6 +259,10 @@ def transform_kernel(
     base = idx * acc.order2
     for c in range(16):
         if c < acc.order2:
+            if acc.record != 0:
+                buf.terms[base + c] = wp.vec3(
+                    buf.sh[base + c], clamp_history(buf.sh[base + c], mean[c], buf.mu[base + c], var[c], acc), mean[c]
+                )
             buf.sh[base + c] = accumulate(buf.sh[base + c], estimate[c], mean[c], buf.mu[base + c], var[c], acc)
             buf.mu[base + c] = mean[c]
 
