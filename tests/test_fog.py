@@ -172,3 +172,119 @@ def test_moving_objects_keep_the_grid_and_move_their_shadows():
     # The re-built scene keeps the room's bounds, so the grid is kept and re-traced by parity (about half).
     assert 0 < b.stats.counters["shadow_voxels"] < 0.6 * a.stats.counters["shadow_voxels"]
     assert not np.allclose(a.images[0], b.images[0])
+
+
+def per_view_psnr(scene, views, **config) -> list[float]:
+    ref, _ = render(scene, views, sharing="none", **config)
+    grid, _ = render(scene, views, sharing="grid", **config)
+    return [psnr(a, b) for a, b in zip(ref.images, grid.images, strict=True)]
+
+
+ARC_FOG = {"far": 64.0, "near": 0.1, "voxel_size": 1.0}
+"""the fog's default range (the issue's goal is at 1 m voxels)"""
+
+
+@pytest.mark.parametrize("name", ["hall", "courtyard"])
+def test_every_view_of_the_arc_rig_is_within_25_db_of_the_reference(name):
+    """The CLI's arc rig (16 viewers kept in the walkable space), 1 m voxels: each viewer's image within 25 dB of the
+    per-viewer reference (measured minimum at 96x54: hall 30.7, courtyard 32.4 dB)."""
+    from volren.data.fog_scenes import fog_scene, fog_scene_camera, fog_scene_walk_area
+    from volren.viewers import arc_viewers
+
+    spot = fog_scene_camera(name)
+    base = Camera(position=spot["position"], look_at=spot["look_at"], width=96, height=54)
+    views = arc_viewers(base, 16, fog_scene_walk_area(name))
+    scores = per_view_psnr(fog_scene(name), views, **ARC_FOG)
+    assert min(scores) > 25.0, np.round(scores, 1)
+
+
+def test_viewers_outside_the_shadow_grid_see_the_scene_s_shadow():
+    """Viewers outside the hall (the plain arc of `--views 8` before the rigs kept to the walkable space) look through
+    fog outside the shadow grid, part of it in the hall's own shadow: within 25 dB of the reference per view (counting
+    the outside as lit, as before the fix, the worst view scored 9.1 dB)."""
+    from volren.camera import orbit_views
+    from volren.data.fog_scenes import fog_scene, fog_scene_camera
+
+    spot = fog_scene_camera("hall")
+    views = orbit_views(Camera(position=spot["position"], look_at=spot["look_at"], width=96, height=54), 8)
+    assert sum(v.position[2] < -6.5 for v in views) >= 2  # beyond the grid (the hall's wall at z = -5.5, a voxel)
+    scores = per_view_psnr(fog_scene("hall"), views, **ARC_FOG)
+    assert min(scores) > 25.0, np.round(scores, 1)
+
+
+def test_the_shadow_frustum_resolves_the_near_field_the_grid_misses():
+    """2 m voxels blur the sphere's shadow shaft; the per-viewer shadow frustum (paper 003 §3.1.2, 16 px froxels over
+    its own near range, here up to 6.9 m where its froxels grow as wide as a voxel) restores it. Measured at 96x64:
+    31.1 dB without the frustum, 38.2 dB with it."""
+    ref, _ = render(SHADOWED, sharing="none")
+    off, _ = render(SHADOWED, sharing="grid", voxel_size=2.0, frustum_range=0.0)
+    on, _ = render(SHADOWED, sharing="grid", voxel_size=2.0)
+    with_frustum, without = psnr(ref.images[0], on.images[0]), psnr(ref.images[0], off.images[0])
+    assert with_frustum > 36.0 and with_frustum > without + 4.0, (with_frustum, without)
+    assert on.stats.info["shadow_frustum_bytes_per_viewer"] == (128 // 3) * 4 * 6  # 16 px froxels, a third of slices
+
+
+def test_the_history_follows_a_turning_camera():
+    """Temporal integration reprojects each froxel into the previous frame's camera: a camera turning for 12 frames
+    ends where a camera that stood still at its last pose for 12 frames does (measured 48.3 dB at 96x64; reading the
+    history at the same froxel of the current camera 35.0 dB, the nearest previous froxel instead of trilinear 39.5)."""
+    from dataclasses import replace
+
+    def turned(f: int) -> Camera:
+        return replace(CAM, look_at=(CAM.look_at[0] + 0.3 * f, CAM.look_at[1], CAM.look_at[2]))
+
+    frames = 12
+    config = FogConfig(**{**BASE, "temporal": True, "slices": 32})
+    moving, still = FogRenderer(config, device="cpu"), FogRenderer(config, device="cpu")
+    for f in range(frames):
+        a = moving.render(SHADOWED, [turned(f)], f).images[0]
+        b = still.render(SHADOWED, [turned(frames - 1)], f).images[0]
+    assert psnr(b, a) > 44.0
+
+
+def brute_force_sun_visibility(centres: np.ndarray, sphere_centre) -> np.ndarray:
+    """Whether the sun reaches each point past the sphere of radius 1 at ``sphere_centre`` and the ground plane."""
+    to_sun = -np.array(SUN.direction)
+    oc = centres - np.asarray(sphere_centre)
+    b = oc @ to_sun
+    disc = b**2 - (np.sum(oc**2, 1) - 1.0)
+    hit_sphere = (disc >= 0) & (-b + np.sqrt(np.maximum(disc, 0)) > 1e-4)
+    return ~(hit_sphere | (centres[:, 1] < 0)), np.abs(disc) < 1e-3
+
+
+def frustum_voxels(centres: np.ndarray, margin: float) -> np.ndarray:
+    """Voxel centres inside CAM's frustum up to the fog's far depth, shrunk (margin < 0) or grown by |margin|."""
+    right, up, forward = CAM.basis()
+    q = centres - np.array(CAM.position)
+    z = q @ forward
+    out = (z > -margin) & (z < BASE["far"] + margin)
+    slack = margin * np.sqrt(1 + CAM.tan_half_fov**2 * (1 + (CAM.width / CAM.height) ** 2))
+    out &= np.abs(q @ right) < np.maximum(z, 0) * CAM.tan_half_fov * CAM.width / CAM.height + slack
+    return out & (np.abs(q @ up) < np.maximum(z, 0) * CAM.tan_half_fov + slack)
+
+
+def test_the_grid_re_traces_one_z_parity_per_frame_and_only_inside_the_frusta():
+    """Frame 0 traces every voxel in the frustum and nothing outside it (bits stay 0 there, though the sun reaches
+    thousands of them); the sphere then moves and frame 1 re-traces only the odd z slices (frame parity): they see the
+    new sphere, the even ones still the old."""
+    moved = Scene(volumes=(), lights=(SUN,), environment=SHADOWED.environment,
+                  opaque=(SHADOWED.opaque[0], Sphere(center=(1.5, 2.0, 0.0), radius=1.0)), fog=SHADOWED.fog)
+    r = FogRenderer(FogConfig(**{**BASE, "sharing": "grid", "voxel_size": 0.5}), device="cpu")
+    first = r.render(SHADOWED, [CAM], 0)
+    g = r._grid
+    k, j, i = np.nonzero(np.ones(g.bits.shape, dtype=bool))
+    centres = np.array(g.lo) + (np.stack([i, j, k], 1) + 0.5) * g.voxel_size
+    outside = ~frustum_voxels(centres, 2 * g.voxel_size)
+    lit_before, edge_before = brute_force_sun_visibility(centres, (0.0, 2.0, 0.0))
+    assert outside.sum() > 1000 and lit_before[outside].sum() > 1000
+    assert not g.bits.numpy().reshape(-1)[outside].any()
+    assert first.stats.counters["shadow_voxels"] < (~outside).sum()
+    second = r.render(moved, [CAM], 1)
+    bits = g.bits.numpy().reshape(-1) & 1
+    lit_after, edge_after = brute_force_sun_visibility(centres, (1.5, 2.0, 0.0))
+    check = frustum_voxels(centres, -g.voxel_size) & ~edge_before & ~edge_after & (lit_before != lit_after)
+    odd = k % 2 == 1
+    assert (check & odd).sum() > 50 and (check & ~odd).sum() > 50
+    np.testing.assert_array_equal(bits[check & odd], lit_after[check & odd])
+    np.testing.assert_array_equal(bits[check & ~odd], lit_before[check & ~odd])
+    assert second.stats.counters["shadow_voxels"] == pytest.approx(first.stats.counters["shadow_voxels"] / 2, rel=0.05)

@@ -291,6 +291,23 @@ def frustum_lookup(cam: CameraGPU, fg: FroxelGrid, bits: wp.array4d(dtype=wp.uin
     return int(bits[view, fk, fy, fx])
 
 
+@wp.func
+def froxel_trilinear(volume: wp.array4d(dtype=wp.vec4), view: int, size: wp.vec3i, f: wp.vec3) -> wp.vec4:
+    """Trilinear lookup of ``volume[view]`` at continuous index f = (ix, iy, k) (samples at integers), clamped to the
+    ``size`` = (nx, ny, nk) samples the view uses."""
+    x0 = int(wp.floor(f[0]))
+    y0 = int(wp.floor(f[1]))
+    k0 = int(wp.floor(f[2]))
+    a = f - wp.vec3(float(x0), float(y0), float(k0))
+    acc = wp.vec4(0.0)
+    for n in range(8):
+        i = wp.clamp(x0 + n % 2, 0, size[0] - 1)
+        j = wp.clamp(y0 + (n / 2) % 2, 0, size[1] - 1)
+        k = wp.clamp(k0 + n / 4, 0, size[2] - 1)
+        acc += corner_weight(n, a) * volume[view, k, j, i]
+    return acc
+
+
 @wp.kernel
 def froxel_lighting_kernel(
     cams: wp.array(dtype=CameraGPU),
@@ -340,13 +357,14 @@ def froxel_lighting_kernel(
             radiance += vis * light_phase(fog, light_travel_dir(light, x), d) * light_irradiance(light, x)
     value = inscatter_source(fog, fog_density(fog, x), radiance)
     if weight < 1.0:
-        # Reproject into the previous frame's grid (nearest froxel); no history there: start afresh.
+        # Reproject into the previous frame's grid, trilinear between its froxel centres (nearest would round a
+        # motion of under half a froxel per frame away, so the history would never follow it); no history there:
+        # start afresh.
         c = froxel_coords(prev_cams[view], g, x)
-        hx = int(wp.floor(c[0]))
-        hy = int(wp.floor(c[1]))
-        hk = int(wp.floor(c[2]))
-        if hx >= 0 and hy >= 0 and hk >= 0 and hx < g.nx and hy < g.ny and hk < g.slices:
-            value = weight * value + (1.0 - weight) * history[view, hk, hy, hx]
+        if c[0] >= 0.0 and c[1] >= 0.0 and c[2] >= 0.0 and c[0] < float(g.nx) and c[1] < float(g.ny) and (
+                c[2] < float(g.slices)):
+            old = froxel_trilinear(history, view, wp.vec3i(g.nx, g.ny, g.slices), c - wp.vec3(0.5))
+            value = weight * value + (1.0 - weight) * old
     out[view, k, iy, ix] = value
     count(counters, SHADOW_RAYS, rays)
 
@@ -389,24 +407,6 @@ def froxel_accumulate_kernel(
         integrated[view, k + 1, iy, ix] = wp.vec4(s_acc[0], s_acc[1], s_acc[2], t_acc)
 
 
-@wp.func
-def integrated_at(integrated: wp.array4d(dtype=wp.vec4), view: int, g: FroxelGrid, fx: float, fy: float,
-                  w: float) -> wp.vec4:
-    """Trilinear lookup of the integrated volume at froxel-column coordinates (fx, fy) (centres at integers) and
-    slice-boundary coordinate w in [0, slices]."""
-    x0 = int(wp.floor(fx))
-    y0 = int(wp.floor(fy))
-    k0 = wp.min(int(wp.floor(w)), g.slices - 1)
-    a = wp.vec3(fx - float(x0), fy - float(y0), w - float(k0))
-    acc = wp.vec4(0.0)
-    for n in range(8):
-        i = wp.clamp(x0 + n % 2, 0, g.nx - 1)
-        j = wp.clamp(y0 + (n / 2) % 2, 0, g.ny - 1)
-        k = k0 + n / 4
-        acc += corner_weight(n, a) * integrated[view, k, j, i]
-    return acc
-
-
 @wp.kernel
 def froxel_apply_kernel(
     cam: CameraGPU,
@@ -424,7 +424,7 @@ def froxel_apply_kernel(
     w = depth_slice(g, wp.min(z, g.far))
     fx = (float(col) + 0.5) / float(g.tile) - 0.5
     fy = (float(row) + 0.5) / float(g.tile) - 0.5
-    v = integrated_at(integrated, view, g, fx, fy, w)
+    v = froxel_trilinear(integrated, view, wp.vec3i(g.nx, g.ny, g.slices + 1), wp.vec3(fx, fy, w))
     surface = buffers.occluder_color[row, col]
     rgb = wp.vec3(v[0], v[1], v[2]) + v[3] * wp.vec3(surface[0], surface[1], surface[2])
     alpha = 1.0 - v[3] * (1.0 - surface[3])
