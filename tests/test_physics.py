@@ -108,3 +108,37 @@ def test_point_light_inverse_square(method):
     frame = render(method, scene, [axis_camera()], samples=256, light_samples=64, min_transmittance=0)
     expected = sigma * albedo * intensity / (4 * np.pi) * (2 / dist) * np.arctan(1 / dist)
     assert frame.images[0][16, 16, 1] == pytest.approx(expected, rel=3e-3)
+
+
+def test_spot_light_cone(method):
+    """A spot pointing down from (0, D, 0) over the thin cube of the test above: the central ray's point (0, 0, z)
+    sees the axis at cos theta = D / sqrt(D^2 + z^2), so L = sigma_s I / (4 pi) int s(cos theta) T / (D^2 + z^2) dz
+    over [-1, 1] with s = smoothstep(cos_outer, cos_inner, .) and T the view and light attenuation (1-D quadrature
+    here). Measured within 4e-6 of it (0.32% under before thin steps were composited by their series, see
+    `composite_step`). Pointing the spot up leaves the cube dark."""
+    from volren.scene import SpotLight
+
+    sigma, intensity, dist, inner, outer = 1e-3, 50.0, 3.0, 5.0, 10.0
+    z = (np.arange(200_000) + 0.5) / 200_000 * 2 - 1
+    c = dist / np.sqrt(dist**2 + z**2)
+    s = np.clip((c - np.cos(np.radians(outer))) / (np.cos(np.radians(inner)) - np.cos(np.radians(outer))), 0, 1)
+    attenuation = np.exp(-sigma * ((1 - z) + 1 / c))
+    expected = sigma * intensity / (4 * np.pi) * np.mean(s * s * (3 - 2 * s) * attenuation / (dist**2 + z**2)) * 2
+    for direction, value in (((0.0, -1.0, 0.0), expected), ((0.0, 1.0, 0.0), 0.0)):
+        spot = SpotLight((0.0, dist, 0.0), direction, (intensity,) * 3, inner, outer)
+        frame = render(method, scene_of(homogeneous_volume(sigma, albedo=1.0, n=16), lights=[spot]), [axis_camera()],
+                       samples=512, light_samples=64, min_transmittance=0)
+        assert frame.images[0][16, 16, 1] == pytest.approx(value, rel=1e-3, abs=1e-12)
+
+
+def test_early_termination_stops_the_march(method):
+    """A dense cube (sigma 50) seen along its axis by one pixel: T falls under min_transmittance 1e-3 after
+    ln(1000) / 50 = 0.138 m of the 2 m chord, so the march stops after about 7% of its N samples."""
+    sigma, samples = 50.0, 512
+    cam = axis_camera(size=(1, 1))
+    frame = render(method, scene_of(homogeneous_volume(sigma)), [cam], samples=samples, light_samples=8,
+                   min_transmittance=1e-3)
+    steps = 2.0 / (2 * np.sqrt(3) / samples)
+    expected = np.log(1e3) / sigma / 2.0 * steps
+    assert frame.images[0][0, 0, 3] == pytest.approx(1.0, abs=1.1e-3)
+    assert expected <= frame.stats.counters["density_samples"] <= expected + 3

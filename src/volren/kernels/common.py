@@ -427,8 +427,10 @@ def composite_step(acc: wp.vec4, source: wp.vec3, sigma_t: float, dt: float) -> 
     march's speed when the state was a `MarchState` updated per sample."""
     tau = sigma_t * dt
     step_t = wp.exp(-tau)
-    weight = dt
-    if tau > 1.0e-6:
+    # (1 - e^-tau) / sigma_t = dt (1 - tau / 2 + tau^2 / 6 - ...): the series for thin steps, where float32's
+    # 1 - e^-tau cancels (a thin cube came out 0.32% dark at tau = 7e-6); its relative error is < tau^3 / 24.
+    weight = dt * (1.0 - tau * (0.5 - tau / 6.0))
+    if tau > 1.0e-2:
         weight = (1.0 - step_t) / sigma_t
     w = acc[3] * weight
     return wp.vec4(acc[0] + w * source[0], acc[1] + w * source[1], acc[2] + w * source[2], acc[3] * step_t)
