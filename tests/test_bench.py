@@ -53,7 +53,11 @@ def test_viewers_suite_rows_and_goals():
            "ablation": [2.0, 1.0], "overlaps": [0.5], "repeats": 1}
     result = run_config(cfg, "cpu")
     tables = {r["table"] for r in result["rows"]}
-    assert tables == {"viewers", "voxel size", "overlap 50%"}
+    assert tables == {"viewers", "voxel size", "shadow frustum", "overlap 50%", "arc"}
+    frustum = {r["method"]: r for r in result["rows"] if r["table"] == "shadow frustum"}
+    assert frustum["grid 1 m, no frustum"]["shadow_frustum_ms"] == 0 < frustum["grid 1 m"]["shadow_frustum_ms"]
+    (arc,) = [r for r in result["rows"] if r["table"] == "arc"]
+    assert arc["viewers"] == 2 and arc["min_psnr"] > 20
     grid = [r for r in result["rows"] if r["table"] == "viewers" and r["method"] == "grid 1 m"]
     assert all(0 <= r["flip"] < 0.5 and r["shared_bytes"] > 0 and r["shadow_voxels"] > 0 for r in grid)
     (goals,), _ = result["summary"]

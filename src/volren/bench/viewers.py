@@ -4,7 +4,9 @@ For ``hall`` and ``courtyard``, viewer counts from 1 to 16 (wandering viewers, `
 reference (``sharing=none``: a shadow ray per froxel and light) against the shared shadow grid at two voxel sizes:
 ms per frame per stage (shadow grid, shadow frustum, lighting, accumulation, application), shadow rays per frame,
 memory per viewer and shared, and FLIP of each viewer's image against the reference's (mean over viewers). A voxel
-size ablation (paper Fig. 6) at 4 viewers, and fixed-overlap rigs (4 viewers, 10% ... 100% frustum overlap).
+size ablation (paper Fig. 6) at 4 viewers, the shadow frustum's gain (paper 003 §3.1.2: FLIP with and without it,
+4 viewers, both voxel sizes), fixed-overlap rigs (4 viewers, 10% ... 100% frustum overlap), and the CLI's arc rig
+(16 viewers in the walkable space, 1 m voxels): the worst viewer's PSNR against the reference (issue 12: > 25 dB).
 
 Goals (issue 7), at the largest viewer count: the shared pipeline at least 40% faster than the reference with mean
 FLIP below 0.05, time at 16 viewers over time at 1 below 8, and at most half the reference's shadow rays. Times are
@@ -23,9 +25,9 @@ import numpy as np
 from volren.bench import Suite, measure
 from volren.camera import Camera
 from volren.data.fog_scenes import fog_scene, fog_scene_camera, fog_scene_walk_area
-from volren.metrics import flip
+from volren.metrics import flip, psnr
 from volren.render import FogConfig, FogRenderer
-from volren.viewers import overlap_viewers, wandering_viewers
+from volren.viewers import arc_viewers, overlap_viewers, wandering_viewers
 
 FULL = {"scenes": ["hall", "courtyard"], "size": (1920, 1080), "slices": 128, "counts": [1, 2, 3, 4, 6, 8, 12, 16],
         "voxels": [1.0, 0.5], "ablation": [4.0, 2.0, 1.0, 0.5, 0.25], "overlaps": [0.1, 0.5, 1.0], "repeats": 3}
@@ -35,8 +37,8 @@ STAGES = ("shadow_grid", "shadow_frustum", "lighting", "accumulation", "applicat
 
 
 def run_method(scene, views: list[Camera], cfg: dict[str, Any], device: str, sharing: str, voxel: float,
-               reference: list[np.ndarray] | None) -> dict[str, Any]:
-    config = FogConfig(sharing=sharing, voxel_size=voxel, slices=cfg["slices"])
+               reference: list[np.ndarray] | None, frustum_range: float = FogConfig.frustum_range) -> dict[str, Any]:
+    config = FogConfig(sharing=sharing, voxel_size=voxel, slices=cfg["slices"], frustum_range=frustum_range)
     renderer = FogRenderer(config, device)
     row = measure(renderer, scene, views, cfg["repeats"])
     frame = row.pop("frame")
@@ -50,6 +52,7 @@ def run_method(scene, views: list[Camera], cfg: dict[str, Any], device: str, sha
            "shared_bytes": info.get("shadow_grid_bytes", 0)}
     if reference is not None:
         out["flip"] = float(np.mean([flip(r, i) for r, i in zip(reference, frame.images, strict=True)]))
+        out["min_psnr"] = float(min(psnr(r, i) for r, i in zip(reference, frame.images, strict=True)))
     return out | {"images": frame.images}
 
 
@@ -81,6 +84,12 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             r = run_method(scene, views, cfg, device, "grid", v, ref["images"])
             rows.append({"table": "voxel size", "scene": name, "viewers": 4, "method": f"grid {v:g} m",
                          "flip": r["flip"], "fog_ms": r["fog_ms"], "shadow_rays": r["shadow_rays"]})
+        for v in cfg["voxels"]:
+            for label, reach in (("", FogConfig.frustum_range), (", no frustum", 0.0)):
+                r = run_method(scene, views, cfg, device, "grid", v, ref["images"], reach)
+                rows.append({"table": "shadow frustum", "scene": name, "viewers": 4, "method": f"grid {v:g} m{label}",
+                             "flip": r["flip"], "min_psnr": r["min_psnr"], "fog_ms": r["fog_ms"],
+                             "shadow_frustum_ms": r["shadow_frustum_ms"], "shadow_rays": r["shadow_rays"]})
         for overlap in cfg["overlaps"]:
             views = overlap_viewers(base, 4, overlap)
             ref = run_method(scene, views, cfg, device, "none", 1.0, None)
@@ -88,6 +97,11 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             for method, r in (("reference", ref), (f"grid {cfg['voxels'][-1]:g} m", grid)):
                 rows.append({"table": f"overlap {overlap:.0%}", "scene": name, "viewers": 4, "method": method,
                              "fog_ms": r["fog_ms"], "shadow_rays": r["shadow_rays"], "flip": r.get("flip")})
+        views = arc_viewers(base, cfg["counts"][-1], area)
+        ref = run_method(scene, views, cfg, device, "none", 1.0, None)
+        grid = run_method(scene, views, cfg, device, "grid", 1.0, ref["images"])
+        rows.append({"table": "arc", "scene": name, "viewers": len(views), "method": "grid 1 m", "flip": grid["flip"],
+                     "min_psnr": grid["min_psnr"], "fog_ms": grid["fog_ms"], "shadow_rays": grid["shadow_rays"]})
         top, one = cfg["counts"][-1], cfg["counts"][0]
         for v in cfg["voxels"]:
             method = f"grid {v:g} m"
@@ -105,7 +119,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         *[(f"{s}_ms", s.replace("_", " ") + " [ms]", ".1f") for s in STAGES],
         ("surfaces_ms", "surfaces [ms]", ".1f"), ("frame_ms", "frame [ms]", ".1f"),
         ("shadow_rays", "shadow rays", ","), ("viewer_bytes", "bytes per viewer", ","),
-        ("shared_bytes", "shared bytes", ","), ("flip", "FLIP", ".4f"),
+        ("shared_bytes", "shared bytes", ","), ("flip", "FLIP", ".4f"), ("min_psnr", "worst view PSNR [dB]", ".1f"),
     ]
     summary_columns = [
         ("scene", "scene", "s"), ("method", "method", "s"), ("viewers", "viewers", "d"),
