@@ -361,15 +361,15 @@ def transfer_file(tmp_path, tf: TransferFunction) -> str:
 def test_furnace_with_surface_particles(tmp_path, shading):
     """The furnace with the BRDF lobe: albedo 1, 90% surface particles on a heterogeneous blob (gradient normals
     almost everywhere), a constant environment: h of Eq. 5 integrates to 1 over the light direction, so colour /
-    alpha = 1 for both shading models (measured 0.98-1.00 over seeds). A BRDF without its 1 / pi (or with 1 / 2 pi)
-    breaks this by tens of percent."""
+    alpha = 1 for both shading models (measured 0.986-1.007 over six seeds at 128 spp, 1.000 at 1024). A BRDF with
+    1 / (2 pi) instead of 1 / pi gives 0.55."""
     tf = transfer_file(tmp_path, linear(8.0, (1.0, 1.0, 1.0), p_brdf=0.9, name="surface-furnace"))
     scene = Scene((Volume(blob(), albedo=(1.0, 1.0, 1.0)),), lights=(), environment=Environment((1.0, 1.0, 1.0)))
-    config = VPTConfig(spp=64, max_bounces=64, ambient=False, transfer=tf, shading=shading)
+    config = VPTConfig(spp=128, max_bounces=64, ambient=False, transfer=tf, shading=shading)
     image = VPT(config, device=DEVICE).render(scene, [CAM]).images[0]
     seen = image[..., 3] > 0.2
     assert seen.sum() > 100
-    assert image[..., 0][seen].sum() / image[..., 3][seen].sum() == pytest.approx(1.0, abs=0.02)
+    assert image[..., 0][seen].sum() / image[..., 3][seen].sum() == pytest.approx(1.0, abs=0.03)
 
 
 def test_each_bounce_carries_one_more_albedo_factor():
@@ -421,14 +421,16 @@ def single_scattering_in_a_furnace(cam: Camera, sigma: float, g: float) -> tuple
 def test_furnace_energy_by_bounce_count():
     """The furnace (albedo 1, constant environment 1, no ambient) by bounce count: one scattering returns the
     closed form of `single_scattering_in_a_furnace` (measured 0.35 of the environment), two return more (0.59), 64
-    return all of it. Sums over pixels away from the cube's silhouette, 32 spp (0.5% noise)."""
+    return all of it. Sums over pixels away from the cube's silhouette; the noise (standard deviation over seeds) is
+    0.3% at 256 spp for one bounce and 0.4% at 128 spp for 64."""
     scene = uniform_scene(environment=Environment((1.0, 1.0, 1.0)))
     colour, alpha = single_scattering_in_a_furnace(CAM, 1.5, 0.3)
     inner = ndimage.minimum_filter(alpha, 3) > 0.5
     expected = colour[inner].sum() / alpha[inner].sum()
     ratios = []
-    for bounces in (1, 2, 64):
-        image = VPT(VPTConfig(spp=32, max_bounces=bounces, ambient=False), device=DEVICE).render(scene, [CAM]).images[0]
+    for bounces, spp in ((1, 256), (2, 32), (64, 128)):
+        config = VPTConfig(spp=spp, max_bounces=bounces, ambient=False)
+        image = VPT(config, device=DEVICE).render(scene, [CAM]).images[0]
         ratios.append(image[..., 0][inner].sum() / image[..., 3][inner].sum())
     assert ratios[0] == pytest.approx(expected, rel=0.02)
     assert ratios[0] + 0.15 < ratios[1] < ratios[2] - 0.3
@@ -484,16 +486,18 @@ def test_clipped_cube_renders_as_the_cut_cube():
 def test_single_scattering_matches_the_closed_form(position):
     """One bounce in a homogeneous cube lit from above plus an unshadowed ambient: the closed form of
     `test_physics` (HG g = 0.6, so the second camera, looking down at 130 degrees to the light, checks the phase
-    angle's sign). Mean over the pixels within 4 standard errors (8 frames), and per-row band means within 5%."""
+    angle's sign). Pixels away from the silhouette (their footprint stays inside the cube): the mean within 4
+    standard errors (8 frames) plus 0.5% (the closed form is taken at the pixel centre; measured offsets up to
+    0.3%), per-row band means within 3% (measured up to 1.1%)."""
     sigma, albedo, g, ambient = 1.5, 0.8, 0.6, 0.1
     cam = axis_camera(position, size=(41, 31))
     scene = scene_of(homogeneous_volume(sigma, albedo=albedo, g=g, n=16), lights=[DOWN], ambient=ambient)
     r = VPT(VPTConfig(spp=32, max_bounces=1, environment_light=False), device=DEVICE)
     frames = np.stack([r.render(scene, [cam], f).images[0][..., 0] for f in range(8)])
     expected, chord = single_scattering_closed_form(cam, sigma, albedo, g, 2.0, ambient)
-    mask = chord > 0.2
+    mask = ndimage.minimum_filter(chord, 3) > 0.2
     got = frames[:, mask].mean(axis=1)
-    assert abs(got.mean() - expected[mask].mean()) < 4 * got.std(ddof=1) / np.sqrt(8)
+    assert abs(got.mean() - expected[mask].mean()) < 4 * got.std(ddof=1) / np.sqrt(8) + 0.005 * expected[mask].mean()
     rows = [m for m in np.array_split(np.arange(cam.height), 6) if mask[m].sum() > 20]
     for m in rows:
-        assert frames.mean(0)[m][mask[m]].mean() == pytest.approx(expected[m][mask[m]].mean(), rel=0.05)
+        assert frames.mean(0)[m][mask[m]].mean() == pytest.approx(expected[m][mask[m]].mean(), rel=0.03)
