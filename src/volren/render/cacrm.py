@@ -25,13 +25,8 @@ difference of the last two samples per base step (the paper uses Bergner et al.'
 ``scripts/fit_vsa.py`` (``vsa_fit.json``), fitted for quality at equal voxel gathers.
 
 Empty-tile culling and tile LOD (32x32 tiles, the coarse phase) come from CMSRM; with a coupled pair a tile's level
-bounds the footprint in both eyes. Not here: interleaved spatial reuse. A trial of it (one work item per 2x2 quad
-and eye pair, lane state in ``wp.types.matrix``) taught: the quad's rays must share one lattice anchor (the farthest
-texel), or the same step index samples different distances from the eye and a neighbour's cell misses this ray;
-interleaving only switches on where neighbouring rays are < 1/2 voxel apart, i.e. (t / t_max) n / S < 1/2, so never
-for an eye outside the box at S = n; it gained 0.9 dB at N = 100 with the eye 1.4 m from the cloud but lost 1.3-1.5
-dB with the eye inside the smoke (a slight darkening, unexplained); and dynamically indexed matrix state made the
-CPU march 2-3x slower. It was not kept.
+bounds the footprint in both eyes. Interleaved spatial reuse (§3.1.3) routes the tiles where 2x2 quads can share
+samples to `volren.render.interleave`'s quad kernel.
 """
 
 from __future__ import annotations

@@ -11,16 +11,23 @@ the quad's rays) a quad's rays are too far apart and every lane samples its own 
 The paper shares the samples by wave shuffles between the quad's threads; here one work item marches the quad for
 both eyes of a coupled pair (8 lanes whose state lives in small local matrices), the CPU-friendly equivalent. The
 quad's lanes of one eye step on one shared lattice anchored at their farthest texel, so that the four lanes' samples
-are at the same distances; each lane's steps are clipped to its own segment. Both eyes' lanes are synchronised as in
-the texel kernel, and a lane reuses the other eye's fetch when their samples fall in the same cell.
+are at the same distances; each lane's steps are clipped to its own segment. The quad's next step is the smallest
+of its lanes' Eq. 4 proposals (the quad must share one step; the smallest keeps every lane's sampling rate), and the
+pair of eyes takes the larger of their two, as the texel kernel's coupling does (§3.1.3: "we take the max value").
+Taking the largest of all eight lanes instead cost 1.0-1.7 dB at the close-up of ``bench binocular`` with the
+fitted VSA, where each lane proposes its own real-valued step (N = 360, no quad interleaving: smoke 84.8, phantom
+61.2 dB against 85.8 and 62.9 for the texel kernel; with the smallest: 86.3 and 63.4 dB at 1-3% more gathers).
+A lane reuses the other eye's fetch when their samples fall in the same cell.
 
-Interleaving needs long steps: it is on for a step only when VSA amplified it to at least two base steps and one voxel
-(m dt >= max(2 dt, voxel)). Shorter steps sample finely already, and the re-interpolation (up to half a voxel of
-linear extension beyond the neighbour's cell) would only add its error: measured at the close-up of ``bench
-binocular`` against 2048 uniform steps, InS at N = 360 without this floor fell from 75.2 to 60.2 dB (smoke) and
-64.4 to 58.7 dB (cloud); at N = 100 it gains 2.9 dB (smoke) and 11.2 dB (cloud) and loses 0.35 dB on the phantom,
-whose piecewise-constant ellipsoids do not extend linearly (clamping the weights to the cell instead: smoke +1.5 dB,
-the others unchanged). Since the quad work item costs about twice a texel work item on the CPU, `interleave_tiles`
+Interleaving needs steps of at least a voxel (m dt >= voxel): quarter steps of a shorter step sample finer than the
+grid, and the re-interpolation (up to half a voxel of linear extension beyond the neighbour's cell) would only add its
+error: measured at the close-up against 2048 uniform steps, InS at N = 360 without this floor fell from 75.2 to 60.2
+dB (smoke) and 64.4 to 58.7 dB (cloud). An earlier floor of two base steps made InS wait for VSA to double the step;
+the fitted VSA keeps steps near one base step close to the eye in thin media (f_A = 1 - T is about 0 there), so InS
+never switched on at the close-up. With the voxel floor at N = 100 (1.1 voxels per base step, 64^3, 160x90 stereo,
+against 2048 uniform steps): cloud 52.7 -> 58.0 dB, phantom 35.2 -> 35.2 dB, smoke 61.1 -> 59.9 dB (the smoke is
+smooth at this step, and the re-interpolation error is all InS adds; clamping the weights to the cell instead: smoke
+57.9, cloud 58.5 dB). Since the quad work item costs about twice a texel work item on the CPU, `interleave_tiles`
 routes only the tiles where some quad can interleave to this kernel (a conservative test from the tile's corners)
 and the rest to the texel kernel.
 """
@@ -127,7 +134,7 @@ def quad_march_kernel(
     start = wp.vec2(INF)
     t_s = wp.vec2(0.0)
     voxel = vol.diagonal / wp.length(wp.vec3(float(vol.res[0]), float(vol.res[1]), float(vol.res[2])))
-    step_floor = wp.max(2.0 * dt, voxel)
+    step_floor = voxel
     for e in range(2):
         spread = float(0.0)
         valid = int(0)
@@ -220,7 +227,7 @@ def quad_march_kernel(
                 fetched[lane] = 1.0
                 samples += 1
         # Composite: four quarter steps from the quad's samples, or the lane's own step.
-        next_m = float(1.0)
+        quad_m = wp.vec2(INF)
         for lane in range(LANES):
             if live[lane] > 0.0:
                 e = lane / 4
@@ -263,11 +270,14 @@ def quad_march_kernel(
                     drho = float(0.0)
                     if prev[lane] >= 0.0:
                         drho = (own[lane] - prev[lane]) * dt / wp.max(t - prev_t[lane], 1.0e-9)
-                    next_m = wp.max(next_m, vsa_amplification(vp, t, seg[lane, 1], own[lane], drho, a[3], absorb))
+                    quad_m[e] = wp.min(quad_m[e], vsa_amplification(vp, t, seg[lane, 1], own[lane], drho, a[3], absorb))
                     prev[lane] = own[lane]
                     prev_t[lane] = t
         pos = pos - m
-        m = next_m
+        m = float(1.0)
+        for e in range(2):
+            if quad_m[e] < INF:
+                m = wp.max(m, quad_m[e])
     for lane in range(LANES):
         q = quad_lane_texel(tiles, tile, apron, size, k, qr, c, lane % 4)
         if q[0] >= 0 and lane / 4 < eyes:
