@@ -67,7 +67,16 @@ def vsa_amplification(vp: VSAParams, t: float, t_max: float, rho: float, drho: f
     step. f_T and f_A lie in [0, 1], so they only take back what f_lambda grants (at most f_lambda_max): long steps
     need smooth density (f_lambda), thin medium ahead (f_T) and opacity already accumulated (f_A; none in front of
     the medium, where a step over a dense feature would cost the most). The result is a real number: steps are not
-    rounded to whole base steps (rounding made every product below 2 a uniform step)."""
+    rounded to whole base steps (rounding made every product below 2 a uniform step).
+
+    t and t_max are distances from the eye (t_max: to the texel). Algorithm 2 starts its t at 0, which can be read as
+    t from the volume entry; measured at equal gathers (64^3, six orbit frames of ``bench binocular`` at 96x64, N = 16
+    to 96, against uniform steps): k_a (t - t_min) / t_max with the paper's k_a = 3 and f_lambda_max = 2 gained
+    0.0-0.2 dB, k_a (t - t_min) / (t_max - t_min) lost up to 2.6 dB, the eye-based ramp with the fitted constants
+    gained up to 0.7 dB (cloud, phantom) and 0.2 dB (smoke). f_A is kept as printed: letting empty samples in front
+    of the medium amplify (f_A = 1 where rho = rho' = 0 and T = 1; 94-97% of the smoke's and cloud's voxels are
+    empty) cut gathers by 40-60% but lost 1.6-13 dB at equal gathers: the long step that enters the medium misses or
+    over-weights its front."""
     f_lambda = wave_length_factor(vp, drho)
     f_t = transparency_factor(rho, drho, absorb)
     f_a = attenuation_factor(trans)
