@@ -8,11 +8,10 @@ k_a = 3 and f_lambda_max = 2 are in the grid but not imposed.
 
 N is low (64) on purpose: at 360 steps every method sits on the same error floor (light grid, cube-map breadth
 interpolation; measured: uniform 100 vs 180 steps differ by < 0.05 dB), and no step rule can show there.
-Two frames are noisy: uniform PSNR against N jumps by up to 1.6 dB between neighbouring counts (the texel-anchored
-lattice moves with N), so single gains below ~0.5 dB are noise. Checked on six frames (0, 2, ..., 10) at N = 24
-and 40 over 42 points (k_a 0, 1.5, 3; k_b 0.01, 0.05; f_lambda_max 2, 4; w_T 1, 4; w_A 0.1, 0.25, 1): the
-same weights scored best (worst scene -0.02, mean +0.36 dB); k_a = 2 and
-k_b = 0.05 or 0.2 did not do better.
+Two frames are noisy: uniform PSNR is not monotone in N (it drops by up to 1.6 dB from one count to the next, as
+the texel-anchored lattice moves with N), so single gains below ~0.5 dB are noise. Checked on six frames (0, 2, ...,
+10) at N = 24 and 40 over 42 points (k_a 0, 1.5, 3; k_b 0.01, 0.05; f_lambda_max 2, 4; w_T 1, 4; w_A 0.1, 0.25, 1):
+the same weights scored best (worst scene -0.02, mean +0.36 dB); k_a = 2 and k_b = 0.2 did not do better.
 
     python scripts/fit_vsa.py                                   # writes out/vsa_fit.json (a few minutes, 2 cores)
     python scripts/fit_vsa.py --out src/volren/render/vsa_fit.json   # adopt the fit as CACRMConfig's defaults
