@@ -30,11 +30,13 @@ class VSAParams:
 
 @wp.func
 def weighted(f: float, w: float) -> float:
-    """f^w, without a pow for the common weights 0 and 1 (three per sample and eye otherwise)."""
-    if w == 0.0:
-        return 1.0
-    if w == 1.0:
-        return f
+    """f^w, by products for whole weights up to 8: pow for the fitted w_T = 4 made the CPU frame 22% slower (smoke
+    64^3, 480x270 stereo, N = 360, eyes alone, no InS: 317 against 259 ms)."""
+    if w == wp.floor(w) and w <= 8.0:
+        out = float(1.0)
+        for _ in range(int(w)):
+            out = out * f
+        return out
     return wp.pow(f, w)
 
 
