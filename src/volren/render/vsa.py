@@ -77,7 +77,7 @@ def vsa_amplification(vp: VSAParams, t: float, t_max: float, rho: float, drho: f
     0.0-0.2 dB, k_a (t - t_min) / (t_max - t_min) lost up to 2.6 dB, the eye-based ramp with the fitted constants
     gained up to 0.7 dB (cloud, phantom) and 0.2 dB (smoke). f_A is kept as printed: letting empty samples in front
     of the medium amplify (f_A = 1 where rho = rho' = 0 and T = 1; 94-97% of the smoke's and cloud's voxels are
-    empty) cut gathers by 40-60% but lost 1.6-13 dB at equal gathers: the long step that enters the medium misses or
+    empty) cut gathers by 40-60% but lost 0.4-13 dB at equal gathers: the long step that enters the medium misses or
     over-weights its front."""
     f_lambda = wave_length_factor(vp, drho)
     f_t = transparency_factor(rho, drho, absorb)
