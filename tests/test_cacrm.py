@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import DEVICE
+from volren.bench.binocular import path_camera
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.errors import VolrenError
@@ -95,22 +96,26 @@ VSA_VIEWS = STEREO
 VSA_BASE = {"samples": 64, "light_samples": 64, "light_grid": 32, "hybrid": False, "adaptive_lod": False}
 
 
-def vsa_psnr(name: str, **config) -> tuple[float, int]:
-    """Mean PSNR of both eyes against the reference (512:64) and the voxel gathers of CACRM on a 64^3 built-in."""
+def vsa_psnr(name: str, views: list[Camera] = VSA_VIEWS, **config) -> tuple[float, int]:
+    """Mean PSNR of the views against the reference (512:64) and the voxel gathers of CACRM on a 64^3 built-in."""
     scene = builtin_scene(name, 64)
-    ref = Reference(ReferenceConfig(samples=512, light_samples=64), device="cpu").render(scene, VSA_VIEWS)
-    frame = CACRM(CACRMConfig(**{**VSA_BASE, **config}), device="cpu").render(scene, VSA_VIEWS)
+    ref = Reference(ReferenceConfig(samples=512, light_samples=64), device="cpu").render(scene, views)
+    frame = CACRM(CACRMConfig(**{**VSA_BASE, **config}), device="cpu").render(scene, views)
     c = frame.stats.counters
     return (float(np.mean([psnr(r, img) for r, img in zip(ref.images, frame.images, strict=True)])),
             c["density_samples"] - c["shared_samples"])
 
 
 def test_vsa_beats_uniform_steps_at_equal_gathers():
-    """VSA at N = 64 against uniform steps at N = 52, the count with the same voxel gathers (phantom 64^3, 96x64).
-    Measured: 38.41 vs 37.92 dB (mean of the eyes), gathers 573,651 vs 569,283; the floor asks for 0.25 dB."""
-    adaptive, g_vsa = vsa_psnr("phantom")
-    uniform, g_uni = vsa_psnr("phantom", samples=52, vsa=False)
-    assert abs(g_vsa / g_uni - 1) < 0.02
+    """VSA at N = 48 against uniform steps at N = 40, the count with the same voxel gathers (phantom 64^3, three
+    orbit frames of ``bench binocular`` at 96x64, below the light-grid floor that uniform steps reach near N = 96).
+    Measured: 36.09 vs 35.64 dB (mean of the six eyes), gathers 1,235,015 vs 1,240,589; on six frames the gain at
+    equal gathers is 0.38 dB. A single view is not enough: uniform PSNR is not monotone in N (the texel-anchored
+    lattice moves with N), and one view's gain swings by +-0.5 dB. The floor asks for 0.25 dB."""
+    views = [v for f in (0, 4, 8) for v in make_views(path_camera(f, 12, (96, 64)), "stereo")]
+    adaptive, g_vsa = vsa_psnr("phantom", views, samples=48)
+    uniform, g_uni = vsa_psnr("phantom", views, samples=40, vsa=False)
+    assert abs(g_vsa / g_uni - 1) < 0.01
     assert adaptive > uniform + 0.25
 
 
