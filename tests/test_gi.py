@@ -219,6 +219,25 @@ def test_variance_clamp_leaves_values_inside_the_range_untouched():
     np.testing.assert_allclose(run_accumulate(np.array([5.0]), 3.0, 1.0, 0.75, 0.25, accumulation(n=0)), [3.0])
 
 
+def test_recorded_eq10_inputs_are_the_history_and_its_clamp():
+    """``record`` (for fitting Eq. 10) keeps per coefficient the history SH(n - 1), its Eq. 9 clamp to
+    mu~ -+ gamma sigma, and mu~."""
+    scene = Scene((cloud(),), (), SKY)
+    r = DSSRM(DSSRMConfig(light_grid=8, light_samples=32, gi=GIConfig(method="sresir", record=True)), device="cpu")
+    cam = [axis_camera(size=(8, 8))]
+    r.render(scene, cam, frame=0)
+    history = r.gi_state.sh_grid(0)
+    r.render(scene, cam, frame=1)
+    terms = r.gi_state.terms_grid(0)
+    np.testing.assert_array_equal(terms[..., 0], history)
+    prev, clamped, mu = terms[..., 0], terms[..., 1], terms[..., 2]
+    moved = clamped != prev
+    assert 0 < moved.mean() < 1  # the clamp acts on some coefficients, not all
+    # a clamp to an interval around mu~ only ever pulls the history towards mu~, onto the interval's edge
+    assert (np.abs(clamped - mu)[moved] < np.abs(prev - mu)[moved]).all()
+    assert ((clamped - mu) * (prev - mu) >= 0).all()
+
+
 def test_cross_volume_shadowing_darkens_a_volume_behind_another():
     """A dense slab above a thin volume blocks the sky's upper hemisphere and the sun (GI on: the light map crosses
     volumes too); without GI each volume's light map sees only its own density."""
