@@ -307,6 +307,10 @@ def test_gi_config_rejects_bad_settings():
         GIConfig(method="sresir", w_dst=0.5)
     with pytest.raises(VolrenError, match="rays"):
         GIConfig(method="prt", rays=0)
+    with pytest.raises(VolrenError, match="resampling"):
+        GIConfig(method="sresir", resampling="restir")
+    with pytest.raises(VolrenError, match="alpha"):
+        GIConfig(method="sresir", alpha=0.0)
 
 
 def test_environment_coefficients_are_the_sky_projection():

@@ -79,7 +79,8 @@ class GIConfig:
     """Eq. 12's reuse of the 3x3x3 neighbours' directions: ``ris`` (resampled importance sampling with the
     defensive target r = T~ l / l_mean + alpha), ``none`` (each voxel its own direction), ``eq12`` (as printed)"""
     alpha: float = 0.5
-    """the defensive term of the RIS target"""
+    """the defensive term of the RIS target: > 0 keeps it unbiased, and bounds one estimate by (1 + alpha) / alpha
+    times the environment's radiance in a constant environment"""
     record: bool = False
     """keep Eq. 10's inputs (SH_dst, SH_clamped, mu~) of each update for fitting its weights (`scripts/fit_gi.py`)"""
     rays: int = 256
@@ -107,6 +108,8 @@ class GIConfig:
             raise VolrenError(f"Eq. 10's weights must sum to 1, got {sum(weights):.6g}")
         if self.k_gamma <= 0 or self.k_lambda < 0 or self.reservoir_cap <= 0:
             raise VolrenError("GI k_gamma and the reservoir cap must be > 0 and k_lambda >= 0")
+        if not (math.isfinite(self.alpha) and self.alpha > 0):
+            raise VolrenError(f"GI alpha must be > 0 (every candidate needs a positive weight), got {self.alpha}")
 
     @property
     def on(self) -> bool:
