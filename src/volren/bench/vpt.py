@@ -6,10 +6,11 @@ Scenes: the phantom with the CT muscle/skin transfer function, the phantom with 
 empty: where skipping pays), and the smoke plume with extinction proportional to density.
 Denoisers (phantom, ct-muscle; none, ours, SVGF, WRLS): (b) PSNR and FLIP against a high-spp reference per frame
 along a rotation with a rotating light (Fig. 12; the paper's LPIPS needs network weights that cannot be fetched
-offline, so FLIP stands in as the perceptual metric), the detail kept (`detail_kept`) and the holes filled (pixels
+offline, so FLIP stands in as the perceptual metric), the detail kept (`detail_kept`), the holes filled (pixels
 none of whose paths hit although the reference's alpha is >= 0.25, filled when the output's alpha reaches half the
-reference's); (c) §6.4.3's variance test: frame ``variance_at`` rendered with
-``variance_sequences`` random sequences on the same history, the summed per-pixel variance of the outputs; (d)
+reference's) and their mean absolute RGB error against the reference; (c) §6.4.3's variance test: frame
+``variance_at`` rendered with ``variance_sequences`` random sequences on the same history, the summed per-pixel
+variance of the outputs; (d)
 §6.4.4's convergence: after an orbit stops, the frames until the RMSE between consecutive frames falls below 0.01;
 (e) ghosting: the mean PSNR of the 3 frames right after the transfer function switches from ct-muscle to ct-bone.
 Full (GPU): 256^3, 1440x1190 (the paper's viewport), spp 1-32. Quick (CPU): 64^3, 128x106, spp 1-8.
@@ -85,6 +86,8 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
         holes = [(raw_alpha[i] == 0) & (refs[i][..., 3] >= HOLE_ALPHA) for i in range(seq.frames)]
         filled = sum(int((images[i][..., 3][holes[i]] >= 0.5 * refs[i][..., 3][holes[i]]).sum())
                      for i in range(seq.frames))
+        hole_error = float(np.mean(np.concatenate([np.abs(images[i][..., :3] - refs[i][..., :3])[holes[i]].ravel()
+                                                    for i in range(seq.frames)])))
         # (c): the same history, different random sequences for one more frame.
         r = VPT(config, device)
         for i in range(cfg["variance_at"]):
@@ -121,7 +124,7 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
         rows.append({"table": "denoiser", "scene": "phantom (ct-muscle)", "spp": cfg["denoise_spp"], "method": name,
                      "psnr": float(np.mean(scores)), "psnr_min": float(np.min(scores)), "flip": float(np.mean(flips)),
                      "detail_kept": float(np.mean(kept)), "holes": sum(int(h.sum()) for h in holes),
-                     "holes_filled": filled,
+                     "holes_filled": filled, "hole_error": hole_error,
                      "output_variance": variance, "settle_frames": settle, "switch_psnr": result[name]["switch"]})
     return rows, result
 
@@ -178,7 +181,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("image_mean", "image mean", ".5f"), ("pixel_variance_sum", "summed pixel variance", ".4f"),
         ("psnr", "mean PSNR [dB]", ".2f"), ("psnr_min", "min PSNR [dB]", ".2f"), ("flip", "mean FLIP", ".4f"),
         ("detail_kept", "detail kept (0-1 px band)", ".3f"), ("holes", "holes", "d"),
-        ("holes_filled", "holes filled", "d"),
+        ("holes_filled", "holes filled", "d"), ("hole_error", "hole RGB error", ".4f"),
         ("output_variance", "output variance", ".4f"), ("settle_frames", "frames to settle", "d"),
         ("switch_psnr", "PSNR after a TF switch [dB]", ".2f"),
     ]
