@@ -20,6 +20,8 @@ from volren.metrics import psnr
 from volren.render import VPT, VPTConfig
 from volren.render.denoise import (
     CHANGE_UNIT,
+    FRAMES_MAX,
+    NOISE_Z,
     SIGMA_C,
     SIGMA_E,
     SIGMOID_A,
@@ -85,6 +87,25 @@ def test_eq12_blends_the_previous_hdln_component():
     n = exp(-|dF_x| / sigma_e)."""
     out = run(Denoiser("cpu"), [records(0.5), records(0.6)])[1]
     w = math.exp(-grey(0.1) / SIGMA_E)
+    np.testing.assert_allclose(out[..., 0], (0.6 + w * 0.5) / (1 + w), rtol=1e-4)
+
+
+def test_eq12_history_counts_its_accumulated_frames():
+    """F_x 0.5 for three static frames, then 0.6: the history has accumulated 3 frames (1, 1 + 1, 1 + 2; below
+    FRAMES_MAX), so Eq. 12's weight counts 3 times: (0.6 + 3 w 0.5) / (1 + 3 w), w = exp(-|dF_x| / sigma_e)."""
+    assert FRAMES_MAX >= 3
+    out = run(Denoiser("cpu"), [records(0.5), records(0.5), records(0.5), records(0.6)])[3]
+    w = 3 * math.exp(-grey(0.1) / SIGMA_E)
+    np.testing.assert_allclose(out[..., 0], (0.6 + w * 0.5) / (1 + w), rtol=1e-4)
+
+
+def test_eq12_sigma_widens_with_the_noise_of_f_x():
+    """F_x exactly 0.5, then paths at 0.56 / 0.64 (one class, mean 0.6, standard error of the mean 0.0231): Eq. 12's
+    sigma_e grows by NOISE_Z standard errors (as a grey vec3 length), so the history keeps more weight than at 0.2."""
+    noisy = np.broadcast_to(np.array([0.56, 0.64, 0.56, 0.64], np.float32), (H, W, N))
+    out = run(Denoiser("cpu"), [records(0.5), records(noisy)])[1]
+    error = math.sqrt(np.var([0.56, 0.64, 0.56, 0.64]) / 3)
+    w = math.exp(-grey(0.1) / (SIGMA_E + NOISE_Z * grey(error)))
     np.testing.assert_allclose(out[..., 0], (0.6 + w * 0.5) / (1 + w), rtol=1e-4)
 
 
@@ -231,9 +252,9 @@ def phantom():
 
 
 def test_denoiser_beats_the_raw_frames_and_keeps_detail(phantom):
-    """Phantom (ct-muscle), 64x54, 4 spp, 6 frames, against 256 spp. Measured: raw 20.9 dB, denoised 26.9 dB; the
-    denoised frame keeps 0.73 of the reference's 0-1 px band (0.45 with the albedo alone as F_x, the split before
-    paper 002 §5.1's SDF went into F_x); frame-to-frame change 0.40 of the raw frames'. Floors: +3 dB, 0.6 of the
+    """Phantom (ct-muscle), 64x54, 4 spp, 6 frames, against 256 spp. Measured: raw 20.9 dB, denoised 28.5 dB; the
+    denoised frame keeps 0.72 of the reference's 0-1 px band (0.46 with the albedo alone as F_x, the split before
+    paper 002 §5.1's SDF went into F_x); frame-to-frame change 0.27 of the raw frames'. Floors: +3 dB, 0.6 of the
     band, half the change."""
     scene, cam, ref = phantom
     raw = VPT(VPTConfig(spp=4, transfer="ct-muscle"), device="cpu")
