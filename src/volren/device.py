@@ -93,6 +93,12 @@ def cpu_threads() -> int:
 
 MAX_BANDS = 64
 """Rows of a counters array: one per concurrent CPU band, because Warp's CPU atomics are not atomic across threads."""
+CUDA_COUNTER_ROWS = 4096
+"""Rows of a counters array on CUDA, over which `counter_row` spreads a launch's threads."""
+
+
+def counter_rows_for(device: str) -> int:
+    return MAX_BANDS if device.startswith("cpu") else CUDA_COUNTER_ROWS
 
 
 def launch_rows(
@@ -104,8 +110,9 @@ def launch_rows(
     counters: wp.array,
     progress: Callable[[int], None] | None = None,
 ) -> None:
-    """Launch a 2D kernel over ``rows x cols`` whose last two inputs are ``counters`` (1D int64) and ``row0: int``
-    (the launch's first row); ``counters`` here is 2D ``(MAX_BANDS, n)`` and each band adds into its own row.
+    """Launch a 2D kernel over ``rows x cols`` whose last two inputs are ``counter_rows`` (2D int64, read through
+    `counter_row`) and ``row0: int`` (the launch's first row); ``counters`` is the frame's ``(rows, n)`` array
+    (`counter_rows_for`): each CPU band adds into a row of its own, a CUDA launch into all of them.
 
     Warp's CPU backend runs one launch on one thread, but launches from different Python threads run concurrently
     (the native call releases the GIL; see DESIGN.md, measured 1.9x on 2 cores). On the CPU the rows are split into
@@ -116,7 +123,9 @@ def launch_rows(
         return
     threads = cpu_threads()
     if not device.startswith("cpu") or threads == 1 or rows < 2 * threads:
-        wp.launch(kernel, dim=(rows, cols), inputs=[*inputs, counters[0], 0], device=device)
+        # On CUDA every counter row at once (`counter_row` spreads the threads over them); on the CPU the first.
+        rows_used = counters if not device.startswith("cpu") else counters[0:1]
+        wp.launch(kernel, dim=(rows, cols), inputs=[*inputs, rows_used, 0], device=device)
         if progress is not None:
             progress(rows)
         return
@@ -126,7 +135,7 @@ def launch_rows(
 
     def run(b: int) -> None:
         dim = (edges[b + 1] - edges[b], cols)
-        wp.launch(kernel, dim=dim, inputs=[*inputs, counters[b], edges[b]], device=device)
+        wp.launch(kernel, dim=dim, inputs=[*inputs, counters[b : b + 1], edges[b]], device=device)
         if progress is not None:
             progress(dim[0])
 

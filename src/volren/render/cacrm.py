@@ -47,6 +47,7 @@ from volren.kernels.common import (
     VolumeGPU,
     cell_fraction,
     count,
+    counter_row,
     gather_cell,
     grid_cell,
     grid_coords,
@@ -170,11 +171,12 @@ def coupled_march_kernel(
     buffers1: ViewBuffers,
     target0: CubeTarget,
     target1: CubeTarget,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """One texel, both eyes (eye 1 only when eyes == 2): synchronised anchored steps, shared cell fetches."""
     r, c = wp.tid()
+    counters = counter_row(counter_rows, r, c)
     q = tile_texel(tiles, tile, apron, size, r + row0, c)
     if q[0] < 0:
         return

@@ -55,6 +55,7 @@ from volren.kernels.common import (
     VolumeGPU,
     box_hit,
     count,
+    counter_row,
     new_march_state,
     occluded_end,
     pixel_ray,
@@ -182,13 +183,14 @@ def cube_march_kernel(
     params: MarchParams,
     buffers: ViewBuffers,
     target: CubeTarget,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """One ray per texel of the visible faces: from the eye through the texel centre, marched from the box entry
     (or near plane) to the texel (interior), or from the texel to the box exit (exterior), and cut at the opaque
     surface of the z-buffer pixel the texel projects to (nearest, the paper's blit into a cube depth map)."""
     r, c = wp.tid()
+    counters = counter_row(counter_rows, r, c)
     q = tile_texel(tiles, tile, apron, size, r + row0, c)
     if q[0] < 0:
         return
@@ -236,7 +238,7 @@ def cube_compose_kernel(
     k_z: float,
     buffers: ViewBuffers,
     target: CubeTarget,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """Combine tile levels (paper 000 §3.1.3, last paragraph): each level-0 texel of a level-l tile takes the 2x2
@@ -275,12 +277,13 @@ def cube_resample_kernel(
     medium: Medium,
     params: MarchParams,
     buffers: ViewBuffers,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """Per pixel, front to back over the volumes not culled: a cube-scheme volume is looked up bilinearly where the
     pixel's ray leaves its box (enters, for exterior faces); a direct-scheme volume is marched here, as in DSSRM."""
     r, col = wp.tid()
+    counters = counter_row(counter_rows, r, col)
     row = r + row0
     d, planes = pixel_ray(cam, buffers, row, col)
     s = new_march_state()

@@ -24,6 +24,7 @@ from volren.kernels.common import (
     box_hit,
     composite_step,
     count,
+    counter_row,
     half_depth,
     hg_phase,
     light_irradiance,
@@ -152,10 +153,11 @@ def dssrm_kernel(
     medium: Medium,
     params: MarchParams,
     buffers: ViewBuffers,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     r, col = wp.tid()
+    counters = counter_row(counter_rows, r, col)
     row = r + row0
     d, planes = pixel_ray(cam, buffers, row, col)
     s = new_march_state()

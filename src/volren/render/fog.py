@@ -47,6 +47,7 @@ from volren.kernels.common import (
     box_hit,
     corner_weight,
     count,
+    counter_row,
     light_distance,
     light_irradiance,
     light_travel_dir,
@@ -184,11 +185,12 @@ def shadow_grid_kernel(
     far: float,
     parity: int,
     occ: Occluders,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """(a) Re-trace the voxels of this frame's z parity (-1: all) that lie in some viewer's frustum."""
     r, i = wp.tid()
+    counters = counter_row(counter_rows, r, i)
     row = r + row0
     k = row / grid.res[1]
     j = row - k * grid.res[1]
@@ -229,11 +231,12 @@ def shadow_frustum_kernel(
     jitter: float,
     occ: Occluders,
     bits: wp.array4d(dtype=wp.uint8),
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """(b) Every viewer's shadow frustum in one launch: coarse froxels over the first ``slices`` slices."""
     r, ix = wp.tid()
+    counters = counter_row(counter_rows, r, ix)
     view, k, iy, _d, x, inside = froxel_centre(cams, grids, slices, ny, r + row0, ix, jitter)
     if inside == 0:
         return
@@ -328,13 +331,14 @@ def froxel_lighting_kernel(
     history: wp.array4d(dtype=wp.vec4),
     weight: float,
     out: wp.array4d(dtype=wp.vec4),
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """(1) Lighting of every froxel of every viewer: (S, sigma_t), blended with the reprojected history when
     weight < 1. Visibility by shadow rays (mode VIS_TRACE) or (VIS_SHARED) from the shadow frustum (when ``frustum``
     is 1) up to its far depth and from the shadow grid beyond (`grid_visibility`, also outside the grid)."""
     r, ix = wp.tid()
+    counters = counter_row(counter_rows, r, ix)
     view, k, iy, d, x, inside = froxel_centre(cams, grids, slices, ny, r + row0, ix, jitter)
     if inside == 0:
         return
@@ -376,7 +380,7 @@ def froxel_accumulate_kernel(
     ny: int,
     lighting: wp.array4d(dtype=wp.vec4),
     integrated: wp.array4d(dtype=wp.vec4),
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """(2) Front-to-back integration of each froxel column; integrated[view, k] holds (S, T) at slice boundary k."""
@@ -414,7 +418,7 @@ def froxel_apply_kernel(
     view: int,
     integrated: wp.array4d(dtype=wp.vec4),
     buffers: ViewBuffers,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """(3) Per pixel: colour T + S at the surface's depth (the fog's far end where there is none)."""

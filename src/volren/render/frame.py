@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from volren.device import MAX_BANDS, synchronize
+from volren.device import counter_rows_for, synchronize
 
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
             "shadow_rays", "shadow_voxels")
@@ -62,7 +62,7 @@ class PassClock:
     def __init__(self, device: str) -> None:
         self.device = device
         self.times_ms: dict[str, float] = {}
-        self.counters = wp.zeros((MAX_BANDS, len(COUNTERS)), dtype=wp.int64, device=device)
+        self.counters = wp.zeros((counter_rows_for(device), len(COUNTERS)), dtype=wp.int64, device=device)
 
     @contextmanager
     def measure(self, name: str) -> Iterator[None]:

@@ -21,6 +21,7 @@ from volren.kernels.common import (
     INF,
     VolumeGPU,
     count,
+    counter_row,
     sample_grid,
     transmittance_bvh,
     voxel_center,
@@ -131,9 +132,10 @@ def visibility(sc: GIScene, x: wp.vec3, d: wp.vec3, samples: int, counters: wp.a
 
 
 @wp.kernel
-def sample_kernel(sc: GIScene, buf: GIBuffers, seed: int, counters: wp.array(dtype=wp.int64), row0: int):
+def sample_kernel(sc: GIScene, buf: GIBuffers, seed: int, counter_rows: wp.array2d(dtype=wp.int64), row0: int):
     """Sample-generation pass: a uniform random direction per voxel and its transmittance with ``sc.samples``."""
     r, i = wp.tid()
+    counters = counter_row(counter_rows, r, i)
     idx = voxel_index(sc, r + row0, i)
     x = voxel_position(sc, r + row0, i)
     state = wp.rand_init(seed, idx)
@@ -185,7 +187,8 @@ def target(f: float, basis: vec16, luminance: vec16, acc: Accumulation) -> float
 
 @wp.kernel
 def transform_kernel(
-    sc: GIScene, buf: GIBuffers, acc: Accumulation, luminance: vec16, counters: wp.array(dtype=wp.int64), row0: int,
+    sc: GIScene, buf: GIBuffers, acc: Accumulation, luminance: vec16, counter_rows: wp.array2d(dtype=wp.int64),
+    row0: int,
 ):
     """SH-transform pass: simplified reservoir resampling over the 3x3x3 neighbours' samples (Eq. 12 with the weights
     of `target`; strict ReSTIR also merges the voxel's temporal reservoir; ``resampling`` 0 keeps the voxel's own
@@ -193,6 +196,7 @@ def transform_kernel(
     temporal accumulation with the neighbours' coarse mean and variance (Eq. 8-11). ``luminance``: the
     environment's luminance over its mean, as SH coefficients."""
     r, i = wp.tid()
+    counters = counter_row(counter_rows, r, i)
     row = r + row0
     idx = voxel_index(sc, row, i)
     x = voxel_position(sc, row, i)
@@ -269,7 +273,7 @@ def transform_kernel(
 
 @wp.kernel
 def integrate_kernel(
-    sc: GIScene, buf: GIBuffers, env_sh: wp.array(dtype=wp.vec3), order2: int, counters: wp.array(dtype=wp.int64),
+    sc: GIScene, buf: GIBuffers, env_sh: wp.array(dtype=wp.vec3), order2: int, counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """Lighting-integration pass (Eq. 7): ambient = (1 / 4 pi) sum_j SH_j L_j, clamped at 0 (SH ringing)."""
@@ -286,12 +290,13 @@ def integrate_kernel(
 @wp.kernel
 def sphere_kernel(
     sc: GIScene, buf: GIBuffers, env: EnvironmentLight, rays: int, order2: int, seed: int,
-    counters: wp.array(dtype=wp.int64), row0: int,
+    counter_rows: wp.array2d(dtype=wp.int64), row0: int,
 ):
     """Brute force and PRT baselines: ``rays`` stratified directions per voxel (z in equal bands, golden-angle
     azimuths, randomly rotated about +y per voxel). Writes the brute-force ambient (1 / rays) sum T L(w) (the
     ground truth, no SH) and the PRT coefficients (4 pi / rays) sum T y_j."""
     r, i = wp.tid()
+    counters = counter_row(counter_rows, r, i)
     idx = voxel_index(sc, r + row0, i)
     x = voxel_position(sc, r + row0, i)
     state = wp.rand_init(seed, idx)
@@ -313,13 +318,15 @@ def sphere_kernel(
 
 @wp.kernel
 def major_kernel(
-    sc: GIScene, buf: GIBuffers, env_cosine: wp.array(dtype=wp.vec3), counters: wp.array(dtype=wp.int64), row0: int
+    sc: GIScene, buf: GIBuffers, env_cosine: wp.array(dtype=wp.vec3), counter_rows: wp.array2d(dtype=wp.int64),
+    row0: int,
 ):
     """Paper 001's simplified GI (the "M" of paper 000 Fig. 10): one march along the major direction n, the
     density's negative gradient (towards thinner medium), and the environment's cosine-weighted radiance about n
     (SH coefficients scaled by A_l / pi: an unoccluded voxel in a constant environment gets L) times T(x, n).
     Where the density is flat (no gradient) n is +y, the sky."""
     r, i = wp.tid()
+    counters = counter_row(counter_rows, r, i)
     row = r + row0
     idx = voxel_index(sc, row, i)
     x = voxel_position(sc, row, i)

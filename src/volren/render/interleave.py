@@ -45,6 +45,7 @@ from volren.kernels.common import (
     VolumeGPU,
     cell_fraction,
     count,
+    counter_row,
     gather_cell,
     grid_cell,
     grid_coords,
@@ -101,11 +102,12 @@ def quad_march_kernel(
     buffers1: ViewBuffers,
     target0: CubeTarget,
     target1: CubeTarget,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     """One 2x2 texel quad for both eyes of a pair (lanes 0-3: eye 0, 4-7: eye 1 when eyes == 2)."""
     r, c = wp.tid()
+    counters = counter_row(counter_rows, r, c)
     row = r + row0
     quads = (tile + 1) / 2
     k = row / quads

@@ -14,6 +14,7 @@ from volren.device import launch_rows
 from volren.kernels.common import (
     LightGPU,
     VolumeGPU,
+    counter_row,
     light_distance,
     light_travel_dir,
     transmittance_bvh,
@@ -34,10 +35,11 @@ def light_map_kernel(
     bvh: wp.uint64,
     cross_volume: int,
     lightmap: wp.array(dtype=float),
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     r, i = wp.tid()
+    counters = counter_row(counter_rows, r, i)
     row = r + row0
     vol = volumes[v]
     res = vol.light_res

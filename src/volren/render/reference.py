@@ -27,6 +27,7 @@ from volren.kernels.common import (
     box_hit,
     composite_step,
     count,
+    counter_row,
     covering_diagonal,
     density_inside,
     half_depth,
@@ -126,10 +127,11 @@ def reference_kernel(
     lights: wp.array(dtype=LightGPU),
     params: ReferenceParams,
     buffers: ViewBuffers,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     r, col = wp.tid()
+    counters = counter_row(counter_rows, r, col)
     row = r + row0
     d, planes = pixel_ray(cam, buffers, row, col)
     n_vol = volumes.shape[0]

@@ -97,7 +97,7 @@ def surface_kernel(
     ambient: wp.vec3,
     user_depth: wp.array2d(dtype=float),
     buffers: ViewBuffers,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     r, col = wp.tid()

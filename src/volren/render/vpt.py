@@ -44,6 +44,7 @@ from volren.kernels.common import (
     box_hit,
     camera_ray,
     count,
+    counter_row,
     hg_phase,
     light_distance,
     light_irradiance,
@@ -302,10 +303,11 @@ def vpt_kernel(
     view: int,
     record: int,
     samples: SampleRecords,
-    counters: wp.array(dtype=wp.int64),
+    counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     r, col = wp.tid()
+    counters = counter_row(counter_rows, r, col)
     row = r + row0
     state = wp.rand_init(params.seed, ((view * cam.height + row) * cam.width + col) * 7919)
     opacity_state = wp.rand_init(params.seed + 1, ((view * cam.height + row) * cam.width + col) * 7919)
