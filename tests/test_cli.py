@@ -993,7 +993,7 @@ def test_vpt_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: str)
                          "--device", "cpu", "--out", tmp_path / "o", *extra], fragment)
 
 
-@pytest.mark.parametrize("denoise", ["ours", "svgf"])
+@pytest.mark.parametrize("denoise", ["ours", "svgf", "wrls"])
 def test_vpt_denoise_and_rect_light_options(capfd, tmp_path: Path, denoise: str) -> None:
     out = tmp_path / denoise
     ok(capfd, "render", "--method", "vpt", "--scene", "cloud", "--resolution", "64", "--width", "24", "--height", "16",
