@@ -258,6 +258,23 @@ def test_cross_volume_shadowing_darkens_a_volume_behind_another():
     assert r._device_scene.lightmap.numpy()[: ds.light_voxels[0]].min() > 0.3
 
 
+def test_light_map_crosses_every_volume_on_the_way_to_the_light():
+    """GI's light map marches through every box the shadow ray meets (the BVH's any-hit traversal, paper 000
+    §3.2.3): a homogeneous box under two slabs of optical depth 2 each, sun overhead, gets
+    T = exp(-(sigma d + 2 + 2)) at every light voxel, d its distance to the box's top (exact for homogeneous media;
+    one slab or none would give e^2 or e^4 times more)."""
+    n, sigma = 8, 0.5
+    below = homogeneous_volume(sigma, n=n, scale=0.5, translate=(0.0, -0.6, 0.0))
+    slabs = [Volume(np.ones((4, 4, 4), np.float32), scale_translate((1.2, 0.1, 1.2), (0.0, y, 0.0)),
+                    density_scale=10.0) for y in (0.2, 0.6)]
+    sun = (DirectionalLight(direction=(0.0, -1.0, 0.0), irradiance=(2.0, 2.0, 2.0)),)
+    _, ds = run_gi(Scene((below, *slabs), sun, SKY), "brute", rays=16, light_grid=n)
+    lit = ds.lightmap.numpy()[: ds.light_voxels[0]].reshape(n, n, n)
+    y = -0.6 + 0.5 * (-1 + (np.arange(n) + 0.5) * 2 / n)
+    expected = np.exp(-(sigma * (-0.1 - y) + 4.0))
+    np.testing.assert_allclose(lit, np.broadcast_to(expected[None, :, None], lit.shape), rtol=1e-3)
+
+
 def test_amortised_updates_visit_every_volume_in_turn():
     vols = [homogeneous_volume(1.0, scale=0.3, translate=(x, 0.0, 0.0)) for x in (-1.0, 0.0, 1.0)]
     scene = Scene(tuple(vols), (), SKY)
