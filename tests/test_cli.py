@@ -497,6 +497,18 @@ def test_compare_identical_files_gives_infinite_psnr(capfd, tmp_path: Path) -> N
     assert np.all(heat == heat[0, 0])  # no error anywhere
 
 
+def test_compare_reports_the_true_error_of_a_too_bright_image(capfd, tmp_path: Path) -> None:
+    """Not clipped to the reference's peak: PSNR = 10 log10(peak^2 / mean((99 ref)^2)) over RGB."""
+    ref_path, _ = _images(tmp_path)
+    ref = np.load(ref_path)
+    bright = write_npy(tmp_path / "bright.npy", ref * 100)
+    rgb = ref[..., :3].astype(np.float64)
+    expected = 10 * math.log10(rgb.max() ** 2 / np.mean((99 * rgb) ** 2))
+    r = ok(capfd, "compare", ref_path, bright)
+    assert _psnr(r.out) == pytest.approx(expected, abs=0.005)
+    assert f"PSNR {expected:.2f} dB" in r.out and expected < -30
+
+
 def test_compare_rendered_methods(capfd, tmp_path: Path) -> None:
     render(capfd, tmp_path / "ref", "--views", "mono", "--save-linear", method="reference")
     render(capfd, tmp_path / "test", "--views", "mono", "--save-linear")
@@ -803,11 +815,13 @@ def _compare_case(tmp_path: Path, case: str) -> tuple[list[object], list[str]]:
         return [ref, test, "--heatmap", tmp_path / "err.jpg"], [".png"]
     if case == "one-file":
         return [ref], ["test"]
+    if case == "black-reference":
+        return [write_npy(tmp_path / "black.npy", np.zeros((H, W, 4), np.float32)), test], ["black.npy", "no signal"]
     raise AssertionError(case)
 
 
 COMPARE_CASES = ["missing", "shape-mismatch", "nan", "nan-reference", "integer", "2d", "garbage", "garbage-png",
-                 "unsupported", "too-small-for-ssim", "heatmap-not-png", "one-file"]
+                 "unsupported", "too-small-for-ssim", "heatmap-not-png", "one-file", "black-reference"]
 
 
 @pytest.mark.parametrize("case", COMPARE_CASES)

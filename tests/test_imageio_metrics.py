@@ -215,12 +215,36 @@ def test_psnr_matches_closed_form_with_reference_peak() -> None:
     assert psnr(ref / 4, test / 4, data_range=1.0) == pytest.approx(psnr(ref, test, data_range=4.0), rel=1e-6)
 
 
-def test_metrics_ignore_alpha_and_clip_to_the_reference_range() -> None:
+def test_metrics_ignore_alpha_and_do_not_clip_the_test_image() -> None:
     ref = _smooth()
     ref_rgba = np.concatenate([ref, np.ones_like(ref[..., :1])], axis=2)
+    assert psnr(ref_rgba, ref) == math.inf
     brighter = ref.copy()
-    brighter[ref == ref.max()] = 100.0  # above the reference's peak: clipped to it, so no error
-    assert psnr(ref_rgba, brighter) == math.inf
+    peak = float(ref.max())
+    at_peak = ref == peak
+    brighter[at_peak] = 100.0  # above the reference's peak: a true error, not clipped away
+    mse = (100.0 - peak) ** 2 * at_peak.sum() / ref.size
+    assert psnr(ref_rgba, brighter) == pytest.approx(10 * math.log10(peak**2 / mse), rel=1e-9)
+
+
+def test_psnr_of_an_image_100x_too_bright_is_the_true_error() -> None:
+    # MSE = mean((99 ref)^2) = 99^2 mean(ref^2); PSNR = 10 log10(peak^2 / MSE) over the reference's peak.
+    ref = _smooth()
+    expected = 10 * math.log10(float(ref.max()) ** 2 / (99.0**2 * float(np.mean(ref.astype(np.float64) ** 2))))
+    assert psnr(ref, ref * 100) == pytest.approx(expected, rel=1e-9)
+    assert expected < -20.0  # the clipped figure was positive
+    result = compare(ref, ref * 100)
+    assert result["psnr"] == pytest.approx(expected, rel=1e-9)
+    assert result["max_abs_error"] == pytest.approx(99 * ref.max(), rel=1e-6)
+
+
+def test_a_reference_with_no_signal_is_refused() -> None:
+    black = np.zeros((16, 16, 3))
+    with pytest.raises(VolrenError, match=r"reference image has no signal \(its peak is 0\)"):
+        psnr(black, black + 1)
+    with pytest.raises(VolrenError, match="no signal"):
+        compare(black, black)
+    assert psnr(black, black + 0.5, data_range=1.0) == pytest.approx(10 * math.log10(1 / 0.25))
 
 
 def test_ssim_identical_is_one_and_falls_with_noise() -> None:
@@ -234,7 +258,7 @@ def test_ssim_identical_is_one_and_falls_with_noise() -> None:
 
 def test_ssim_refuses_tiny_images() -> None:
     with pytest.raises(VolrenError, match="at least 11x11"):
-        ssim(np.zeros((8, 8, 3)), np.zeros((8, 8, 3)))
+        ssim(np.ones((8, 8, 3)), np.ones((8, 8, 3)))
 
 
 def test_flip_is_zero_for_identical_and_positive_otherwise() -> None:
@@ -300,9 +324,12 @@ def test_compare_files_and_heatmap(tmp_path) -> None:
 
 
 def test_compare_files_errors_name_both_files(tmp_path) -> None:
-    save_linear(tmp_path / "a.npy", np.zeros((16, 16, 4), np.float32))
-    save_linear(tmp_path / "b.npy", np.zeros((16, 12, 4), np.float32))
+    save_linear(tmp_path / "a.npy", np.ones((16, 16, 4), np.float32))
+    save_linear(tmp_path / "b.npy", np.ones((16, 12, 4), np.float32))
+    save_linear(tmp_path / "black.npy", np.zeros((16, 16, 4), np.float32))
     with pytest.raises(VolrenError, match=r"a.npy' is \(16, 16, 4\).*b.npy' is \(16, 12, 4\)"):
         compare_files(tmp_path / "a.npy", tmp_path / "b.npy")
     with pytest.raises(VolrenError, match=r"nope\.npy.*does not exist"):
         compare_files(tmp_path / "a.npy", tmp_path / "nope.npy")
+    with pytest.raises(VolrenError, match=r"reference '.*black\.npy' has no signal \(its brightest value is 0\)"):
+        compare_files(tmp_path / "black.npy", tmp_path / "a.npy")

@@ -4,10 +4,13 @@ One rule for every metric here, so numbers from different functions describe the
 
 * Only RGB is compared. Images are premultiplied, so their RGB already is the image composited over black; alpha
   is dropped, and an ``(H, W, 3)`` image may be compared with an ``(H, W, 4)`` one.
-* ``data_range`` is the reference's peak: ``max(ref_rgb.max(), 1e-8)`` unless given. Renders are HDR linear radiance
-  with no natural white; the reference's brightest value plays white, as on a display exposed for the reference.
-* Both images are clipped to ``[0, data_range]`` (linear radiance) before any metric, as that display would do.
-  PSNR and SSIM use ``data_range`` as their peak; FLIP and the heat map see the images divided by ``data_range``.
+* ``data_range`` is the reference's peak, ``ref_rgb.max()``, unless given. Renders are HDR linear radiance with no
+  natural white; the reference's brightest value plays white, as on a display exposed for the reference. A
+  reference with no signal (peak <= 0) has no such white and is refused.
+* PSNR, SSIM and the absolute errors see the images as they are, unclipped, so a test image 100x too bright reports
+  its true error (about -29 dB), not the error left after a display clipped it to the reference's peak.
+* FLIP and the heat map are display comparisons: they see both images clipped to ``[0, data_range]`` and divided
+  by ``data_range``.
 """
 
 from __future__ import annotations
@@ -32,8 +35,10 @@ HEATMAP_COLORMAP = "inferno"
 _SSIM_MIN_SIDE = 11
 
 
-def _prepare(ref: np.ndarray, test: np.ndarray, data_range: float | None) -> tuple[np.ndarray, np.ndarray, float]:
-    """Apply the module's rule: RGB only, data range from the reference, both clipped to [0, data_range]."""
+def _prepare(
+    ref: np.ndarray, test: np.ndarray, data_range: float | None, *, display: bool = False
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Apply the module's rule: RGB only, data range from the reference; ``display`` clips both to [0, data_range]."""
     ref = np.asarray(ref)
     test = np.asarray(test)
     for name, image in (("reference", ref), ("test", test)):
@@ -47,10 +52,15 @@ def _prepare(ref: np.ndarray, test: np.ndarray, data_range: float | None) -> tup
         if not np.isfinite(image).all():
             raise VolrenError(f"{name} image contains NaN or infinite values")
     if data_range is None:
-        data_range = max(float(ref_rgb.max()), 1e-8)
+        data_range = float(ref_rgb.max())
+        if not data_range > 0:
+            raise VolrenError(f"reference image has no signal (its peak is {data_range:g}): no peak to measure "
+                              "errors against; give data_range")
     elif not (np.isfinite(data_range) and data_range > 0):
         raise VolrenError(f"data_range must be a positive finite number, got {data_range}")
-    return np.clip(ref_rgb, 0.0, data_range), np.clip(test_rgb, 0.0, data_range), float(data_range)
+    if display:
+        return np.clip(ref_rgb, 0.0, data_range), np.clip(test_rgb, 0.0, data_range), float(data_range)
+    return ref_rgb, test_rgb, float(data_range)
 
 
 def psnr(ref: np.ndarray, test: np.ndarray, data_range: float | None = None) -> float:
@@ -85,7 +95,7 @@ def flip(ref: np.ndarray, test: np.ndarray, data_range: float | None = None) -> 
     LDR rather than HDR FLIP because the clipped, normalised images are display images; HDR FLIP would instead
     pick its own exposure range and tone map.
     """
-    ref_rgb, test_rgb, data_range = _prepare(ref, test, data_range)
+    ref_rgb, test_rgb, data_range = _prepare(ref, test, data_range, display=True)
     ref_srgb, test_srgb = (
         np.ascontiguousarray(srgb_oetf(image / data_range), dtype=np.float32) for image in (ref_rgb, test_rgb)
     )
@@ -99,7 +109,7 @@ def error_heatmap(ref: np.ndarray, test: np.ndarray, data_range: float | None = 
     As paper 000 (Fig. 7 "D"): both images are divided by data_range (the reference's max), and the error is
     mapped to [0, 25%] on the colour map; larger errors saturate at the top colour.
     """
-    ref_rgb, test_rgb, data_range = _prepare(ref, test, data_range)
+    ref_rgb, test_rgb, data_range = _prepare(ref, test, data_range, display=True)
     error = np.abs(ref_rgb - test_rgb).mean(axis=-1) / data_range
     colours = matplotlib.colormaps[HEATMAP_COLORMAP](np.clip(error / HEATMAP_MAX_ERROR, 0.0, 1.0), bytes=True)
     return np.ascontiguousarray(colours[..., :3])
@@ -113,7 +123,7 @@ def save_heatmap(path: str | Path, ref: np.ndarray, test: np.ndarray, data_range
 def compare(ref: np.ndarray, test: np.ndarray, data_range: float | None = None) -> dict[str, float]:
     """All metrics of ``test`` against ``ref`` under the module's rule.
 
-    Returns psnr [dB], ssim, flip, max_abs_error and mean_abs_error (linear radiance, after clipping), and the
+    Returns psnr [dB], ssim, flip, max_abs_error and mean_abs_error (linear radiance, unclipped), and the
     data_range used, so a reader can normalise the absolute errors.
     """
     ref_rgb, test_rgb, data_range = _prepare(ref, test, data_range)
@@ -137,6 +147,10 @@ def compare_files(
     """
     ref = load_image(ref_path)
     test = load_image(test_path)
+    peak = float(ref[..., :3].max())
+    if peak <= 0:  # NaN falls through to compare's clearer message
+        raise VolrenError(f"reference '{ref_path}' has no signal (its brightest value is {peak:g}): nothing to "
+                          "measure errors against")
     if ref.shape[:2] != test.shape[:2]:
         raise VolrenError(f"image sizes differ: '{ref_path}' is {ref.shape}, '{test_path}' is {test.shape}")
     metrics = compare(ref, test)
