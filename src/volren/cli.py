@@ -204,7 +204,9 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="run a benchmark suite; writes JSON and a Markdown table")
     b.add_argument("suite", help="suite name (see `volren bench list`)")
     b.add_argument("--quick", action="store_true", help="small sizes for a CPU")
-    b.add_argument("--out", type=Path, default=Path("docs/bench"), help="folder for the JSON and Markdown")
+    b.add_argument("--out", type=Path, default=None,
+                   help="folder for the JSON and Markdown (default out/bench; --out docs/bench updates the committed "
+                        "tables)")
     add_device(b)
     return p
 
@@ -422,7 +424,7 @@ def sequence_from_args(args: argparse.Namespace):
 def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     from volren.animate import frame_config, frame_scene, frame_views, write_mp4
     from volren.imageio import composite, to_srgb8
-    from volren.output import contact_sheet, prepare_out_dir, write_frame, write_stats
+    from volren.output import contact_sheet, run_output, write_frame, write_stats
 
     if args.frames < 1:
         raise CliError(f"--frames must be >= 1, got {args.frames}")
@@ -440,32 +442,33 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     if sequence is not None:
         frame_config(sequence, renderer.config, sequence.frames - 1)  # refuse a switch the method cannot take
     base_scene, base_views, base_config = scene, views, renderer.config
-    out = prepare_out_dir(args.out)
     frames, files, movie = [], [], []
     start = time.perf_counter()
-    with progress_bar(f"{method} {scene.name}", args.frames * sum(v.height for v in views)) as advance:
-        renderer.on_rows = advance
-        for i in range(args.frames):
-            if animated and i:
-                scene = scene_from_args(args, i / ANIMATION_FPS)
-            if walking and i:
-                views = views_from_args(args, i / ANIMATION_FPS)
-            if sequence is not None:
-                scene = frame_scene(sequence, base_scene if not animated else scene, i)
-                views = frame_views(sequence, base_views, i)
-                renderer.config = frame_config(sequence, base_config, i)
-            frame = renderer.render(scene, views, frame=i, occluder_depth=occluder_depth)
-            if sequence is not None:
-                shown = frame.images[0] if len(frame.images) == 1 else contact_sheet(frame.images)
-                movie.append(to_srgb8(composite(shown, scene.background), args.exposure, args.tonemap))
-            prefix = f"frame{i:04d}_" if args.frames > 1 else ""
-            files += write_frame(frame, out, scene.background, exposure=args.exposure, tonemap=args.tonemap,
-                                 linear=args.save_linear, prefix=prefix)
-            frames.append(frame)
-    wall = time.perf_counter() - start
-    if sequence is not None:
-        files.append(write_mp4(out / "animation.mp4", movie, sequence.fps))
-    stats = write_stats(out, frames, {"scene": scene.name, "command": command})
+    with run_output(args.out) as out:  # written beside --out, moved in when complete
+        with progress_bar(f"{method} {scene.name}", args.frames * sum(v.height for v in views)) as advance:
+            renderer.on_rows = advance
+            for i in range(args.frames):
+                if animated and i:
+                    scene = scene_from_args(args, i / ANIMATION_FPS)
+                if walking and i:
+                    views = views_from_args(args, i / ANIMATION_FPS)
+                if sequence is not None:
+                    scene = frame_scene(sequence, base_scene if not animated else scene, i)
+                    views = frame_views(sequence, base_views, i)
+                    renderer.config = frame_config(sequence, base_config, i)
+                frame = renderer.render(scene, views, frame=i, occluder_depth=occluder_depth)
+                if sequence is not None:
+                    shown = frame.images[0] if len(frame.images) == 1 else contact_sheet(frame.images)
+                    movie.append(to_srgb8(composite(shown, scene.background), args.exposure, args.tonemap))
+                prefix = f"frame{i:04d}_" if args.frames > 1 else ""
+                files += write_frame(frame, out, scene.background, exposure=args.exposure, tonemap=args.tonemap,
+                                     linear=args.save_linear, prefix=prefix)
+                frames.append(frame)
+        wall = time.perf_counter() - start
+        if sequence is not None:
+            files.append(write_mp4(out / "animation.mp4", movie, sequence.fps))
+        stats = write_stats(out, frames, {"scene": scene.name, "command": command})
+    files, stats = [args.out / f.name for f in files], args.out / stats.name
     last = frames[-1].stats
     print(f"{method} on {last.device}: {len(views)} view(s) of '{scene.name}', {args.frames} frame(s) in {wall:.2f} s")
     print("  last frame, ms per pass: " + ", ".join(f"{k} {v:.1f}" for k, v in last.times_ms.items()))

@@ -1,10 +1,23 @@
 """Write a rendered frame to disk: a PNG per view (sRGB after exposure/tone map), a side-by-side PNG for a stereo
-pair, a contact sheet of more views, optional linear ``.npy`` images, and ``stats.json`` for the whole render."""
+pair, a contact sheet of more views, optional linear ``.npy`` images, and ``stats.json`` for the whole render.
+
+A run is written into a temporary sibling folder and moved into ``--out`` only when it is complete
+(:func:`run_output`), so a failure leaves ``--out`` as it was. A new run replaces the files an earlier run wrote
+there (every name :data:`RUN_FILE` matches: views, stereo, contact sheet, animation, stats, heat maps that
+``volren compare`` wrote beside them) and keeps everything else (other files, sub-folders such as ``out/cloud``):
+a mono render never sits beside views 1-3 of an old stereo or multi-view run.
+"""
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -14,14 +27,68 @@ from volren.errors import VolrenError
 from volren.imageio import save_linear, save_png, save_side_by_side
 from volren.render.frame import Frame
 
+# The names write_frame, write_stats, write_mp4 and ``volren compare``'s default heat map give a run's files.
+RUN_FILE = re.compile(r"(frame\d{4}_)?(view\d+(_error)?\.(png|npy)|(stereo|contact)\.png)|stats\.json|animation\.mp4")
 
-def prepare_out_dir(path: str | Path) -> Path:
+
+def is_run_file(path: Path) -> bool:
+    return path.is_file() and RUN_FILE.fullmatch(path.name) is not None
+
+
+@contextmanager
+def run_output(path: str | Path) -> Iterator[Path]:
+    """Yield a fresh temporary folder beside ``path`` to write a run into; on success move the run into ``path``
+    (replacing an earlier run's files, see the module docstring), on an exception delete it and leave ``path``
+    untouched. Refuses up front a ``path`` that is a file or whose parent cannot be created."""
     out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise VolrenError(f"--out '{out}' is a file, not a folder")
+    created = [p for p in (out.parent, *out.parent.parents) if not p.exists()]  # removed again on failure
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.volren-", dir=out.parent))
     except OSError as exc:
         raise VolrenError(f"cannot create output folder '{out}': {exc.strerror}") from exc
-    return out
+    try:
+        yield staging
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        for p in created:  # innermost first
+            try:
+                p.rmdir()
+            except OSError:
+                break
+        raise
+    _move_into_place(staging, out)
+
+
+def _move_into_place(staging: Path, out: Path) -> None:
+    """A new folder is one rename; into an existing one, the old run's files go to a trash folder first (put back
+    if a move fails), then the new files are renamed in, so the folder never holds two runs' files."""
+    try:
+        os.rename(staging, out)  # atomic when ``out`` does not exist (or is an empty folder, on POSIX)
+        return
+    except OSError:
+        pass
+    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.volren-old-", dir=out.parent))
+    old = [p for p in out.iterdir() if is_run_file(p)]
+    moved: list[Path] = []
+    try:
+        for p in old:
+            os.replace(p, trash / p.name)
+        for p in staging.iterdir():
+            os.replace(p, out / p.name)
+            moved.append(out / p.name)
+    except OSError as exc:
+        for p in moved:
+            p.unlink(missing_ok=True)
+        for p in trash.iterdir():
+            os.replace(p, out / p.name)
+        shutil.rmtree(staging, ignore_errors=True)
+        trash.rmdir()
+        raise VolrenError(f"cannot write into output folder '{out}': {exc.strerror}") from exc
+    shutil.rmtree(trash, ignore_errors=True)
+    staging.rmdir()
 
 
 def write_frame(

@@ -22,6 +22,9 @@ from volren.errors import VolrenError
 from volren.render import Renderer
 from volren.scene import Scene
 
+# Untracked by default: `--out docs/bench` is the deliberate step that updates the committed tables.
+DEFAULT_OUT = Path("out/bench")
+
 
 @dataclass(frozen=True)
 class Suite:
@@ -104,7 +107,10 @@ def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, str
     return "\n".join([head, rule, *body])
 
 
-def run_suite(name: str, *, quick: bool, device: str, out: Path) -> tuple[Path, Path, str]:
+def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None) -> tuple[Path, Path, str]:
+    """Run suite ``name`` and write ``<name>-<cpu|cuda>-<quick|full>.{json,md}`` into ``out`` (default
+    :data:`DEFAULT_OUT`); each file is written beside its name and renamed over it, so a failure leaves the old one."""
+    out = DEFAULT_OUT if out is None else out
     suites = all_suites()
     if name not in suites:
         raise VolrenError(f"unknown bench suite '{name}': choose from {', '.join(suites)}")
@@ -121,8 +127,14 @@ def run_suite(name: str, *, quick: bool, device: str, out: Path) -> tuple[Path, 
     doc = {"suite": name, "quick": quick, "machine": machine_info(device), **result, "summary": summary_rows}
     tag = f"{name}-{'cpu' if device == 'cpu' else 'cuda'}-{'quick' if quick else 'full'}"
     json_path, md_path = out / f"{tag}.json", out / f"{tag}.md"
-    json_path.write_text(json.dumps(doc, indent=2, default=str) + "\n")
     m = doc["machine"]
-    md_path.write_text(f"### {name} ({'quick' if quick else 'full'}) on {m['device_name']} ({m['cpu']}, "
-                       f"{m['cpu_threads_used']} CPU threads), warp {m['warp']}, {m['date']}\n\n{table}\n")
+    _write_replace(json_path, json.dumps(doc, indent=2, default=str) + "\n")
+    _write_replace(md_path, f"### {name} ({'quick' if quick else 'full'}) on {m['device_name']} ({m['cpu']}, "
+                            f"{m['cpu_threads_used']} CPU threads), warp {m['warp']}, {m['date']}\n\n{table}\n")
     return json_path, md_path, table
+
+
+def _write_replace(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
