@@ -421,6 +421,50 @@ def test_light_and_phase_overrides_change_the_image(capfd, tmp_path: Path, basel
     np.testing.assert_allclose(image[..., 3], baseline[..., 3], atol=1e-6)  # opacity depends on density only
 
 
+# Every vector option with negative components written the natural way (issue 13 item 4): flag -> (value, parsed).
+NEGATIVE_VECTORS = {
+    "--light-dir": ("-1,-1,0", (-1.0, -1.0, 0.0)),
+    "--camera-pos": ("-2,1,3", (-2.0, 1.0, 3.0)),
+    "--look-at": ("-.5,-1e-1,2E0", (-0.5, -0.1, 2.0)),
+    "--up": ("-0,-1,0", (0.0, -1.0, 0.0)),
+    "--mesh-translate": ("-1.5,0,-2.", (-1.5, 0.0, -2.0)),
+    "--clip": ("-1,1,-0.5,1,-1,0", (-1.0, 1.0, -0.5, 1.0, -1.0, 0.0)),
+    "--albedo": ("-1", (-1.0, -1.0, -1.0)),
+    "--emission": ("-1,2,3", (-1.0, 2.0, 3.0)),
+    "--light-irradiance": ("-3", (-3.0, -3.0, -3.0)),
+    "--ambient": ("-0.25,0,0", (-0.25, 0.0, 0.0)),
+    "--background": ("-1,-1,-1", (-1.0, -1.0, -1.0)),
+    "--sphere": ("-1,0,-2,0.5", [(-1.0, 0.0, -2.0, 0.5)]),
+    "--rect-light": ("-2,3,-4,1,1,5", [(-2.0, 3.0, -4.0, 1.0, 1.0, 5.0)]),
+}
+
+
+def test_every_vector_option_takes_negative_components() -> None:
+    from volren.cli import build_parser, floats4, floats6, rgb, vec3
+
+    parser = build_parser()
+    render_parser = next(a for a in parser._actions if a.dest == "command").choices["render"]
+    vector_flags = {a.option_strings[-1] for a in render_parser._actions if a.type in (vec3, floats4, floats6, rgb)}
+    assert vector_flags == set(NEGATIVE_VECTORS), "a vector option is missing from NEGATIVE_VECTORS"
+    for flag, (text, expected) in NEGATIVE_VECTORS.items():
+        args = parser.parse_args(["render", flag, text, "--width", "-7", "--ground", "-1e-3"])
+        assert getattr(args, flag[2:].replace("-", "_")) == expected, flag
+        assert (args.width, args.ground) == (-7, -0.001)  # the following options are still options
+
+
+def test_a_negative_number_list_does_not_hide_a_missing_value(capfd) -> None:
+    assert_error(capfd, ["render", "--light-dir", "--width", "3"], "--light-dir", "expected one argument")
+    assert_error(capfd, ["render", "--light-dir", "-1,-x,0"], "--light-dir", "'-1,-x,0' is not a list of numbers")
+
+
+def test_light_dir_with_negative_components_renders(capfd, tmp_path: Path, baseline: np.ndarray) -> None:
+    """The README's ``--light-dir -1,-1,0``: parsed as the direction, so the image equals the ``=`` spelling's."""
+    image, _ = _mono(capfd, tmp_path, "--light-dir", "-1,-1,0")
+    same, _ = _mono(capfd, tmp_path / "b", "--light-dir=-1,-1,0")
+    np.testing.assert_array_equal(image, same)
+    assert not np.allclose(image[..., :3], baseline[..., :3])
+
+
 def test_background_shows_where_the_volume_is_transparent(capfd, tmp_path: Path) -> None:
     image, pixels = _mono(capfd, tmp_path, "--background", "1,0,0")
     empty = image[..., 3] == 0

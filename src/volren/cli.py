@@ -9,6 +9,7 @@ import argparse
 import dataclasses
 import math
 import os
+import re
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -30,8 +31,19 @@ class CliError(VolrenError):
     """A bad command-line value."""
 
 
+NEGATIVE_NUMBERS = re.compile(r"^-\.?\d")
+"""A value, not an option: what starts as a negative number does (``-1,-1,0``, ``-1e-3``, ``-.5``); the option's
+type then says whether the rest is right, naming the flag."""
+
+
 class Parser(argparse.ArgumentParser):
     """argparse that raises instead of printing usage and exiting, so every error is one line."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        # argparse's own matcher knows only "-1" and "-.5", so "--light-dir -1,-1,0" read "-1,-1,0" as an option.
+        # No option of ours starts with a digit, so anything this matches can only be a value.
+        self._negative_number_matcher = NEGATIVE_NUMBERS
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise CliError(message)
@@ -51,6 +63,10 @@ def floats(text: str, count: int | tuple[int, ...] = 3) -> tuple[float, ...]:
 
 def vec3(text: str) -> tuple[float, ...]:
     return floats(text, 3)
+
+
+def floats4(text: str) -> tuple[float, ...]:
+    return floats(text, 4)
 
 
 def floats6(text: str) -> tuple[float, ...]:
@@ -104,7 +120,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                      "is the ambient without --gi")
     mat.add_argument("--background", type=rgb, help="background colour (linear): c or r,g,b")
     opq = p.add_argument_group("opaque geometry (clips the volumes)")
-    opq.add_argument("--sphere", type=lambda t: floats(t, 4), action="append", default=[],
+    opq.add_argument("--sphere", type=floats4, action="append", default=[],
                      help="opaque diffuse sphere x,y,z,radius (repeatable)")
     opq.add_argument("--ground", type=float, help="opaque ground plane at height y")
     opq.add_argument("--mesh", type=Path, action="append", default=[],
