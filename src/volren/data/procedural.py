@@ -141,20 +141,24 @@ class _Fbm:
 
 
 def smoke_density(resolution: int = 64, seed: int = 0) -> np.ndarray:
-    """A rising plume: a column that widens and thins with height, wandering sideways, with fBm-turbulent edges."""
+    """A rising plume: a column that widens and thins with height, wandering sideways, with fBm-turbulent edges.
+
+    The plume stays well inside the box: it rises from y = -0.75 and dissipates under a rounded, noise-torn cap
+    (lower at the plume's edge than on its axis) that ends by y = 0.75, so no box face cuts it flat.
+    """
     n = _check_resolution(resolution)
     rng = np.random.default_rng([_check_seed(seed), 1])
     phases = rng.random(4) * 2 * np.pi
     noise = _Fbm(rng, n, base_freq=2.5, gain=0.6, stretch=(1.0, 0.6, 1.0))  # stretched along y: wisps rise
     c = _centres(n)
-    y_base, y_top = -0.85, 0.85
+    y_base, y_top = -0.75, 0.75
     t = np.clip((c - y_base) / (y_top - y_base), 0.0, 1.0)  # height along the plume, per y row
     radius = (0.1 + 0.42 * t**1.2).astype(np.float32)
     sway = 0.12 * t**1.5  # the column drifts more the higher it rises
     cx = (sway * np.sin(2.6 * np.pi * t + phases[0]) + 0.04 * np.sin(5.3 * np.pi * t + phases[1])).astype(np.float32)
     cz = (sway * np.sin(2.2 * np.pi * t + phases[2]) + 0.04 * np.sin(4.7 * np.pi * t + phases[3])).astype(np.float32)
-    # fades in above the source, out near the top, and dilutes as the plume spreads
-    profile = _smoothstep(y_base - 0.05, y_base + 0.12, c) * _smoothstep(y_top, y_top - 0.3, c) * (1.0 - 0.45 * t)
+    # fades in above the source and dilutes as the plume spreads (the top is the cap below)
+    profile = _smoothstep(y_base - 0.05, y_base + 0.12, c) * (1.0 - 0.45 * t)
     row = (profile * _margin(n)).astype(np.float32)[:, None]  # (y, x) factor
     win_x = _margin(n)
 
@@ -167,6 +171,9 @@ def smoke_density(resolution: int = 64, seed: int = 0) -> np.ndarray:
         q -= 0.45 * f  # turbulent edge: the noise moves the plume's surface in and out
         d = _smoothstep(1.0, 0.3, q)
         d *= np.clip(0.7 + 0.8 * f, 0.0, 1.0)  # internal eddies
+        # dissipating cap: ends at y_top on the axis, 0.4 lower at the edge, torn up and down by the noise
+        cap = np.float32(y_top) - np.float32(0.4) * np.minimum(q, np.float32(1.0)) ** 2 + np.float32(0.2) * f
+        d *= _smoothstep(0.0, 0.45, cap - c[None, :, None])
         d *= row * win_x
         d *= _margin(n)[zs, None, None]
         out[zs] = d
