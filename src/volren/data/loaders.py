@@ -194,6 +194,8 @@ def load_volume_file(
         raise VolrenError(f"{path}: file not found")
     if not path.is_file():
         raise VolrenError(f"{path}: not a regular file")
+    if path.stat().st_size == 0:  # parsers fail on it with messages such as "StopIteration:"
+        raise VolrenError(f"{path}: the file is empty")
     suffix = ".nii.gz" if path.name.lower().endswith(".nii.gz") else path.suffix.lower()
     reader = _READERS.get(suffix)
     if reader is not None and (shape is not None or dtype is not None):
