@@ -1,14 +1,20 @@
 """Load a density grid from a file: ``.npy``, ``.npz``, raw binary, NRRD, NIfTI, or NanoVDB.
 
 Every loader returns float32 ``[z, y, x]`` (DESIGN.md) validated by ``validate_density``; every failure is a
-one-line ``VolrenError`` that names the file. Voxel spacing and orientation stored in a file are not used: the grid is
-placed by the caller's ``to_world`` matrix.
+one-line ``VolrenError`` that names the file. ``load_volume`` also places the grid in the world (metres) from what the
+file stores: NRRD space directions and origin, the NIfTI affine, DICOM patient coordinates; formats that store no
+placement (``.npy``, ``.npz``, raw, TIFF, NanoVDB) take ``spacing`` or get cubic voxels, longest side 2 m, centred.
+
+Anatomical axes map onto volren's y-up world as a patient standing upright and facing the default camera (which looks
+down -z): world +x = patient Left, +y = Superior, +z = Anterior, so LPS (x, y, z) -> (x, z, -y) and RAS (x, y, z) ->
+(-x, z, y); both are rotations (det +1), so nothing is mirrored.
 """
 
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,26 +29,83 @@ _MAX_NVDB_VOXELS = 1 << 30
 """A dense copy of a sparse grid larger than this (4 GiB of float32) is refused rather than exhausting memory."""
 
 
+UNITS = {"m": 1.0, "mm": 1e-3}
+"""``--units``: metres per unit of the file's coordinates (or of ``spacing``)."""
+_FILE_UNITS = {"m": 1.0, "meter": 1.0, "mm": 1e-3, "millimeter": 1e-3, "um": 1e-6, "micron": 1e-6, "µm": 1e-6}
+_LPS_TO_WORLD = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+"""Patient Left-Posterior-Superior to the y-up world: Left -> +x, Superior -> +y, Anterior (-P) -> +z."""
+_ANATOMICAL_SIGNS = {"L": (0, 1.0), "R": (0, -1.0), "P": (1, 1.0), "A": (1, -1.0), "S": (2, 1.0), "I": (2, -1.0)}
+_NRRD_SPACES = {"left-posterior-superior": "LPS", "right-anterior-superior": "RAS", "left-anterior-superior": "LAS"}
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """What a reader found: the voxels, and where the file puts them (if it says)."""
+
+    data: np.ndarray
+    index_to_file: np.ndarray | None = None
+    """4x4: voxel index (i, j, k) = (x, y, z) to the file's coordinates; None when the file stores no placement."""
+    space: str = ""
+    """anatomical axis code of the file's coordinates ("LPS", "RAS", ...), "" for plain x, y, z."""
+    metres_per_unit: float | None = None
+    """the unit the file states, None when it states none (then millimetres are assumed)."""
+    rescale: bool = False
+    """min-max normalise floats too (DICOM Hounsfield units are floats that go below zero)."""
+
+
+@dataclass(frozen=True)
+class LoadedVolume:
+    """A file's density grid and its placement."""
+
+    density: np.ndarray
+    """float32 ``[z, y, x]``, validated."""
+    to_world: np.ndarray
+    """4x4 mapping volren's local cube [-1, 1]^3 onto the world [m]; voxel centres land at their file positions."""
+    value_range: tuple[float, float] | None
+    """the file values (e.g. Hounsfield units) that density 0 and 1 stand for, when they were normalised."""
+
+
+def _anatomical_to_world(space: str) -> np.ndarray:
+    """3x3 from an anatomical frame named by three letters (e.g. "RAS": +x Right, +y Anterior, +z Superior)."""
+    to_lps = np.zeros((3, 3))
+    for column, letter in enumerate(space):
+        row, sign = _ANATOMICAL_SIGNS[letter]
+        to_lps[row, column] = sign
+    return _LPS_TO_WORLD @ to_lps
+
+
+def _local_to_index(shape_zyx: tuple[int, ...]) -> np.ndarray:
+    """4x4 from local [-1, 1]^3 to voxel index: local -1 + (i + 0.5) * 2 / n is index i (DESIGN.md voxel centres)."""
+    n = np.array(shape_zyx[::-1], dtype=np.float64)
+    m = np.eye(4)
+    m[:3, :3] = np.diag(n / 2)
+    m[:3, 3] = n / 2 - 0.5
+    return m
+
+
 def _one_line(exc: BaseException) -> str:
     return " ".join(f"{type(exc).__name__}: {exc}".split())
 
 
-def _normalise_integers(data: np.ndarray) -> np.ndarray:
-    """Integers carry no physical density unit: map unsigned by the dtype's max, signed (CT Hounsfield) by min-max."""
+def _normalise(grid: _Grid) -> tuple[np.ndarray, tuple[float, float] | None]:
+    """Integers carry no physical density unit: map unsigned by the dtype's max, signed (CT Hounsfield) and rescaled
+    DICOM values by min-max. Returns the data and the file values that 0 and 1 stand for (None when unchanged)."""
+    data = grid.data
     if data.dtype == np.bool_:
-        return data.astype(np.float32)
-    if not np.issubdtype(data.dtype, np.integer):
-        return data
-    if np.issubdtype(data.dtype, np.unsignedinteger):
+        return data.astype(np.float32), None
+    if not (np.issubdtype(data.dtype, np.integer) or grid.rescale):
+        return data, None
+    if np.issubdtype(data.dtype, np.unsignedinteger) and not grid.rescale:
         out = data.astype(np.float32)
-        out *= np.float32(1.0 / np.iinfo(data.dtype).max)
-        return out
-    lo, hi = (int(v) for v in (data.min(), data.max())) if data.size else (0, 0)
+        top = np.iinfo(data.dtype).max
+        out *= np.float32(1.0 / top)
+        return out, (0.0, float(top))
+    lo, hi = (float(v) for v in (data.min(), data.max())) if data.size else (0.0, 0.0)
     out = data.astype(np.float32)
     out -= np.float32(lo)
     if hi > lo:
         out *= np.float32(1.0 / (hi - lo))
-    return out
+    return out, (lo, hi)
 
 
 def _read_npy(path: Path) -> np.ndarray:
@@ -94,16 +157,33 @@ def _read_raw(path: Path, shape: tuple[int, int, int] | None, dtype: str | None)
     return np.fromfile(path, dtype=dt).reshape(nz, ny, nx)  # x varies fastest on disk
 
 
-def _read_nrrd(path: Path) -> np.ndarray:
+def _read_nrrd(path: Path) -> _Grid:
+    """Placement from ``space directions`` (one row per axis, x first) and ``space origin``, or from ``spacings``."""
     import nrrd  # lazy: only NRRD users pay for the import
 
-    data, _header = nrrd.read(str(path), index_order="C")  # C order: the fastest NRRD axis (x) is last
-    return data
+    data, header = nrrd.read(str(path), index_order="C")  # C order: the fastest NRRD axis (x) is last
+    m = np.eye(4)
+    directions = header.get("space directions")
+    if directions is not None and np.asarray(directions, dtype=float).shape == (3, 3):
+        m[:3, :3] = np.asarray(directions, dtype=float).T
+        m[:3, 3] = np.asarray(header.get("space origin", np.zeros(3)), dtype=float)
+    elif header.get("spacings") is not None and len(header["spacings"]) == 3:
+        m[:3, :3] = np.diag(np.asarray(header["spacings"], dtype=float))
+    else:
+        return _Grid(data)
+    if not np.all(np.isfinite(m)):
+        raise VolrenError(f"{path}: the NRRD space directions / origin / spacings are not finite numbers")
+    space = str(header.get("space", ""))
+    space = _NRRD_SPACES.get(space.lower(), space.upper())
+    units = {str(u).lower() for u in header.get("space units", [])}
+    scale = _FILE_UNITS.get(units.pop()) if len(units) == 1 else None
+    return _Grid(data, m, space if len(space) == 3 and set(space) <= set(_ANATOMICAL_SIGNS) else "", scale)
 
 
-def _read_nifti(path: Path) -> np.ndarray:
-    """NIfTI stores ``[x, y, z]``. Integer voxels are read unscaled (the linear scl_slope/scl_inter does not change
-    the normalised result of signed data); float voxels are read with the scaling applied."""
+def _read_nifti(path: Path) -> _Grid:
+    """NIfTI stores ``[x, y, z]``; its affine (sform, else qform, as nibabel chooses) maps voxel (i, j, k) to RAS+.
+    Integer voxels are read unscaled (the linear scl_slope/scl_inter does not change the normalised result of signed
+    data); float voxels are read with the scaling applied."""
     import nibabel as nib  # lazy: only NIfTI users pay for the import
 
     image = nib.load(str(path))
@@ -117,7 +197,21 @@ def _read_nifti(path: Path) -> np.ndarray:
         raise VolrenError(f"{path}: a 4D NIfTI with {data.shape[3]} volumes; volren needs one 3D volume")
     if data.ndim != 3:
         raise VolrenError(f"{path}: NIfTI data has {data.ndim} dimension(s) {data.shape}; volren needs 3D")
-    return np.ascontiguousarray(data.transpose(2, 1, 0))
+    unit = image.header.get_xyzt_units()[0]
+    return _Grid(np.ascontiguousarray(data.transpose(2, 1, 0)), np.asarray(image.affine, dtype=float), "RAS",
+                 _FILE_UNITS.get(unit))
+
+
+def _read_tiff(path: Path) -> np.ndarray:
+    """A multi-page TIFF stack (microscopy): pages are z, each page [y, x]. Colour or multi-channel stacks are refused:
+    volren renders one scalar channel."""
+    import tifffile  # lazy: only TIFF users pay for the import
+
+    data = tifffile.imread(str(path))
+    if data.ndim != 3:
+        raise VolrenError(f"{path}: TIFF holds an array of shape {data.shape}; volren needs a stack of 2D grey pages "
+                          "[z, y, x]")
+    return data
 
 
 @wp.kernel
@@ -161,7 +255,7 @@ def _read_nvdb(path: Path) -> np.ndarray:
     return out.numpy()
 
 
-_READERS: dict[str, Callable[[Path], np.ndarray]] = {
+_READERS: dict[str, Callable[[Path], np.ndarray | _Grid]] = {
     ".npy": _read_npy,
     ".npz": _read_npz,
     ".nrrd": _read_nrrd,
@@ -169,27 +263,75 @@ _READERS: dict[str, Callable[[Path], np.ndarray]] = {
     ".nii": _read_nifti,
     ".nii.gz": _read_nifti,
     ".nvdb": _read_nvdb,
+    ".tif": _read_tiff,
+    ".tiff": _read_tiff,
 }
 
 
-def load_volume_file(
-    path: str | Path, *, shape: tuple[int, int, int] | None = None, dtype: str | None = None
-) -> np.ndarray:
-    """Read a density grid as validated float32 ``[z, y, x]``.
+def _spacing_placement(shape_zyx: tuple[int, ...], spacing: Sequence[float] | None, metres: float) -> np.ndarray:
+    """index -> world for a format with no stored placement: ``spacing`` (x, y, z) in units of ``metres``, or cubic
+    voxels with the longest side 2 m; centred on the origin either way."""
+    n = np.array(shape_zyx[::-1], dtype=np.float64)
+    step = np.asarray(spacing, dtype=np.float64) * metres if spacing is not None else np.full(3, 2.0 / n.max())
+    m = np.eye(4)
+    m[:3, :3] = np.diag(step)
+    m[:3, 3] = -step * (n - 1) / 2
+    return m
 
-    The format follows the extension: ``.npy``; ``.npz`` (its single array, or the key ``density``); ``.nrrd`` /
-    ``.nhdr`` (pynrrd); ``.nii`` / ``.nii.gz`` (nibabel; stored ``[x, y, z]``, transposed; a 4D file with one
-    volume is accepted); ``.nvdb`` (NanoVDB through Warp: the first grid, which must be float, densely resampled
-    over its active index bounding box). Any other extension (``.raw``, ``.bin``, ``.dat``, ...) is raw binary and
-    needs ``shape = (X, Y, Z)`` (as the CLI's ``--shape X,Y,Z``: x varies fastest in the file) and ``dtype``
-    (a numpy name: ``uint8``, ``uint16``, ``int16``, ``float32``, ``>u2`` for big-endian, ...); ``shape`` and
-    ``dtype`` are refused for self-describing formats.
 
-    Floating-point values are returned unchanged. Integer values have no density unit, so they are normalised to
-    [0, 1]: unsigned by the dtype's maximum (uint8 / 255, uint16 / 65535), signed (CT Hounsfield units) by
-    ``(v - min) / (max - min)`` over the file (all zeros when the file is constant).
+def load_volume(
+    path: str | Path,
+    *,
+    shape: tuple[int, int, int] | None = None,
+    dtype: str | None = None,
+    spacing: Sequence[float] | None = None,
+    units: str | None = None,
+) -> LoadedVolume:
+    """Read a density grid (see ``load_volume_file`` for the formats and value mapping) or a folder holding a DICOM
+    series, and place it in the world.
+
+    Placement: NRRD ``space directions`` / ``space origin`` (or ``spacings``), the NIfTI affine (RAS+), DICOM
+    ImagePositionPatient / ImageOrientationPatient / PixelSpacing and the slice positions (LPS); anatomical frames
+    map to the world as the module docstring says. Units: what the file states (NRRD ``space units``, NIfTI
+    ``xyzt_units``), else millimetres (DICOM is always mm); ``units`` ("m" or "mm") overrides both. Formats that
+    store no placement (``.npy``, ``.npz``, raw, ``.tif``/``.tiff``, ``.nvdb``) take ``spacing`` = voxel size
+    (x, y, z) in ``units`` (default mm), or get cubic voxels with the longest side 2 m; they are centred on the
+    origin. ``spacing`` is refused for formats that store their own.
     """
     path = Path(path)
+    if units is not None and units not in UNITS:
+        raise VolrenError(f"units must be one of {', '.join(UNITS)}, got {units!r} (CLI: --units)")
+    if spacing is not None:
+        step = tuple(float(v) for v in spacing)
+        if len(step) != 3 or not all(np.isfinite(v) and v > 0 for v in step):
+            raise VolrenError(f"spacing must be three positive voxel sizes x,y,z, got {spacing!r} (CLI: --spacing)")
+    if path.is_dir() and path.suffix.lower() not in (*_READERS, *RAW_EXTENSIONS):  # "a.npy/" is a mistake, not DICOM
+        from volren.data.dicom import read_dicom_series  # lazy: pydicom only for DICOM users
+
+        if shape is not None or dtype is not None:
+            raise VolrenError(f"{path}: shape/dtype apply to raw binary files only; a DICOM series stores its own")
+        grid = read_dicom_series(path)
+    else:
+        grid = _read_file(path, shape, dtype)
+    if grid.index_to_file is not None and spacing is not None:
+        raise VolrenError(f"{path}: this file stores its own voxel spacing; --spacing applies to .npy, .npz, raw, "
+                          ".tif and .nvdb")
+    data, value_range = _normalise(grid)
+    density = validate_density(data, f"volume file {path}")
+    if grid.index_to_file is None:
+        index_to_world = _spacing_placement(density.shape, spacing, UNITS[units or "mm"])
+    else:
+        metres = UNITS[units] if units is not None else grid.metres_per_unit or UNITS["mm"]
+        to_world3 = _anatomical_to_world(grid.space) if grid.space else np.eye(3)
+        file_to_world = np.eye(4)
+        file_to_world[:3, :3] = metres * to_world3
+        index_to_world = file_to_world @ grid.index_to_file
+    if abs(np.linalg.det(index_to_world[:3, :3])) < 1e-30:
+        raise VolrenError(f"{path}: the stored voxel axes are degenerate (zero spacing or parallel directions)")
+    return LoadedVolume(density, index_to_world @ _local_to_index(density.shape), value_range)
+
+
+def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None) -> _Grid:
     if not path.exists():
         raise VolrenError(f"{path}: file not found")
     if not path.is_file():
@@ -202,13 +344,35 @@ def load_volume_file(
         raise VolrenError(f"{path}: shape/dtype apply to raw binary files only; this format stores its own")
     if reader is None and suffix not in RAW_EXTENSIONS and shape is None:
         raise VolrenError(
-            f"{path}: unknown extension '{suffix}'; use {', '.join(_READERS)}, "
+            f"{path}: unknown extension '{suffix}'; use {', '.join(_READERS)}, a folder of DICOM files, "
             "or give shape=(X, Y, Z) and dtype to read raw binary (CLI: --shape X,Y,Z --dtype uint8)"
         )
     try:
-        data = reader(path) if reader is not None else _read_raw(path, shape, dtype)
+        grid = reader(path) if reader is not None else _read_raw(path, shape, dtype)
     except VolrenError:
         raise
     except Exception as exc:  # any parser failure on user data means an unreadable or corrupt file
         raise VolrenError(f"{path}: cannot read the file ({_one_line(exc)})") from None
-    return validate_density(_normalise_integers(data), f"volume file {path}")
+    return grid if isinstance(grid, _Grid) else _Grid(grid)
+
+
+def load_volume_file(
+    path: str | Path, *, shape: tuple[int, int, int] | None = None, dtype: str | None = None
+) -> np.ndarray:
+    """Read a density grid as validated float32 ``[z, y, x]`` (``load_volume`` also places it).
+
+    The format follows the extension: ``.npy``; ``.npz`` (its single array, or the key ``density``); ``.nrrd`` /
+    ``.nhdr`` (pynrrd); ``.nii`` / ``.nii.gz`` (nibabel; stored ``[x, y, z]``, transposed; a 4D file with one
+    volume is accepted); ``.tif`` / ``.tiff`` (tifffile: a stack of grey pages, page = z); ``.nvdb`` (NanoVDB through
+    Warp: the first grid, which must be float, densely resampled over its active index bounding box); a folder is a
+    DICOM series (``volren.data.dicom``). Any other extension (``.raw``, ``.bin``, ``.dat``, ...) is raw binary and
+    needs ``shape = (X, Y, Z)`` (as the CLI's ``--shape X,Y,Z``: x varies fastest in the file) and ``dtype``
+    (a numpy name: ``uint8``, ``uint16``, ``int16``, ``float32``, ``>u2`` for big-endian, ...); ``shape`` and
+    ``dtype`` are refused for self-describing formats.
+
+    Floating-point values are returned unchanged. Integer values have no density unit, so they are normalised to
+    [0, 1]: unsigned by the dtype's maximum (uint8 / 255, uint16 / 65535), signed (CT Hounsfield units) by
+    ``(v - min) / (max - min)`` over the file (all zeros when the file is constant); so are a DICOM series' values
+    after RescaleSlope / RescaleIntercept (Hounsfield units).
+    """
+    return load_volume(path, shape=shape, dtype=dtype).density

@@ -1,0 +1,253 @@
+"""Volume files placed in the world: NRRD, NIfTI and DICOM spheres of known radius in physical units land with the
+right size, position and orientation; formats without placement keep their aspect; bad DICOM series are refused."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from volren.data.loaders import load_volume
+from volren.errors import VolrenError
+
+RADIUS_MM = 12.0
+
+
+def sphere(shape_zyx: tuple[int, int, int], index_to_mm) -> np.ndarray:
+    """uint8 grid [z, y, x]: 200 inside a sphere of RADIUS_MM about the origin of the file's space, 0 outside."""
+    k, j, i = np.indices(shape_zyx)
+    p = index_to_mm(np.stack([i, j, k], axis=-1).astype(float))
+    return np.where(np.linalg.norm(p, axis=-1) < RADIUS_MM, 200, 0).astype(np.uint8)
+
+
+def density_at(loaded, world: np.ndarray) -> np.ndarray:
+    """Nearest-voxel density at world points, through the loaded to_world (local -1 + (i + 0.5) * 2 / n = voxel i)."""
+    local = (np.c_[world, np.ones(len(world))] @ np.linalg.inv(loaded.to_world).T)[:, :3]
+    n = np.array(loaded.density.shape[::-1])
+    idx = np.rint((local + 1) * n / 2 - 0.5).astype(int)
+    assert np.all((idx >= 0) & (idx < n)), "probe outside the grid"
+    return loaded.density[idx[:, 2], idx[:, 1], idx[:, 0]]
+
+
+def check_sphere(loaded, centre_world_m: np.ndarray) -> None:
+    """Inside at 0.75 r and outside at 1.25 r along each world axis (both signs) about the expected centre; the
+    boxes of the voxels above half density span 2 r along every world axis to within one voxel step."""
+    r = RADIUS_MM * 1e-3
+    axes = np.vstack([np.eye(3), -np.eye(3)])
+    np.testing.assert_allclose(density_at(loaded, centre_world_m + 0.75 * r * axes), 200 / 255, rtol=1e-6)
+    np.testing.assert_array_equal(density_at(loaded, centre_world_m + 1.25 * r * axes), 0)
+    k, j, i = np.nonzero(loaded.density > 0.5)
+    n = np.array(loaded.density.shape[::-1])
+    local = -1 + (np.stack([i, j, k], axis=-1) + 0.5) * 2 / n
+    world = local @ loaded.to_world[:3, :3].T + loaded.to_world[:3, 3]
+    step = np.abs(loaded.to_world[:3, :3] @ (2 / n))  # one voxel's world extent per axis
+    extent = world.max(axis=0) - world.min(axis=0) + step  # the voxels' boxes, not their centres
+    assert np.all(np.abs(extent - 2 * r) <= step + 1e-9), (extent, step)
+    np.testing.assert_allclose((world.max(axis=0) + world.min(axis=0)) / 2, centre_world_m, atol=1e-9 + step.max())
+
+
+def test_anisotropic_lps_nrrd_sphere(tmp_path: Path) -> None:
+    """NRRD in LPS mm with spacing 0.5 x 1 x 2 mm and an origin off zero: LPS (x, y, z) -> world (x, z, -y) m."""
+    import nrrd
+
+    origin = np.array([-20.0, -18.0, -16.0])  # the sphere sits at LPS (0, 0, 0), off the grid centre
+    spacing = np.array([0.5, 1.0, 2.0])
+    shape = (18, 40, 80)  # z, y, x: 36 x 40 x 40 mm
+    data = sphere(shape, lambda ijk: origin + ijk * spacing)
+    header = {"space": "left-posterior-superior", "space directions": np.diag(spacing), "space origin": origin,
+              "space units": ["mm", "mm", "mm"]}
+    nrrd.write(str(tmp_path / "s.nrrd"), data, header, index_order="C")
+    loaded = load_volume(tmp_path / "s.nrrd")
+    check_sphere(loaded, np.zeros(3))
+    # the voxel axes: x index along world +x at 0.5 mm, y index (Posterior) along world -z, z index (Superior) +y
+    np.testing.assert_allclose(loaded.to_world[:3, :3] @ np.diag(2 / np.array(shape[::-1])),
+                               [[5e-4, 0, 0], [0, 0, 2e-3], [0, -1e-3, 0]], atol=1e-15)
+    np.testing.assert_allclose(density_at(loaded, np.array([[0.0, 0.0, 0.0]])), 200 / 255, rtol=1e-6)
+
+
+def test_nrrd_units_flag_and_stated_metres(tmp_path: Path) -> None:
+    """--units m reads the same file 1000x larger; a file that states metres is read in metres."""
+    import nrrd
+
+    data = np.zeros((4, 4, 4), np.uint8)
+    nrrd.write(str(tmp_path / "a.nrrd"), data, {"space": "RAS", "space directions": np.eye(3) * 2,
+                                                "space origin": np.zeros(3)}, index_order="C")
+    mm = load_volume(tmp_path / "a.nrrd").to_world
+    m = load_volume(tmp_path / "a.nrrd", units="m").to_world
+    np.testing.assert_allclose(m[:3, :3], mm[:3, :3] * 1000)
+    np.testing.assert_allclose(mm[:3, :3], [[-4e-3, 0, 0], [0, 0, 4e-3], [0, 4e-3, 0]])  # RAS -> (-x, z, y)
+    nrrd.write(str(tmp_path / "b.nrrd"), data, {"space": "RAS", "space directions": np.eye(3) * 2,
+                                                "space units": ["m", "m", "m"]}, index_order="C")
+    np.testing.assert_allclose(load_volume(tmp_path / "b.nrrd").to_world[:3, :3], m[:3, :3])
+
+
+def test_nifti_affine_sphere(tmp_path: Path) -> None:
+    """NIfTI with an anisotropic, rotated affine (RAS mm): the sphere at RAS (5, -20, 30) mm lands at world
+    (-5, 30, -20) mm with radius 12 mm."""
+    import nibabel as nib
+
+    c, s = np.cos(0.3), np.sin(0.3)
+    affine = np.eye(4)
+    affine[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ np.diag([0.8, 1.0, 1.5])
+    centre_ras = np.array([5.0, -20.0, 30.0])
+    shape_xyz = (40, 36, 24)
+    affine[:3, 3] = centre_ras - affine[:3, :3] @ (np.array(shape_xyz) - 1) / 2
+    data_zyx = sphere(shape_xyz[::-1], lambda ijk: ijk @ affine[:3, :3].T + affine[:3, 3] - centre_ras)
+    image = nib.Nifti1Image(np.ascontiguousarray(data_zyx.transpose(2, 1, 0)), affine)
+    image.header.set_xyzt_units("mm")
+    nib.save(image, str(tmp_path / "s.nii.gz"))
+    loaded = load_volume(tmp_path / "s.nii.gz")
+    check_sphere(loaded, np.array([-5.0, 30.0, -20.0]) * 1e-3)
+
+
+def write_dicom_series(folder: Path, positions_mm, *, orientation=(1, 0, 0, 0, 1, 0), size=(20, 24),
+                       spacing=(1.5, 1.0), intercept=-1024.0, slope=1.0, radius=RADIUS_MM,
+                       centre=(0.0, 0.0, 0.0)) -> None:
+    """Single-frame CT slices (uint16 stored values; HU = slope * v + intercept): bone (1000 HU) inside a sphere of
+    ``radius`` mm about ``centre`` (LPS), air (-1000 HU) outside. Files are written in shuffled order."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rows, cols = size
+    row_dir, col_dir = np.array(orientation[:3], float), np.array(orientation[3:], float)
+    series = generate_uid()
+    order = np.random.default_rng(1).permutation(len(positions_mm))
+    for n, index in enumerate(order):
+        ipp = np.asarray(positions_mm[index], float)
+        j, i = np.indices((rows, cols))
+        p = ipp + i[..., None] * spacing[1] * row_dir + j[..., None] * spacing[0] * col_dir
+        hu = np.where(np.linalg.norm(p - np.asarray(centre), axis=-1) < radius, 1000.0, -1000.0)
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = CTImageStorage
+        meta.MediaStorageSOPInstanceUID = generate_uid()
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = Dataset()
+        ds.file_meta = meta
+        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, meta.MediaStorageSOPInstanceUID
+        ds.SeriesInstanceUID = series
+        ds.Modality = "CT"
+        ds.Rows, ds.Columns = rows, cols
+        ds.ImagePositionPatient = [f"{v:.6g}" for v in ipp]
+        ds.ImageOrientationPatient = [f"{v:.6g}" for v in orientation]
+        ds.PixelSpacing = [f"{v:.6g}" for v in spacing]
+        ds.RescaleSlope, ds.RescaleIntercept = f"{slope:g}", f"{intercept:g}"
+        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
+        ds.PixelData = np.rint((hu - intercept) / slope).astype("<u2").tobytes()
+        ds.save_as(folder / f"im{n:03d}.dcm", enforce_file_format=True)
+
+
+def test_dicom_series_sphere_sorted_by_position(tmp_path: Path) -> None:
+    """An axial series (2.5 mm slices, 1.5 x 1.0 mm pixels) written in shuffled order: sorted by position, rescaled
+    to Hounsfield units (value_range -1000..1000), the sphere at LPS (3, -4, 20) mm at world (3, 20, 4) mm."""
+    centre = np.array([3.0, -4.0, 20.0])
+    z = 20.0 + 2.5 * np.arange(-7, 8)
+    origin = np.array([3.0 - 16.5, -4.0 - 15.75])  # pixel (0, 0) so that the sphere centre is the grid centre
+    write_dicom_series(tmp_path / "ct", [(origin[0], origin[1], zz) for zz in z], centre=centre, size=(22, 34))
+    loaded = load_volume(tmp_path / "ct")
+    assert loaded.density.shape == (15, 22, 34)
+    assert loaded.value_range == (-1000.0, 1000.0)
+    r = RADIUS_MM * 1e-3
+    world_centre = np.array([3.0, 20.0, 4.0]) * 1e-3
+    axes = np.vstack([np.eye(3), -np.eye(3)])
+    np.testing.assert_array_equal(density_at(loaded, world_centre + 0.75 * r * axes), 1.0)
+    np.testing.assert_array_equal(density_at(loaded, world_centre + 1.25 * r * axes), 0.0)
+    np.testing.assert_allclose(loaded.to_world[:3, :3] @ np.diag(2 / np.array([34, 22, 15])),
+                               [[1e-3, 0, 0], [0, 0, 2.5e-3], [0, -1.5e-3, 0]], atol=1e-15)
+
+
+def test_dicom_sagittal_orientation(tmp_path: Path) -> None:
+    """Sagittal slices (rows along -y... columns along -z: IOP 0,1,0,0,0,-1) stacked along x: the voxel axes map to
+    world through LPS -> (x, z, -y)."""
+    write_dicom_series(tmp_path / "sag", [(x, 0.0, 0.0) for x in (0.0, 2.0, 4.0)],
+                       orientation=(0, 1, 0, 0, 0, -1), size=(4, 5), spacing=(1.0, 1.0))
+    m = load_volume(tmp_path / "sag").to_world[:3, :3] @ np.diag(2 / np.array([5, 4, 3]))
+    # normal = row x column = (0,1,0) x (0,0,-1) = (-1, 0, 0): sorted by -x, so the step runs from x = 4 to x = 0
+    np.testing.assert_allclose(m, [[0, 0, -2e-3], [0, -1e-3, 0], [-1e-3, 0, 0]], atol=1e-15)
+
+
+def test_pydicom_bundled_ct_slice_refused_alone(tmp_path: Path) -> None:
+    """pydicom's bundled CT_small.dcm reads (its values rescale) but one slice is not a volume."""
+    import shutil
+
+    from pydicom.data import get_testdata_file
+
+    path = get_testdata_file("CT_small.dcm")
+    if path is None:
+        pytest.skip("pydicom test data not installed")
+    (tmp_path / "one").mkdir()
+    shutil.copy(path, tmp_path / "one" / "a.dcm")
+    with pytest.raises(VolrenError, match=r"/one: one DICOM slice; a volume needs at least 2$"):
+        load_volume(tmp_path / "one")
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("missing", r"uneven slice spacing: 4 mm between im\d+\.dcm and im\d+\.dcm, 2\.222 mm on average"),
+        ("orientation", r"slices have different orientations"),
+        ("size", r"slices differ in size"),
+        ("duplicate", r"slices im\d+\.dcm and zz\.dcm share a position along the slice normal"),
+        ("empty", r"empty folder; a DICOM series needs its slice files"),
+        ("not-dicom", r"junk\.dcm is not a DICOM file"),
+    ],
+)
+def test_bad_dicom_series_refused(tmp_path: Path, case: str, message: str) -> None:
+    folder = tmp_path / case
+    folder.mkdir()
+    z = [0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20.0]
+    if case == "missing":
+        write_dicom_series(folder, [(0, 0, zz) for zz in z if zz != 10.0], size=(4, 4), radius=1.0)
+    elif case in ("orientation", "size", "duplicate"):
+        write_dicom_series(folder, [(0, 0, zz) for zz in z[:3]], size=(4, 4), radius=1.0)
+        extra = {"orientation": {"orientation": (1, 0, 0, 0, 0.8, 0.6)}, "size": {"size": (4, 5)}}.get(case, {})
+        write_dicom_series(tmp_path / "x", [(0, 0, 2.0)], **{"size": (4, 4), "radius": 1.0, **extra})
+        (tmp_path / "x" / "im000.dcm").rename(folder / "zz.dcm")
+    elif case == "not-dicom":
+        (folder / "junk.dcm").write_bytes(b"\x00" * 200)
+    with pytest.raises(VolrenError, match=rf"^{folder}: {message}"):
+        load_volume(folder)
+
+
+def test_unplaced_formats_keep_their_aspect(tmp_path: Path) -> None:
+    """.npy without --spacing: cubic voxels, longest side 2 m, centred; with spacing 1,1,3 mm: 3x taller voxels
+    along z; a TIFF stack takes spacing the same way; spacing for a placed format is refused."""
+    import tifffile
+
+    a = np.zeros((10, 20, 40), np.float32)  # z, y, x
+    np.save(tmp_path / "a.npy", a)
+    np.testing.assert_allclose(load_volume(tmp_path / "a.npy").to_world[:3, :3], np.diag([1.0, 0.5, 0.25]))
+    m = load_volume(tmp_path / "a.npy", spacing=(1, 1, 3)).to_world
+    np.testing.assert_allclose(m[:3, :3], np.diag([0.02, 0.01, 0.015]))
+    np.testing.assert_allclose(m[:3, 3], 0)
+    tifffile.imwrite(tmp_path / "a.tif", (a + 1).astype(np.uint16))
+    loaded = load_volume(tmp_path / "a.tif", spacing=(0.2, 0.2, 1), units="m")
+    np.testing.assert_allclose(loaded.to_world[:3, :3], np.diag([4.0, 2.0, 5.0]))
+    np.testing.assert_allclose(loaded.density, 1 / 65535, rtol=1e-6)
+    import nrrd
+
+    nrrd.write(str(tmp_path / "p.nrrd"), a, {"spacings": [1.0, 1.0, 3.0]}, index_order="C")
+    with pytest.raises(VolrenError, match=r"p\.nrrd: this file stores its own voxel spacing; --spacing applies"):
+        load_volume(tmp_path / "p.nrrd", spacing=(1, 1, 1))
+    with pytest.raises(VolrenError, match=r"spacing must be three positive voxel sizes x,y,z"):
+        load_volume(tmp_path / "a.npy", spacing=(1, 0, 1))
+    with pytest.raises(VolrenError, match=r"units must be one of m, mm, got 'cm'"):
+        load_volume(tmp_path / "a.npy", units="cm")
+
+
+def test_non_square_spacing_nrrd_keeps_its_aspect(tmp_path: Path) -> None:
+    """A 40 x 40 x 10 grid at 0.5 x 0.5 x 2 mm (plain ``spacings``, no space) is a 20 x 20 x 20 mm cube in the world."""
+    import nrrd
+
+    nrrd.write(str(tmp_path / "c.nrrd"), np.zeros((10, 40, 40), np.float32), {"spacings": [0.5, 0.5, 2.0]},
+               index_order="C")
+    loaded = load_volume(tmp_path / "c.nrrd")
+    extent = np.ptp(np.array([c for c in _corners(loaded.to_world)]), axis=0)
+    np.testing.assert_allclose(extent, [0.02, 0.02, 0.02])
+
+
+def _corners(to_world: np.ndarray) -> np.ndarray:
+    c = np.array([[x, y, z, 1.0] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)])
+    return (c @ to_world.T)[:, :3]
