@@ -578,6 +578,16 @@ def test_bench_dssrm_quick(capfd, tmp_path: Path) -> None:
     assert str(json_path) in r.out and str(md_path) in r.out
 
 
+def test_a_reader_that_leaves_early_gets_no_traceback() -> None:
+    """``volren scenes | head -1``: stdout's reader is gone before volren writes; quiet exit 141 (as SIGPIPE)."""
+    exe = [sys.executable, "-c", "import sys; from volren.cli import main; sys.exit(main(['scenes']))"]
+    proc = subprocess.Popen(exe, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # long before volren has imported and written
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141
+    assert err == ""
+
+
 def test_help_exits_zero(capfd) -> None:
     try:
         code = main(["--help"])
@@ -661,6 +671,15 @@ BAD_RENDER_ARGS = {
     "background-nan": (["--background", "nan"], ["background"]),
     "shape-two-numbers": (["--shape", "5,4"], ["--shape", "5,4"]),
     "unknown-option": (["--bogus-option"], ["unrecognized arguments", "--bogus-option"]),
+    # issue 13 item 10: every message names the flag and what is wrong
+    "unknown-scene-lists-all": (["--scene", "tornado"], ["--scene: unknown scene 'tornado': choose from smoke, cloud, "
+                                                         "phantom, multi, hall, courtyard, dynamic"]),
+    "mesh-scale-0": (["--mesh-scale", "0"], ["--mesh-scale must be a positive number, got 0"]),
+    "mesh-scale-negative": (["--mesh-scale", "-2"], ["--mesh-scale must be a positive number, got -2"]),
+    "rig-with-stereo": (["--rig", "wander", "--views", "stereo"], ["--rig wander places N viewers, not --views "
+                                                                   "stereo"]),
+    "rig-with-default-views": (["--rig", "arc"], ["--rig arc", "--views stereo"]),
+    "overlap-without-rig": (["--views", "3", "--overlap", "0.2"], ["--overlap needs --rig overlap"]),
 }
 
 
@@ -773,7 +792,8 @@ BAD_VOLUMES: dict[str, tuple[str, Callable[[Path], object], list[str], list[str]
     "garbage-nii": ("bad.nii", lambda p: p.write_bytes(GARBAGE), [], ["cannot read"]),
     "garbage-nii-gz": ("bad.nii.gz", lambda p: p.write_bytes(GARBAGE), [], ["cannot read"]),
     "garbage-nvdb": ("bad.nvdb", lambda p: p.write_bytes(GARBAGE), [], ["nanovdb"]),
-    "empty-file-npy": ("empty.npy", lambda p: p.write_bytes(b""), [], ["not a .npy file"]),
+    "empty-file-npy": ("empty.npy", lambda p: p.write_bytes(b""), [], ["the file is empty"]),
+    "empty-file-nrrd": ("empty.nrrd", lambda p: p.write_bytes(b""), [], ["the file is empty"]),
     "unknown-extension": ("vol.txt", lambda p: p.write_text("hi"), [], ["unknown extension", "--shape"]),
     "raw-no-shape": ("vol.raw", _raw, [], ["shape"]),
     "raw-no-dtype": ("vol.raw", _raw, ["--shape", "5,4,3"], ["dtype"]),
@@ -985,6 +1005,9 @@ def test_mesh_option(capfd, tmp_path: Path) -> None:
     render(capfd, out, "--views", "mono", "--mesh", path, "--mesh-translate", "0,0,2", "--save-linear")
     assert np.load(out / "view0.npy")[H // 2, W // 2, 3] == 1.0  # the box in front is opaque
     render_error(capfd, tmp_path, ["--mesh", tmp_path / "missing.obj"], "mesh file not found")
+    (tmp_path / "random.obj").write_bytes(bytes(range(256)) * 4)
+    render_error(capfd, tmp_path, ["--mesh", tmp_path / "random.obj"], "random.obj: not a text .obj mesh (byte 128 "
+                 "is not UTF-8 text)")
 
 
 FOG = ("--method", "fog", "--width", "32", "--height", "18", "--slices", "16", "--device", "cpu")

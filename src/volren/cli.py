@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import math
 import os
 import re
+import signal
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -100,9 +102,14 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     src = p.add_argument_group("data")
     if not demo:
         src.add_argument("--scene", default=None, help=f"built-in scene (default {DEFAULT_SCENE}; see `volren scenes`)")
-        src.add_argument("--volume", type=Path, help="density file: .npy .npz .nrrd .nhdr .nii(.gz) .nvdb or raw")
+        src.add_argument("--volume", type=Path, help="density file: .npy .npz .nrrd .nhdr .nii(.gz) .tif(f) .nvdb or "
+                         "raw, or a folder of DICOM slices; placed where the file says (mm unless it states metres)")
         src.add_argument("--shape", type=ints3, help="raw files: voxels X,Y,Z (x varies fastest in the file)")
         src.add_argument("--dtype", help="raw files: uint8, uint16, int16, float32, ...")
+        src.add_argument("--spacing", type=vec3, help="voxel size x,y,z in --units for files that store none (.npy "
+                         ".npz raw .tif .nvdb; default: cubic voxels, longest side 2 m)")
+        src.add_argument("--units", choices=("m", "mm"), help="unit of the file's coordinates and --spacing "
+                         "(default: what the file states, else mm)")
     src.add_argument("--resolution", type=int, default=128 if demo else 64, help="built-in scenes: voxels per axis")
     src.add_argument("--count", type=int, default=16, help="scene 'multi': 4, 16 or 36 instances")
     mat = p.add_argument_group("material and light (override the scene's)")
@@ -140,10 +147,10 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     cam.add_argument("--near", type=float, default=0.01, help="[m]")
     cam.add_argument("--far", type=float, default=1000.0, help="[m]")
     cam.add_argument("--views", default="stereo", help="mono, stereo, or N viewers (placed by --rig)")
-    cam.add_argument("--rig", choices=("arc", "wander", "overlap"), default="arc", help="N viewers: on an arc "
+    cam.add_argument("--rig", choices=("arc", "wander", "overlap"), help="N viewers (default arc): on an arc "
                      "around --look-at, wandering the scene's area (moving with --frames), or yawed copies of one "
                      "camera whose neighbours share --overlap of the field of view")
-    cam.add_argument("--overlap", type=float, default=0.5, help="--rig overlap: shared fraction in [0, 1]")
+    cam.add_argument("--overlap", type=float, help="--rig overlap: shared fraction in [0, 1] (default 0.5)")
     cam.add_argument("--ipd", type=float, default=0.063, help="stereo eye distance [m]")
     r = p.add_argument_group("method")
     if not demo:
@@ -230,19 +237,21 @@ def build_parser() -> argparse.ArgumentParser:
 def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     """The scene the arguments ask for: a built-in (a fog scene at ``time`` [s]) or a volume file, with material and
     light overrides."""
-    from volren.data import builtin_scene, load_mesh_file, load_volume_file
+    from volren.data import BUILTIN_SCENES, builtin_scene, load_mesh_file
     from volren.data.fog_scenes import FOG_SCENES, fog_scene
     from volren.scene import DirectionalLight, Environment, Plane, Scene, Sphere, Volume
 
     if getattr(args, "volume", None) is not None:
         if args.scene is not None:
             raise CliError("give either --scene or --volume, not both")
-        density = load_volume_file(args.volume, shape=args.shape, dtype=args.dtype)
-        scene = Scene((Volume(density, name=args.volume.name),), name=args.volume.stem)
+        loaded = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units)
+        scene = Scene((Volume(loaded.density, loaded.to_world, name=args.volume.name),), name=args.volume.stem)
     elif getattr(args, "scene", None) in FOG_SCENES:
         scene = fog_scene(args.scene, time)
     else:
         name = getattr(args, "scene", None)
+        if name is not None and name not in BUILTIN_SCENES:
+            raise CliError(f"--scene: unknown scene '{name}': choose from {', '.join([*BUILTIN_SCENES, *FOG_SCENES])}")
         scene = builtin_scene(DEFAULT_SCENE if name is None else name, args.resolution, count=args.count,
                               seed=args.seed)
     names = ("density_scale", "albedo", "g", "emission")
@@ -264,6 +273,8 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     lights += [rect_light(*r) for r in args.rect_light]
     if args.ambient is not None and args.environment is not None:
         raise CliError("give either --ambient or --environment, not both")
+    if not (math.isfinite(args.mesh_scale) and args.mesh_scale > 0):
+        raise CliError(f"--mesh-scale must be a positive number, got {args.mesh_scale:g}")
     opaque = list(scene.opaque) + [Sphere(tuple(s[:3]), s[3]) for s in args.sphere]
     opaque += [load_mesh_file(m, scale=args.mesh_scale, translate=args.mesh_translate) for m in args.mesh]
     if args.ground is not None:
@@ -305,11 +316,42 @@ def rect_light(x: float, y: float, z: float, width: float, height: float, radian
     return RectLight(tuple(position), tuple(0.5 * width * u), tuple(0.5 * height * v), (radiance,) * 3)
 
 
+def _load_volume(path: Path, shape, dtype, spacing, units):
+    """``--volume`` read once: the scene and the default camera framing both need it (keyed on the file's mtime too,
+    so a rewritten file is read again)."""
+    stamp = path.stat().st_mtime_ns if path.exists() else None
+    return _load_volume_cached(path, stamp, shape, dtype, spacing, units)
+
+
+@functools.lru_cache(maxsize=1)
+def _load_volume_cached(path: Path, _stamp, shape, dtype, spacing, units):
+    from volren.data.loaders import load_volume
+
+    return load_volume(path, shape=shape, dtype=dtype, spacing=spacing, units=units)
+
+
+def framing_distance(corners, look_at, direction, up, fov_y: float, aspect: float) -> float:
+    """Distance from ``look_at`` along the unit ``direction`` (towards the eye) at which every corner lies inside the
+    view: a corner at (x, y) across and z towards the eye needs D >= z + |x| / tan(fov_x / 2) and likewise in y.
+    Ten percent of margin."""
+    import numpy as np
+
+    d = np.asarray(direction, dtype=float)
+    right = np.cross(-d, up)
+    right /= np.linalg.norm(right)
+    true_up = np.cross(right, -d)
+    rel = np.asarray(corners, dtype=float) - np.asarray(look_at, dtype=float)
+    tan_y = math.tan(math.radians(fov_y) / 2)
+    need = rel @ d + np.maximum(np.abs(rel @ right) / (tan_y * aspect), np.abs(rel @ true_up) / tan_y)
+    return 1.1 * float(need.max())
+
+
 def views_from_args(args: argparse.Namespace, time: float = 0.0):
     """The viewers: one camera from the arguments (a fog scene's own viewpoint by default), made into mono, stereo
     or N views by ``--rig``; in a fog scene the arc and the wandering viewers keep to its walkable space (the arc
     only when the camera stands in it), elsewhere viewers wander 3 m around the look-at point; wandering viewers are
-    placed for ``time`` [s]."""
+    placed for ``time`` [s]. A volume file is framed: the camera looks at its world box's centre from the default
+    direction (0, 0.4, 3.2), far enough that the whole box is in view."""
     from volren.camera import Camera, make_views
     from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera, fog_scene_walk_area
     from volren.viewers import WalkArea, arc_viewers, overlap_viewers, wandering_viewers
@@ -319,15 +361,28 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
     if fog_scene:
         default = fog_scene_camera(args.scene)
         position, look_at = default["position"], default["look_at"]
+    elif getattr(args, "volume", None) is not None and args.camera_pos is None:
+        import numpy as np
+
+        corners = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units).corners_world
+        look_at = tuple(args.look_at or (corners.min(axis=0) + corners.max(axis=0)) / 2)
+        direction = np.array(position) / np.linalg.norm(position)
+        distance = framing_distance(corners, look_at, direction, args.up, args.fov, args.width / max(args.height, 1))
+        position = tuple(np.array(look_at) + distance * direction)
     cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
                  width=args.width, height=args.height, near=args.near, far=args.far)
+    if args.overlap is not None and args.rig != "overlap":
+        raise CliError("--overlap needs --rig overlap and --views N")
     if args.views in ("mono", "stereo"):
+        if args.rig is not None:
+            raise CliError(f"--rig {args.rig} places N viewers, not --views {args.views}: give --views N")
         return make_views(cam, args.views, args.ipd)
     count = len(make_views(cam, args.views))  # validates N
-    if args.rig == "overlap":
-        return overlap_viewers(cam, count, args.overlap)
+    rig = args.rig or "arc"
+    if rig == "overlap":
+        return overlap_viewers(cam, count, 0.5 if args.overlap is None else args.overlap)
     area = fog_scene_walk_area(args.scene) if fog_scene else None
-    if args.rig == "arc":
+    if rig == "arc":
         return arc_viewers(cam, count, area)
     if area is None:
         x, y, z = cam.look_at
@@ -530,20 +585,30 @@ def run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_command(args: argparse.Namespace, command: str) -> int:
+    if args.command == "demo":
+        return run_render(args, "dssrm", command)
+    if args.command in ("render", "animate"):
+        return run_render(args, args.method, command)
+    if args.command == "scenes":
+        return run_scenes()
+    if args.command == "compare":
+        return run_compare(args)
+    return run_bench(args)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = " ".join(["volren", *argv])
     try:
-        args = build_parser().parse_args(argv)
-        if args.command == "demo":
-            return run_render(args, "dssrm", command)
-        if args.command in ("render", "animate"):
-            return run_render(args, args.method, command)
-        if args.command == "scenes":
-            return run_scenes()
-        if args.command == "compare":
-            return run_compare(args)
-        return run_bench(args)
+        code = run_command(build_parser().parse_args(argv), command)
+        sys.stdout.flush()  # a reader that left shows here, not in Python's exit-time flush
+        return code
+    except BrokenPipeError:
+        # `volren scenes | head -1`: the reader has all it wanted. Stop quietly with the status SIGPIPE would give,
+        # and point stdout at /dev/null so the exit-time flush has nowhere to fail.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
     except VolrenError as exc:
         print(f"volren: error: {exc}", file=sys.stderr)
         return 2

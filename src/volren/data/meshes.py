@@ -24,6 +24,11 @@ def load_mesh_file(
     path = Path(path)
     if not path.is_file():
         raise VolrenError(f"{path}: mesh file not found")
+    if path.suffix.lower() in TEXT_SUFFIXES:
+        try:
+            path.read_bytes().decode("utf-8")
+        except UnicodeDecodeError as exc:  # trimesh would go on to guess an encoding and fail obscurely
+            raise VolrenError(f"{path}: not a text {path.suffix} mesh (byte {exc.start} is not UTF-8 text)") from None
     try:
         vertices, faces = read_usd(path) if path.suffix.lower() in USD_SUFFIXES else read_trimesh(path)
     except VolrenError:
@@ -38,6 +43,8 @@ def load_mesh_file(
 
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+TEXT_SUFFIXES = (".obj", ".off")
+"""Mesh formats that are text only (PLY and STL have binary forms, glTF is JSON)."""
 
 
 def read_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
