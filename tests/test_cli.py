@@ -319,7 +319,14 @@ def write_volume(path: Path, a: np.ndarray) -> None:
     elif name.endswith((".nrrd", ".nhdr")):
         nrrd.write(str(path), np.asfortranarray(xyz), index_order="F")
     elif name.endswith((".nii", ".nii.gz")):
-        nib.save(nib.Nifti1Image(xyz, np.eye(4)), path)
+        # placed as a .npy is (cubic voxels, longest side 2 m, centred): RAS -x, S, A are world x, y, z
+        n = np.array(xyz.shape, dtype=float)
+        affine = np.eye(4)
+        affine[:3, :3] = 2.0 / n.max() * np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+        affine[:3, 3] = -affine[:3, :3] @ (n - 1) / 2
+        image = nib.Nifti1Image(xyz, affine)
+        image.header.set_xyzt_units("meter")
+        nib.save(image, path)
     elif name.endswith(".nvdb"):
         init_warp()
         wp.Volume.load_from_numpy(xyz, bg_value=0.0, device=DEVICE).save_to_nvdb(str(path))
@@ -578,6 +585,28 @@ def test_bench_dssrm_quick(capfd, tmp_path: Path) -> None:
     assert str(json_path) in r.out and str(md_path) in r.out
 
 
+def test_memory_estimate_closed_form() -> None:
+    """Device buffers 40 B/px, 20 B/px host copies per frame, cube maps 6 S0^2 x 24 B per view and volume, three
+    fog froxel grids of ceil(W/tile) ceil(H/tile) (slices + 1) x 16 B per view."""
+    from volren.cli import build_parser, estimate_memory, scene_from_args, views_from_args
+
+    def estimate(*argv: str) -> int:
+        args = build_parser().parse_args(["render", *TINY, *argv])
+        return estimate_memory(args, scene_from_args(args), views_from_args(args), args.method)
+
+    assert estimate("--frames", "3") == 2 * W * H * (40 + 3 * 20)  # stereo
+    assert estimate("--views", "mono", "--method", "cmsrm", "--cube-size", "10") == W * H * 60 + 6 * 10**2 * 24
+    assert (estimate("--views", "3", "--rig", "arc", "--method", "fog", "--slices", "4", "--froxel-size", "5")
+            == 3 * W * H * 60 + 3 * 3 * (5 * 4 * 5) * 16)  # ceil(24 / 5) = 5, ceil(16 / 5) = 4
+
+
+def test_a_render_that_cannot_fit_is_refused_with_the_figure_before_work(capfd, tmp_path: Path) -> None:
+    """1024 views of 640x360 for 1000 frames: 1024 x 230400 px x (40 + 20 x 1000) B, on no machine's free memory."""
+    need = 1024 * 640 * 360 * (40 + 20 * 1000) / 2**30
+    render_error(capfd, tmp_path, ["--views", "1024", "--width", "640", "--height", "360", "--frames", "1000"],
+                 f"1024 view(s) of 640x360 for 1000 frame(s) with dssrm needs {need:.1f} GiB but only")
+
+
 def test_a_reader_that_leaves_early_gets_no_traceback() -> None:
     """``volren scenes | head -1``: stdout's reader is gone before volren writes; quiet exit 141 (as SIGPIPE)."""
     exe = [sys.executable, "-c", "import sys; from volren.cli import main; sys.exit(main(['scenes']))"]
@@ -622,9 +651,10 @@ def test_console_script(tmp_path: Path) -> None:
 
 
 BAD_RENDER_ARGS = {
-    "width-0": (["--width", "0"], ["image size", "0x16"]),
-    "height-negative": (["--height", "-5"], ["image size", "24x-5"]),
-    "image-too-large": (["--width", "100000", "--height", "100000"], ["too large"]),
+    "width-0": (["--width", "0"], ["--width must lie in [1, 16384] pixels, got 0"]),
+    "height-negative": (["--height", "-5"], ["--height must lie in [1, 16384] pixels, got -5"]),
+    "image-too-large": (["--width", "100000", "--height", "100000"], ["--width must lie in [1, 16384] pixels"]),
+    "height-too-large": (["--height", "16385"], ["--height must lie in [1, 16384] pixels, got 16385"]),
     "width-not-int": (["--width", "1e3"], ["--width", "1e3"]),
     "up-parallel": (["--camera-pos", "0,3,0", "--look-at", "0,0,0", "--up", "0,1,0"], ["parallel"]),
     "up-zero": (["--up", "0,0,0"], ["up"]),
@@ -785,7 +815,8 @@ def _raw(p: Path) -> None:
 BAD_VOLUMES: dict[str, tuple[str, Callable[[Path], object], list[str], list[str]]] = {
     # case: (file name, writer, extra args, fragments)
     "missing": ("missing.npy", lambda p: None, [], ["not found"]),
-    "directory": ("adir", lambda p: p.mkdir(), [], ["not a regular file"]),
+    "directory": ("adir.npy", lambda p: p.mkdir(), [], ["not a regular file"]),
+    "empty-folder": ("adir", lambda p: p.mkdir(), [], ["adir: empty folder; a DICOM series needs its slice files"]),
     "garbage-npy": ("bad.npy", lambda p: p.write_bytes(GARBAGE), [], ["not a .npy file"]),
     "garbage-npz": ("bad.npz", lambda p: p.write_bytes(GARBAGE), [], ["cannot read"]),
     "garbage-nrrd": ("bad.nrrd", lambda p: p.write_bytes(GARBAGE), [], ["cannot read"]),

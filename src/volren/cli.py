@@ -24,6 +24,15 @@ from volren.imageio import TONEMAPS
 MAX_EXPOSURE = 64.0
 """[stops] beyond this every pixel is black or white, and 2**exposure overflows soon after."""
 
+MAX_IMAGE_SIDE = 16384
+"""[px] --width and --height: beyond any display, and a typo for a smaller number far more often than meant."""
+HOST_BYTES_PER_PIXEL = 20
+"""Each finished frame's host copies, kept until stats.json is written: float32 RGBA and depth."""
+CUBE_TEXEL_BYTES = 24
+"""cmsrm/cacrm cube-map texel: premultiplied RGB and transmittance, t_half, z_end (float32 each)."""
+FROXEL_BYTES = 16
+"""fog froxel: one vec4 in each of the lighting, history and integrated grids."""
+
 DEFAULT_SCENE = "smoke"
 ANIMATION_FPS = 30.0
 """frames per second of scene time for animated scenes rendered with --frames"""
@@ -142,8 +151,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     cam.add_argument("--look-at", type=vec3, help="x,y,z (default 0,0,0; fog scenes: their own)")
     cam.add_argument("--up", type=vec3, default=(0.0, 1.0, 0.0), help="x,y,z")
     cam.add_argument("--fov", type=float, default=45.0, help="vertical field of view [degrees]")
-    cam.add_argument("--width", type=int, default=640)
-    cam.add_argument("--height", type=int, default=360)
+    cam.add_argument("--width", type=int, default=640, help=f"[px] in [1, {MAX_IMAGE_SIDE}]")
+    cam.add_argument("--height", type=int, default=360, help=f"[px] in [1, {MAX_IMAGE_SIDE}]")
     cam.add_argument("--near", type=float, default=0.01, help="[m]")
     cam.add_argument("--far", type=float, default=1000.0, help="[m]")
     cam.add_argument("--views", default="stereo", help="mono, stereo, or N viewers (placed by --rig)")
@@ -492,6 +501,21 @@ def sequence_from_args(args: argparse.Namespace):
                     switch_transfer=switch_tf, fps=args.fps)
 
 
+def estimate_memory(args: argparse.Namespace, scene, views, method: str) -> int:
+    """[bytes] the render's large buffers, all at once: every view's device image buffers (as the renderer counts
+    them), every frame's host copies, cmsrm/cacrm cube maps of every view and volume, fog's three froxel grids."""
+    pixels = sum(v.width * v.height for v in views)
+    total = pixels * (40 + HOST_BYTES_PER_PIXEL * args.frames)
+    if method in ("cmsrm", "cacrm"):
+        sizes = [args.cube_size or max(vol.density.shape) for vol in scene.volumes]
+        total += len(views) * sum(6 * size**2 for size in sizes) * CUBE_TEXEL_BYTES
+    if method == "fog":
+        tile, slices = args.froxel_size or 8, args.slices or 128
+        froxels = sum(-(-v.width // tile) * -(-v.height // tile) for v in views) * (slices + 1)
+        total += 3 * froxels * FROXEL_BYTES
+    return total
+
+
 def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     from volren.animate import frame_config, frame_scene, frame_views, write_mp4
     from volren.imageio import composite, to_srgb8
@@ -499,6 +523,9 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
 
     if args.frames < 1:
         raise CliError(f"--frames must be >= 1, got {args.frames}")
+    for flag, side in (("--width", args.width), ("--height", args.height)):
+        if not 1 <= side <= MAX_IMAGE_SIDE:
+            raise CliError(f"{flag} must lie in [1, {MAX_IMAGE_SIDE}] pixels, got {side}")
     if not (math.isfinite(args.exposure) and abs(args.exposure) <= MAX_EXPOSURE):
         raise CliError(f"--exposure must be a number of stops in [-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
     from volren.data.fog_scenes import ANIMATED_FOG_SCENES
@@ -509,6 +536,10 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     views = views_from_args(args)
     occluder_depth = depth_images_from_args(args, len(views))
     renderer = renderer_from_args(args, method)
+    from volren.device import check_allocation
+
+    check_allocation(estimate_memory(args, scene, views, method), renderer.device,
+                     f"{len(views)} view(s) of {args.width}x{args.height} for {args.frames} frame(s) with {method}")
     sequence = sequence_from_args(args)
     if sequence is not None:
         frame_config(sequence, renderer.config, sequence.frames - 1)  # refuse a switch the method cannot take
