@@ -251,3 +251,41 @@ def test_non_square_spacing_nrrd_keeps_its_aspect(tmp_path: Path) -> None:
 def _corners(to_world: np.ndarray) -> np.ndarray:
     c = np.array([[x, y, z, 1.0] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)])
     return (c @ to_world.T)[:, :3]
+
+
+def test_framing_distance_closed_form() -> None:
+    """Cube [-1, 1]^3 seen along +z with a 90 degree square view: the near corners (z = 1, |x| = |y| = 1) need
+    D = 1 + 1 / tan(45 deg) = 2, times the 10 % margin; a 2:1 image halves the x term; a stereo eye offset adds to x."""
+    from volren.cli import framing_distance
+
+    corners = _corners(np.eye(4))
+    args = (corners, (0, 0, 0), np.array([0.0, 0.0, 1.0]), (0, 1, 0), 90.0)
+    assert framing_distance(*args, 1.0) == pytest.approx(2.2)
+    assert framing_distance(*args, 2.0) == pytest.approx(2.2)  # y now decides: 1 + 1 / 1
+    assert framing_distance(*args, 1.0, eye_offset=0.5) == pytest.approx(1.1 * 2.5)
+    assert framing_distance(corners * 3 + 7, (7, 7, 7), *args[2:], 1.0) == pytest.approx(6.6)
+
+
+def test_cli_frames_an_anisotropic_sphere_round_and_centred(tmp_path: Path) -> None:
+    """An NRRD sphere (r = 12 mm) at 0.5 x 1 x 2 mm voxels, its centre far from the origin, rendered with the default
+    camera: the silhouette sits in the middle of the frame and is round (a grid squashed into a cube would show an
+    ellipse of axis ratio 2 here)."""
+    import nrrd
+
+    from volren.cli import main
+
+    spacing = np.array([0.5, 1.0, 2.0])
+    shape = (16, 30, 60)  # z, y, x: 32 x 30 x 30 mm
+    origin = np.array([400.0, 300.0, -900.0]) - spacing * (np.array(shape[::-1]) - 1) / 2
+    data = sphere(shape, lambda ijk: origin + ijk * spacing - [400.0, 300.0, -900.0])
+    nrrd.write(str(tmp_path / "s.nrrd"), data, {"space": "LPS", "space directions": np.diag(spacing),
+                                                "space origin": origin}, index_order="C")
+    out = tmp_path / "out"
+    assert main(["render", "--volume", str(tmp_path / "s.nrrd"), "--views", "mono", "--width", "48", "--height", "48",
+                 "--density-scale", "2000", "--samples", "64", "--light-grid", "16", "--device", "cpu",
+                 "--save-linear", "--out", str(out)]) == 0
+    alpha = np.load(out / "view0.npy")[..., 3]
+    rows, cols = np.nonzero(alpha > 0.5)
+    assert 8 <= cols.max() - cols.min() + 1 <= 40
+    assert abs((cols.max() - cols.min()) - (rows.max() - rows.min())) <= 2
+    assert abs((cols.max() + cols.min()) / 2 - 23.5) <= 1.5 and abs((rows.max() + rows.min()) / 2 - 23.5) <= 1.5

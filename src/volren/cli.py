@@ -339,19 +339,22 @@ def _load_volume_cached(path: Path, _stamp, shape, dtype, spacing, units):
     return load_volume(path, shape=shape, dtype=dtype, spacing=spacing, units=units)
 
 
-def framing_distance(corners, look_at, direction, up, fov_y: float, aspect: float) -> float:
+def framing_distance(corners, look_at, direction, up, fov_y: float, aspect: float, eye_offset: float = 0.0) -> float:
     """Distance from ``look_at`` along the unit ``direction`` (towards the eye) at which every corner lies inside the
-    view: a corner at (x, y) across and z towards the eye needs D >= z + |x| / tan(fov_x / 2) and likewise in y.
-    Ten percent of margin."""
+    view: a corner at (x, y) across and z towards the eye needs D >= z + |x| / tan(fov_x / 2) and likewise in y;
+    ``eye_offset`` widens x for eyes shifted sideways (stereo: ipd / 2). Ten percent of margin."""
     import numpy as np
 
     d = np.asarray(direction, dtype=float)
     right = np.cross(-d, up)
+    if np.linalg.norm(right) < 1e-9:  # --up along the view: Camera refuses it next; any frame will do here
+        right = np.cross(-d, np.eye(3)[np.argmin(np.abs(d))])
     right /= np.linalg.norm(right)
     true_up = np.cross(right, -d)
     rel = np.asarray(corners, dtype=float) - np.asarray(look_at, dtype=float)
     tan_y = math.tan(math.radians(fov_y) / 2)
-    need = rel @ d + np.maximum(np.abs(rel @ right) / (tan_y * aspect), np.abs(rel @ true_up) / tan_y)
+    across = np.abs(rel @ right) + eye_offset
+    need = rel @ d + np.maximum(across / (tan_y * aspect), np.abs(rel @ true_up) / tan_y)
     return 1.1 * float(need.max())
 
 
@@ -376,7 +379,8 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
         corners = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units).corners_world
         look_at = tuple(args.look_at or (corners.min(axis=0) + corners.max(axis=0)) / 2)
         direction = np.array(position) / np.linalg.norm(position)
-        distance = framing_distance(corners, look_at, direction, args.up, args.fov, args.width / max(args.height, 1))
+        distance = framing_distance(corners, look_at, direction, args.up, args.fov, args.width / max(args.height, 1),
+                                    args.ipd / 2 if args.views == "stereo" else 0.0)
         position = tuple(np.array(look_at) + distance * direction)
     cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
                  width=args.width, height=args.height, near=args.near, far=args.far)

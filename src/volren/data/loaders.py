@@ -64,6 +64,12 @@ class LoadedVolume:
     value_range: tuple[float, float] | None
     """the file values (e.g. Hounsfield units) that density 0 and 1 stand for, when they were normalised."""
 
+    @property
+    def corners_world(self) -> np.ndarray:
+        """The 8 corners of the grid's box in the world [m], ``(8, 3)``."""
+        c = np.array([[x, y, z, 1.0] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)])
+        return (c @ self.to_world.T)[:, :3]
+
 
 def _anatomical_to_world(space: str) -> np.ndarray:
     """3x3 from an anatomical frame named by three letters (e.g. "RAS": +x Right, +y Anterior, +z Superior)."""
