@@ -64,6 +64,9 @@ def test_anisotropic_lps_nrrd_sphere(tmp_path: Path) -> None:
     np.testing.assert_allclose(loaded.to_world[:3, :3] @ np.diag(2 / np.array(shape[::-1])),
                                [[5e-4, 0, 0], [0, 0, 2e-3], [0, -1e-3, 0]], atol=1e-15)
     np.testing.assert_allclose(density_at(loaded, np.array([[0.0, 0.0, 0.0]])), 200 / 255, rtol=1e-6)
+    # voxel (0, 0, 0) sits at local -1 + 1 / n and lands exactly on the space origin: LPS (-20, -18, -16) mm
+    first = loaded.to_world @ np.r_[-1 + 1 / np.array(shape[::-1]), 1.0]
+    np.testing.assert_allclose(first[:3], np.array([-20.0, -16.0, 18.0]) * 1e-3, atol=1e-15)
 
 
 def test_nrrd_units_flag_and_stated_metres(tmp_path: Path) -> None:
