@@ -106,16 +106,17 @@ def test_nifti_affine_sphere(tmp_path: Path) -> None:
 
 def write_dicom_series(folder: Path, positions_mm, *, orientation=(1, 0, 0, 0, 1, 0), size=(20, 24),
                        spacing=(1.5, 1.0), intercept=-1024.0, slope=1.0, radius=RADIUS_MM,
-                       centre=(0.0, 0.0, 0.0)) -> None:
+                       centre=(0.0, 0.0, 0.0), series: str | None = None) -> None:
     """Single-frame CT slices (uint16 stored values; HU = slope * v + intercept): bone (1000 HU) inside a sphere of
-    ``radius`` mm about ``centre`` (LPS), air (-1000 HU) outside. Files are written in shuffled order."""
+    ``radius`` mm about ``centre`` (LPS), air (-1000 HU) outside, all in ``series`` (a new SeriesInstanceUID by
+    default). Files are written in shuffled order."""
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
     folder.mkdir(parents=True, exist_ok=True)
     rows, cols = size
     row_dir, col_dir = np.array(orientation[:3], float), np.array(orientation[3:], float)
-    series = generate_uid()
+    series = series or generate_uid()
     order = np.random.default_rng(1).permutation(len(positions_mm))
     for n, index in enumerate(order):
         ipp = np.asarray(positions_mm[index], float)
@@ -195,6 +196,7 @@ def test_pydicom_bundled_ct_slice_refused_alone(tmp_path: Path) -> None:
         ("duplicate", r"slices im\d+\.dcm and zz\.dcm share a position along the slice normal"),
         ("empty", r"empty folder; a DICOM series needs its slice files"),
         ("not-dicom", r"junk\.dcm is not a DICOM file"),
+        ("two-series", r"holds 2 DICOM series \(first files im\d+\.dcm, zz\.dcm\); put each series in its own folder"),
     ],
 )
 def test_bad_dicom_series_refused(tmp_path: Path, case: str, message: str) -> None:
@@ -203,10 +205,11 @@ def test_bad_dicom_series_refused(tmp_path: Path, case: str, message: str) -> No
     z = [0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20.0]
     if case == "missing":
         write_dicom_series(folder, [(0, 0, zz) for zz in z if zz != 10.0], size=(4, 4), radius=1.0)
-    elif case in ("orientation", "size", "duplicate"):
-        write_dicom_series(folder, [(0, 0, zz) for zz in z[:3]], size=(4, 4), radius=1.0)
-        extra = {"orientation": {"orientation": (1, 0, 0, 0, 0.8, 0.6)}, "size": {"size": (4, 5)}}.get(case, {})
-        write_dicom_series(tmp_path / "x", [(0, 0, 2.0)], **{"size": (4, 4), "radius": 1.0, **extra})
+    elif case in ("orientation", "size", "duplicate", "two-series"):
+        write_dicom_series(folder, [(0, 0, zz) for zz in z[:3]], size=(4, 4), radius=1.0, series="1.2.3")
+        extra = {"orientation": {"orientation": (1, 0, 0, 0, 0.8, 0.6)}, "size": {"size": (4, 5)}, "duplicate": {},
+                 "two-series": {"series": "1.2.4"}}[case]
+        write_dicom_series(tmp_path / "x", [(0, 0, 2.0)], **{"size": (4, 4), "radius": 1.0, "series": "1.2.3", **extra})
         (tmp_path / "x" / "im000.dcm").rename(folder / "zz.dcm")
     elif case == "not-dicom":
         (folder / "junk.dcm").write_bytes(b"\x00" * 200)

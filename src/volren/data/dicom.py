@@ -33,7 +33,7 @@ def _vector(ds, keyword: str, count: int, folder: Path, file: Path) -> np.ndarra
 
 
 def read_dicom_series(folder: Path):
-    """Read the series in ``folder`` as a ``volren.data.loaders._Grid`` (values float64, rescaled; index -> LPS mm)."""
+    """Read the series in ``folder`` as a ``volren.data.loaders._Grid`` (values float32, rescaled; index -> LPS mm)."""
     import pydicom  # lazy: only DICOM users pay for the import
     from pydicom.errors import InvalidDicomError
 
@@ -43,6 +43,7 @@ def read_dicom_series(folder: Path):
     if not files:
         raise VolrenError(f"{folder}: empty folder; a DICOM series needs its slice files (.dcm)")
     slices = []
+    series: dict[str, Path] = {}  # SeriesInstanceUID -> its first file
     for file in files:
         try:
             ds = pydicom.dcmread(file)
@@ -61,7 +62,13 @@ def read_dicom_series(folder: Path):
         spacing = _vector(ds, "PixelSpacing", 2, folder, file)
         slope = float(getattr(ds, "RescaleSlope", 1.0) or 1.0)
         intercept = float(getattr(ds, "RescaleIntercept", 0.0) or 0.0)
-        slices.append((file, pixels.astype(np.float64) * slope + intercept, orientation, position, spacing))
+        rescaled = pixels.astype(np.float32) * np.float32(slope) + np.float32(intercept)  # float32: HU are exact
+        slices.append((file, rescaled, orientation, position, spacing))
+        series.setdefault(str(getattr(ds, "SeriesInstanceUID", "")), file)
+    if len(series) > 1:
+        names = ", ".join(f.name for f in series.values())
+        raise VolrenError(f"{folder}: holds {len(series)} DICOM series (first files {names}); put each series in its "
+                          "own folder")
     first_file, first_pixels, orientation, _, spacing = slices[0]
     for file, pixels, o, _, s in slices[1:]:
         if pixels.shape != first_pixels.shape:
