@@ -629,6 +629,42 @@ def test_help_exits_zero(capfd) -> None:
     assert err == ""
 
 
+def _help(capfd, *argv: str) -> str:
+    with pytest.raises(SystemExit) as done:
+        main([*argv, "--help"])
+    out, err = capfd.readouterr()
+    assert done.value.code == 0 and err == ""
+    return " ".join(out.split())  # argparse wraps lines at the terminal width
+
+
+@pytest.mark.parametrize("command", ["demo", "render", "animate", "compare", "bench"])
+def test_help_gives_every_option_a_default(capfd, command: str) -> None:
+    """Issue 13 item 11: each option's help says its default (flags that are simply off excepted)."""
+    from volren.cli import build_parser
+
+    _help(capfd, command)  # it prints
+    sub = next(a for a in build_parser()._actions if a.dest == "command").choices[command]
+    formatter = sub._get_formatter()
+    options = [a for a in sub._actions if a.option_strings and a.nargs != 0]  # not --help or on/off flags
+    assert options
+    for action in options:
+        assert "default" in formatter._get_help_string(action), action.option_strings
+
+
+def test_help_shows_ranges_the_tf_format_and_usd_meshes(capfd) -> None:
+    text = _help(capfd, "render")
+    for fragment in ("--width WIDTH [px] in [1, 16384] (default: 640)", "--up UP x,y,z (default: 0,1,0)",
+                     "--seed SEED random seed (jitter, scenes, viewers): any integer (default: 0)",
+                     "--exposure EXPOSURE PNG exposure in stops, in [-64, 64] (default: 0.0)",
+                     "N in [1, 1024]", "in (0, 180)", "--mesh-scale MESH_SCALE scale applied to every --mesh (about "
+                     "the origin), > 0 (default: 1.0)", "OFF, or USD (.usd .usda .usdc .usdz)",
+                     '{"points": [{"position": u, "extinction": mu_t, "albedo": [r, g, b], "p_brdf": p}, ...]}'):
+        assert fragment in text, fragment
+    from volren.transfer import PRESETS
+
+    assert f"a preset ({', '.join(PRESETS)})" in text
+
+
 def test_console_script(tmp_path: Path) -> None:
     """The installed ``volren`` entry point: success and a user error, each without a traceback."""
     exe = shutil.which("volren", path=str(Path(sys.executable).parent)) or shutil.which("volren")

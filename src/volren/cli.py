@@ -47,10 +47,24 @@ NEGATIVE_NUMBERS = re.compile(r"^-\.?\d")
 type then says whether the rest is right, naming the flag."""
 
 
+class HelpFormatter(argparse.HelpFormatter):
+    """Every option's help ends with its default, unless the text gives it already or a flag is simply off."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        value = action.default
+        # identity, not ==: a default of 0 is shown, though 0 == False
+        if not action.option_strings or "default" in text or any(value is v for v in (None, False, argparse.SUPPRESS)):
+            return text
+        shown = ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else str(value)
+        return f"{text} (default: {shown.replace('%', '%%')})"
+
+
 class Parser(argparse.ArgumentParser):
     """argparse that raises instead of printing usage and exiting, so every error is one line."""
 
     def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
         # argparse's own matcher knows only "-1" and "-.5", so "--light-dir -1,-1,0" read "-1,-1,0" as an option.
         # No option of ours starts with a digit, so anything this matches can only be a value.
@@ -107,76 +121,98 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     animate = p.prog.endswith("animate")
     from volren.render import METHODS
     from volren.render.gi import GI_METHODS
+    from volren.transfer import PRESETS
 
     src = p.add_argument_group("data")
     if not demo:
         src.add_argument("--scene", default=None, help=f"built-in scene (default {DEFAULT_SCENE}; see `volren scenes`)")
-        src.add_argument("--volume", type=Path, help="density file: .npy .npz .nrrd .nhdr .nii(.gz) .tif(f) .nvdb or "
+        src.add_argument("--volume", type=Path, help="density file (default: none, a --scene): .npy .npz .nrrd .nhdr "
+                         ".nii(.gz) .tif(f) .nvdb or "
                          "raw, or a folder of DICOM slices; placed where the file says (mm unless it states metres)")
-        src.add_argument("--shape", type=ints3, help="raw files: voxels X,Y,Z (x varies fastest in the file)")
-        src.add_argument("--dtype", help="raw files: uint8, uint16, int16, float32, ...")
+        src.add_argument("--shape", type=ints3, help="raw files: voxels X,Y,Z, each >= 2 (x varies fastest in the "
+                         "file; default: none, "
+                         "required for raw)")
+        src.add_argument("--dtype", help="raw files: uint8, uint16, int16, float32, ... (default: none, required for "
+                         "raw)")
         src.add_argument("--spacing", type=vec3, help="voxel size x,y,z in --units for files that store none (.npy "
                          ".npz raw .tif .nvdb; default: cubic voxels, longest side 2 m)")
         src.add_argument("--units", choices=("m", "mm"), help="unit of the file's coordinates and --spacing "
                          "(default: what the file states, else mm)")
-    src.add_argument("--resolution", type=int, default=128 if demo else 64, help="built-in scenes: voxels per axis")
+    src.add_argument("--resolution", type=int, default=128 if demo else 64, help="built-in scenes: voxels per axis, "
+                     "64-512")
     src.add_argument("--count", type=int, default=16, help="scene 'multi': 4, 16 or 36 instances")
     mat = p.add_argument_group("material and light (override the scene's)")
-    mat.add_argument("--density-scale", type=float, help="sigma_t per unit density [1/m]")
-    mat.add_argument("--albedo", type=rgb, help="single-scattering albedo: a or r,g,b")
-    mat.add_argument("--g", type=float, help="Henyey-Greenstein asymmetry in (-1, 1)")
-    mat.add_argument("--emission", type=rgb, help="emitted radiance per unit density per metre: e or r,g,b")
-    mat.add_argument("--light-dir", type=vec3, help="direction the light travels: x,y,z")
-    mat.add_argument("--light-irradiance", type=rgb, help="directional light irradiance [W/m^2]: e or r,g,b")
+    mat.add_argument("--density-scale", type=float, help="sigma_t per unit density [1/m], >= 0 (default: the scene's)")
+    mat.add_argument("--albedo", type=rgb, help="single-scattering albedo: a or r,g,b, each in [0, 1] (default: the "
+                     "scene's)")
+    mat.add_argument("--g", type=float, help="Henyey-Greenstein asymmetry in (-1, 1) (default: the scene's)")
+    mat.add_argument("--emission", type=rgb, help="emitted radiance per unit density per metre: e or r,g,b, >= 0 "
+                     "(default: the scene's)")
+    mat.add_argument("--light-dir", type=vec3, help="direction the light travels: x,y,z, not zero (default: the "
+                     "scene's)")
+    mat.add_argument("--light-irradiance", type=rgb, help="directional light irradiance [W/m^2]: e or r,g,b, >= 0 "
+                     "(default: the scene's)")
     mat.add_argument("--rect-light", type=floats6, action="append", default=[], help="x,y,z,width,height,radiance: "
                      "a rectangular area light at x,y,z facing the origin (repeatable)")
-    mat.add_argument("--ambient", type=rgb, help="constant environment radiance: l or r,g,b")
+    mat.add_argument("--ambient", type=rgb, help="constant environment radiance: l or r,g,b, >= 0 (default: the "
+                     "scene's)")
     mat.add_argument("--environment", type=Path,
                      help="equirectangular environment (.npy linear, or PNG/JPEG sRGB), or 'sky' (built-in); its mean "
-                     "is the ambient without --gi")
-    mat.add_argument("--background", type=rgb, help="background colour (linear): c or r,g,b")
+                     "is the ambient without --gi (default: the scene's)")
+    mat.add_argument("--background", type=rgb, help="background colour (linear): c or r,g,b, >= 0 (default: the "
+                     "scene's)")
     opq = p.add_argument_group("opaque geometry (clips the volumes)")
     opq.add_argument("--sphere", type=floats4, action="append", default=[],
-                     help="opaque diffuse sphere x,y,z,radius (repeatable)")
-    opq.add_argument("--ground", type=float, help="opaque ground plane at height y")
+                     help="opaque diffuse sphere x,y,z,radius, radius > 0 (repeatable; default: none)")
+    opq.add_argument("--ground", type=float, help="opaque ground plane at height y [m] (default: none)")
     opq.add_argument("--mesh", type=Path, action="append", default=[],
-                     help="opaque triangle mesh file: OBJ, PLY, STL, glTF/GLB, OFF (repeatable)")
-    opq.add_argument("--mesh-scale", type=float, default=1.0, help="scale applied to every --mesh (about the origin)")
+                     help="opaque triangle mesh file: OBJ, PLY, STL, glTF/GLB, OFF, or USD (.usd "
+                     ".usda .usdc .usdz) (repeatable; default: none)")
+    opq.add_argument("--mesh-scale", type=float, default=1.0, help="scale applied to every --mesh (about the origin), "
+                     "> 0")
     opq.add_argument("--mesh-translate", type=vec3, default=(0.0, 0.0, 0.0), help="then translation x,y,z [m]")
     opq.add_argument("--depth-image", type=Path,
-                     help=".npy linear depth (H, W), or (views, H, W), of geometry drawn elsewhere; inf = none")
+                     help=".npy linear depth (H, W), or (views, H, W), of geometry drawn elsewhere; inf = none "
+                                              "(default: none)")
     cam = p.add_argument_group("views")
     cam.add_argument("--camera-pos", type=vec3, help="eye position x,y,z [m] (default 0,0.4,3.2; fog scenes: their "
                      "own viewpoint)")
     cam.add_argument("--look-at", type=vec3, help="x,y,z (default 0,0,0; fog scenes: their own)")
     cam.add_argument("--up", type=vec3, default=(0.0, 1.0, 0.0), help="x,y,z")
-    cam.add_argument("--fov", type=float, default=45.0, help="vertical field of view [degrees]")
+    cam.add_argument("--fov", type=float, default=45.0, help="vertical field of view [degrees], in (0, 180)")
     cam.add_argument("--width", type=int, default=640, help=f"[px] in [1, {MAX_IMAGE_SIDE}]")
     cam.add_argument("--height", type=int, default=360, help=f"[px] in [1, {MAX_IMAGE_SIDE}]")
-    cam.add_argument("--near", type=float, default=0.01, help="[m]")
-    cam.add_argument("--far", type=float, default=1000.0, help="[m]")
-    cam.add_argument("--views", default="stereo", help="mono, stereo, or N viewers (placed by --rig)")
+    cam.add_argument("--near", type=float, default=0.01, help="[m], > 0")
+    cam.add_argument("--far", type=float, default=1000.0, help="[m], > --near")
+    cam.add_argument("--views", default="stereo", help="mono, stereo, or N viewers (placed by --rig), N in [1, 1024]")
     cam.add_argument("--rig", choices=("arc", "wander", "overlap"), help="N viewers (default arc): on an arc "
                      "around --look-at, wandering the scene's area (moving with --frames), or yawed copies of one "
                      "camera whose neighbours share --overlap of the field of view")
     cam.add_argument("--overlap", type=float, help="--rig overlap: shared fraction in [0, 1] (default 0.5)")
-    cam.add_argument("--ipd", type=float, default=0.063, help="stereo eye distance [m]")
+    cam.add_argument("--ipd", type=float, default=0.063, help="stereo eye distance [m], in [0, 10)")
     r = p.add_argument_group("method")
     if not demo:
         r.add_argument("--method", default="dssrm", help=f"one of: {', '.join(METHODS)}")
-    r.add_argument("--samples", type=int, help="V: view samples across the box diagonal (method default if unset)")
-    r.add_argument("--light-samples", type=int, help="L: samples towards the light (method default if unset)")
-    r.add_argument("--light-grid", type=int, help="light-map voxels on the longest axis (default: half the density)")
+    r.add_argument("--samples", type=int, help="V: view samples across the box diagonal, in [1, 65536] "
+                   "(default: the method's)")
+    r.add_argument("--light-samples", type=int, help="L: samples towards the light, in [1, 65536] (default: the "
+                   "method's)")
+    r.add_argument("--light-grid", type=int, help="light-map voxels on the longest axis, in [2, 1024] (default: half "
+                   "the "
+                   "density)")
     r.add_argument("--jitter", action="store_true", help="seeded random ray start offsets")
     r.add_argument("--cube-faces", choices=("interior", "exterior"), help="cmsrm/cacrm: march to interior (default) or "
                    "exterior cube faces (exterior only to show its aliasing)")
-    r.add_argument("--cube-size", type=int, help="cmsrm: level-0 cube face size S0 (default: the density's axis)")
+    r.add_argument("--cube-size", type=int, help="cmsrm: level-0 cube face size S0, in [2, 4096] (default: the "
+                   "density's "
+                   "axis)")
     r.add_argument("--no-lod", action="store_true", help="cmsrm: no adaptive LOD (level 0, N = --samples)")
     r.add_argument("--no-hybrid", action="store_true", help="cmsrm: always march the cube map, never directly")
     r.add_argument("--no-cull", action="store_true", help="cmsrm/cacrm: march empty tiles too (no culling)")
     r.add_argument("--tile-lod", action="store_true", help="cmsrm/cacrm: per-tile LOD 0-2 (fewer samples for distant "
                    "faces, lower PSNR)")
-    r.add_argument("--k-z", type=float, help="cmsrm: bilateral edge-stopping coefficient [1/m] (0 = bilinear)")
+    r.add_argument("--k-z", type=float, help="cmsrm: bilateral edge-stopping coefficient [1/m], >= 0 (0 = "
+                   "bilinear; default: the method's)")
     r.add_argument("--no-coupling", action="store_true", help="cacrm: march each eye alone (same steps)")
     r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
     r.add_argument("--no-vsa", action="store_true", help="cacrm: uniform steps (no variable step amplification)")
@@ -185,34 +221,42 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                    "§3.2): sresir (ours), restir (strict ReSTIR), prt, major (major direction), brute (ground truth), "
                    "none (default: constant ambient)")
     r.add_argument("--gi-order", type=int, help="SH order n of the GI (n^2 coefficients, 1-4, default 3)")
-    r.add_argument("--gi-rays", type=int, help="--gi prt/brute: rays per voxel (default 256)")
-    r.add_argument("--gi-volumes", type=int, help="--gi: volumes whose lighting is updated per frame (default 1)")
-    r.add_argument("--spp", type=int, help="vpt: paths per pixel and frame (default 8)")
-    r.add_argument("--max-bounces", type=int, help="vpt: scattering events per path (default 2; 1 = single)")
+    r.add_argument("--gi-rays", type=int, help="--gi prt/brute: rays per voxel, >= 1 (default 256)")
+    r.add_argument("--gi-volumes", type=int, help="--gi: volumes whose lighting is updated per frame, >= 1 (default 1)")
+    r.add_argument("--spp", type=int, help="vpt: paths per pixel and frame, in [1, 4096] (default 8)")
+    r.add_argument("--max-bounces", type=int, help="vpt: scattering events per path, in [1, 64] (default 2; 1 = "
+                   "single)")
     r.add_argument("--shading", choices=("coexist", "er"), help="vpt: surface-medium coexistence (default) or "
                    "Exposure Render's two particle types")
-    r.add_argument("--tf", help="vpt: transfer function, a preset (ct-bone, ct-muscle, ct-vessels, smoke) or a JSON "
-                   "file (default: extinction proportional to density)")
+    r.add_argument("--tf", help=f"vpt: transfer function, a preset ({', '.join(PRESETS)}) or a JSON "
+                   "file {\"points\": [{\"position\": u, \"extinction\": mu_t, \"albedo\": [r, g, b], \"p_brdf\": p}, "
+                   "...]}: u in [0, 1] (the scalar over the volume's largest) not decreasing, mu_t >= 0 [1/m], albedo "
+                   "(default "
+                   "0.8 each) and p_brdf (surface-like share, default 0) in [0, 1], linear in between (default: "
+                   "extinction proportional to density)")
     r.add_argument("--denoise", choices=("none", "ours", "svgf", "wrls"), help="vpt: the spatiotemporal denoiser of "
-                   "paper 002 §5 (ours), or the baselines SVGF and WRLS; all keep history across --frames")
+                   "paper 002 §5 (ours), or the baselines SVGF and WRLS; all keep history across --frames (default: "
+                   "none)")
     r.add_argument("--clip", type=floats6, help="vpt: x0,x1,y0,y1,z0,z1 clipping box in the volume's [-1, 1] "
-                   "coordinates")
+                   "coordinates, each pair increasing (default: none)")
     r.add_argument("--fog-sharing", choices=("none", "grid"), help="fog: per-viewer shadow rays (none) or the "
                    "shared shadow grid (grid, default)")
-    r.add_argument("--voxel-size", type=float, help="fog: shadow-grid voxel edge [m] (default 0.5)")
-    r.add_argument("--slices", type=int, help="fog: depth slices per froxel grid (default 128)")
-    r.add_argument("--froxel-size", type=int, help="fog: froxel width [px] (default 8)")
-    r.add_argument("--fog-far", type=float, help="fog: end of the fog range [m] (default 64)")
+    r.add_argument("--voxel-size", type=float, help="fog: shadow-grid voxel edge [m], > 0 (default 0.5)")
+    r.add_argument("--slices", type=int, help="fog: depth slices per froxel grid, in [3, 1024] (default 128)")
+    r.add_argument("--froxel-size", type=int, help="fog: froxel width [px], in [1, 256] (default 8)")
+    r.add_argument("--fog-far", type=float, help="fog: end of the fog range [m], > 0 (default 64)")
     r.add_argument("--trilinear", action="store_true", help="fog: interpolate 8 shadow-grid voxels, not the nearest")
     r.add_argument("--no-temporal", action="store_true", help="fog: no jitter and temporal blending")
-    r.add_argument("--frames", type=int, default=60 if animate else 1, help="render N frames (temporal methods), keep "
+    r.add_argument("--frames", type=int, default=60 if animate else 1, help="render N >= 1 frames (temporal methods), "
+                   "keep "
                    "every frame")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=int, default=0, help="random seed (jitter, scenes, viewers): any integer")
     add_device(p)
     o = p.add_argument_group("output")
     o.add_argument("--out", type=Path, default=Path("out"), help="output folder")
     o.add_argument("--save-linear", action="store_true", help="also write linear (H, W, 4) float32 .npy images")
-    o.add_argument("--exposure", type=float, default=1.0 if demo else 0.0, help="PNG exposure in stops")
+    o.add_argument("--exposure", type=float, default=1.0 if demo else 0.0, help=f"PNG exposure in stops, in "
+                   f"[-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
     o.add_argument("--tonemap", default="none", choices=TONEMAPS, help="PNG tone map")
 
 
@@ -226,12 +270,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_render_args(a)
     a.add_argument("--orbit", type=float, default=360.0, help="camera turn over the sequence [deg]")
     a.add_argument("--light-orbit", type=float, default=0.0, help="light turn over the sequence [deg]")
-    a.add_argument("--switch-tf", help="vpt: FRAME:TF, switch to transfer function TF at frame FRAME")
+    a.add_argument("--switch-tf", help="vpt: FRAME:TF, switch to transfer function TF (as --tf) at frame FRAME "
+                   "(default: no switch)")
     a.add_argument("--fps", type=float, default=30.0, help="MP4 frame rate")
     sub.add_parser("scenes", help="list the built-in scenes")
     c = sub.add_parser("compare", help="PSNR, SSIM, FLIP of TEST against REF, and an error heat map")
-    c.add_argument("ref", type=Path)
-    c.add_argument("test", type=Path)
+    c.add_argument("ref", type=Path, help="reference image: .npy linear, or PNG/JPEG; its peak must be > 0")
+    c.add_argument("test", type=Path, help="image to measure, same size and kind as REF")
     c.add_argument("--heatmap", type=Path, help="heat map PNG (default: next to TEST, *_error.png)")
     b = sub.add_parser("bench", help="run a benchmark suite; writes JSON and a Markdown table")
     b.add_argument("suite", help="suite name (see `volren bench list`)")
