@@ -320,7 +320,7 @@ def load_volume(
     else:
         grid = _read_file(path, shape, dtype)
     if grid.index_to_file is not None and spacing is not None:
-        raise VolrenError(f"{path}: this file stores its own voxel spacing; --spacing applies to .npy, .npz, raw, "
+        raise VolrenError(f"{path}: this volume stores its own voxel spacing; --spacing applies to .npy, .npz, raw, "
                           ".tif and .nvdb")
     data, value_range = _normalise(grid)
     density = validate_density(data, f"volume file {path}")
