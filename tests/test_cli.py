@@ -444,6 +444,7 @@ NEGATIVE_VECTORS = {
     "--background": ("-1,-1,-1", (-1.0, -1.0, -1.0)),
     "--sphere": ("-1,0,-2,0.5", [(-1.0, 0.0, -2.0, 0.5)]),
     "--rect-light": ("-2,3,-4,1,1,5", [(-2.0, 3.0, -4.0, 1.0, 1.0, 5.0)]),
+    "--spacing": ("-1,2e-3,3", (-1.0, 0.002, 3.0)),  # parsed; the loader refuses a non-positive spacing
 }
 
 
@@ -809,14 +810,14 @@ def test_empty_scene_name(capfd, tmp_path: Path, with_volume: bool) -> None:
 def test_output_folder_is_a_file(capfd, tmp_path: Path) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    assert_error(capfd, ["render", *TINY, "--out", blocker], "output folder", str(blocker))
+    assert_error(capfd, ["render", *TINY, "--out", blocker], "--out", "is a file, not a folder", str(blocker))
     assert_error(capfd, ["render", *TINY, "--out", blocker / "sub"], "output folder")
 
 
 def test_views_too_many_for_memory(capfd, tmp_path: Path) -> None:
-    # checked by the renderer before it allocates, after the output folder is created
-    render_error(capfd, tmp_path, ["--views", "1024", "--width", "8192", "--height", "8192"], "1024", "GiB",
-                 early=False)
+    # estimated before any work (issue 13 item 8), so no output folder is created
+    render_error(capfd, tmp_path, ["--views", "1024", "--width", "8192", "--height", "8192"],
+                 "1024 view(s) of 8192x8192 for 1 frame(s) with dssrm needs", "GiB")
 
 
 def test_absurd_view_count_is_refused_quickly(capfd, tmp_path: Path) -> None:
