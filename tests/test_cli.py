@@ -721,6 +721,8 @@ BAD_RENDER_ARGS = {
     "resolution-10": (["--resolution", "10"], ["resolution", "10"]),
     "resolution-5000": (["--resolution", "5000"], ["resolution", "5000"]),
     "multi-count-5": (["--scene", "multi", "--count", "5"], ["count", "5"]),
+    "count-without-multi": (["--scene", "cloud", "--count", "4"], ["--count applies to --scene multi only, not to "
+                                                                   "scene 'cloud'"]),
     "seed-negative": (["--seed", "-1"], ["seed"]),
     "light-dir-two-numbers": (["--light-dir", "1,2"], ["--light-dir", "1,2"]),
     "light-dir-zero": (["--light-dir", "0,0,0"], ["light direction", "zero"]),
@@ -980,7 +982,8 @@ def test_bench_cuda_without_gpu(capfd, tmp_path: Path) -> None:
 @pytest.mark.parametrize("scene", SCENES)
 def test_cmsrm_renders_every_builtin(capfd, tmp_path: Path, scene: str, views: str) -> None:
     out = tmp_path / "c"
-    render(capfd, out, "--scene", scene, "--count", "4", "--views", views, "--no-hybrid", method="cmsrm")
+    count = ("--count", "4") if scene == "multi" else ()
+    render(capfd, out, "--scene", scene, *count, "--views", views, "--no-hybrid", method="cmsrm")
     stats = stats_of(out)["frames"][0]
     assert stats["method"] == "cmsrm" and "cube_march" in stats["times_ms"] and "resample" in stats["times_ms"]
     plans = stats["info"]["volumes"]

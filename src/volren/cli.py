@@ -140,7 +140,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                          "(default: what the file states, else mm)")
     src.add_argument("--resolution", type=int, default=128 if demo else 64, help="built-in scenes: voxels per axis, "
                      "64-512")
-    src.add_argument("--count", type=int, default=16, help="scene 'multi': 4, 16 or 36 instances")
+    src.add_argument("--count", type=int, help="scene 'multi': 4, 16 or 36 instances (default 16)")
     mat = p.add_argument_group("material and light (override the scene's)")
     mat.add_argument("--density-scale", type=float, help="sigma_t per unit density [1/m], >= 0 (default: the scene's)")
     mat.add_argument("--albedo", type=rgb, help="single-scattering albedo: a or r,g,b, each in [0, 1] (default: the "
@@ -306,8 +306,10 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
         name = getattr(args, "scene", None)
         if name is not None and name not in BUILTIN_SCENES:
             raise CliError(f"--scene: unknown scene '{name}': choose from {', '.join([*BUILTIN_SCENES, *FOG_SCENES])}")
-        scene = builtin_scene(DEFAULT_SCENE if name is None else name, args.resolution, count=args.count,
-                              seed=args.seed)
+        name = DEFAULT_SCENE if name is None else name
+        if args.count is not None and name != "multi":
+            raise CliError(f"--count applies to --scene multi only, not to scene '{name}'")
+        scene = builtin_scene(name, args.resolution, count=16 if args.count is None else args.count, seed=args.seed)
     names = ("density_scale", "albedo", "g", "emission")
     material = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
     volumes = tuple(dataclasses.replace(v, **material) for v in scene.volumes) if material else scene.volumes
