@@ -145,3 +145,19 @@ def test_smoke_plume_fades_out_well_inside_every_face(seed):
     top = np.where(d > 0.1, c[None, :, None], -np.inf).max(axis=1)  # (z, x): highest dense voxel per column
     tops = top[np.isfinite(top)]
     assert tops.max() - np.median(tops) > 0.08  # a dome, not a flat lid (0.03-0.06 for the old cut plume)
+
+
+@pytest.mark.parametrize("n", [64, 128])
+def test_phantom_edges_are_partial_volume_ramps(n):
+    """Issue 13 item 3: no voxel-to-voxel jump of the full skull intensity (a staircase surface with pinholes through
+    the one-voxel skull in vpt); the ramps conserve each ellipsoid's volume and keep the tissue values inside."""
+    from volren.data.procedural import _centres, phantom_density
+
+    d = phantom_density(n)
+    assert max(float(np.abs(np.diff(d, axis=a)).max()) for a in range(3)) < 0.7  # hard edges: 1.0
+    assert float(d.max()) == pytest.approx(1.0)  # the skull still reaches full intensity
+    assert float(d.mean()) == pytest.approx(0.0785, rel=0.005)  # hard-edged phantom: 0.07851 at 64 and 128
+    c = _centres(n)
+    i0, iy = np.searchsorted(c, 0.0), np.searchsorted(c, -0.5)
+    assert float(d[i0, iy, i0]) == pytest.approx(0.2)  # brain, away from every edge
+    assert float(d[i0, i0, np.searchsorted(c, 0.22)]) == pytest.approx(0.0, abs=1e-6)  # inside a ventricle
