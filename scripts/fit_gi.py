@@ -16,7 +16,7 @@ improves.
    update's SH* against the truth, as the paper trains it) while SH* feeds the next frame's history: a constant
    bias w_poly c per update compounds to about w_poly c (1 - lambda) / lambda at the accumulation's fixed point.
 
-Writes ``docs/bench/gi-fit.json``.
+Writes ``out/gi-fit.json`` (untracked); ``--out docs/bench/gi-fit.json`` updates the committed fit.
 
     .venv/bin/python scripts/fit_gi.py
 """
@@ -91,7 +91,8 @@ def image_psnr(scene_name: str, gi: GIConfig, truth: dict, cfg: dict, camera: Ca
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", type=Path, default=Path("docs/bench/gi-fit.json"))
+    p.add_argument("--out", type=Path, default=Path("out/gi-fit.json"),
+                   help="where to write the fit (default out/gi-fit.json; docs/bench/gi-fit.json is the committed one)")
     args = p.parse_args(argv)
     cfg = SETTINGS
     recorded = [record(name, cfg) for name in TRAIN]
