@@ -2,17 +2,28 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import numpy as np
 import pytest
 
 from volren.camera import Camera
+from volren.data import builtin_scene
+from volren.data.procedural import phantom_density
 from volren.render import DSSRM, DSSRMConfig, Reference, ReferenceConfig
 from volren.scene import DirectionalLight, Environment, Scene, Volume, scale_translate
 
 DEVICE = os.environ.get("VOLREN_TEST_DEVICE", "cpu")
 """Where the renderers under test run: the CPU here and in CI; `VOLREN_TEST_DEVICE=cuda` runs the suite on a GPU."""
+
+
+def hard_phantom(resolution: int = 64) -> Scene:
+    """The built-in phantom with the hard-edged skull it had before issue 13's partial-volume edges: the case with the
+    most fine detail, on which the VSA weights were fitted and the detail-keeping tests were measured."""
+    scene = builtin_scene("phantom", resolution)
+    hard = dataclasses.replace(scene.volumes[0], density=phantom_density(resolution, edge_voxels=0.0))
+    return dataclasses.replace(scene, volumes=(hard,))
 
 
 def homogeneous_volume(sigma: float, *, n: int = 8, albedo=0.0, g: float = 0.0, emission=0.0, scale=1.0,

@@ -8,16 +8,13 @@ the floor of 40 dB sits 3.8 dB under the worst scene. Sharing is exact (the same
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
-from conftest import DEVICE
+from conftest import DEVICE, hard_phantom
 from volren.bench.binocular import path_camera
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
-from volren.data.procedural import phantom_density
 from volren.errors import VolrenError
 from volren.metrics import psnr
 from volren.render import CACRM, CACRMConfig, Reference, ReferenceConfig
@@ -103,10 +100,7 @@ def vsa_psnr(name: str, views: list[Camera] = VSA_VIEWS, **config) -> tuple[floa
     """Mean PSNR of the views against the reference (512:64) and the voxel gathers of CACRM on a 64^3 built-in; the
     phantom with hard edges, on which VSA's weights were fitted and its gains measured (its default partial-volume
     skull of issue 13 leaves VSA at N = 48 0.14 dB below uniform N = 40 on the views below: 40.79 vs 40.93 dB)."""
-    scene = builtin_scene(name, 64)
-    if name == "phantom":
-        hard = dataclasses.replace(scene.volumes[0], density=phantom_density(64, edge_voxels=0.0))
-        scene = dataclasses.replace(scene, volumes=(hard,))
+    scene = hard_phantom(64) if name == "phantom" else builtin_scene(name, 64)
     ref = Reference(ReferenceConfig(samples=512, light_samples=64), device="cpu").render(scene, views)
     frame = CACRM(CACRMConfig(**{**VSA_BASE, **config}), device="cpu").render(scene, views)
     c = frame.stats.counters
