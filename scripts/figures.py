@@ -1,6 +1,7 @@
-"""Regenerate the comparison figures in docs/figures/ (the images behind docs/BENCHMARKS.md's quality claims).
+"""Regenerate the comparison figures behind docs/BENCHMARKS.md's quality claims.
 
-    python scripts/figures.py            # about a minute on 2 CPU cores
+    python scripts/figures.py                        # into out/figures, about a minute on 2 CPU cores
+    python scripts/figures.py --out docs/figures     # update the committed figures
 
 banding.png: the phantom close up, left eye. Top row: reference (512:512), DSSRM:100:48, CMSRM:100:48, CACRM (N_max
 360 with VSA and coupling). Bottom row: their error heat maps against the reference (per-pixel L1 of normalised RGB
@@ -9,6 +10,7 @@ on [0, 25%], paper 000 Fig. 7 "D"), PSNR in the file's sidecar JSON.
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -21,13 +23,17 @@ from volren.imageio import composite, to_srgb8
 from volren.metrics import error_heatmap, psnr
 from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
 
-OUT = Path(__file__).resolve().parents[1] / "docs" / "figures"
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "out" / "figures"
+"""Not docs/figures: scripts never overwrite tracked files unless asked to (``--out docs/figures``)."""
 EXPOSURE = 1.5
 """[stops] for the PNGs (single scattering alone is dim)"""
 
 
 def main() -> None:
-    OUT.mkdir(parents=True, exist_ok=True)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for banding.png/json (default: out/figures)")
+    out = ap.parse_args().out
+    out.mkdir(parents=True, exist_ok=True)
     scene = builtin_scene("phantom", 128)
     views = make_views(Camera(position=(0.9, 0.6, 2.0), look_at=(0.0, 0.1, 0.0), width=320, height=240, fov_y=50),
                        "stereo")
@@ -43,9 +49,9 @@ def main() -> None:
     top = [to_srgb8(composite(img, scene.background), exposure=EXPOSURE) for img in images.values()]
     bottom = [error_heatmap(ref, img) for img in images.values()]
     grid = np.concatenate([np.concatenate(top, axis=1), np.concatenate(bottom, axis=1)], axis=0)
-    Image.fromarray(grid).save(OUT / "banding.png")
+    Image.fromarray(grid).save(out / "banding.png")
     scores = {name: round(psnr(ref, img), 2) for name, img in images.items() if img is not ref}
-    (OUT / "banding.json").write_text(json.dumps({"columns": list(images), "psnr_db": scores,
+    (out / "banding.json").write_text(json.dumps({"columns": list(images), "psnr_db": scores,
                                                   "exposure_stops": EXPOSURE}, indent=2) + "\n")
     print(scores)
 

@@ -1,17 +1,18 @@
 """Scaling plots of ``volren bench viewers`` (paper 003 Fig. 11-14) from its JSON, and a picture of the fog scenes.
 
     python scripts/plot_viewers.py                       # every docs/bench/viewers-*.json, and the scene picture
-    python scripts/plot_viewers.py docs/bench/viewers-cpu-quick.json
+    python scripts/plot_viewers.py docs/bench/viewers-cpu-quick.json --out docs/figures   # update the committed plot
 
-Writes docs/figures/<json stem>.png: fog-stage time per frame and shadow rays per frame against the viewer count,
-per scene, for the per-viewer reference and the shared grid at each voxel size; and docs/figures/fog-scenes.png:
-hall and courtyard from their default viewpoints (shared grid, 0.5 m voxels, 8 temporally blended frames).
+Writes out/figures/<json stem>.png (``--out DIR`` elsewhere): fog-stage time per frame and shadow rays per frame
+against the viewer count, per scene, for the per-viewer reference and the shared grid at each voxel size; and
+fog-scenes.png: hall and courtyard from their default viewpoints (shared grid, 0.5 m voxels, 8 temporally blended
+frames).
 """
 
 from __future__ import annotations
 
+import argparse
 import json
-import sys
 from pathlib import Path
 
 import matplotlib
@@ -27,10 +28,11 @@ from volren.imageio import composite, to_srgb8
 from volren.render import FogConfig, FogRenderer
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "docs" / "figures"
+DEFAULT_OUT = ROOT / "out" / "figures"
+"""Not docs/figures: scripts never overwrite tracked files unless asked to (``--out docs/figures``)."""
 
 
-def plot(path: Path) -> Path:
+def plot(path: Path, out_dir: Path) -> Path:
     doc = json.loads(path.read_text())
     rows = [r for r in doc["rows"] if r["table"] == "viewers"]
     scenes = sorted({r["scene"] for r in rows})
@@ -54,14 +56,14 @@ def plot(path: Path) -> Path:
     fig.suptitle(f"bench viewers ({'quick' if doc['quick'] else 'full'}, {doc['settings']['size']}) on "
                  f"{machine['device_name']}")
     fig.tight_layout()
-    OUT.mkdir(parents=True, exist_ok=True)
-    out = OUT / f"{path.stem}.png"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out = out_dir / f"{path.stem}.png"
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
 
 
-def scenes_picture() -> Path:
+def scenes_picture(out_dir: Path) -> Path:
     tiles = []
     for name in ("hall", "courtyard"):
         spot = fog_scene_camera(name)
@@ -71,17 +73,22 @@ def scenes_picture() -> Path:
         for f in range(8):
             image = renderer.render(scene, [cam], f).images[0]
         tiles.append(to_srgb8(composite(image, (0.0, 0.0, 0.0))))
-    out = OUT / "fog-scenes.png"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out = out_dir / "fog-scenes.png"
     Image.fromarray(np.concatenate(tiles, axis=1)).save(out)
     return out
 
 
-def main(paths: list[str]) -> None:
-    for p in paths or sorted((ROOT / "docs" / "bench").glob("viewers-*.json")):
-        print(f"wrote {plot(Path(p))}")
-    if not paths:
-        print(f"wrote {scenes_picture()}")
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("paths", nargs="*", type=Path, help="bench viewers JSON files (default: docs/bench/viewers-*.json)")
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for the PNGs (default: out/figures)")
+    args = ap.parse_args()
+    for p in args.paths or sorted((ROOT / "docs" / "bench").glob("viewers-*.json")):
+        print(f"wrote {plot(p, args.out)}")
+    if not args.paths:
+        print(f"wrote {scenes_picture(args.out)}")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()
