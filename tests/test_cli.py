@@ -1139,6 +1139,28 @@ def test_vpt_options_on_a_loaded_volume(capfd, tmp_path: Path) -> None:
     assert settings["transfer"] == "ct-bone" and settings["shading"] == "er"
 
 
+def test_vpt_tf_ct_bone_reads_hounsfield_units_of_a_signed_ct(capfd, tmp_path: Path) -> None:
+    """An int16 CT of soft tissue (40 HU) in air (-1000 HU) holds no bone: under ct-bone it renders empty (alpha 0),
+    although the loader maps 40 HU to density 1, where the preset's normalised form is bone. The scene's volume
+    carries the HU range; a uint8 file's 0..255 is no HU, so it carries none."""
+    from volren.cli import build_parser, scene_from_args
+
+    z, y, x = np.mgrid[0:16, 0:16, 0:16] / 7.5 - 1
+    ct = np.where(x**2 + y**2 + z**2 < 0.5, 40, -1000).astype(np.int16)
+    nrrd.write(str(tmp_path / "ct.nrrd"), ct, index_order="C")
+    nrrd.write(str(tmp_path / "u8.nrrd"), ct.astype(np.uint8), index_order="C")
+    args = build_parser().parse_args(["render", "--volume", str(tmp_path / "ct.nrrd")])
+    assert scene_from_args(args).volumes[0].value_range == (-1000.0, 40.0)
+    args = build_parser().parse_args(["render", "--volume", str(tmp_path / "u8.nrrd")])
+    assert scene_from_args(args).volumes[0].value_range is None
+    for tf, empty in (("ct-bone", True), ("ct-muscle", False)):
+        out = tmp_path / tf
+        ok(capfd, "render", "--method", "vpt", "--volume", tmp_path / "ct.nrrd", "--tf", tf, "--spp", "2",
+           "--width", "24", "--height", "16", "--device", "cpu", "--views", "mono", "--save-linear", "--out", out)
+        alpha = np.load(out / "view0.npy")[..., 3]
+        assert (alpha.max() == 0) == empty, (tf, alpha.max())
+
+
 @pytest.mark.parametrize(("extra", "fragment"), [(["--tf", "nope"], "neither a preset"), (["--spp", "0"], "spp"),
                                                  (["--clip", "1,2,3"], "6 comma-separated")])
 def test_vpt_bad_options(capfd, tmp_path: Path, extra: list[str], fragment: str) -> None:

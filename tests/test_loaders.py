@@ -60,6 +60,7 @@ def test_anisotropic_lps_nrrd_sphere(tmp_path: Path) -> None:
     nrrd.write(str(tmp_path / "s.nrrd"), data, header, index_order="C")
     loaded = load_volume(tmp_path / "s.nrrd")
     check_sphere(loaded, np.zeros(3))
+    assert loaded.value_range == (0.0, 255.0) and not loaded.hounsfield  # unsigned values are not HU
     # the voxel axes: x index along world +x at 0.5 mm, y index (Posterior) along world -z, z index (Superior) +y
     np.testing.assert_allclose(loaded.to_world[:3, :3] @ np.diag(2 / np.array(shape[::-1])),
                                [[5e-4, 0, 0], [0, 0, 2e-3], [0, -1e-3, 0]], atol=1e-15)
@@ -152,7 +153,7 @@ def test_dicom_series_sphere_sorted_by_position(tmp_path: Path) -> None:
     write_dicom_series(tmp_path / "ct", [(origin[0], origin[1], zz) for zz in z], centre=centre, size=(22, 34))
     loaded = load_volume(tmp_path / "ct")
     assert loaded.density.shape == (15, 22, 34)
-    assert loaded.value_range == (-1000.0, 1000.0)
+    assert loaded.value_range == (-1000.0, 1000.0) and loaded.hounsfield
     r = RADIUS_MM * 1e-3
     world_centre = np.array([3.0, 20.0, 4.0]) * 1e-3
     axes = np.vstack([np.eye(3), -np.eye(3)])

@@ -470,3 +470,61 @@ def test_single_scattering_matches_the_closed_form(position):
     rows = [m for m in np.array_split(np.arange(cam.height), 6) if mask[m].sum() > 20]
     for m in rows:
         assert frames.mean(0)[m][mask[m]].mean() == pytest.approx(expected[m][mask[m]].mean(), rel=0.03)
+
+
+def hounsfield_head(extra: tuple[float, ...] = ()) -> np.ndarray:
+    """HU [z, y, x], 20^3: air (-1000) outside r = 0.9, fat (-100) from 0.75, soft tissue (40) inside, a bone shell
+    (1000 HU) at 0.4 < r < 0.55; ``extra`` HU values overwrite the first corner voxels (they widen the series' range
+    only: metal, padding)."""
+    z, y, x = (np.mgrid[0:20, 0:20, 0:20] + 0.5) / 10 - 1
+    r = np.sqrt(x**2 + y**2 + z**2)
+    hu = np.select([r > 0.9, r > 0.75, (r > 0.4) & (r < 0.55)], [-1000.0, -100.0, 1000.0], 40.0)
+    hu.reshape(-1)[: len(extra)] = extra
+    return hu
+
+
+def voxel_extinction(hu: np.ndarray, transfer: str) -> np.ndarray:
+    """Extinction at each voxel centre of the CT ``hu`` normalised as the loader does (min..max -> 0..1), read from
+    the table vpt builds for it as the kernel reads it (u = density / scale)."""
+    from volren.render.majorants import table_scale
+    from volren.render.vpt import transfer_tables
+
+    lo, hi = float(hu.min()), float(hu.max())
+    vol = Volume(((hu - lo) / (hi - lo)).astype(np.float32), value_range=(lo, hi))
+    table = transfer_tables([vol], transfer)[0]
+    u = vol.density / table_scale(vol.density)
+    return np.interp(u, np.linspace(0, 1, len(table)), table[:, 0])
+
+
+def test_ct_tf_presets_classify_hounsfield_units_whatever_the_series_range() -> None:
+    """A CT with value_range: ct-bone gives extinction only in the 1000 HU shell (120 /m, the preset's value at
+    1000 HU), ct-muscle in tissue (12 /m at 40 HU) and bone (80 /m), none in air or fat; a series whose range a metal
+    voxel (3071) and padding (-2048) widen maps the same HU to the same extinction. A volume without value_range
+    keeps the normalised table."""
+    from volren.render.vpt import transfer_tables
+
+    hu = hounsfield_head()
+    wide = hounsfield_head((3071.0, -2048.0))
+    inner = np.ones(hu.shape, bool)
+    inner.reshape(-1)[:2] = False  # the voxels the wide series overwrote
+    bone, tissue = hu == 1000, hu == 40
+    for name, expected in (("ct-bone", np.where(bone, 120.0, 0.0)),
+                           ("ct-muscle", np.select([bone, tissue], [80.0, 12.0], 0.0))):
+        for series in (hu, wide):
+            ext = voxel_extinction(series, name)
+            np.testing.assert_allclose(ext[inner], expected[inner], atol=0.5, err_msg=name)
+            np.testing.assert_array_equal(ext[inner] > 0, expected[inner] > 0, err_msg=name)
+    plain = Volume(((hu + 1000) / 2000).astype(np.float32))
+    np.testing.assert_array_equal(transfer_tables([plain], "ct-bone")[0], PRESETS["ct-bone"].table())
+    with pytest.raises(VolrenError, match="value_range must be two finite values lo < hi"):
+        Volume(plain.density, value_range=(1000.0, -1000.0))
+
+
+def test_tf_hounsfield_points_json_round_trip_and_validation(tmp_path) -> None:
+    for name in ("ct-bone", "ct-muscle", "ct-vessels"):
+        tf = PRESETS[name]
+        assert tf.hu_points and TransferFunction.from_json(tf.to_json()) == tf
+    with pytest.raises(VolrenError, match="positions must not decrease"):
+        TransferFunction((ControlPoint(0.0, 1.0),), hu_points=(ControlPoint(40.0, 1.0), ControlPoint(-100.0, 0.0)))
+    with pytest.raises(VolrenError, match="Hounsfield positions must be finite"):
+        TransferFunction((ControlPoint(0.0, 1.0),), hu_points=(ControlPoint(float("nan"), 1.0),))

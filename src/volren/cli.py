@@ -299,7 +299,11 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
         if args.scene is not None:
             raise CliError("give either --scene or --volume, not both")
         loaded = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units)
-        scene = Scene((Volume(loaded.density, loaded.to_world, name=args.volume.name),), name=args.volume.stem)
+        # CT presets classify by HU; a constant file (lo = hi) has no HU scale
+        hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
+        value_range = loaded.value_range if hu else None
+        scene = Scene((Volume(loaded.density, loaded.to_world, name=args.volume.name, value_range=value_range),),
+                      name=args.volume.stem)
     elif getattr(args, "scene", None) in FOG_SCENES:
         scene = fog_scene(args.scene, time)
     else:

@@ -110,9 +110,18 @@ class Volume:
     emission: RGB = (0.0, 0.0, 0.0)
     """[W/(m^3 sr)] per unit density: emitted radiance added per metre is emission * density."""
     name: str = "volume"
+    value_range: tuple[float, float] | None = None
+    """the Hounsfield units that density 0 and 1 stand for (a CT, as the loader normalised it): transfer functions
+    with a Hounsfield form classify by HU; None: not HU, transfer functions read density / its maximum."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "density", validate_density(self.density, f"volume '{self.name}' density"))
+        if self.value_range is not None:
+            vr = tuple(float(v) for v in self.value_range)
+            if len(vr) != 2 or not all(np.isfinite(vr)) or not vr[0] < vr[1]:
+                raise VolrenError(f"volume '{self.name}': value_range must be two finite values lo < hi, "
+                                  f"got {self.value_range}")
+            object.__setattr__(self, "value_range", vr)
         m = np.asarray(self.to_world, dtype=np.float64)
         if m.shape != (4, 4) or not np.all(np.isfinite(m)):
             raise VolrenError(f"volume '{self.name}': to_world must be a finite 4x4 matrix")

@@ -4,7 +4,10 @@ A transfer function maps a voxel's scalar value to the medium's extinction mu_t 
 mu_t that scatters) and P_brdf, the share of scattering particles that reflect like a surface (Exposure Render's
 two-particle split; the rest scatter by the phase function). Control points sit at normalised scalar positions u in
 [0, 1], u = value / (the volume's largest value), and properties are linear in between (constant beyond the ends).
-Presets: CT-like classifications (bone, muscle and skin, vessels) and a smoke-like ramp. JSON holds the points.
+A function may also hold ``hu_points`` at Hounsfield units: a volume whose ``value_range`` says which HU its
+densities stand for (a CT) is classified by those, whatever the series' own min and max; other volumes use the
+normalised points. Presets: CT classifications (bone, muscle and skin, vessels; both forms) and a smoke-like ramp.
+JSON holds "points" and, optionally, "hu_points".
 """
 
 from __future__ import annotations
@@ -37,6 +40,8 @@ class ControlPoint:
 class TransferFunction:
     points: tuple[ControlPoint, ...]
     name: str = "custom"
+    hu_points: tuple[ControlPoint, ...] = ()
+    """the same classification with positions in Hounsfield units, for volumes with a ``value_range``; empty: none"""
 
     def __post_init__(self) -> None:
         pts = tuple(self.points)
@@ -45,38 +50,56 @@ class TransferFunction:
         for p in pts:
             if not (np.isfinite(p.position) and 0 <= p.position <= 1):
                 raise VolrenError(f"transfer function positions must lie in [0, 1], got {p.position}")
+        hu = tuple(self.hu_points)
+        for p in (*pts, *hu):
             if not (np.isfinite(p.extinction) and p.extinction >= 0):
                 raise VolrenError(f"transfer function extinction must be >= 0, got {p.extinction}")
             if len(p.albedo) != 3 or not all(0 <= a <= 1 for a in p.albedo):
                 raise VolrenError(f"transfer function albedo must be 3 values in [0, 1], got {p.albedo}")
             if not 0 <= p.p_brdf <= 1:
                 raise VolrenError(f"transfer function P_brdf must lie in [0, 1], got {p.p_brdf}")
-        if any(b.position < a.position for a, b in itertools.pairwise(pts)):
-            raise VolrenError("transfer function positions must not decrease")
+        if not all(np.isfinite(p.position) for p in hu):
+            raise VolrenError("transfer function Hounsfield positions must be finite")
+        for ps in (pts, hu):
+            if any(b.position < a.position for a, b in itertools.pairwise(ps)):
+                raise VolrenError("transfer function positions must not decrease")
         object.__setattr__(self, "points", pts)
+        object.__setattr__(self, "hu_points", hu)
 
-    def table(self, size: int = TABLE_SIZE) -> np.ndarray:
-        """(size, 5) float32: extinction, albedo r, g, b, P_brdf at u = i / (size - 1)."""
+    def table(self, size: int = TABLE_SIZE, hu: tuple[float, float] | None = None) -> np.ndarray:
+        """(size, 5) float32: extinction, albedo r, g, b, P_brdf at u = i / (size - 1); with ``hu`` = (HU at u = 0,
+        HU at u = 1) and ``hu_points``, the Hounsfield classification at those HU instead."""
         u = np.linspace(0.0, 1.0, size)
-        pos = np.array([p.position for p in self.points])
-        values = np.array([(p.extinction, *p.albedo, p.p_brdf) for p in self.points], dtype=np.float64)
+        points = self.points
+        if hu is not None and self.hu_points:
+            u, points = hu[0] + (hu[1] - hu[0]) * u, self.hu_points
+        pos = np.array([p.position for p in points])
+        values = np.array([(p.extinction, *p.albedo, p.p_brdf) for p in points], dtype=np.float64)
         return np.stack([np.interp(u, pos, values[:, c]) for c in range(5)], axis=1).astype(np.float32)
 
     def to_json(self) -> str:
-        return json.dumps({"name": self.name, "points": [
-            {"position": p.position, "extinction": p.extinction, "albedo": list(p.albedo), "p_brdf": p.p_brdf}
-            for p in self.points]}, indent=2)
+        doc: dict = {"name": self.name, "points": [_point_json(p) for p in self.points]}
+        if self.hu_points:
+            doc["hu_points"] = [_point_json(p) for p in self.hu_points]
+        return json.dumps(doc, indent=2)
 
     @staticmethod
     def from_json(text: str, what: str = "transfer function") -> TransferFunction:
         try:
             doc = json.loads(text)
-            points = tuple(ControlPoint(float(p["position"]), float(p["extinction"]),
-                                        tuple(float(a) for a in p.get("albedo", (0.8, 0.8, 0.8))),
-                                        float(p.get("p_brdf", 0.0))) for p in doc["points"])
-        except (ValueError, KeyError, TypeError) as exc:
+            points, hu_points = (tuple(ControlPoint(float(p["position"]), float(p["extinction"]),
+                                                    tuple(float(a) for a in p.get("albedo", (0.8, 0.8, 0.8))),
+                                                    float(p.get("p_brdf", 0.0))) for p in doc.get(key, ()))
+                                 for key in ("points", "hu_points"))
+            if "points" not in doc:
+                raise KeyError("points")
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
             raise VolrenError(f"{what}: not a transfer function JSON ({type(exc).__name__}: {exc})") from None
-        return TransferFunction(points, str(doc.get("name", "custom")))
+        return TransferFunction(points, str(doc.get("name", "custom")), hu_points)
+
+
+def _point_json(p: ControlPoint) -> dict:
+    return {"position": p.position, "extinction": p.extinction, "albedo": list(p.albedo), "p_brdf": p.p_brdf}
 
 
 def linear(max_extinction: float, albedo: Sequence[float], p_brdf: float = 0.0, name: str = "linear"
@@ -87,21 +110,38 @@ def linear(max_extinction: float, albedo: Sequence[float], p_brdf: float = 0.0, 
     return TransferFunction((ControlPoint(0.0, 0.0, a, p_brdf), ControlPoint(1.0, max_extinction, a, p_brdf)), name)
 
 
+_BONE, _CORTEX = (0.95, 0.92, 0.85), (0.97, 0.95, 0.9)
+_SKIN, _MUSCLE, _BLOOD = (0.95, 0.75, 0.65), (0.85, 0.35, 0.3), (0.85, 0.15, 0.12)
+
+# The CT presets' Hounsfield forms (HU: air -1000, lung -900..-500, fat -100, water 0, soft tissue and muscle 40,
+# contrast-filled vessels 150..400, cancellous bone 300..700, cortical bone 1000 and above). ct-bone: nothing up to
+# 200 HU (so all soft tissue and fat are clear), rising to bone at 400 and dense cortex at 1000. ct-muscle: clear up to
+# -60 HU (air, lung, fat), skin-coloured at water (0), muscle at 40, then white towards bone (300, 1000).
+# ct-vessels: clear up to 120 HU, contrast-filled blood 200..300, clear again at 450, bone from 700.
 PRESETS: dict[str, TransferFunction] = {
     "ct-bone": TransferFunction((
         ControlPoint(0.0, 0.0, (0.9, 0.85, 0.8)), ControlPoint(0.45, 0.0, (0.9, 0.85, 0.8), 0.6),
-        ControlPoint(0.6, 60.0, (0.95, 0.92, 0.85), 0.8), ControlPoint(1.0, 120.0, (0.97, 0.95, 0.9), 0.9)),
-        "ct-bone"),
+        ControlPoint(0.6, 60.0, _BONE, 0.8), ControlPoint(1.0, 120.0, _CORTEX, 0.9)),
+        "ct-bone", (
+        ControlPoint(-1000.0, 0.0, (0.9, 0.85, 0.8), 0.6), ControlPoint(200.0, 0.0, (0.9, 0.85, 0.8), 0.6),
+        ControlPoint(400.0, 60.0, _BONE, 0.8), ControlPoint(1000.0, 120.0, _CORTEX, 0.9))),
     "ct-muscle": TransferFunction((
         ControlPoint(0.0, 0.0, (0.9, 0.6, 0.5)), ControlPoint(0.15, 0.0, (0.9, 0.6, 0.5), 0.3),
-        ControlPoint(0.25, 4.0, (0.95, 0.75, 0.65), 0.4), ControlPoint(0.4, 12.0, (0.85, 0.35, 0.3), 0.5),
-        ControlPoint(0.6, 40.0, (0.95, 0.92, 0.85), 0.8), ControlPoint(1.0, 80.0, (0.97, 0.95, 0.9), 0.9)),
-        "ct-muscle"),
+        ControlPoint(0.25, 4.0, _SKIN, 0.4), ControlPoint(0.4, 12.0, _MUSCLE, 0.5),
+        ControlPoint(0.6, 40.0, _BONE, 0.8), ControlPoint(1.0, 80.0, _CORTEX, 0.9)),
+        "ct-muscle", (
+        ControlPoint(-1000.0, 0.0, (0.9, 0.6, 0.5), 0.3), ControlPoint(-60.0, 0.0, (0.9, 0.6, 0.5), 0.3),
+        ControlPoint(0.0, 4.0, _SKIN, 0.4), ControlPoint(40.0, 12.0, _MUSCLE, 0.5),
+        ControlPoint(300.0, 40.0, _BONE, 0.8), ControlPoint(1000.0, 80.0, _CORTEX, 0.9))),
     "ct-vessels": TransferFunction((
         ControlPoint(0.0, 0.0, (0.8, 0.1, 0.1)), ControlPoint(0.5, 0.0, (0.8, 0.1, 0.1), 0.5),
-        ControlPoint(0.6, 30.0, (0.85, 0.15, 0.12), 0.7), ControlPoint(0.8, 0.0, (0.9, 0.9, 0.9), 0.7),
+        ControlPoint(0.6, 30.0, _BLOOD, 0.7), ControlPoint(0.8, 0.0, (0.9, 0.9, 0.9), 0.7),
         ControlPoint(0.9, 80.0, (0.95, 0.95, 0.9), 0.9), ControlPoint(1.0, 100.0, (0.95, 0.95, 0.9), 0.9)),
-        "ct-vessels"),
+        "ct-vessels", (
+        ControlPoint(-1000.0, 0.0, (0.8, 0.1, 0.1), 0.5), ControlPoint(120.0, 0.0, (0.8, 0.1, 0.1), 0.5),
+        ControlPoint(200.0, 30.0, _BLOOD, 0.7), ControlPoint(300.0, 30.0, _BLOOD, 0.7),
+        ControlPoint(450.0, 0.0, (0.9, 0.9, 0.9), 0.7), ControlPoint(700.0, 80.0, (0.95, 0.95, 0.9), 0.9),
+        ControlPoint(1000.0, 100.0, (0.95, 0.95, 0.9), 0.9))),
     "smoke": TransferFunction((ControlPoint(0.0, 0.0, (0.9, 0.9, 0.9)),
                                ControlPoint(1.0, 20.0, (0.9, 0.9, 0.9))), "smoke"),
 }

@@ -63,6 +63,9 @@ class LoadedVolume:
     """4x4 mapping volren's local cube [-1, 1]^3 onto the world [m]; voxel centres land at their file positions."""
     value_range: tuple[float, float] | None
     """the file values (e.g. Hounsfield units) that density 0 and 1 stand for, when they were normalised."""
+    hounsfield: bool = False
+    """``value_range`` is in Hounsfield units: signed integers (CT files store HU so) or a rescaled DICOM series;
+    unsigned integers (0..dtype max) are not."""
 
     @property
     def corners_world(self) -> np.ndarray:
@@ -334,7 +337,8 @@ def load_volume(
         index_to_world = file_to_world @ grid.index_to_file
     if abs(np.linalg.det(index_to_world[:3, :3])) < 1e-30:
         raise VolrenError(f"{path}: the stored voxel axes are degenerate (zero spacing or parallel directions)")
-    return LoadedVolume(density, index_to_world @ _local_to_index(density.shape), value_range)
+    hounsfield = value_range is not None and (grid.rescale or np.issubdtype(grid.data.dtype, np.signedinteger))
+    return LoadedVolume(density, index_to_world @ _local_to_index(density.shape), value_range, hounsfield)
 
 
 def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None) -> _Grid:

@@ -85,6 +85,11 @@ class Majorants:
         return int(self.lo.nbytes + self.hi.nbytes + sum(level.nbytes for level in self.levels))
 
 
+def table_scale(density: np.ndarray) -> float:
+    """The density that u = 1 of an extinction table stands for (u = density / scale)."""
+    return float(density.max()) or 1.0
+
+
 def build_majorants(density: np.ndarray, extinction: np.ndarray, ranges: np.ndarray | None = None,
                     global_majorant: bool = False) -> Majorants:
     """The majorant octree of a density grid [z, y, x] under the extinction table (indexed by u = value / max).
@@ -94,7 +99,7 @@ def build_majorants(density: np.ndarray, extinction: np.ndarray, ranges: np.ndar
     voxels = tuple(density.shape[::-1])
     cell = voxels if global_majorant else (MACROCELL,) * 3
     lo, hi = scalar_ranges(density, cell)
-    scale = float(density.max()) or 1.0
+    scale = table_scale(density)
     m = range_max_table(extinction) if ranges is None else ranges
     n = len(extinction) - 1
     i = np.clip(np.floor(lo / scale * n), 0, n).astype(np.int64)

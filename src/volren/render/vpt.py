@@ -62,10 +62,11 @@ from volren.render.majorants import (
     build_majorants,
     majorant_struct,
     range_max_table,
+    table_scale,
     track,
 )
 from volren.render.surfaces import occluded
-from volren.transfer import TransferFunction, linear, load_transfer_function
+from volren.transfer import linear, load_transfer_function
 from volren.upload import DeviceScene, camera_struct
 
 SHADING = ("coexist", "er")
@@ -448,6 +449,23 @@ def vpt_kernel(
     count(counters, SHADOW_RAYS, shadow_rays)
 
 
+def transfer_tables(volumes, transfer: str | None) -> list[np.ndarray]:
+    """Each volume's lookup table (`TransferFunction.table`), indexed by u = density / the majorants' scale: the
+    configured transfer function (in Hounsfield units where it has that form and the volume a ``value_range``: entry
+    u holds HU lo + (hi - lo) * u * scale), or each volume's density-scale model."""
+    if transfer is None:
+        return [linear(v.density_scale * float(v.density.max()), v.albedo).table() for v in volumes]
+    tf = load_transfer_function(transfer)
+    tables = []
+    for v in volumes:
+        hu = None
+        if v.value_range is not None:
+            lo, hi = v.value_range
+            hu = (lo, lo + (hi - lo) * table_scale(v.density))
+        tables.append(tf.table(hu=hu))
+    return tables
+
+
 class VPT(Renderer):
     """Volumetric path tracing; ``config`` is a `VPTConfig`. Majorants are rebuilt when the transfer function or
     the scene changes (build time and memory in the frame info)."""
@@ -462,12 +480,6 @@ class VPT(Renderer):
         self._scene: VPTScene | None = None
         self._denoiser = {"ours": Denoiser, "svgf": SVGF, "wrls": WRLS}.get(self.config.denoise, Denoiser)(self.device)
 
-    def _transfer(self, scene) -> list[TransferFunction]:
-        """The transfer function of each volume: the configured one, or each volume's density-scale model."""
-        if self.config.transfer is not None:
-            return [load_transfer_function(self.config.transfer)] * len(scene.volumes)
-        return [linear(v.density_scale * float(v.density.max()), v.albedo) for v in scene.volumes]
-
     def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
         """Upload, then the majorant octrees (rebuilt only when the densities or the transfer function change: not
         for a new camera or light) and the environment's sampling tables (rebuilt when the environment changes)."""
@@ -475,7 +487,7 @@ class VPT(Renderer):
         key = (tuple(id(v) for v in scene.volumes), self.config.transfer, self.config.global_majorant)
         if self._majorants is None or self._majorants[0] != key:
             with clock.measure("majorants"):
-                tables = [tf.table() for tf in self._transfer(scene)]
+                tables = transfer_tables(scene.volumes, self.config.transfer)
                 majorants = [build_majorants(vol.density, table[:, 0], range_max_table(table[:, 0]),
                                              self.config.global_majorant)
                              for vol, table in zip(scene.volumes, tables, strict=True)]
