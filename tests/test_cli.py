@@ -1142,7 +1142,7 @@ def test_vpt_options_on_a_loaded_volume(capfd, tmp_path: Path) -> None:
 def test_vpt_tf_ct_bone_reads_hounsfield_units_of_a_signed_ct(capfd, tmp_path: Path) -> None:
     """An int16 CT of soft tissue (40 HU) in air (-1000 HU) holds no bone: under ct-bone it renders empty (alpha 0),
     although the loader maps 40 HU to density 1, where the preset's normalised form is bone. The scene's volume
-    carries the HU range; a uint8 file's 0..255 is no HU, so it carries none."""
+    carries the HU range; a uint8 file's 0..255 is no HU, and a constant file has no scale: they carry none."""
     from volren.cli import build_parser, scene_from_args
 
     z, y, x = np.mgrid[0:16, 0:16, 0:16] / 7.5 - 1
@@ -1151,8 +1151,10 @@ def test_vpt_tf_ct_bone_reads_hounsfield_units_of_a_signed_ct(capfd, tmp_path: P
     nrrd.write(str(tmp_path / "u8.nrrd"), ct.astype(np.uint8), index_order="C")
     args = build_parser().parse_args(["render", "--volume", str(tmp_path / "ct.nrrd")])
     assert scene_from_args(args).volumes[0].value_range == (-1000.0, 40.0)
-    args = build_parser().parse_args(["render", "--volume", str(tmp_path / "u8.nrrd")])
-    assert scene_from_args(args).volumes[0].value_range is None
+    nrrd.write(str(tmp_path / "flat.nrrd"), np.full((4, 4, 4), 40, np.int16), index_order="C")
+    for name in ("u8.nrrd", "flat.nrrd"):  # no HU; a constant CT has no HU scale
+        args = build_parser().parse_args(["render", "--volume", str(tmp_path / name)])
+        assert scene_from_args(args).volumes[0].value_range is None
     for tf, empty in (("ct-bone", True), ("ct-muscle", False)):
         out = tmp_path / tf
         ok(capfd, "render", "--method", "vpt", "--volume", tmp_path / "ct.nrrd", "--tf", tf, "--spp", "2",

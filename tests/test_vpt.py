@@ -483,13 +483,13 @@ def hounsfield_head(extra: tuple[float, ...] = ()) -> np.ndarray:
     return hu
 
 
-def voxel_extinction(hu: np.ndarray, transfer: str) -> np.ndarray:
-    """Extinction at each voxel centre of the CT ``hu`` normalised as the loader does (min..max -> 0..1), read from
-    the table vpt builds for it as the kernel reads it (u = density / scale)."""
+def voxel_extinction(hu: np.ndarray, transfer: str, value_range: tuple[float, float] | None = None) -> np.ndarray:
+    """Extinction at each voxel centre of the CT ``hu`` normalised over ``value_range`` (default: min..max -> 0..1,
+    as the loader does), read from the table vpt builds for it as the kernel reads it (u = density / scale)."""
     from volren.render.majorants import table_scale
     from volren.render.vpt import transfer_tables
 
-    lo, hi = float(hu.min()), float(hu.max())
+    lo, hi = value_range or (float(hu.min()), float(hu.max()))
     vol = Volume(((hu - lo) / (hi - lo)).astype(np.float32), value_range=(lo, hi))
     table = transfer_tables([vol], transfer)[0]
     u = vol.density / table_scale(vol.density)
@@ -499,8 +499,9 @@ def voxel_extinction(hu: np.ndarray, transfer: str) -> np.ndarray:
 def test_ct_tf_presets_classify_hounsfield_units_whatever_the_series_range() -> None:
     """A CT with value_range: ct-bone gives extinction only in the 1000 HU shell (120 /m, the preset's value at
     1000 HU), ct-muscle in tissue (12 /m at 40 HU) and bone (80 /m), none in air or fat; a series whose range a metal
-    voxel (3071) and padding (-2048) widen maps the same HU to the same extinction. A volume without value_range
-    keeps the normalised table."""
+    voxel (3071) and padding (-2048) widen maps the same HU to the same extinction, and so does a value_range wider
+    than the data (12-bit -1024..3071: the densities' maximum is then 0.49). A volume without value_range keeps the
+    normalised table."""
     from volren.render.vpt import transfer_tables
 
     hu = hounsfield_head()
@@ -510,8 +511,8 @@ def test_ct_tf_presets_classify_hounsfield_units_whatever_the_series_range() -> 
     bone, tissue = hu == 1000, hu == 40
     for name, expected in (("ct-bone", np.where(bone, 120.0, 0.0)),
                            ("ct-muscle", np.select([bone, tissue], [80.0, 12.0], 0.0))):
-        for series in (hu, wide):
-            ext = voxel_extinction(series, name)
+        for series, value_range in ((hu, None), (wide, None), (hu, (-1024.0, 3071.0))):
+            ext = voxel_extinction(series, name, value_range)
             np.testing.assert_allclose(ext[inner], expected[inner], atol=0.5, err_msg=name)
             np.testing.assert_array_equal(ext[inner] > 0, expected[inner] > 0, err_msg=name)
     plain = Volume(((hu + 1000) / 2000).astype(np.float32))
