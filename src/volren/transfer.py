@@ -70,11 +70,12 @@ class TransferFunction:
         """(size, 5) float32: extinction, albedo r, g, b, P_brdf at u = i / (size - 1); with ``hu`` = (HU at u = 0,
         HU at u = 1) and ``hu_points``, the Hounsfield classification at those HU instead."""
         u = np.linspace(0.0, 1.0, size)
-        points = self.points
+        pos = np.array([p.position for p in self.points])
+        values = np.array([(p.extinction, *p.albedo, p.p_brdf) for p in self.points], dtype=np.float64)
         if hu is not None and self.hu_points:
-            u, points = hu[0] + (hu[1] - hu[0]) * u, self.hu_points
-        pos = np.array([p.position for p in points])
-        values = np.array([(p.extinction, *p.albedo, p.p_brdf) for p in points], dtype=np.float64)
+            u = hu[0] + (hu[1] - hu[0]) * u
+            pos = np.array([p.position for p in self.hu_points])
+            values = np.array([(p.extinction, *p.albedo, p.p_brdf) for p in self.hu_points], dtype=np.float64)
         return np.stack([np.interp(u, pos, values[:, c]) for c in range(5)], axis=1).astype(np.float32)
 
     def to_json(self) -> str:
