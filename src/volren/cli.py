@@ -232,8 +232,9 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                    "file {\"points\": [{\"position\": u, \"extinction\": mu_t, \"albedo\": [r, g, b], \"p_brdf\": p}, "
                    "...]}: u in [0, 1] (the scalar over the volume's largest) not decreasing, mu_t >= 0 [1/m], albedo "
                    "(default "
-                   "0.8 each) and p_brdf (surface-like share, default 0) in [0, 1], linear in between (default: "
-                   "extinction proportional to density)")
+                   "0.8 each) and p_brdf (surface-like share, default 0) in [0, 1], linear in between; optional "
+                   "\"hu_points\" (same fields, position in Hounsfield units) classify a CT (signed integers, DICOM) "
+                   "by HU instead, as the ct-* presets do (default: extinction proportional to density)")
     r.add_argument("--denoise", choices=("none", "ours", "svgf", "wrls"), help="vpt: the spatiotemporal denoiser of "
                    "paper 002 §5 (ours), or the baselines SVGF and WRLS; all keep history across --frames (default: "
                    "none)")
