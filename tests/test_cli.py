@@ -34,9 +34,9 @@ from conftest import DEVICE
 from volren.cli import main
 from volren.device import init_warp
 
-BASE = ("--width", "24", "--height", "16", "--resolution", "64", "--samples", "16", "--light-samples", "8",
-        "--device", "cpu")
-"""Tiny settings every method takes."""
+BASE = ("--width", "24", "--height", "16", "--samples", "16", "--light-samples", "8", "--device", "cpu")
+"""Tiny settings every method takes (render's built-in scenes default to 64 voxels per axis; --volume and fog
+scenes refuse --resolution)."""
 TINY = (*BASE, "--light-grid", "16")
 """Tiny settings for dssrm and demo (reference takes no --light-grid)."""
 W, H = 24, 16
@@ -165,7 +165,7 @@ def write_npy(path: Path, a: np.ndarray) -> Path:
 
 def test_demo_writes_stereo_pair_and_stats(capfd, tmp_path: Path) -> None:
     out = tmp_path / "demo"
-    r = ok(capfd, "demo", *TINY, "--out", out)
+    r = ok(capfd, "demo", *TINY, "--resolution", "64", "--out", out)
     assert sorted(p.name for p in out.iterdir()) == ["stats.json", "stereo.png", "view0.png", "view1.png"]
     for name in ("view0.png", "view1.png"):
         assert png(out / name).shape == (H, W, 3)
@@ -750,6 +750,13 @@ BAD_RENDER_ARGS = {
                                                                    "stereo"]),
     "rig-with-default-views": (["--rig", "arc"], ["--rig arc", "--views stereo"]),
     "overlap-without-rig": (["--views", "3", "--overlap", "0.2"], ["--overlap needs --rig overlap"]),
+    # refused before the file is read (it does not exist): the file sets its own voxels
+    "resolution-with-volume": (["--volume", "missing.npy", "--resolution", "128"],
+                               ["--resolution applies to built-in volume scenes only; --volume's file sets its own "
+                                "voxels"]),
+    **{f"resolution-with-{name}": (["--method", "fog", "--scene", name, "--resolution", "64"],
+                                   [f"--resolution applies to built-in volume scenes only, not to fog scene '{name}'"])
+       for name in FOG_SCENE_NAMES},
 }
 
 

@@ -49,7 +49,9 @@ def reduced(words: list[str]) -> list[str]:
         return args
     method = "dssrm" if args[0] == "demo" else args[args.index("--method") + 1] if "--method" in args else "dssrm"
     extra = [*SIZE, *SMALL[method]]
-    if not any(a.startswith("--method=fog") for a in args) and method != "fog":
+    # only a built-in volume scene takes --resolution: a --volume file and the fog scenes refuse it
+    fog = method == "fog" or any(a.startswith("--method=fog") for a in args)
+    if not fog and not any(a == "--volume" or a.startswith("--volume=") for a in args):
         extra += ["--resolution", "64"]
     if "--frames" in args or args[0] == "animate":
         extra += ["--frames", "2"]

@@ -34,6 +34,8 @@ FROXEL_BYTES = 16
 """fog froxel: one vec4 in each of the lighting, history and integrated grids."""
 
 DEFAULT_SCENE = "smoke"
+DEFAULT_RESOLUTION = 64
+"""voxels per axis of a built-in volume scene (render, animate; demo: 128)"""
 ANIMATION_FPS = 30.0
 """frames per second of scene time for animated scenes rendered with --frames"""
 
@@ -138,8 +140,9 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                          ".npz raw .tif .nvdb; default: cubic voxels, longest side 2 m)")
         src.add_argument("--units", choices=("m", "mm"), help="unit of the file's coordinates and --spacing "
                          "(default: what the file states, else mm)")
-    src.add_argument("--resolution", type=int, default=128 if demo else 64, help="built-in scenes: voxels per axis, "
-                     "64-512")
+    # None unless given, so --volume and the fog scenes (which take no voxel count) can refuse it
+    src.add_argument("--resolution", type=int, default=128 if demo else None, help="built-in volume scenes: voxels "
+                     f"per axis, 64-512{'' if demo else f' (default: {DEFAULT_RESOLUTION})'}")
     src.add_argument("--count", type=int, help="scene 'multi': 4, 16 or 36 instances (default 16)")
     mat = p.add_argument_group("material and light (override the scene's)")
     mat.add_argument("--density-scale", type=float, help="sigma_t per unit density [1/m], >= 0 (default: the scene's)")
@@ -299,6 +302,8 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     if getattr(args, "volume", None) is not None:
         if args.scene is not None:
             raise CliError("give either --scene or --volume, not both")
+        if args.resolution is not None:
+            raise CliError("--resolution applies to built-in volume scenes only; --volume's file sets its own voxels")
         loaded = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units)
         # CT presets classify by HU; a constant file (lo = hi) has no HU scale
         hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
@@ -306,6 +311,8 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
         scene = Scene((Volume(loaded.density, loaded.to_world, name=args.volume.name, value_range=value_range),),
                       name=args.volume.stem)
     elif getattr(args, "scene", None) in FOG_SCENES:
+        if args.resolution is not None:
+            raise CliError(f"--resolution applies to built-in volume scenes only, not to fog scene '{args.scene}'")
         scene = fog_scene(args.scene, time)
     else:
         name = getattr(args, "scene", None)
@@ -314,7 +321,8 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
         name = DEFAULT_SCENE if name is None else name
         if args.count is not None and name != "multi":
             raise CliError(f"--count applies to --scene multi only, not to scene '{name}'")
-        scene = builtin_scene(name, args.resolution, count=16 if args.count is None else args.count, seed=args.seed)
+        resolution = DEFAULT_RESOLUTION if args.resolution is None else args.resolution
+        scene = builtin_scene(name, resolution, count=16 if args.count is None else args.count, seed=args.seed)
     names = ("density_scale", "albedo", "g", "emission")
     material = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
     volumes = tuple(dataclasses.replace(v, **material) for v in scene.volumes) if material else scene.volumes
