@@ -296,3 +296,78 @@ def test_cli_frames_an_anisotropic_sphere_round_and_centred(tmp_path: Path) -> N
     assert 8 <= cols.max() - cols.min() + 1 <= 40
     assert abs((cols.max() - cols.min()) - (rows.max() - rows.min())) <= 2
     assert abs((cols.max() + cols.min()) / 2 - 23.5) <= 1.5 and abs((rows.max() + rows.min()) / 2 - 23.5) <= 1.5
+
+
+def test_nvdb_voxel_size_and_origin_place_the_grid(tmp_path: Path) -> None:
+    """A 2 x 3 x 4 grid at 0.5 x 0.25 x 2 mm whose voxel (0, 0, 0) sits at (1, 2, 3) mm: the world box starts at
+    (0.75, 1.875, 2) mm and spans n voxels of that size; --units m scales it by 1000; --spacing replaces it
+    (centred); the identity map Warp writes by default is no placement (cubic voxels, longest side 2 m)."""
+    import warp as wp
+
+    from volren.device import init_warp
+
+    init_warp()
+    xyz = np.ones((2, 3, 4), np.float32)
+    wp.Volume.load_from_numpy(xyz, min_world=(1.0, 2.0, 3.0), voxel_size=(0.5, 0.25, 2.0),
+                              device="cpu").save_to_nvdb(str(tmp_path / "p.nvdb"))
+    loaded = load_volume(tmp_path / "p.nvdb")
+    n = np.array(loaded.density.shape[::-1])  # Warp activates whole 8^3 leaves: the dense copy is the leaf
+    np.testing.assert_array_equal(loaded.density[:4, :3, :2], 1)
+    corners = loaded.corners_world
+    np.testing.assert_allclose(corners.min(axis=0), [0.75e-3, 1.875e-3, 2e-3], rtol=1e-6)
+    np.testing.assert_allclose(corners.max(axis=0), [0.75e-3, 1.875e-3, 2e-3] + n * [0.5e-3, 0.25e-3, 2e-3], rtol=1e-6)
+    np.testing.assert_allclose(load_volume(tmp_path / "p.nvdb", units="m").corners_world, corners * 1000, rtol=1e-6)
+    m = load_volume(tmp_path / "p.nvdb", spacing=(1, 1, 1)).to_world
+    np.testing.assert_allclose(m[:3, :3], np.diag(n * 0.5e-3), rtol=1e-12)
+    np.testing.assert_allclose(m[:3, 3], 0, atol=1e-15)
+    wp.Volume.load_from_numpy(xyz, device="cpu").save_to_nvdb(str(tmp_path / "i.nvdb"))
+    np.testing.assert_allclose(load_volume(tmp_path / "i.nvdb").to_world, np.eye(4), atol=1e-15)  # one 8^3 leaf
+
+
+def test_imagej_tiff_spacing_places_the_stack(tmp_path: Path) -> None:
+    """An ImageJ stack of 7 x 6 x 5 voxels at 0.5 x 0.25 x 2 um is a 3.5 x 1.5 x 10 um box centred on the origin;
+    --units mm overrides the stated micron; --spacing replaces the stored size; an ImageJ stack with nothing set is
+    unplaced; a zero resolution is refused."""
+    import tifffile
+
+    a = np.zeros((5, 6, 7), np.uint16)
+    tifffile.imwrite(tmp_path / "s.tif", a, imagej=True, resolution=(1 / 0.5, 1 / 0.25),
+                     metadata={"spacing": 2.0, "unit": "um"})
+    corners = load_volume(tmp_path / "s.tif").corners_world
+    np.testing.assert_allclose(corners.max(axis=0), [1.75e-6, 0.75e-6, 5e-6], rtol=1e-12)
+    np.testing.assert_allclose(corners.min(axis=0), [-1.75e-6, -0.75e-6, -5e-6], rtol=1e-12)
+    np.testing.assert_allclose(load_volume(tmp_path / "s.tif", units="mm").corners_world, corners * 1000, rtol=1e-12)
+    m = load_volume(tmp_path / "s.tif", spacing=(1, 1, 1), units="m").to_world
+    np.testing.assert_allclose(m[:3, :3], np.diag([3.5, 3.0, 2.5]))
+    tifffile.imwrite(tmp_path / "micron.tif", a, imagej=True, metadata={"spacing": 3.0, "unit": "micron"})
+    np.testing.assert_allclose(load_volume(tmp_path / "micron.tif").to_world[:3, :3],
+                               np.diag([3.5e-6, 3e-6, 7.5e-6]), rtol=1e-12)
+    tifffile.imwrite(tmp_path / "mm.tif", a, imagej=True, metadata={"spacing": 3.0})  # no unit: millimetres
+    np.testing.assert_allclose(load_volume(tmp_path / "mm.tif").to_world[2, 2], 7.5e-3, rtol=1e-12)
+    tifffile.imwrite(tmp_path / "bare.tif", a, imagej=True)
+    np.testing.assert_allclose(load_volume(tmp_path / "bare.tif").to_world[:3, :3], np.diag([1.0, 6 / 7, 5 / 7]))
+    tifffile.imwrite(tmp_path / "zero.tif", a, imagej=True, metadata={"spacing": 0.0, "unit": "um"})
+    with pytest.raises(VolrenError, match=r"zero\.tif: the ImageJ voxel size .* is not three positive numbers"):
+        load_volume(tmp_path / "zero.tif")
+
+
+def test_nvdb_rotated_map_follows_warp(tmp_path: Path) -> None:
+    """A map that swaps axes (M = [[0, 1, 0], [2, 0, 0], [0, 0, 3]], written into the file's Map) places index +x
+    along world +y, as Warp's own volume_index_to_world does: world = M (i, j, k), row-major."""
+    import struct
+
+    import warp as wp
+
+    from volren.device import init_warp
+
+    init_warp()
+    wp.Volume.load_from_numpy(np.ones((2, 2, 2), np.float32), device="cpu").save_to_nvdb(str(tmp_path / "r.nvdb"))
+    data = bytearray((tmp_path / "r.nvdb").read_bytes())
+    matrix = np.array([[0.0, 1.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 3.0]])
+    for fmt in ("<9f", "<9d"):  # Map.mMatF and Map.mMatD: the first identity matrix of each precision
+        at = data.find(struct.pack(fmt, *np.eye(3).ravel()))
+        data[at : at + struct.calcsize(fmt)] = struct.pack(fmt, *matrix.ravel())
+    (tmp_path / "r.nvdb").write_bytes(bytes(data))
+    loaded = load_volume(tmp_path / "r.nvdb", units="m")
+    n = np.array(loaded.density.shape[::-1])
+    np.testing.assert_allclose(loaded.to_world[:3, :3], matrix * n / 2)

@@ -3,7 +3,8 @@
 Every loader returns float32 ``[z, y, x]`` (DESIGN.md) validated by ``validate_density``; every failure is a
 one-line ``VolrenError`` that names the file. ``load_volume`` also places the grid in the world (metres) from what the
 file stores: NRRD space directions and origin, the NIfTI affine, DICOM patient coordinates; formats that store no
-placement (``.npy``, ``.npz``, raw, TIFF, NanoVDB) take ``spacing`` or get cubic voxels, longest side 2 m, centred.
+placement (``.npy``, ``.npz``, raw, plain TIFF) take ``spacing`` or get cubic voxels, longest side 2 m, centred; ImageJ
+TIFF spacing and the NanoVDB index-to-world map are used unless ``spacing`` replaces them.
 
 Anatomical axes map onto volren's y-up world as a patient standing upright and facing the default camera (which looks
 down -z): world +x = patient Left, +y = Superior, +z = Anterior, so LPS (x, y, z) -> (x, z, -y) and RAS (x, y, z) ->
@@ -31,7 +32,9 @@ _MAX_NVDB_VOXELS = 1 << 30
 
 UNITS = {"m": 1.0, "mm": 1e-3}
 """``--units``: metres per unit of the file's coordinates (or of ``spacing``)."""
-_FILE_UNITS = {"m": 1.0, "meter": 1.0, "mm": 1e-3, "millimeter": 1e-3, "um": 1e-6, "micron": 1e-6, "µm": 1e-6}
+_FILE_UNITS = {"m": 1.0, "meter": 1.0, "cm": 1e-2, "mm": 1e-3, "millimeter": 1e-3, "um": 1e-6, "micron": 1e-6,
+               "microns": 1e-6, "µm": 1e-6, "\\u00b5m": 1e-6, "nm": 1e-9}
+"""units a file may state (NRRD space units, NIfTI xyzt_units, ImageJ ``unit``; ImageJ may write µ as ``\\u00B5``)."""
 _LPS_TO_WORLD = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 """Patient Left-Posterior-Superior to the y-up world: Left -> +x, Superior -> +y, Anterior (-P) -> +z."""
 _ANATOMICAL_SIGNS = {"L": (0, 1.0), "R": (0, -1.0), "P": (1, 1.0), "A": (1, -1.0), "S": (2, 1.0), "I": (2, -1.0)}
@@ -51,6 +54,8 @@ class _Grid:
     """the unit the file states, None when it states none (then millimetres are assumed)."""
     rescale: bool = False
     """min-max normalise floats too (DICOM Hounsfield units are floats that go below zero)."""
+    spacing_replaces: bool = False
+    """``spacing`` replaces the stored placement (ImageJ TIFF, NanoVDB) instead of being refused."""
 
 
 @dataclass(frozen=True)
@@ -211,16 +216,34 @@ def _read_nifti(path: Path) -> _Grid:
                  _FILE_UNITS.get(unit))
 
 
-def _read_tiff(path: Path) -> np.ndarray:
+def _read_tiff(path: Path) -> _Grid:
     """A multi-page TIFF stack (microscopy): pages are z, each page [y, x]. Colour or multi-channel stacks are refused:
-    volren renders one scalar channel."""
+    volren renders one scalar channel. ImageJ stacks place the voxels: x/y size = 1 / XResolution, YResolution (pixels
+    per unit), z size = the ImageJ ``spacing``, in the ImageJ ``unit``; the default ImageJ writes when nothing was set
+    (1 x 1 x 1, no unit) counts as no placement."""
     import tifffile  # lazy: only TIFF users pay for the import
 
-    data = tifffile.imread(str(path))
+    with tifffile.TiffFile(str(path)) as tif:
+        data = tif.asarray()
+        imagej = tif.imagej_metadata
+        tags = tif.pages[0].tags
+        resolution = [tags[name].value if name in tags else (1, 1) for name in ("XResolution", "YResolution")]
     if data.ndim != 3:
         raise VolrenError(f"{path}: TIFF holds an array of shape {data.shape}; volren needs a stack of 2D grey pages "
                           "[z, y, x]")
-    return data
+    if not imagej:
+        return _Grid(data)
+    unit = str(imagej.get("unit", "")).strip().lower()
+    step = [den / num if num else float("inf") for num, den in resolution] + [float(imagej.get("spacing", 1.0))]
+    if step == [1.0, 1.0, 1.0] and unit in ("", "pixel"):
+        return _Grid(data)
+    if not all(np.isfinite(v) and v > 0 for v in step):
+        raise VolrenError(f"{path}: the ImageJ voxel size {step} (1 / XResolution, 1 / YResolution, spacing) is not "
+                          "three positive numbers; give --spacing x,y,z to replace it")
+    m = np.eye(4)
+    m[:3, :3] = np.diag(step)
+    m[:3, 3] = -np.asarray(step) * (np.array(data.shape[::-1]) - 1) / 2  # ImageJ stores no origin: centred
+    return _Grid(data, m, metres_per_unit=_FILE_UNITS.get(unit), spacing_replaces=True)
 
 
 @wp.kernel
@@ -242,9 +265,14 @@ def _active_index_bbox(volume: wp.Volume) -> tuple[np.ndarray, np.ndarray]:
     return bbox[:3].astype(np.int64), bbox[3:].astype(np.int64)
 
 
-def _read_nvdb(path: Path) -> np.ndarray:
+def _read_nvdb(path: Path) -> _Grid:
     """Resample the first grid of a NanoVDB file densely over its active index bounding box (index i, j, k = x,
-    y, z), on the CPU. Voxels outside the active set read as the grid's background value."""
+    y, z), on the CPU. Voxels outside the active set read as the grid's background value.
+
+    Placement: the grid's linear map, world = M (i, j, k) + t (NanoVDB's row-major 3x3 and translation; the voxel
+    size is M's column lengths). NanoVDB states no length unit, so the world is millimetres unless ``units`` says
+    otherwise. The identity map (voxel size 1, no translation: what Warp and OpenVDB write when nothing was set)
+    counts as no placement."""
     init_warp()
     try:
         volume = wp.Volume.load_from_nvdb(path.read_bytes(), device="cpu")
@@ -261,7 +289,17 @@ def _read_nvdb(path: Path) -> np.ndarray:
         raise VolrenError(f"{path}: dense copy of {size[0]}x{size[1]}x{size[2]} voxels is too large to load")
     out = wp.empty((int(size[2]), int(size[1]), int(size[0])), dtype=wp.float32, device="cpu")
     wp.launch(_nvdb_to_dense, dim=out.shape, inputs=[volume.id, wp.vec3i(*(int(v) for v in lo)), out], device="cpu")
-    return out.numpy()
+    info = volume.get_grid_info()
+    matrix = np.array(info.transform_matrix, dtype=np.float64).reshape(3, 3)
+    translation = np.array(info.translation, dtype=np.float64)
+    if np.array_equal(matrix, np.eye(3)) and not translation.any():
+        return _Grid(out.numpy())
+    if not (np.all(np.isfinite(matrix)) and np.all(np.isfinite(translation))):
+        raise VolrenError(f"{path}: the NanoVDB index-to-world transform is not finite numbers")
+    m = np.eye(4)
+    m[:3, :3] = matrix
+    m[:3, 3] = matrix @ lo + translation  # dense index 0 is NanoVDB index lo
+    return _Grid(out.numpy(), m, spacing_replaces=True)
 
 
 _READERS: dict[str, Callable[[Path], np.ndarray | _Grid]] = {
@@ -301,11 +339,12 @@ def load_volume(
 
     Placement: NRRD ``space directions`` / ``space origin`` (or ``spacings``), the NIfTI affine (RAS+), DICOM
     ImagePositionPatient / ImageOrientationPatient / PixelSpacing and the slice positions (LPS); anatomical frames
-    map to the world as the module docstring says. Units: what the file states (NRRD ``space units``, NIfTI
-    ``xyzt_units``), else millimetres (DICOM is always mm); ``units`` ("m" or "mm") overrides both. Formats that
-    store no placement (``.npy``, ``.npz``, raw, ``.tif``/``.tiff``, ``.nvdb``) take ``spacing`` = voxel size
-    (x, y, z) in ``units`` (default mm), or get cubic voxels with the longest side 2 m; they are centred on the
-    origin. ``spacing`` is refused for formats that store their own.
+    map to the world as the module docstring says; ImageJ TIFF voxel sizes (centred) and the NanoVDB index-to-world
+    map. Units: what the file states (NRRD ``space units``, NIfTI ``xyzt_units``, ImageJ ``unit``), else millimetres
+    (DICOM is always mm; NanoVDB states none); ``units`` ("m" or "mm") overrides both. ``spacing`` = voxel size
+    (x, y, z) in ``units`` (default mm) places ``.npy``, ``.npz``, raw, ``.tif``/``.tiff`` and ``.nvdb`` (replacing
+    what a TIFF or NanoVDB stores), centred on the origin; without it and without a stored placement they get cubic
+    voxels with the longest side 2 m, centred. ``spacing`` is refused for NRRD, NIfTI and DICOM.
     """
     path = Path(path)
     if units is not None and units not in UNITS:
@@ -322,12 +361,12 @@ def load_volume(
         grid = read_dicom_series(path)
     else:
         grid = _read_file(path, shape, dtype)
-    if grid.index_to_file is not None and spacing is not None:
+    if grid.index_to_file is not None and spacing is not None and not grid.spacing_replaces:
         raise VolrenError(f"{path}: this volume stores its own voxel spacing; --spacing applies to .npy, .npz, raw, "
                           ".tif and .nvdb")
     data, value_range = _normalise(grid)
     density = validate_density(data, f"volume file {path}")
-    if grid.index_to_file is None:
+    if grid.index_to_file is None or spacing is not None:
         index_to_world = _spacing_placement(density.shape, spacing, UNITS[units or "mm"])
     else:
         metres = UNITS[units] if units is not None else grid.metres_per_unit or UNITS["mm"]
