@@ -907,6 +907,40 @@ def test_bad_volume(capfd, tmp_path: Path, case: str) -> None:
     assert name in line  # the message names the file
 
 
+def test_one_dcm_file_renders_its_series(capfd, tmp_path: Path) -> None:
+    """``--volume ct/im003.dcm`` reads the series in ct/ (issue 13 item 2): all 9 slices, the image of ``--volume
+    ct``."""
+    from test_loaders import write_dicom_series
+    from volren.cli import build_parser, scene_from_args
+
+    write_dicom_series(tmp_path / "ct", [(-12.0, -12.0, z) for z in np.arange(-12.0, 13.0, 3.0)], size=(16, 16),
+                       spacing=(1.5, 1.5))
+    file = tmp_path / "ct" / "im003.dcm"
+    assert scene_from_args(build_parser().parse_args(["render", "--volume", str(file)])).volumes[0].density.shape == (
+        9, 16, 16)
+    series = _linear_render(capfd, tmp_path / "dir", tmp_path / "ct")
+    assert series[..., 3].max() > 0
+    np.testing.assert_array_equal(_linear_render(capfd, tmp_path / "file", file), series)
+
+
+def test_one_dcm_file_refused_naming_it(capfd, tmp_path: Path) -> None:
+    """A .dcm file whose folder holds two series, or a .dcm that is no DICOM: one line naming the file given."""
+    from test_loaders import write_dicom_series
+
+    write_dicom_series(tmp_path / "ct", [(0, 0, z) for z in (0.0, 2.0, 4.0)], size=(4, 4), radius=1.0, series="1.2.3")
+    write_dicom_series(tmp_path / "b", [(0, 0, z) for z in (0.0, 2.0)], size=(4, 4), radius=1.0, series="1.2.4")
+    for f in (tmp_path / "b").iterdir():
+        f.rename(tmp_path / "ct" / f"b{f.name}")
+    file = tmp_path / "ct" / "im001.dcm"
+    render_error(capfd, tmp_path, ["--volume", file], f"--volume {file}: reading the DICOM series in its folder: "
+                 f"{tmp_path / 'ct'}: holds 2 DICOM series (first files bim000.dcm, im000.dcm); put each series in its "
+                 "own folder")
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "j.dcm").write_bytes(GARBAGE)
+    render_error(capfd, tmp_path, ["--volume", tmp_path / "junk" / "j.dcm"], f"--volume {tmp_path / 'junk' / 'j.dcm'}",
+                 "j.dcm is not a DICOM file")
+
+
 def test_volume_beyond_float32_range(capfd, tmp_path: Path) -> None:
     path = write_npy(tmp_path / "big.npy", np.full((3, 4, 5), 1e300))
     render_error(capfd, tmp_path, ["--volume", path], "big.npy")

@@ -130,7 +130,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
         src.add_argument("--scene", default=None, help=f"built-in scene (default {DEFAULT_SCENE}; see `volren scenes`)")
         src.add_argument("--volume", type=Path, help="density file (default: none, a --scene): .npy .npz .nrrd .nhdr "
                          ".nii(.gz) .tif(f) .nvdb or "
-                         "raw, or a folder of DICOM slices; placed where the file says (mm unless it states metres)")
+                         "raw, a folder of DICOM slices or one of its .dcm files (the series is read); placed where "
+                         "the file says (mm unless it states metres)")
         src.add_argument("--shape", type=ints3, help="raw files: voxels X,Y,Z, each >= 2 (x varies fastest in the "
                          "file; default: none, "
                          "required for raw)")
@@ -387,9 +388,17 @@ def rect_light(x: float, y: float, z: float, width: float, height: float, radian
 
 def _load_volume(path: Path, shape, dtype, spacing, units):
     """``--volume`` read once: the scene and the default camera framing both need it (keyed on the file's mtime too,
-    so a rewritten file is read again)."""
-    stamp = path.stat().st_mtime_ns if path.exists() else None
-    return _load_volume_cached(path, stamp, shape, dtype, spacing, units)
+    so a rewritten file is read again). One ``.dcm`` file stands for its series: the DICOM folder holding it."""
+    dicom_file = path.suffix.lower() == ".dcm" and path.is_file()
+    source = path.parent if dicom_file else path
+    stamp = source.stat().st_mtime_ns if source.exists() else None
+    try:
+        return _load_volume_cached(source, stamp, shape, dtype, spacing, units)
+    except VolrenError as exc:
+        if not dicom_file:
+            raise
+        # the loader names the folder; the user named a file (e.g. the folder holds two series: say which file)
+        raise CliError(f"--volume {path}: reading the DICOM series in its folder: {exc}") from None
 
 
 @functools.lru_cache(maxsize=1)
