@@ -137,10 +137,11 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                          "required for raw)")
         src.add_argument("--dtype", help="raw files: uint8, uint16, int16, float32, ... (default: none, required for "
                          "raw)")
-        src.add_argument("--spacing", type=vec3, help="voxel size x,y,z in --units for files that store none (.npy "
-                         ".npz raw .tif .nvdb; default: cubic voxels, longest side 2 m)")
+        src.add_argument("--spacing", type=vec3, help="voxel size x,y,z in --units for .npy .npz raw files, or to "
+                         "replace a .tif's or .nvdb's own (default: what the file stores, else cubic voxels, longest "
+                         "side 2 m)")
         src.add_argument("--units", choices=("m", "mm"), help="unit of the file's coordinates and --spacing "
-                         "(default: what the file states, else mm)")
+                         "(default: what the file states, e.g. a TIFF's microns, else mm)")
     # None unless given, so --volume and the fog scenes (which take no voxel count) can refuse it
     src.add_argument("--resolution", type=int, default=128 if demo else None, help="built-in volume scenes: voxels "
                      f"per axis, 64-512{'' if demo else f' (default: {DEFAULT_RESOLUTION})'}")
