@@ -28,8 +28,6 @@ MAX_IMAGE_SIDE = 16384
 """[px] --width and --height: beyond any display, and a typo for a smaller number far more often than meant."""
 HOST_BYTES_PER_PIXEL = 20
 """Each finished frame's host copies, kept until stats.json is written: float32 RGBA and depth."""
-CUBE_TEXEL_BYTES = 24
-"""cmsrm/cacrm cube-map texel: premultiplied RGB and transmittance, t_half, z_end (float32 each)."""
 FROXEL_BYTES = 16
 """fog froxel: one vec4 in each of the lighting, history and integrated grids."""
 
@@ -129,12 +127,10 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     if not demo:
         src.add_argument("--scene", default=None, help=f"built-in scene (default {DEFAULT_SCENE}; see `volren scenes`)")
         src.add_argument("--volume", type=Path, help="density file (default: none, a --scene): .npy .npz .nrrd .nhdr "
-                         ".nii(.gz) .tif(f) .nvdb or "
-                         "raw, a folder of DICOM slices or one of its .dcm files (the series is read); placed where "
-                         "the file says (mm unless it states metres)")
+                         ".nii(.gz) .tif(f) .nvdb or raw, a folder of DICOM slices or one of its .dcm files (the "
+                         "series is read); placed where the file says (mm unless it states metres)")
         src.add_argument("--shape", type=ints3, help="raw files: voxels X,Y,Z, each >= 2 (x varies fastest in the "
-                         "file; default: none, "
-                         "required for raw)")
+                         "file; default: none, required for raw)")
         src.add_argument("--dtype", help="raw files: uint8, uint16, int16, float32, ... (default: none, required for "
                          "raw)")
         src.add_argument("--spacing", type=vec3, help="voxel size x,y,z in --units for .npy .npz raw files, or to "
@@ -203,14 +199,12 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--light-samples", type=int, help="L: samples towards the light, in [1, 65536] (default: the "
                    "method's)")
     r.add_argument("--light-grid", type=int, help="light-map voxels on the longest axis, in [2, 1024] (default: half "
-                   "the "
-                   "density)")
+                   "the density)")
     r.add_argument("--jitter", action="store_true", help="seeded random ray start offsets")
     r.add_argument("--cube-faces", choices=("interior", "exterior"), help="cmsrm/cacrm: march to interior (default) or "
                    "exterior cube faces (exterior only to show its aliasing)")
     r.add_argument("--cube-size", type=int, help="cmsrm: level-0 cube face size S0, in [2, 4096] (default: the "
-                   "density's "
-                   "axis)")
+                   "density's axis)")
     r.add_argument("--no-lod", action="store_true", help="cmsrm: no adaptive LOD (level 0, N = --samples)")
     r.add_argument("--no-hybrid", action="store_true", help="cmsrm: always march the cube map, never directly")
     r.add_argument("--no-cull", action="store_true", help="cmsrm/cacrm: march empty tiles too (no culling)")
@@ -236,10 +230,10 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--tf", help=f"vpt: transfer function, a preset ({', '.join(PRESETS)}) or a JSON "
                    "file {\"points\": [{\"position\": u, \"extinction\": mu_t, \"albedo\": [r, g, b], \"p_brdf\": p}, "
                    "...]}: u in [0, 1] (the scalar over the volume's largest) not decreasing, mu_t >= 0 [1/m], albedo "
-                   "(default "
-                   "0.8 each) and p_brdf (surface-like share, default 0) in [0, 1], linear in between; optional "
-                   "\"hu_points\" (same fields, position in Hounsfield units) classify a CT (signed integers, DICOM) "
-                   "by HU instead, as the ct-* presets do (default: extinction proportional to density)")
+                   "(default 0.8 each) and p_brdf (surface-like share, default 0) in [0, 1], linear in between; "
+                   "optional \"hu_points\" (same fields, position in Hounsfield units) classify a CT (signed "
+                   "integers, DICOM) by HU instead, as the ct-* presets do (default: extinction proportional to "
+                   "density)")
     r.add_argument("--denoise", choices=("none", "ours", "svgf", "wrls"), help="vpt: the spatiotemporal denoiser of "
                    "paper 002 §5 (ours), or the baselines SVGF and WRLS; all keep history across --frames (default: "
                    "none)")
@@ -254,8 +248,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--trilinear", action="store_true", help="fog: interpolate 8 shadow-grid voxels, not the nearest")
     r.add_argument("--no-temporal", action="store_true", help="fog: no jitter and temporal blending")
     r.add_argument("--frames", type=int, default=60 if animate else 1, help="render N >= 1 frames (temporal methods), "
-                   "keep "
-                   "every frame")
+                   "keep every frame")
     r.add_argument("--seed", type=int, default=0, help="random seed (jitter, scenes, viewers): any integer")
     add_device(p)
     o = p.add_argument_group("output")
@@ -578,6 +571,8 @@ def sequence_from_args(args: argparse.Namespace):
 def estimate_memory(args: argparse.Namespace, scene, views, method: str) -> int:
     """[bytes] the render's large buffers, all at once: every view's device image buffers (as the renderer counts
     them), every frame's host copies, cmsrm/cacrm cube maps of every view and volume, fog's three froxel grids."""
+    from volren.render.cmsrm import CUBE_TEXEL_BYTES
+
     pixels = sum(v.width * v.height for v in views)
     total = pixels * (40 + HOST_BYTES_PER_PIXEL * args.frames)
     if method in ("cmsrm", "cacrm"):

@@ -92,6 +92,8 @@ the scheme of an eye that sees the volume)"""
 SCHEME_DIRECT = 0
 SCHEME_CUBE = 1
 SCHEME_NAMES = {SCHEME_CULLED: "culled", SCHEME_DIRECT: "direct", SCHEME_CUBE: "cube"}
+CUBE_TEXEL_BYTES = 24
+"""a cube-map texel: premultiplied RGB and transmittance, t_half, z_end (float32 each)"""
 
 
 @dataclass
@@ -575,4 +577,4 @@ class CMSRM(LightMapRenderer):
                  "tile_levels": p.get("tile_levels", [0] * (MAX_TILE_LEVEL + 1))}
                 for v, p in enumerate(plans[view])
             ])
-        self._frame_info["cube_map_bytes"] = sum(c.texels for c in cubes) * 24
+        self._frame_info["cube_map_bytes"] = sum(c.texels for c in cubes) * CUBE_TEXEL_BYTES
