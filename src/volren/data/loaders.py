@@ -240,9 +240,7 @@ def _read_tiff(path: Path) -> _Grid:
     if not all(np.isfinite(v) and v > 0 for v in step):
         raise VolrenError(f"{path}: the ImageJ voxel size {step} (1 / XResolution, 1 / YResolution, spacing) is not "
                           "three positive numbers; give --spacing x,y,z to replace it")
-    m = np.eye(4)
-    m[:3, :3] = np.diag(step)
-    m[:3, 3] = -np.asarray(step) * (np.array(data.shape[::-1]) - 1) / 2  # ImageJ stores no origin: centred
+    m = _spacing_placement(data.shape, step, 1.0)  # ImageJ stores no origin: centred, in the file's unit
     return _Grid(data, m, metres_per_unit=_FILE_UNITS.get(unit), spacing_replaces=True)
 
 
