@@ -35,7 +35,7 @@ from volren.bench.gi import gi_scene, ground_truth, run_sequence
 from volren.camera import Camera
 from volren.metrics import psnr
 from volren.render import DSSRM, DSSRMConfig
-from volren.render.gi import GIConfig
+from volren.render.gi.ambient import GIConfig
 
 TRAIN = ("smoke", "cloud")
 HELD_OUT = ("phantom",)

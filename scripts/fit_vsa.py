@@ -14,7 +14,7 @@ the texel-anchored lattice moves with N), so single gains below ~0.5 dB are nois
 the same weights scored best (worst scene -0.02, mean +0.36 dB); k_a = 2 and k_b = 0.2 did not do better.
 
     python scripts/fit_vsa.py                                   # writes out/vsa_fit.json (a few minutes, 2 cores)
-    python scripts/fit_vsa.py --out src/volren/render/vsa_fit.json   # adopt the fit as CACRMConfig's defaults
+    python scripts/fit_vsa.py --out src/volren/render/marching/vsa_fit.json   # adopt the fit as CACRMConfig's defaults
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/vsa_fit.json"),
                         help="where to write the fit (default out/vsa_fit.json; the package reads "
-                             "src/volren/render/vsa_fit.json)")
+                             "src/volren/render/marching/vsa_fit.json)")
     args = parser.parse_args()
     views = [v for f in FRAMES for v in make_views(path_camera(f, 12, (96, 64)), "stereo")]
     scenes = {name: builtin_scene(name, 64) for name in SCENES}

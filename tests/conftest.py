@@ -56,7 +56,7 @@ def chords(cam: Camera, lo=(-1, -1, -1), hi=(1, 1, 1)) -> tuple[np.ndarray, np.n
 
 
 def face_point_np(f: int, u, v) -> np.ndarray:
-    """Local point(s) on cube face f at tangent coordinates (u, v), as `volren.render.cubemap.face_point`."""
+    """Local point(s) on cube face f at tangent coordinates (u, v), as `volren.render.marching.cubemap.face_point`."""
     a, s = f // 2, 1.0 - 2.0 * (f % 2)
     p = np.zeros((*np.broadcast(u, v).shape, 3))
     p[..., a], p[..., (a + 1) % 3], p[..., (a + 2) % 3] = s, u, v

@@ -19,7 +19,7 @@ from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CMSRM, DSSRM, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
-from volren.render.cubemap import face_point, point_face, texel_index, visible_faces
+from volren.render.marching.cubemap import face_point, point_face, texel_index, visible_faces
 
 MATCHED = {"samples": 256, "light_samples": 64, "light_grid": 32}
 

@@ -21,8 +21,8 @@ from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig, Reference, ReferenceConfig
-from volren.render.cmsrm import frustum_visible
-from volren.render.cubemap import tile_occupancy_kernel, visible_faces
+from volren.render.marching.cmsrm import frustum_visible
+from volren.render.marching.cubemap import tile_occupancy_kernel, visible_faces
 from volren.scene import Scene, Volume, scale_translate
 from volren.upload import coarse_max_level
 

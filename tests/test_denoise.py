@@ -18,7 +18,8 @@ from volren.camera import Camera
 from volren.kernels.common import CameraGPU
 from volren.metrics import psnr
 from volren.render import VPT, VPTConfig
-from volren.render.denoise import (
+from volren.render.compositing.surfaces import view_buffers
+from volren.render.vpt.denoise import (
     CHANGE_UNIT,
     FRAMES_MAX,
     NOISE_Z,
@@ -30,7 +31,6 @@ from volren.render.denoise import (
     Denoiser,
     reproject,
 )
-from volren.render.surfaces import view_buffers
 from volren.upload import camera_struct
 
 H, W, N = 16, 20, 4

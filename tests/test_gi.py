@@ -16,8 +16,8 @@ from volren.data.environments import sky_environment
 from volren.errors import VolrenError
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig
-from volren.render.gi import GIConfig
-from volren.render.gi_passes import Accumulation, accumulate
+from volren.render.gi.ambient import GIConfig
+from volren.render.gi.passes import Accumulation, accumulate
 from volren.scene import DirectionalLight, Environment, Scene, Volume, scale_translate
 from volren.sh import project_environment
 
@@ -331,7 +331,7 @@ def test_gi_config_rejects_bad_settings():
 
 
 def test_environment_coefficients_are_the_sky_projection():
-    from volren.render.gi import environment_coefficients
+    from volren.render.gi.ambient import environment_coefficients
 
     _, ds = run_gi(Scene((homogeneous_volume(0.0),), (), SKY), "sresir")
     sh, cosine = environment_coefficients(ds, 3)

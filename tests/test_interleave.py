@@ -16,7 +16,7 @@ from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CACRMConfig
-from volren.render import cacrm as cacrm_module
+from volren.render.marching import cacrm as cacrm_module
 
 INSIDE = make_views(Camera(position=(0.1, 0.0, 0.5), width=96, height=64), "stereo")
 FAR = make_views(Camera(position=(0.0, 0.3, 3.2), width=96, height=64), "stereo")

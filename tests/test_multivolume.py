@@ -18,7 +18,7 @@ from conftest import DEVICE
 from volren.camera import Camera
 from volren.metrics import psnr
 from volren.render import CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
-from volren.render.cacrm import CACRM
+from volren.render.marching.cacrm import CACRM
 from volren.scene import Environment, Scene, Volume, scale_translate
 
 STEPS = 128

@@ -17,7 +17,7 @@ from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig, Reference, ReferenceConfig
-from volren.render.cubemap import coarse_tiles, face_tiles, max_tile_level, tile_lod_kernel, visible_faces
+from volren.render.marching.cubemap import coarse_tiles, face_tiles, max_tile_level, tile_lod_kernel, visible_faces
 from volren.scene import Scene, Volume
 from volren.upload import camera_struct, volume_struct
 

@@ -15,8 +15,8 @@ from volren.data import builtin_scene
 from volren.errors import VolrenError
 from volren.render import VPT, Reference, ReferenceConfig, VPTConfig
 from volren.render.environment import EnvironmentLight, environment_light, sample_environment
-from volren.render.majorants import MajorantGrid, build_majorants, majorant_struct, track
-from volren.render.vpt import sample_cosine, sample_hg, scatter_direction
+from volren.render.vpt.majorants import MajorantGrid, build_majorants, majorant_struct, track
+from volren.render.vpt.tracer import sample_cosine, sample_hg, scatter_direction
 from volren.scene import DirectionalLight, Environment, Scene, Volume, scale_translate
 from volren.transfer import PRESETS, ControlPoint, TransferFunction, linear, load_transfer_function
 
@@ -486,8 +486,8 @@ def hounsfield_head(extra: tuple[float, ...] = ()) -> np.ndarray:
 def voxel_extinction(hu: np.ndarray, transfer: str, value_range: tuple[float, float] | None = None) -> np.ndarray:
     """Extinction at each voxel centre of the CT ``hu`` normalised over ``value_range`` (default: min..max -> 0..1,
     as the loader does), read from the table vpt builds for it as the kernel reads it (u = density / scale)."""
-    from volren.render.majorants import table_scale
-    from volren.render.vpt import transfer_tables
+    from volren.render.vpt.majorants import table_scale
+    from volren.render.vpt.tracer import transfer_tables
 
     lo, hi = value_range or (float(hu.min()), float(hu.max()))
     vol = Volume(((hu - lo) / (hi - lo)).astype(np.float32), value_range=(lo, hi))
@@ -502,7 +502,7 @@ def test_ct_tf_presets_classify_hounsfield_units_whatever_the_series_range() -> 
     voxel (3071) and padding (-2048) widen maps the same HU to the same extinction, and so does a value_range wider
     than the data (12-bit -1024..3071: the densities' maximum is then 0.49). A volume without value_range keeps the
     normalised table."""
-    from volren.render.vpt import transfer_tables
+    from volren.render.vpt.tracer import transfer_tables
 
     hu = hounsfield_head()
     wide = hounsfield_head((3071.0, -2048.0))

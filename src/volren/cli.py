@@ -120,7 +120,7 @@ def add_device(p: argparse.ArgumentParser) -> None:
 def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     animate = p.prog.endswith("animate")
     from volren.render import METHODS
-    from volren.render.gi import GI_METHODS
+    from volren.render.gi.ambient import GI_METHODS
     from volren.transfer import PRESETS
 
     src = p.add_argument_group("data")
@@ -485,7 +485,7 @@ def depth_images_from_args(args: argparse.Namespace, view_count: int) -> list | 
 
 def renderer_from_args(args: argparse.Namespace, method: str):
     from volren.render import METHODS
-    from volren.render.gi import GIConfig
+    from volren.render.gi.ambient import GIConfig
 
     if method not in METHODS:
         raise CliError(f"unknown method '{method}': choose from {', '.join(METHODS)}")
@@ -571,7 +571,7 @@ def sequence_from_args(args: argparse.Namespace):
 def estimate_memory(args: argparse.Namespace, scene, views, method: str) -> int:
     """[bytes] the render's large buffers, all at once: every view's device image buffers (as the renderer counts
     them), every frame's host copies, cmsrm/cacrm cube maps of every view and volume, fog's three froxel grids."""
-    from volren.render.cmsrm import CUBE_TEXEL_BYTES
+    from volren.render.marching.cmsrm import CUBE_TEXEL_BYTES
 
     pixels = sum(v.width * v.height for v in views)
     total = pixels * (40 + HOST_BYTES_PER_PIXEL * args.frames)

@@ -19,18 +19,36 @@ from volren.kernels.common import (
     LIGHT_POINT,
     LIGHT_RECT,
     LIGHT_SPOT,
+    OPAQUE_PLANE,
+    OPAQUE_SPHERE,
     CameraGPU,
     LightGPU,
     Medium,
     OpaqueGPU,
     VolumeGPU,
 )
-from volren.render.surfaces import opaque_structs
-from volren.scene import DirectionalLight, RectLight, Scene, SpotLight, TriangleMesh, Volume
+from volren.scene import DirectionalLight, RectLight, Scene, Sphere, SpotLight, TriangleMesh, Volume
 
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
 MAX_LIGHT_GRID = 1024
+
+
+def opaque_structs(scene: Scene) -> list[OpaqueGPU]:
+    """The analytic objects (spheres, planes); triangle meshes go to `wp.Mesh` BVHs instead."""
+    out = []
+    for o in scene.opaque:
+        if isinstance(o, TriangleMesh):
+            continue
+        s = OpaqueGPU()
+        if isinstance(o, Sphere):
+            s.kind, s.position, s.radius = OPAQUE_SPHERE, wp.vec3(*o.center), o.radius
+            s.normal = wp.vec3(0.0, 1.0, 0.0)
+        else:
+            s.kind, s.position, s.normal, s.radius = OPAQUE_PLANE, wp.vec3(*o.point), wp.vec3(*o.normal), 0.0
+        s.albedo = wp.vec3(*o.albedo)
+        out.append(s)
+    return out
 
 
 def light_grid_resolution(res: tuple[int, int, int], light_grid: int | None) -> tuple[int, int, int]:
@@ -104,7 +122,7 @@ class DeviceScene:
     """per volume, its struct at each uploaded mip level (level 0 only unless uploaded with ``mip_levels``);
     levels differ only in ``offset`` and ``res``: same box, material and light map"""
     ambient_grid: wp.array
-    """packed per-voxel ambient radiance (vec3) of the GI passes (`volren.render.gi`); read only when ``gi``"""
+    """packed per-voxel ambient radiance (vec3) of the GI passes (`volren.render.gi.ambient`); read only when ``gi``"""
     gi: bool = False
 
     def medium(self) -> Medium:

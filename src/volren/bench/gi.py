@@ -28,8 +28,8 @@ from volren.data import builtin_scene
 from volren.data.environments import sky_environment
 from volren.metrics import psnr, ssim
 from volren.render import DSSRM, DSSRMConfig
-from volren.render.gi import RESAMPLING as RESAMPLING_MODES
-from volren.render.gi import GIConfig
+from volren.render.gi.ambient import RESAMPLING as RESAMPLING_MODES
+from volren.render.gi.ambient import GIConfig
 from volren.scene import Environment, Scene
 from volren.simulate import advected_frames
 

@@ -1,13 +1,13 @@
 """Renderers, one module per method; `METHODS` maps the CLI's --method names to their classes."""
 
 from volren.render.base import Renderer
-from volren.render.cacrm import CACRM, CACRMConfig
-from volren.render.cmsrm import CMSRM, CMSRMConfig
-from volren.render.dssrm import DSSRM, DSSRMConfig
-from volren.render.fog import FogConfig, FogRenderer
+from volren.render.fog.renderer import FogConfig, FogRenderer
 from volren.render.frame import COUNTERS, Frame, Stats
+from volren.render.marching.cacrm import CACRM, CACRMConfig
+from volren.render.marching.cmsrm import CMSRM, CMSRMConfig
+from volren.render.marching.dssrm import DSSRM, DSSRMConfig
 from volren.render.reference import Reference, ReferenceConfig
-from volren.render.vpt import VPT, VPTConfig
+from volren.render.vpt.tracer import VPT, VPTConfig
 
 METHODS: dict[str, tuple[type[Renderer], type]] = {
     "dssrm": (DSSRM, DSSRMConfig),

@@ -12,10 +12,10 @@ from volren.camera import Camera
 from volren.device import check_allocation, resolve_device
 from volren.errors import VolrenError
 from volren.kernels.common import ViewBuffers
+from volren.render.compositing.surfaces import check_user_depth, trace_surfaces, view_buffers
 from volren.render.frame import Frame, PassClock, Stats
-from volren.render.gi import AmbientGI, GIConfig
+from volren.render.gi.ambient import AmbientGI, GIConfig
 from volren.render.lightmap import compute_light_map
-from volren.render.surfaces import check_user_depth, trace_surfaces, view_buffers
 from volren.scene import Scene
 from volren.upload import DeviceScene, camera_struct, upload_scene
 

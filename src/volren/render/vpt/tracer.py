@@ -1,7 +1,7 @@
 """Volumetric path tracing for direct volume rendering (paper 002 §4), ``--method vpt``.
 
 Per pixel ``spp`` paths. Free flights by delta (null-collision) tracking against the local majorants of each
-volume's macrocell octree (`volren.render.majorants`); the first collision over all volumes is the nearest of the
+volume's macrocell octree (`volren.render.vpt.majorants`); the first collision over all volumes is the nearest of the
 volumes' own first collisions, which is exact for overlapping volumes too (independent null-collision processes).
 At a real collision x: next-event estimation towards every light with ratio-tracked transmittance (opaque surfaces
 block it) and towards the environment (importance-sampled, `volren.render.environment`), plus the uniform ambient of
@@ -53,10 +53,11 @@ from volren.kernels.common import (
     sample_grid,
 )
 from volren.render.base import Renderer, frame_seed
-from volren.render.denoise import SVGF, WRLS, Denoiser, luminance
+from volren.render.compositing.surfaces import occluded
 from volren.render.environment import ENV_NONE, EnvironmentLight, environment_light, sample_environment
 from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, SHADOW_RAYS, PassClock
-from volren.render.majorants import (
+from volren.render.vpt.denoise import SVGF, WRLS, Denoiser, luminance
+from volren.render.vpt.majorants import (
     MajorantGrid,
     Majorants,
     build_majorants,
@@ -65,7 +66,6 @@ from volren.render.majorants import (
     table_scale,
     track,
 )
-from volren.render.surfaces import occluded
 from volren.transfer import linear, load_transfer_function
 from volren.upload import DeviceScene, camera_struct
 
@@ -96,7 +96,7 @@ class VPTConfig:
     clip: tuple[float, float, float, float, float, float] = (-1.0, 1.0, -1.0, 1.0, -1.0, 1.0)
     """x0, x1, y0, y1, z0, z1 in each volume's local coordinates [-1, 1]"""
     denoise: str = "none"
-    """none, ours (the spatiotemporal denoiser of §5), or the baselines svgf and wrls, `volren.render.denoise`; all
+    """none, ours (the spatiotemporal denoiser of §5), or the baselines svgf and wrls, `volren.render.vpt.denoise`; all
     keep history across frames"""
     seed: int = 0
 

@@ -53,10 +53,10 @@ from volren.kernels.common import (
     interpolate_cell,
     vec8,
 )
-from volren.render.cubemap import CubeTarget, eye_segment, store_texel, texel_index, texel_point, tile_texel
-from volren.render.dssrm import MarchParams, lit_step
 from volren.render.frame import DENSITY_SAMPLES, INTERLEAVED_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES
-from volren.render.vsa import END, VSAParams, vsa_amplification
+from volren.render.marching.cubemap import CubeTarget, eye_segment, store_texel, texel_index, texel_point, tile_texel
+from volren.render.marching.dssrm import MarchParams, lit_step
+from volren.render.marching.vsa import END, VSAParams, vsa_amplification
 
 LANES = 8
 """2 eyes x 2 x 2 texels"""

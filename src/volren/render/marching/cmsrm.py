@@ -62,7 +62,8 @@ from volren.kernels.common import (
     write_pixel,
 )
 from volren.render.base import LightMapMarchConfig, LightMapRenderer
-from volren.render.cubemap import (
+from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
+from volren.render.marching.cubemap import (
     FACE_COUNT,
     MAX_TILE_LEVEL,
     TILE,
@@ -81,8 +82,7 @@ from volren.render.cubemap import (
     tile_texel,
     visible_faces,
 )
-from volren.render.dssrm import MarchParams, march_volume_light_map
-from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
+from volren.render.marching.dssrm import MarchParams, march_volume_light_map
 from volren.scene import Volume
 from volren.upload import DeviceScene, camera_struct, depth_order
 

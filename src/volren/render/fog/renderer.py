@@ -53,8 +53,8 @@ from volren.kernels.common import (
     light_travel_dir,
 )
 from volren.render.base import Renderer
-from volren.render.frame import SHADOW_RAYS, SHADOW_VOXELS, PassClock
-from volren.render.froxels import (
+from volren.render.compositing.surfaces import occluded
+from volren.render.fog.froxels import (
     FogGPU,
     FroxelGrid,
     depth_slice,
@@ -69,7 +69,7 @@ from volren.render.froxels import (
     light_phase,
     slice_depth,
 )
-from volren.render.surfaces import occluded
+from volren.render.frame import SHADOW_RAYS, SHADOW_VOXELS, PassClock
 from volren.scene import Fog, Scene, Sphere, TriangleMesh
 from volren.upload import DeviceScene, camera_struct
 

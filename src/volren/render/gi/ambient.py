@@ -1,7 +1,7 @@
 """Dynamic ambient global illumination with spherical harmonics (paper 000 §3.2), for every light-map marcher.
 
 ``GIConfig.method`` picks how each volume's lighting grid gets the SH coefficients of its phase-weighted
-visibility (`volren.render.gi_passes`):
+visibility (`volren.render.gi.passes`):
 
 - ``sresir`` (ours, the paper's): per frame a sample pass (one uniform direction per voxel, coarse transmittance with
   ``coarse_factor`` times the fine step), an SH-transform pass (simplified reservoir resampling over the 3x3x3
@@ -35,7 +35,7 @@ from volren.device import launch_rows
 from volren.errors import VolrenError
 from volren.render.environment import environment_light
 from volren.render.frame import PassClock
-from volren.render.gi_passes import (
+from volren.render.gi.passes import (
     Accumulation,
     GIBuffers,
     GIScene,

@@ -17,7 +17,7 @@ same images; ``share_voxels=False`` keeps coupling but fetches per ray.
 Variable step amplification (§3.1.3, Eq. 4-6): after each sample, each eye proposes the next step as
 Delta t (N) max(k_a t / t_max, f_lambda^w_lambda f_T^w_T f_A^w_A, 1) with the base step Delta t = diagonal / N (the
 paper's (t_max - t_min) / N; here the same base step as DSSRM and CMSRM, so that N means the same in all three), and
-the pair takes the larger proposal (`volren.render.vsa`). Steps are real multiples of the base step counted back from
+the pair takes the larger proposal (`marching.vsa`). Steps are real multiples of the base step counted back from
 the texel, so uniform stepping (k_a = 0, w = 0) is exactly the texel-anchored lattice. An earlier version floored the
 multiple to whole base steps: with f_lambda_max = 2 and f_T, f_A <= 1 every product below 2 became a uniform step, VSA
 degenerated into a fixed 2x step and the density derivative never changed the image (issue 12). rho' is the
@@ -26,7 +26,7 @@ difference of the last two samples per base step (the paper uses Bergner et al.'
 
 Empty-tile culling and tile LOD (32x32 tiles, the coarse phase) come from CMSRM; with a coupled pair a tile's level
 bounds the footprint in both eyes. Interleaved spatial reuse (§3.1.3) routes the tiles where 2x2 quads can share
-samples to `volren.render.interleave`'s quad kernel.
+samples to `volren.render.marching.interleave`'s quad kernel.
 """
 
 from __future__ import annotations
@@ -54,12 +54,20 @@ from volren.kernels.common import (
     half_depth,
     interpolate_cell,
 )
-from volren.render.cmsrm import CMSRM, CMSRMConfig, TileGroup
-from volren.render.cubemap import CubeLOD, CubeTarget, eye_segment, store_texel, texel_index, texel_point, tile_texel
-from volren.render.dssrm import MarchParams, lit_step
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, PassClock
-from volren.render.interleave import interleave_tiles, quad_march_kernel
-from volren.render.vsa import END, VSA_FIT, VSAParams, vsa_amplification
+from volren.render.marching.cmsrm import CMSRM, CMSRMConfig, TileGroup
+from volren.render.marching.cubemap import (
+    CubeLOD,
+    CubeTarget,
+    eye_segment,
+    store_texel,
+    texel_index,
+    texel_point,
+    tile_texel,
+)
+from volren.render.marching.dssrm import MarchParams, lit_step
+from volren.render.marching.interleave import interleave_tiles, quad_march_kernel
+from volren.render.marching.vsa import END, VSA_FIT, VSAParams, vsa_amplification
 from volren.upload import DeviceScene, camera_struct
 
 
@@ -73,7 +81,7 @@ class CACRMConfig(CMSRMConfig):
     """variable step amplification (Eq. 4-6); off = uniform steps"""
     interleave: bool = True
     """interleaved spatial reuse (§3.1.3): 2x2 texel quads share their samples where their rays run < 1/2 voxel
-    apart (`volren.render.interleave`)"""
+    apart (`volren.render.marching.interleave`)"""
     k_a: float = VSA_FIT["k_a"]
     """Eq. 4: ray-length amplification k_a t / t_max (paper: 3; fitted: 1.5, see vsa_fit.json)"""
     k_b: float = VSA_FIT["k_b"]

@@ -9,8 +9,6 @@ the light map and the reference's shadow rays see only the media.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import warp as wp
 
@@ -30,10 +28,7 @@ from volren.kernels.common import (
     light_irradiance,
     light_travel_dir,
 )
-from volren.scene import Scene, Sphere, TriangleMesh
-
-if TYPE_CHECKING:
-    from volren.upload import DeviceScene
+from volren.upload import DeviceScene
 
 SURFACE_EPSILON = 1.0e-4
 """[m] minimum hit distance, so a shadow ray does not hit the surface it leaves"""
@@ -141,23 +136,6 @@ def surface_kernel(
         color = wp.vec4(0.0)
     buffers.occluder_color[row, col] = color
     buffers.occluder_depth[row, col] = z
-
-
-def opaque_structs(scene: Scene) -> list[OpaqueGPU]:
-    """The analytic objects (spheres, planes); triangle meshes go to `wp.Mesh` BVHs instead."""
-    out = []
-    for o in scene.opaque:
-        if isinstance(o, TriangleMesh):
-            continue
-        s = OpaqueGPU()
-        if isinstance(o, Sphere):
-            s.kind, s.position, s.radius = OPAQUE_SPHERE, wp.vec3(*o.center), o.radius
-            s.normal = wp.vec3(0.0, 1.0, 0.0)
-        else:
-            s.kind, s.position, s.normal, s.radius = OPAQUE_PLANE, wp.vec3(*o.point), wp.vec3(*o.normal), 0.0
-        s.albedo = wp.vec3(*o.albedo)
-        out.append(s)
-    return out
 
 
 def view_buffers(cam: Camera, device: str) -> ViewBuffers:

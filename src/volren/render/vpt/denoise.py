@@ -1,6 +1,6 @@
 """The spatiotemporal DVR denoiser of paper 002 §5 (``--denoise ours``) and its baselines SVGF and WRLS.
 
-Input per pixel: the path tracer's samples, each decoupled into two parts (Eq. 8, `volren.render.vpt.SampleRecords`),
+Input per pixel: the path tracer's samples, each decoupled into two parts (Eq. 8, `tracer.SampleRecords`),
 a high-detail-low-noise F_x times a low-detail-high-noise F_L each: part 0 the first collision's light samples
 (F_x = A h, the albedo times the phase/BRDF value; F_L = T L / p), part 1 the rest (F_x = A, F_L = F_m: the uniform
 ambient and every later scattering, denoised like F_L as the paper says), with the first collision's depth and

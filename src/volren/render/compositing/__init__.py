@@ -1,0 +1,1 @@
+"""Compositing volumes with surfaces: opaque surfaces and their z-buffer, order-independent transparency."""

@@ -1,0 +1,1 @@
+"""Froxel fog with a shadow grid shared by many viewers (paper 003)."""

@@ -1,0 +1,1 @@
+"""Volumetric path tracing with majorant grids and the spatiotemporal denoiser (paper 002)."""
