@@ -65,8 +65,8 @@ from volren.render.marching.cubemap import (
     texel_point,
     tile_texel,
 )
-from volren.render.marching.dssrm import MarchParams, lit_step
 from volren.render.marching.interleave import interleave_tiles, quad_march_kernel
+from volren.render.marching.march import MarchParams, lit_step
 from volren.render.marching.vsa import END, VSA_FIT, VSAParams, vsa_amplification
 from volren.upload import DeviceScene, camera_struct
 

@@ -82,7 +82,7 @@ from volren.render.marching.cubemap import (
     tile_texel,
     visible_faces,
 )
-from volren.render.marching.dssrm import MarchParams, march_volume_light_map
+from volren.render.marching.march import MarchParams, march_volume_light_map
 from volren.scene import Volume
 from volren.upload import DeviceScene, camera_struct, depth_order
 

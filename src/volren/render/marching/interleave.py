@@ -55,7 +55,7 @@ from volren.kernels.common import (
 )
 from volren.render.frame import DENSITY_SAMPLES, INTERLEAVED_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES
 from volren.render.marching.cubemap import CubeTarget, eye_segment, store_texel, texel_index, texel_point, tile_texel
-from volren.render.marching.dssrm import MarchParams, lit_step
+from volren.render.marching.march import MarchParams, lit_step
 from volren.render.marching.vsa import END, VSAParams, vsa_amplification
 
 LANES = 8

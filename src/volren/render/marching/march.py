@@ -1,0 +1,118 @@
+"""The light-map march shared by DSSRM, CMSRM's texel rays and CACRM: uniform steps through one volume's box, each
+sample shaded with single scattering from the light map (sigma_s * phase * T_light * E) plus ambient and emission,
+composited front to back with early ray termination (paper 000 §3.1, paper 001 §3.1)."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from volren.kernels.common import (
+    MarchState,
+    Medium,
+    VolumeGPU,
+    composite_step,
+    half_depth,
+    hg_phase,
+    light_irradiance,
+    light_travel_dir,
+    march_step_count,
+    sample_grid,
+    sample_grid_rgb,
+    state_accumulator,
+    with_accumulator,
+)
+
+
+@wp.struct
+class MarchParams:
+    samples: int
+    jitter: int
+    seed: int
+    view: int
+    min_transmittance: float
+    ambient: wp.vec3
+
+
+@wp.func
+def shade_light_map(
+    vol: VolumeGPU,
+    medium: Medium,
+    p: wp.vec3,
+    x: wp.vec3,
+    d: wp.vec3,
+    ambient: wp.vec3,
+) -> wp.vec3:
+    """Radiance scattered towards -d per unit sigma_s at local p / world x: ambient + sum_l phase T_l E_l, the
+    ambient from the GI grid when GI is on (paper 000 §3.2's lighting-integration output), else the constant."""
+    res = vol.light_res
+    radiance = ambient
+    if medium.gi != 0:
+        radiance = sample_grid_rgb(medium.ambient, vol.ambient_offset, res, p)
+    count = res[0] * res[1] * res[2]
+    for li in range(medium.lights.shape[0]):
+        light = medium.lights[li]
+        t = sample_grid(medium.lightmap, vol.light_offset + li * count, res, p)
+        phase = hg_phase(wp.dot(light_travel_dir(light, x), -d), vol.g)
+        radiance += phase * t * light_irradiance(light, x)
+    return radiance
+
+
+@wp.func
+def lit_step(
+    acc: wp.vec4,
+    rho: float,
+    vol: VolumeGPU,
+    medium: Medium,
+    p: wp.vec3,
+    x: wp.vec3,
+    d: wp.vec3,
+    dt: float,
+    ambient: wp.vec3,
+) -> wp.vec4:
+    """Composite one step of density rho > 0 at local p / world x: single scattering from the light map, ambient
+    and emission as the source, extinction density_scale * rho."""
+    sigma_t = vol.density_scale * rho
+    light = shade_light_map(vol, medium, p, x, d, ambient)
+    source = wp.cw_mul(vol.albedo, light) * sigma_t + vol.emission * rho
+    return composite_step(acc, source, sigma_t, dt)
+
+
+@wp.func
+def march_volume_light_map(
+    state: MarchState,
+    vol: VolumeGPU,
+    origin: wp.vec3,
+    d: wp.vec3,
+    t0: float,
+    t1: float,
+    offset: float,
+    medium: Medium,
+    params: MarchParams,
+) -> MarchState:
+    """March [t0, t1] of one volume with uniform steps (offset in [0, 1) within each step), shading from the light
+    map; stops early below params.min_transmittance. ``state.samples`` counts density fetches."""
+    o_l = wp.transform_point(vol.to_local, origin)
+    d_l = wp.transform_vector(vol.to_local, d)
+    n = march_step_count(t1 - t0, vol.diagonal, params.samples)
+    dt = (t1 - t0) / float(n)
+    acc = state_accumulator(state)
+    depth_t = state.depth_t
+    shaded = int(0)
+    taken = int(0)
+    for i in range(n):
+        t = t0 + (float(i) + offset) * dt
+        p = o_l + t * d_l
+        rho = sample_grid(medium.density, vol.offset, vol.res, p)
+        taken += 1
+        if rho > 0.0:
+            shaded += 1
+            before = acc[3]
+            acc = lit_step(acc, rho, vol, medium, p, origin + t * d, d, dt, params.ambient)
+            depth_t = half_depth(depth_t, before, acc[3], t)
+            if acc[3] < params.min_transmittance:
+                break
+    s = with_accumulator(state, acc)
+    s.depth_t = depth_t
+    s.samples = s.samples + taken
+    s.shaded = s.shaded + shaded
+    return s
