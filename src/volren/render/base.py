@@ -25,6 +25,10 @@ def frame_seed(seed: int, frame: int) -> int:
     return (seed * 1_000_003 + frame * 7_919 + 12_345) % (2**31 - 1)
 
 
+OIT_SCHEMES = ("tiled", "pixel-rt", "pixel-sort")
+MAX_OIT_K = 16
+"""layers a pixel keeps in registers (`volren.render.compositing.oit.LayerIds`)"""
+
 MAX_SAMPLES = 65536
 """Cap on V and L: kernels count steps in 32-bit ints, and more samples than this per diagonal buys nothing."""
 
@@ -54,8 +58,17 @@ class LightMapMarchConfig:
     """early ray termination threshold"""
     gi: GIConfig = GIConfig()  # noqa: RUF009 (frozen, so one shared default is safe)
     """ambient global illumination (paper 000 §3.2); off by default (constant ambient)"""
+    oit: str = "tiled"
+    """how each pixel finds the boxes its ray meets (`volren.render.compositing.oit`): tiled (paper 000 §3.4's tiled
+    k-buffer), pixel-rt (per-pixel BVH ray queries, paper 001 §3.4) or pixel-sort (every box tested per pixel)"""
+    oit_k: int = 8
+    """K: at most this many boxes per pixel (and per tile), the nearest; farther boxes on the ray are dropped"""
 
     def __post_init__(self) -> None:
+        if self.oit not in OIT_SCHEMES:
+            raise VolrenError(f"oit must be one of {', '.join(OIT_SCHEMES)}, got '{self.oit}'")
+        if isinstance(self.oit_k, bool) or int(self.oit_k) != self.oit_k or not 1 <= self.oit_k <= MAX_OIT_K:
+            raise VolrenError(f"oit_k (K) must be an integer in [1, {MAX_OIT_K}], got {self.oit_k}")
         if not isinstance(self.gi, GIConfig):
             raise VolrenError(f"gi must be a GIConfig, got {type(self.gi).__name__}")
         check_sample_count("samples (V)", self.samples)
