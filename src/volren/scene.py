@@ -320,13 +320,17 @@ class Plane:
 
 @dataclass(frozen=True, eq=False)
 class TriangleMesh:
-    """An opaque diffuse triangle mesh in world coordinates (vertices (N, 3) [m], faces (M, 3) vertex indices),
-    ray-cast through a `wp.Mesh` BVH. Both sides of a triangle are opaque."""
+    """A diffuse triangle mesh in world coordinates (vertices (N, 3) [m], faces (M, 3) vertex indices), ray-cast
+    through a `wp.Mesh` BVH. ``alpha`` = 1: opaque (both sides). ``alpha`` < 1: every crossing of the surface is a
+    translucent layer (paper 000 §3.3) that adds alpha * its shaded colour (lit like the opaque surfaces, either side
+    facing the eye) and multiplies the transmittance behind it by 1 - alpha."""
 
     vertices: np.ndarray
     faces: np.ndarray
     albedo: RGB = (0.7, 0.7, 0.7)
     name: str = "mesh"
+    alpha: float = 1.0
+    """opacity of each layer in [0, 1]; 1 = opaque"""
 
     def __post_init__(self) -> None:
         v = np.asarray(self.vertices, dtype=np.float64)
@@ -340,6 +344,14 @@ class TriangleMesh:
         object.__setattr__(self, "vertices", np.ascontiguousarray(v, dtype=np.float32))
         object.__setattr__(self, "faces", np.ascontiguousarray(f, dtype=np.int32))
         object.__setattr__(self, "albedo", _albedo(self.albedo, f"mesh '{self.name}' albedo"))
+        alpha = float(self.alpha)
+        if not 0.0 <= alpha <= 1.0:
+            raise VolrenError(f"mesh '{self.name}': alpha must lie in [0, 1], got {self.alpha}")
+        object.__setattr__(self, "alpha", alpha)
+
+    @property
+    def translucent(self) -> bool:
+        return self.alpha < 1.0
 
 
 Opaque = Sphere | Plane | TriangleMesh

@@ -1,5 +1,5 @@
-"""Triangle meshes from files (OBJ, PLY, STL, glTF/GLB, OFF, ... through trimesh; USD through usd-core) as opaque
-scene geometry."""
+"""Triangle meshes from files (OBJ, PLY, STL, glTF/GLB, OFF, ... through trimesh; USD through usd-core) as opaque or
+translucent scene geometry."""
 
 from __future__ import annotations
 
@@ -18,9 +18,11 @@ def load_mesh_file(
     scale: float = 1.0,
     translate: Sequence[float] = (0.0, 0.0, 0.0),
     albedo: float | Sequence[float] = 0.7,
+    alpha: float = 1.0,
 ) -> TriangleMesh:
     """Read every triangle of a mesh file (a multi-object scene is flattened into one mesh in world coordinates),
-    then scale about the origin and translate: world = scale * v + translate. Errors name the file."""
+    then scale about the origin and translate: world = scale * v + translate. ``alpha`` < 1 makes it translucent
+    (`TriangleMesh.alpha`). Errors name the file."""
     path = Path(path)
     if not path.is_file():
         raise VolrenError(f"{path}: mesh file not found")
@@ -39,7 +41,7 @@ def load_mesh_file(
         raise VolrenError(f"{path}: holds no triangles")
     check_manifold(faces, path)
     vertices = vertices * float(scale) + np.asarray(translate, dtype=np.float64)
-    return TriangleMesh(vertices, faces.astype(np.int64), albedo=albedo, name=path.name)
+    return TriangleMesh(vertices, faces.astype(np.int64), albedo=albedo, name=path.name, alpha=alpha)
 
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")

@@ -4,7 +4,8 @@ clips its rays at this depth and composites the volume over the colour (paper 00
 
 Surfaces are Lambertian, lit by every light (with ray-traced shadows from the other opaque objects) and by the
 ambient environment (albedo * L_ambient). Volumes do not shadow surfaces here, and surfaces do not shadow volumes:
-the light map and the reference's shadow rays see only the media.
+the light map and the reference's shadow rays see only the media. Translucent meshes (alpha < 1) are left out of
+this pass and cast no shadows; they are shaded with `shade_surface` as layers (`volren.render.compositing.mesh_layers`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from volren.kernels.common import (
     light_irradiance,
     light_travel_dir,
 )
+from volren.scene import TriangleMesh
 from volren.upload import DeviceScene
 
 SURFACE_EPSILON = 1.0e-4
@@ -82,6 +84,33 @@ def occluded(x: wp.vec3, to_light: wp.vec3, dist: float, opaque: wp.array(dtype=
     return False
 
 
+@wp.func
+def shade_surface(
+    x: wp.vec3,
+    normal: wp.vec3,
+    d: wp.vec3,
+    albedo: wp.vec3,
+    lights: wp.array(dtype=LightGPU),
+    ambient: wp.vec3,
+    opaque: wp.array(dtype=OpaqueGPU),
+    mesh_ids: wp.array(dtype=wp.uint64),
+) -> wp.vec3:
+    """Lambertian radiance towards the eye of the surface point x seen along d, the side facing the eye lit:
+    albedo * (L_ambient + sum_l E_l cos / pi) over the lights not blocked by the opaque objects."""
+    n = normal
+    if wp.dot(n, d) > 0.0:
+        n = -n
+    rgb = wp.cw_mul(albedo, ambient)
+    for li in range(lights.shape[0]):
+        light = lights[li]
+        to_light = -light_travel_dir(light, x)
+        cos = wp.dot(n, to_light)
+        if cos > 0.0 and not occluded(x + SURFACE_EPSILON * n, to_light, light_distance(light, x), opaque,
+                                      mesh_ids):
+            rgb += wp.cw_mul(albedo, light_irradiance(light, x)) * (cos / wp.pi)
+    return rgb
+
+
 @wp.kernel
 def surface_kernel(
     cam: CameraGPU,
@@ -117,18 +146,7 @@ def surface_kernel(
     color = wp.vec4(0.0)
     z = float(INF)
     if t < INF:
-        x = cam.origin + t * d
-        n = normal
-        if wp.dot(n, d) > 0.0:
-            n = -n
-        rgb = wp.cw_mul(albedo, ambient)
-        for li in range(lights.shape[0]):
-            light = lights[li]
-            to_light = -light_travel_dir(light, x)
-            cos = wp.dot(n, to_light)
-            if cos > 0.0 and not occluded(x + SURFACE_EPSILON * n, to_light, light_distance(light, x), opaque,
-                                          mesh_ids):
-                rgb += wp.cw_mul(albedo, light_irradiance(light, x)) * (cos / wp.pi)
+        rgb = shade_surface(cam.origin + t * d, normal, d, albedo, lights, ambient, opaque, mesh_ids)
         color = wp.vec4(rgb[0], rgb[1], rgb[2], 1.0)
         z = t * wp.dot(d, cam.forward)
     if user_depth[row, col] < z:
@@ -176,6 +194,15 @@ def trace_surfaces(
         user = wp.full((cam.height, cam.width), INF, dtype=float, device=ds.device)
     else:
         user = wp.array(user_depth, dtype=float, device=ds.device)
+    ids, albedo, _ = mesh_group(ds, translucent=False)
     launch_rows(surface_kernel, cam.height, cam.width,
-                [cam_gpu, ds.opaque, ds.mesh_ids, ds.mesh_albedo, ds.lights, ds.ambient, user, buffers], ds.device,
-                counters)
+                [cam_gpu, ds.opaque, ids, albedo, ds.lights, ds.ambient, user, buffers], ds.device, counters)
+
+
+def mesh_group(ds: DeviceScene, translucent: bool) -> tuple[wp.array, wp.array, wp.array]:
+    """(BVH ids, albedos, alphas) of the scene's opaque (alpha = 1) or translucent (alpha < 1) meshes."""
+    meshes = [o for o in ds.scene.opaque if isinstance(o, TriangleMesh)]
+    pick = [k for k, m in enumerate(meshes) if m.translucent == translucent]
+    return (wp.array([ds.meshes[k].id for k in pick], dtype=wp.uint64, device=ds.device),
+            wp.array([meshes[k].albedo for k in pick], dtype=wp.vec3, device=ds.device),
+            wp.array([meshes[k].alpha for k in pick], dtype=float, device=ds.device))
