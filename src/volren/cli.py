@@ -119,6 +119,7 @@ def add_device(p: argparse.ArgumentParser) -> None:
 
 def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     animate = p.prog.endswith("animate")
+    from volren.presets import QUALITIES
     from volren.render import METHODS
     from volren.render.gi.ambient import GI_METHODS
     from volren.transfer import PRESETS
@@ -194,6 +195,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r = p.add_argument_group("method")
     if not demo:
         r.add_argument("--method", default="dssrm", help=f"one of: {', '.join(METHODS)}")
+    r.add_argument("--quality", default="default", choices=QUALITIES, help="preset of V, L, light grid, early "
+                   "termination (light-map methods), froxels (fog), paths (vpt); the flags below override it")
     r.add_argument("--samples", type=int, help="V: view samples across the box diagonal, in [1, 65536] "
                    "(default: the method's)")
     r.add_argument("--light-samples", type=int, help="L: samples towards the light, in [1, 65536] (default: the "
@@ -484,6 +487,7 @@ def depth_images_from_args(args: argparse.Namespace, view_count: int) -> list | 
 
 
 def renderer_from_args(args: argparse.Namespace, method: str):
+    from volren.presets import quality_options
     from volren.render import METHODS
     from volren.render.gi.ambient import GIConfig
 
@@ -529,7 +533,9 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         if gi_options.get("method", "none") == "none" and len(gi_options) > (1 if "method" in gi_options else 0):
             raise CliError("--gi-order, --gi-rays and --gi-volumes need --gi with a method other than none")
         given["gi"] = (GIConfig(**gi_options), ", ".join(flag for k, (v, flag) in gi.items() if v is not None))
-    options = {k: v for k, (v, _) in given.items() if v is not None and k in fields}
+    # the preset first: a flag given on the command line overrides the field it sets
+    options = quality_options(method, args.quality)
+    options |= {k: v for k, (v, _) in given.items() if v is not None and k in fields}
     ignored = [flag for k, (v, flag) in given.items() if v is not None and k not in fields]
     if ignored:
         raise CliError(f"method '{method}' does not take {', '.join(ignored)}")
