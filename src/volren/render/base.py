@@ -58,6 +58,9 @@ class LightMapMarchConfig:
     """early ray termination threshold"""
     gi: GIConfig = GIConfig()  # noqa: RUF009 (frozen, so one shared default is safe)
     """ambient global illumination (paper 000 §3.2); off by default (constant ambient)"""
+    reuse_light_map: bool = False
+    """skip the light-map pass while its inputs (the uploaded scene with its lights, L) are those of the last
+    frame (`volren serve`); off by default so every frame measures all its passes"""
     oit: str = "tiled"
     """how each pixel finds the boxes its ray meets (`volren.render.compositing.oit`): tiled (paper 000 §3.4's tiled
     k-buffer), pixel-rt (per-pixel BVH ray queries, paper 001 §3.4) or pixel-sort (every box tested per pixel)"""
@@ -169,10 +172,17 @@ class LightMapRenderer(Renderer):
     def __init__(self, config: LightMapMarchConfig, device: str = "auto") -> None:
         super().__init__(config, device)
         self._gi: AmbientGI | None = None
+        self._light_map_of: tuple[DeviceScene, int, bool] | None = None
+        """(uploaded scene, L, cross-volume) the light map in that upload was computed with; a scene or light change
+        is a new upload (`_upload`), whose light map starts unlit"""
 
     def _lighting(self, ds: DeviceScene, clock: PassClock) -> None:
         gi = self.config.gi
-        compute_light_map(ds, self.config.light_samples, clock, cross_volume=gi.on)
+        last = self._light_map_of
+        if not (self.config.reuse_light_map and last is not None and last[0] is ds
+                and last[1:] == (self.config.light_samples, gi.on)):
+            compute_light_map(ds, self.config.light_samples, clock, cross_volume=gi.on)
+            self._light_map_of = (ds, self.config.light_samples, gi.on)
         if not gi.on:
             return
         if self._gi is None or not self._gi.fits(ds, gi):
