@@ -66,8 +66,12 @@ class LightMapMarchConfig:
     k-buffer), pixel-rt (per-pixel BVH ray queries, paper 001 §3.4) or pixel-sort (every box tested per pixel)"""
     oit_k: int = 8
     """K: at most this many boxes per pixel (and per tile), the nearest; farther boxes on the ray are dropped"""
+    mesh_layers: int = 4
+    """K of the mesh k-buffer (paper 000 §3.3): translucent mesh layers kept per pixel, the nearest"""
 
     def __post_init__(self) -> None:
+        if isinstance(self.mesh_layers, bool) or int(self.mesh_layers) != self.mesh_layers or self.mesh_layers < 1:
+            raise VolrenError(f"mesh_layers (K of the mesh k-buffer) must be an integer >= 1, got {self.mesh_layers}")
         if self.oit not in OIT_SCHEMES:
             raise VolrenError(f"oit must be one of {', '.join(OIT_SCHEMES)}, got '{self.oit}'")
         if isinstance(self.oit_k, bool) or int(self.oit_k) != self.oit_k or not 1 <= self.oit_k <= MAX_OIT_K:
@@ -84,6 +88,8 @@ class Renderer:
 
     name: ClassVar[str] = ""
     needs_volumes: ClassVar[bool] = True
+    translucent_meshes: ClassVar[bool] = False
+    """whether the method blends meshes with alpha < 1 (paper 000 §3.3); the others refuse such scenes"""
 
     def __init__(self, config: Any, device: str = "auto") -> None:
         self.config = config
@@ -136,6 +142,9 @@ class Renderer:
             raise VolrenError("render needs at least one view")
         if self.needs_volumes and not scene.volumes:
             raise VolrenError(f"method '{self.name}' renders volumes and scene '{scene.name}' has none")
+        if not self.translucent_meshes and any(getattr(o, "alpha", 1.0) < 1.0 for o in scene.opaque):
+            raise VolrenError(f"method '{self.name}' draws no translucent meshes (mesh alpha < 1): use reference, "
+                              "dssrm, cmsrm or cacrm")
         user_depth = list(occluder_depth) if occluder_depth is not None else [None] * len(views)
         if len(user_depth) != len(views):
             raise VolrenError(f"got {len(user_depth)} depth image(s) for {len(views)} view(s)")
