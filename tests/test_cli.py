@@ -721,8 +721,8 @@ BAD_RENDER_ARGS = {
     "resolution-10": (["--resolution", "10"], ["resolution", "10"]),
     "resolution-5000": (["--resolution", "5000"], ["resolution", "5000"]),
     "multi-count-5": (["--scene", "multi", "--count", "5"], ["count", "5"]),
-    "count-without-multi": (["--scene", "cloud", "--count", "4"], ["--count applies to --scene multi only, not to "
-                                                                   "scene 'cloud'"]),
+    "count-without-multi": (["--scene", "cloud", "--count", "4"], ["--count applies to --scene multi, instances, "
+                                                                   "instances-overlap only, not to scene 'cloud'"]),
     "seed-negative": (["--seed", "-1"], ["seed"]),
     "light-dir-two-numbers": (["--light-dir", "1,2"], ["--light-dir", "1,2"]),
     "light-dir-zero": (["--light-dir", "0,0,0"], ["light direction", "zero"]),

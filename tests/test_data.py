@@ -34,14 +34,14 @@ def _asymmetric(dtype: type = np.float32) -> np.ndarray:
 
 
 def test_registry_and_descriptions() -> None:
-    assert list(BUILTIN_SCENES) == ["smoke", "cloud", "phantom", "multi"]
+    assert list(BUILTIN_SCENES) == ["smoke", "cloud", "phantom", "multi", "instances", "instances-overlap"]
     for name, entry in BUILTIN_SCENES.items():
         assert entry.name == name
         assert entry.description and "\n" not in entry.description
 
 
 def test_unknown_scene_lists_choices() -> None:
-    with pytest.raises(VolrenError, match="unknown scene 'fog': choose from smoke, cloud, phantom, multi"):
+    with pytest.raises(VolrenError, match="unknown scene 'fog': choose from smoke, cloud, phantom, multi, instances"):
         builtin_scene("fog")
 
 

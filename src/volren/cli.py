@@ -142,7 +142,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     # None unless given, so --volume and the fog scenes (which take no voxel count) can refuse it
     src.add_argument("--resolution", type=int, default=128 if demo else None, help="built-in volume scenes: voxels "
                      f"per axis, 64-512{'' if demo else f' (default: {DEFAULT_RESOLUTION})'}")
-    src.add_argument("--count", type=int, help="scene 'multi': 4, 16 or 36 instances (default 16)")
+    src.add_argument("--count", type=int, help="scenes multi, instances, instances-overlap: 4, 16 or 36 "
+                     "instances (default 16)")
     mat = p.add_argument_group("material and light (override the scene's)")
     mat.add_argument("--density-scale", type=float, help="sigma_t per unit density [1/m], >= 0 (default: the scene's)")
     mat.add_argument("--albedo", type=rgb, help="single-scattering albedo: a or r,g,b, each in [0, 1] (default: the "
@@ -293,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
 def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     """The scene the arguments ask for: a built-in (a fog scene at ``time`` [s]) or a volume file, with material and
     light overrides."""
-    from volren.data import BUILTIN_SCENES, builtin_scene, load_mesh_file
+    from volren.data import BUILTIN_SCENES, COUNTED_SCENES, builtin_scene, load_mesh_file
     from volren.data.fog_scenes import FOG_SCENES, fog_scene
     from volren.scene import DirectionalLight, Environment, Plane, Scene, Sphere, Volume
 
@@ -317,8 +318,8 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
         if name is not None and name not in BUILTIN_SCENES:
             raise CliError(f"--scene: unknown scene '{name}': choose from {', '.join([*BUILTIN_SCENES, *FOG_SCENES])}")
         name = DEFAULT_SCENE if name is None else name
-        if args.count is not None and name != "multi":
-            raise CliError(f"--count applies to --scene multi only, not to scene '{name}'")
+        if args.count is not None and name not in COUNTED_SCENES:
+            raise CliError(f"--count applies to --scene {', '.join(COUNTED_SCENES)} only, not to scene '{name}'")
         resolution = DEFAULT_RESOLUTION if args.resolution is None else args.resolution
         scene = builtin_scene(name, resolution, count=16 if args.count is None else args.count, seed=args.seed)
     names = ("density_scale", "albedo", "g", "emission")

@@ -4,6 +4,7 @@ from volren.data.loaders import load_volume_file
 from volren.data.meshes import load_mesh_file
 from volren.data.procedural import (
     BUILTIN_SCENES,
+    COUNTED_SCENES,
     MAX_RESOLUTION,
     MIN_RESOLUTION,
     MULTI_COUNTS,
@@ -11,6 +12,7 @@ from volren.data.procedural import (
     builtin_scene,
     cloud_density,
     density_field,
+    instances_layout,
     multi_layout,
     phantom_density,
     smoke_density,
@@ -18,6 +20,7 @@ from volren.data.procedural import (
 
 __all__ = [
     "BUILTIN_SCENES",
+    "COUNTED_SCENES",
     "MAX_RESOLUTION",
     "MIN_RESOLUTION",
     "MULTI_COUNTS",
@@ -25,6 +28,7 @@ __all__ = [
     "builtin_scene",
     "cloud_density",
     "density_field",
+    "instances_layout",
     "load_mesh_file",
     "load_volume_file",
     "multi_layout",

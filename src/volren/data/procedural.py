@@ -12,6 +12,7 @@ cloud and puffs and at most about 3.4 through the phantom, so images are neither
 
 from __future__ import annotations
 
+import functools
 import operator
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -146,8 +147,11 @@ def smoke_density(resolution: int = 64, seed: int = 0) -> np.ndarray:
     The plume stays well inside the box: it rises from y = -0.75 and dissipates under a rounded, noise-torn cap
     (lower at the plume's edge than on its axis) that ends by y = 0.75, so no box face cuts it flat.
     """
-    n = _check_resolution(resolution)
-    rng = np.random.default_rng([_check_seed(seed), 1])
+    return _smoke_field(_check_resolution(resolution), np.random.default_rng([_check_seed(seed), 1]))
+
+
+def _smoke_field(n: int, rng: np.random.Generator) -> np.ndarray:
+    """:func:`smoke_density` at any size ``n`` (instances of the ``instances`` scenes are n/2 per axis)."""
     phases = rng.random(4) * 2 * np.pi
     noise = _Fbm(rng, n, base_freq=2.5, gain=0.6, stretch=(1.0, 0.6, 1.0))  # stretched along y: wisps rise
     c = _centres(n)
@@ -223,8 +227,11 @@ def _billow(n: int, spheres: np.ndarray, noise: _Fbm, floor: float | None) -> np
 
 def cloud_density(resolution: int = 64, seed: int = 0) -> np.ndarray:
     """A cumulus: a row of broad billows at the base, smaller ones stacked on top, a flat base, fBm-eroded edges."""
-    n = _check_resolution(resolution)
-    rng = np.random.default_rng([_check_seed(seed), 2])
+    return _cloud_field(_check_resolution(resolution), np.random.default_rng([_check_seed(seed), 2]))
+
+
+def _cloud_field(n: int, rng: np.random.Generator) -> np.ndarray:
+    """:func:`cloud_density` at any size ``n``."""
     # (count, x range or row, y range, z half-range, radius range) per tier: base row, middle, towers
     base_x = np.linspace(-0.5, 0.5, 5) + rng.uniform(-0.05, 0.05, 5)
     tiers = [
@@ -371,6 +378,52 @@ def _multi_scene(resolution: int, *, count: int = 4, seed: int = 0) -> Scene:
     return Scene(tuple(volumes), _LIGHTS, _SKY, _BACKGROUND, name=f"multi{count}")
 
 
+INSTANCE_FILL = {False: 0.4, True: 0.6}
+"""Box half-extent over the grid pitch of the ``instances`` scenes: disjoint (gaps of 0.2 pitch) or overlapping
+(neighbours share 0.2 pitch along x and along z)"""
+_OVERHEAD_LIGHT = (DirectionalLight(direction=(0.0, -1.0, 0.0), irradiance=(3.0, 3.0, 3.0)),)
+"""Straight down: the light map shades each volume alone (unless GI is on) while the reference shadows across
+volumes, and in a one-layer grid no box lies above another, so the disjoint scene's images differ from the
+reference by order and sampling only"""
+
+
+def instances_layout(count: int, overlap: bool = False) -> list[np.ndarray]:
+    """``to_world`` matrices of a k x k grid (k = sqrt(count)) of cubes in the ground (x-z) plane, rows receding in
+    depth from the default camera (paper 000 Table 3 / Fig. 9's crowd of instances), so that most view rays cross
+    several boxes front to back. Half-extent ``INSTANCE_FILL[overlap]`` of the pitch; the outer faces lie on
+    |x|, |z| = 1.2 (pitch p = 2.4 / (k - 1 + 2 fill)), the boxes' centres at y = 0.
+    """
+    if isinstance(count, bool) or count not in MULTI_COUNTS:
+        raise VolrenError(f"instances scene count must be one of {', '.join(map(str, MULTI_COUNTS))}, got {count!r}")
+    k = round(np.sqrt(count))
+    fill = INSTANCE_FILL[bool(overlap)]
+    pitch = 2.4 / (k - 1 + 2 * fill)
+    centres = -1.2 + fill * pitch + np.arange(k) * pitch
+    return [scale_translate(fill * pitch, (x, 0.0, z)) for z in centres for x in centres]
+
+
+def _instances_scene(resolution: int, *, count: int = 16, seed: int = 0, overlap: bool = False) -> Scene:
+    """Smoke plumes and clouds alternating (a checkerboard), each n // 2 per axis: ``resolution`` 256 gives the
+    paper's 128^3 instances. Optical depth about half the single scenes' through each box (density scale over the
+    half-extent), so instances behind others show through."""
+    n = _check_resolution(resolution)
+    seed = _check_seed(seed)
+    layout = instances_layout(count, overlap)
+    k = round(np.sqrt(count))
+    volumes = []
+    for i, to_world in enumerate(layout):
+        half = to_world[0, 0]
+        rng = np.random.default_rng([seed, 4, i])
+        if (i // k + i % k) % 2 == 0:
+            volumes.append(Volume(_smoke_field(n // 2, rng), to_world=to_world, density_scale=6.5 / half,
+                                  albedo=(0.85, 0.85, 0.85), g=0.2, name=f"smoke{i}"))
+        else:
+            volumes.append(Volume(_cloud_field(n // 2, rng), to_world=to_world, density_scale=5.5 / half,
+                                  albedo=(0.97, 0.97, 0.97), g=0.5, name=f"cloud{i}"))
+    name = f"instances{'-overlap' if overlap else ''}{count}"
+    return Scene(tuple(volumes), _OVERHEAD_LIGHT, _SKY, _BACKGROUND, name=name)
+
+
 @dataclass(frozen=True)
 class BuiltinScene:
     """A named procedural scene; ``build(resolution, *, count, seed)`` returns a ready ``Scene``."""
@@ -388,8 +441,16 @@ BUILTIN_SCENES: dict[str, BuiltinScene] = {
         BuiltinScene("cloud", "cumulus billow with a flat base, bright (albedo 0.97, g 0.5)", _cloud_scene),
         BuiltinScene("phantom", "3D modified Shepp-Logan head phantom, CT-like and semi-transparent", _phantom_scene),
         BuiltinScene("multi", "grid of 4, 16 or 36 cloud puffs (each n/2 per axis) in the x-y plane", _multi_scene),
+        BuiltinScene("instances", "4, 16 or 36 smoke and cloud instances (each n/2 per axis) in rows receding in "
+                     "depth, disjoint boxes, lit from overhead", _instances_scene),
+        BuiltinScene("instances-overlap", "the instances grid with boxes overlapping their neighbours by 0.2 of the "
+                     "pitch", functools.partial(_instances_scene, overlap=True)),
     )
 }
+
+
+COUNTED_SCENES = ("multi", "instances", "instances-overlap")
+"""built-in scenes whose number of instances ``count`` (one of MULTI_COUNTS) chooses"""
 
 
 def _lookup(name: str) -> BuiltinScene:
@@ -400,7 +461,8 @@ def _lookup(name: str) -> BuiltinScene:
 
 
 def builtin_scene(name: str, resolution: int = 64, *, count: int = 4, seed: int = 0) -> Scene:
-    """Build a built-in scene; ``count`` is used by ``multi`` only, and ignored by the single-volume scenes."""
+    """Build a built-in scene; ``count`` is used by the scenes in :data:`COUNTED_SCENES` only, and ignored by the
+    single-volume scenes."""
     return _lookup(name).build(_check_resolution(resolution), count=count, seed=_check_seed(seed))
 
 
