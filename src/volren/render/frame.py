@@ -14,7 +14,7 @@ import warp as wp
 from volren.device import counter_rows_for, synchronize
 
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
-            "shadow_rays", "shadow_voxels")
+            "shadow_rays", "shadow_voxels", "box_tests", "tile_box_tests", "bvh_queries", "joint_rays")
 """Work counters gathered by the kernels (wp.atomic_add into one int64 array, indexed by position here):
 density_samples: trilinear density fetches on view rays; light_samples: density fetches on rays towards lights
 (light-map pass or the reference's per-sample shadow rays); lightmap_lookups: light-map fetches while shading;
@@ -23,9 +23,13 @@ shared_samples: density samples that reused the 8 voxels another ray fetched (CA
 gathers are density_samples - shared_samples; interleaved_samples: supplementary samples a CACRM ray took from the
 voxels its 2x2 quad neighbours fetched (interleaved spatial reuse), on top of its density_samples; shadow_rays:
 ray-traced light-visibility queries of the fog method (one per light and froxel, grid voxel or frustum froxel);
-shadow_voxels: shadow-grid voxels re-traced this frame."""
+shadow_voxels: shadow-grid voxels re-traced this frame; box_tests: exact ray/box tests of pixel rays finding their
+layers (multi-volume OIT, `volren.render.compositing.oit`: instances per pixel for pixel-sort, boxes the BVH reported
+for pixel-rt, the tile's instances for tiled); tile_box_tests: the tiled k-buffer's phase-1 tests of tile rays against
+the boxes its BVH reported; bvh_queries: BVH ray queries (pixel-rt: one per pixel, tiled: one per tile; Warp's
+query does not report the nodes it visits); joint_rays: pixel rays that marched overlapping boxes jointly."""
 (DENSITY_SAMPLES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, INTERLEAVED_SAMPLES, SHADOW_RAYS,
- SHADOW_VOXELS) = range(len(COUNTERS))
+ SHADOW_VOXELS, BOX_TESTS, TILE_BOX_TESTS, BVH_QUERIES, JOINT_RAYS) = range(len(COUNTERS))
 
 
 @dataclass
