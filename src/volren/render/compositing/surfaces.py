@@ -3,9 +3,13 @@ ray-traced per view into a colour + linear depth buffer, merged with an optional
 clips its rays at this depth and composites the volume over the colour (paper 001 §3.2's z-buffer).
 
 Surfaces are Lambertian, lit by every light (with ray-traced shadows from the other opaque objects) and by the
-ambient environment (albedo * L_ambient). Volumes do not shadow surfaces here, and surfaces do not shadow volumes:
-the light map and the reference's shadow rays see only the media. Translucent meshes (alpha < 1) are left out of
-this pass and cast no shadows; they are shaded with `shade_surface` as layers (`volren.render.compositing.mesh_layers`).
+ambient environment (albedo * L_ambient). The volumes shade the opaque surfaces (`surface_light`, issue 14 item 5):
+each light is attenuated by the volumes' transmittance (the light-map methods read their light maps where the shadow
+ray enters each box, the reference marches the density) and the ambient by the volumes' ambient occlusion (the GI
+grid's SH, or a few transmittance rays); methods without a light map (VPT, fog) leave them unshadowed here. Surfaces
+do not shadow volumes: the light map and the reference's shadow rays see only the media. Translucent meshes
+(alpha < 1) are left out of this pass and cast no shadows; they are shaded with `shade_surface` as layers
+(`volren.render.compositing.mesh_layers`).
 """
 
 from __future__ import annotations
@@ -25,10 +29,12 @@ from volren.kernels.common import (
     OpaqueGPU,
     ViewBuffers,
     camera_ray,
+    counter_row,
     light_distance,
     light_irradiance,
     light_travel_dir,
 )
+from volren.render.compositing.surface_light import SurfaceLight, ambient_occlusion, unlit, volume_shadow
 from volren.scene import TriangleMesh
 from volren.upload import DeviceScene
 
@@ -95,19 +101,40 @@ def shade_surface(
     opaque: wp.array(dtype=OpaqueGPU),
     mesh_ids: wp.array(dtype=wp.uint64),
 ) -> wp.vec3:
+    """`shade_lit_surface` with the volumes neither shadowing nor occluding x (no counters: nothing to count)."""
+    return shade_lit_surface(x, normal, d, albedo, lights, ambient, opaque, mesh_ids, SurfaceLight(),
+                             wp.array(ptr=wp.uint64(0), shape=(0,), dtype=wp.int64))
+
+
+@wp.func
+def shade_lit_surface(
+    x: wp.vec3,
+    normal: wp.vec3,
+    d: wp.vec3,
+    albedo: wp.vec3,
+    lights: wp.array(dtype=LightGPU),
+    ambient: wp.vec3,
+    opaque: wp.array(dtype=OpaqueGPU),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    sl: SurfaceLight,
+    counters: wp.array(dtype=wp.int64),
+) -> wp.vec3:
     """Lambertian radiance towards the eye of the surface point x seen along d, the side facing the eye lit:
-    albedo * (L_ambient + sum_l E_l cos / pi) over the lights not blocked by the opaque objects."""
+    albedo * (L_ambient AO + sum_l E_l T_l cos / pi) over the lights not blocked by the opaque objects, with the
+    volumes' ambient occlusion AO and transmittance T_l towards each light (`surface_light`)."""
     n = normal
     if wp.dot(n, d) > 0.0:
         n = -n
-    rgb = wp.cw_mul(albedo, ambient)
+    lifted = x + SURFACE_EPSILON * n
+    rgb = wp.cw_mul(albedo, ambient) * ambient_occlusion(sl, lifted, n, counters)
     for li in range(lights.shape[0]):
         light = lights[li]
         to_light = -light_travel_dir(light, x)
         cos = wp.dot(n, to_light)
-        if cos > 0.0 and not occluded(x + SURFACE_EPSILON * n, to_light, light_distance(light, x), opaque,
-                                      mesh_ids):
-            rgb += wp.cw_mul(albedo, light_irradiance(light, x)) * (cos / wp.pi)
+        dist = light_distance(light, x)
+        if cos > 0.0 and not occluded(lifted, to_light, dist, opaque, mesh_ids):
+            shadow = volume_shadow(sl, li, light, lifted, to_light, dist, counters)
+            rgb += wp.cw_mul(albedo, light_irradiance(light, x)) * (shadow * cos / wp.pi)
     return rgb
 
 
@@ -119,12 +146,14 @@ def surface_kernel(
     mesh_albedo: wp.array(dtype=wp.vec3),
     lights: wp.array(dtype=LightGPU),
     ambient: wp.vec3,
+    sl: SurfaceLight,
     user_depth: wp.array2d(dtype=float),
     buffers: ViewBuffers,
     counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
     r, col = wp.tid()
+    counters = counter_row(counter_rows, r, col)
     row = r + row0
     d = camera_ray(cam, row, col, 0.5, 0.5)
     t = float(INF)
@@ -146,7 +175,8 @@ def surface_kernel(
     color = wp.vec4(0.0)
     z = float(INF)
     if t < INF:
-        rgb = shade_surface(cam.origin + t * d, normal, d, albedo, lights, ambient, opaque, mesh_ids)
+        rgb = shade_lit_surface(cam.origin + t * d, normal, d, albedo, lights, ambient, opaque, mesh_ids, sl,
+                                counters)
         color = wp.vec4(rgb[0], rgb[1], rgb[2], 1.0)
         z = t * wp.dot(d, cam.forward)
     if user_depth[row, col] < z:
@@ -185,9 +215,11 @@ def trace_surfaces(
     user_depth: np.ndarray | None,
     buffers: ViewBuffers,
     counters: wp.array,
+    light: SurfaceLight | None = None,
 ) -> None:
     """Fill ``buffers``' surface colour and depth (rows in parallel bands on the CPU); a no-op when there is nothing
-    opaque. ``counters``: the frame's counter rows (`launch_rows`)."""
+    opaque. ``counters``: the frame's counter rows (`launch_rows`); ``light``: how the volumes shade the surfaces
+    (None: they do not)."""
     if not ds.scene.opaque and user_depth is None:
         return
     if user_depth is None:
@@ -196,7 +228,8 @@ def trace_surfaces(
         user = wp.array(user_depth, dtype=float, device=ds.device)
     ids, albedo, _ = mesh_group(ds, translucent=False)
     launch_rows(surface_kernel, cam.height, cam.width,
-                [cam_gpu, ds.opaque, ids, albedo, ds.lights, ds.ambient, user, buffers], ds.device, counters)
+                [cam_gpu, ds.opaque, ids, albedo, ds.lights, ds.ambient, light or unlit(ds), user, buffers], ds.device,
+                counters)
 
 
 def mesh_group(ds: DeviceScene, translucent: bool) -> tuple[wp.array, wp.array, wp.array]:
