@@ -6,7 +6,13 @@ each light (default L = 1024, same rule) through every volume, instead of a ligh
 extinction and in-scattering of all volumes add at each sample, so overlapping volumes and shadows cast by one volume
 on another are exact. The ambient term is the same unshadowed sigma_s * L_ambient as in DSSRM. Early termination
 below ``min_transmittance`` (default 1e-4) bounds the error by 1e-4 of the radiance behind that point. Slow, simple,
-obviously right.
+obviously right. Opaque surfaces get brute-force shadow rays through the density and ambient occlusion from
+REFERENCE_AO_RAYS transmittance rays, both at L samples (`volren.render.compositing.surface_light`): the ground truth
+of the light-map methods' surface shading.
+
+Translucent meshes (paper 000 §3.3) are exact too: the march also stops at every translucent layer the ray crosses
+(found by repeated BVH queries from just past the previous one, any number of them, `next_layer`) and blends it there
+(colour += T alpha c, T *= 1 - alpha), in front of, between and inside the volumes alike.
 """
 
 from __future__ import annotations
@@ -45,6 +51,8 @@ from volren.kernels.common import (
     write_pixel,
 )
 from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold
+from volren.render.compositing.mesh_layers import LayerScene, blend_layer, layer_scene, next_layer
+from volren.render.compositing.surface_light import REFERENCE_AO_RAYS, SURFACE_BRUTE_FORCE, SurfaceLight, surface_light
 from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, PassClock
 from volren.upload import DeviceScene, camera_struct
 
@@ -126,6 +134,7 @@ def reference_kernel(
     density: wp.array(dtype=float),
     lights: wp.array(dtype=LightGPU),
     params: ReferenceParams,
+    sc: LayerScene,
     buffers: ViewBuffers,
     counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
@@ -148,11 +157,15 @@ def reference_kernel(
     s = new_march_state()
     if t1 > t0:
         count(counters, RAYS, 1)
+    layer = next_layer(sc, cam.origin, d, 0.0)
+    while layer.t < wp.min(t0, planes[1]):
+        s = blend_layer(s, layer.color, layer.t)
+        layer = next_layer(sc, cam.origin, d, layer.t)
     t = t0
     while t < t1 and s.transmittance >= params.min_transmittance:
-        t_next = wp.min(next_box_boundary(cam.origin, d, t, volumes, 0, n_vol), t1)
+        t_next = wp.min(wp.min(next_box_boundary(cam.origin, d, t, volumes, 0, n_vol), t1), layer.t)
         diag = covering_diagonal(cam.origin + (0.5 * (t + t_next)) * d, volumes, 0, n_vol)
-        if diag < INF:
+        if diag < INF and t_next > t:
             n = march_step_count(t_next - t, diag, params.samples)
             dt = (t_next - t) / float(n)
             for i in range(n):
@@ -161,6 +174,12 @@ def reference_kernel(
                 if s.transmittance < params.min_transmittance:
                     break
         t = t_next
+        if layer.t <= t:
+            s = blend_layer(s, layer.color, layer.t)
+            layer = next_layer(sc, cam.origin, d, layer.t)
+    while layer.t < planes[1]:
+        s = blend_layer(s, layer.color, layer.t)
+        layer = next_layer(sc, cam.origin, d, layer.t)
     write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
 
@@ -168,9 +187,14 @@ class Reference(Renderer):
     """The dense ground-truth renderer; ``config`` is a `ReferenceConfig`."""
 
     name = "reference"
+    translucent_meshes = True
 
     def __init__(self, config: ReferenceConfig | None = None, device: str = "auto") -> None:
         super().__init__(config or ReferenceConfig(), device)
+
+    def _surface_light(self, ds: DeviceScene) -> SurfaceLight:
+        samples = self.config.light_samples
+        return surface_light(ds, SURFACE_BRUTE_FORCE, samples, REFERENCE_AO_RAYS, samples)
 
     def _render_view(
         self, ds: DeviceScene, cam: Camera, view: int, frame: int, buffers: ViewBuffers, clock: PassClock
@@ -186,7 +210,7 @@ class Reference(Renderer):
                 reference_kernel,
                 cam.height,
                 cam.width,
-                [camera_struct(cam), ds.volumes, ds.density, ds.lights, params, buffers],
+                [camera_struct(cam), ds.volumes, ds.density, ds.lights, params, layer_scene(ds), buffers],
                 self.device,
                 clock.counters,
                 self.on_rows,
