@@ -82,14 +82,6 @@ def camera_struct(cam: Camera) -> CameraGPU:
     return s
 
 
-def depth_order(scene: Scene, cam: Camera) -> np.ndarray:
-    """Volume indices sorted front to back by the distance from the eye to each box centre (painter's order:
-    exact for boxes that do not overlap along a view ray; overlapping boxes are exact only in the reference)."""
-    centers = np.array([v.center_world for v in scene.volumes])
-    dist = np.linalg.norm(centers - np.asarray(cam.position), axis=1)
-    return np.argsort(dist, kind="stable").astype(np.int32)
-
-
 @dataclass
 class DeviceScene:
     """A scene's data on one device, plus its light-map storage (filled by the light-map pass)."""

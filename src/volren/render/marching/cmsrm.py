@@ -62,7 +62,8 @@ from volren.kernels.common import (
     write_pixel,
 )
 from volren.render.base import LightMapMarchConfig, LightMapRenderer
-from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
+from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, march_joint, pixel_layers
+from volren.render.frame import DENSITY_SAMPLES, JOINT_RAYS, LIGHTMAP_LOOKUPS, RAYS, SKIPPED_STEPS, PassClock
 from volren.render.marching.cubemap import (
     FACE_COUNT,
     MAX_TILE_LEVEL,
@@ -84,7 +85,7 @@ from volren.render.marching.cubemap import (
 )
 from volren.render.marching.march import MarchParams, march_volume_light_map
 from volren.scene import Volume
-from volren.upload import DeviceScene, camera_struct, depth_order
+from volren.upload import DeviceScene, camera_struct
 
 SCHEME_CULLED = -1
 """outside the view frustum: no cube map, no tiles, no rays (below the others so that CACRM's per-pair max keeps
@@ -215,6 +216,7 @@ def cube_march_kernel(
     store_texel(target, texel_index(q[0], q[1], q[2], size),
                 wp.vec4(s.color[0], s.color[1], s.color[2], s.transmittance), s.depth_t, t1 * facing)
     count(counters, DENSITY_SAMPLES, s.samples)
+    count(counters, SKIPPED_STEPS, s.skipped)
     count(counters, LIGHTMAP_LOOKUPS, s.shaded * medium.lights.shape[0])
 
 
@@ -267,7 +269,7 @@ def cube_compose_kernel(
 def cube_resample_kernel(
     cam: CameraGPU,
     volumes: wp.array(dtype=VolumeGPU),
-    order: wp.array(dtype=int),
+    oit: OITParams,
     scheme: wp.array(dtype=int),
     cube_offset: wp.array(dtype=int),
     cube_size: wp.array(dtype=int),
@@ -282,42 +284,52 @@ def cube_resample_kernel(
     counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
-    """Per pixel, front to back over the volumes not culled: a cube-scheme volume is looked up bilinearly where the
-    pixel's ray leaves its box (enters, for exterior faces); a direct-scheme volume is marched here, as in DSSRM."""
+    """Per pixel, front to back over the boxes its ray meets (`pixel_layers`): a cube-scheme volume alone on its
+    stretch of the ray is looked up bilinearly where the ray leaves its box (enters, for exterior faces); a
+    direct-scheme volume is marched here, as in DSSRM; boxes overlapping along the ray are marched jointly (a texel
+    holds one volume's march only, wrong where another box shares that stretch)."""
     r, col = wp.tid()
     counters = counter_row(counter_rows, r, col)
     row = r + row0
     d, planes = pixel_ray(cam, buffers, row, col)
+    layers = pixel_layers(oit, volumes, cam.origin, d, planes, row, col, counters)
     s = new_march_state()
     direct = int(0)
-    for k in range(order.shape[0]):
-        v = order[k]
-        if scheme[v] == SCHEME_CULLED:
-            continue  # outside the frustum: no ray of the view meets it
-        vol = volumes[v]
-        o_l = wp.transform_point(vol.to_local, cam.origin)
-        d_l = wp.transform_vector(vol.to_local, d)
-        h = box_hit(o_l, d_l)
-        t0 = wp.max(h[0], planes[0])
-        t1 = wp.min(h[1], planes[1])
-        if t1 > t0:
-            if scheme[v] == SCHEME_CUBE:
-                t_face = h[1]
-                if exterior != 0:
-                    t_face = h[0]
-                p = o_l + t_face * d_l
-                c = cube_sample(cube, cube_z, cube_offset[v], cube_size[v], p, t1 * wp.dot(d, cam.forward), k_z)
-                after = s.transmittance * c[3]
-                if s.transmittance > 0.5 and after <= 0.5:
-                    s.depth_t = cube_nearest_t(cube_t, cube_offset[v], cube_size[v], p)
-                s.color = s.color + s.transmittance * wp.vec3(c[0], c[1], c[2])
-                s.transmittance = after
-            else:
-                direct = 1
-                s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, 0.5, medium, params)
-            if s.transmittance < params.min_transmittance:
-                break
+    joint = int(0)
+    i = int(0)
+    while i < layers.count:
+        end = cluster_end(layers, i)
+        v = layers.volume[i]
+        if end - i > 1:
+            direct = 1
+            joint = 1
+            s = march_joint(s, layers, i, end, volumes, cam.origin, d, 0.5, medium, params)
+        elif scheme[v] == SCHEME_CUBE:
+            vol = volumes[v]
+            o_l = wp.transform_point(vol.to_local, cam.origin)
+            d_l = wp.transform_vector(vol.to_local, d)
+            h = box_hit(o_l, d_l)
+            t_face = h[1]
+            if exterior != 0:
+                t_face = h[0]
+            p = o_l + t_face * d_l
+            c = cube_sample(cube, cube_z, cube_offset[v], cube_size[v], p, layers.t_out[i] * wp.dot(d, cam.forward),
+                            k_z)
+            after = s.transmittance * c[3]
+            if s.transmittance > 0.5 and after <= 0.5:
+                s.depth_t = cube_nearest_t(cube_t, cube_offset[v], cube_size[v], p)
+            s.color = s.color + s.transmittance * wp.vec3(c[0], c[1], c[2])
+            s.transmittance = after
+        else:
+            direct = 1
+            s = march_volume_light_map(s, volumes[v], cam.origin, d, layers.t_in[i], layers.t_out[i], 0.5, medium,
+                                       params)
+        if s.transmittance < params.min_transmittance:
+            break
+        i = end
     count(counters, RAYS, direct)
+    count(counters, JOINT_RAYS, joint)
+    count(counters, SKIPPED_STEPS, s.skipped)
     count(counters, LIGHTMAP_LOOKUPS, s.shaded * medium.lights.shape[0])
     write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
@@ -370,6 +382,7 @@ class CMSRM(LightMapRenderer):
         super().__init__(config or CMSRMConfig(), device)
 
     def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
+        self._layers = LayerFinder(self.config.oit, self.config.oit_k, self.device)
         ds = self._upload(scene, clock, self.config.light_grid, mip_levels=True)
         self._lighting(ds, clock)
         self._frame_info["volumes"] = []
@@ -556,13 +569,13 @@ class CMSRM(LightMapRenderer):
             c = cubes[view]
             per_volume = [wp.array(a, dtype=int, device=self.device)
                           for a in ([p["scheme"] for p in plans[view]], c.offsets, c.sizes)]
-            order = wp.array(depth_order(ds.scene, cam), dtype=int, device=self.device)
+            oit = self._layers.params(ds, cam, clock)
             with clock.measure("resample"):
                 launch_rows(
                     cube_resample_kernel,
                     cam.height,
                     cam.width,
-                    [camera_struct(cam), ds.volumes, order, *per_volume, exterior, self.config.k_z, c.color,
+                    [camera_struct(cam), ds.volumes, oit, *per_volume, exterior, self.config.k_z, c.color,
                      c.t_half, c.z_end, ds.medium(),
                      self._params(ds, view, self.config.samples), targets[view]],
                     self.device,

@@ -3,8 +3,9 @@
 Per pixel: intersect the view ray with each volume's box in local space [-1, 1]^3, march uniform steps (at most V
 samples across the box diagonal, midpoint or seeded-jittered positions), shade each sample with single scattering
 from the light map (sigma_s * phase * T_light * E) plus the unshadowed ambient sigma_s * L_ambient and emission,
-composite front to back with early ray termination. Volumes are visited in painter's order per view; the segment
-starts at the near plane when the eye is inside a box.
+composite front to back with early ray termination. Each pixel composites the boxes its ray meets in the order it
+meets them, overlapping ones marched jointly (`volren.render.compositing.oit`); a segment starts at the near plane
+when the eye is inside a box.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ from volren.kernels.common import (
     Medium,
     ViewBuffers,
     VolumeGPU,
-    box_hit,
     count,
     counter_row,
     new_march_state,
@@ -29,9 +29,10 @@ from volren.kernels.common import (
     write_pixel,
 )
 from volren.render.base import LightMapMarchConfig, LightMapRenderer, frame_seed
-from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, PassClock
+from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, march_joint, pixel_layers
+from volren.render.frame import DENSITY_SAMPLES, JOINT_RAYS, LIGHTMAP_LOOKUPS, RAYS, SKIPPED_STEPS, PassClock
 from volren.render.marching.march import MarchParams, march_volume_light_map
-from volren.upload import DeviceScene, camera_struct, depth_order
+from volren.upload import DeviceScene, camera_struct
 
 
 @dataclass(frozen=True)
@@ -44,7 +45,7 @@ class DSSRMConfig(LightMapMarchConfig):
 def dssrm_kernel(
     cam: CameraGPU,
     volumes: wp.array(dtype=VolumeGPU),
-    order: wp.array(dtype=int),
+    oit: OITParams,
     medium: Medium,
     params: MarchParams,
     buffers: ViewBuffers,
@@ -55,23 +56,28 @@ def dssrm_kernel(
     counters = counter_row(counter_rows, r, col)
     row = r + row0
     d, planes = pixel_ray(cam, buffers, row, col)
+    layers = pixel_layers(oit, volumes, cam.origin, d, planes, row, col, counters)
     s = new_march_state()
-    hit = int(0)
-    for k in range(order.shape[0]):
-        vol = volumes[order[k]]
-        h = box_hit(wp.transform_point(vol.to_local, cam.origin), wp.transform_vector(vol.to_local, d))
-        t0 = wp.max(h[0], planes[0])
-        t1 = wp.min(h[1], planes[1])
-        if t1 > t0:
-            hit = 1
-            offset = float(0.5)
-            if params.jitter != 0:
-                offset = ray_jitter(params.seed, params.view, row, col, cam.width, cam.height, k)
-            s = march_volume_light_map(s, vol, cam.origin, d, t0, t1, offset, medium, params)
-            if s.transmittance < params.min_transmittance:
-                break
+    joint = int(0)
+    i = int(0)
+    while i < layers.count:
+        end = cluster_end(layers, i)
+        offset = float(0.5)
+        if params.jitter != 0:
+            offset = ray_jitter(params.seed, params.view, row, col, cam.width, cam.height, i)
+        if end - i > 1:
+            joint = 1
+            s = march_joint(s, layers, i, end, volumes, cam.origin, d, offset, medium, params)
+        else:
+            s = march_volume_light_map(s, volumes[layers.volume[i]], cam.origin, d, layers.t_in[i], layers.t_out[i],
+                                       offset, medium, params)
+        if s.transmittance < params.min_transmittance:
+            break
+        i = end
     count(counters, LIGHTMAP_LOOKUPS, s.shaded * medium.lights.shape[0])
-    count(counters, RAYS, hit)
+    count(counters, RAYS, wp.min(layers.count, 1))
+    count(counters, JOINT_RAYS, joint)
+    count(counters, SKIPPED_STEPS, s.skipped)
     write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
 
@@ -84,6 +90,7 @@ class DSSRM(LightMapRenderer):
         super().__init__(config or DSSRMConfig(), device)
 
     def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
+        self._layers = LayerFinder(self.config.oit, self.config.oit_k, self.device)
         ds = self._upload(scene, clock, self.config.light_grid)
         self._lighting(ds, clock)
         return ds
@@ -99,13 +106,13 @@ class DSSRM(LightMapRenderer):
         params.view = view
         params.min_transmittance = c.min_transmittance
         params.ambient = ds.ambient
-        order = wp.array(depth_order(ds.scene, cam), dtype=int, device=self.device)
+        oit = self._layers.params(ds, cam, clock)
         with clock.measure("march"):
             launch_rows(
                 dssrm_kernel,
                 cam.height,
                 cam.width,
-                [camera_struct(cam), ds.volumes, order, ds.medium(), params, buffers],
+                [camera_struct(cam), ds.volumes, oit, ds.medium(), params, buffers],
                 self.device,
                 clock.counters,
                 self.on_rows,
