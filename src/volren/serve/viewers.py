@@ -1,0 +1,117 @@
+"""Per-viewer state of `volren serve`: image size, stereo, the newest camera, whether a frame is on its way."""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from volren.camera import Camera, StereoRig
+from volren.errors import VolrenError
+from volren.serve.protocol import MIN_SIDE, CameraMessage, ProtocolError
+
+
+@dataclass(frozen=True)
+class Limits:
+    max_viewers: int = 16
+    max_width: int = 1920
+    """[px] of a viewer's image (both eyes together when stereo)"""
+    max_height: int = 1080
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.max_viewers <= 1024:
+            raise VolrenError(f"--max-viewers must lie in [1, 1024], got {self.max_viewers}")
+        for flag, side in (("--max-width", self.max_width), ("--max-height", self.max_height)):
+            if not 2 * MIN_SIDE <= side <= 8192:
+                raise VolrenError(f"{flag} must lie in [{2 * MIN_SIDE}, 8192] pixels, got {side}")
+
+    def clamp(self, width: int, height: int) -> tuple[int, int]:
+        return (min(max(width, 2 * MIN_SIDE), self.max_width), min(max(height, MIN_SIDE), self.max_height))
+
+
+@dataclass(eq=False)
+class Viewer:
+    """One connected page. ``send`` delivers a packed frame (the WebSocket's send_bytes); ``sending`` is the task of
+    the frame still on its way, if any: while it runs the viewer gets no new frame (dropped, never queued)."""
+
+    id: int
+    send: Any
+    """coroutine function sending a binary frame"""
+    text: Any = None
+    """coroutine function sending a text message (errors, settings)"""
+    width: int = 0
+    height: int = 0
+    stereo: bool = False
+    camera: Camera | None = None
+    camera_id: int = -1
+    shown: tuple[int, int] = (-1, -1)
+    """(camera id, scene version) of the last frame rendered for this viewer"""
+    sending: asyncio.Task | None = None
+    frames: int = 0
+    dropped: int = 0
+    closed: bool = False
+
+    @property
+    def ready(self) -> bool:
+        return self.width > 0 and self.camera is not None and not self.closed
+
+    @property
+    def busy(self) -> bool:
+        return self.sending is not None and not self.sending.done()
+
+    def eye_size(self) -> tuple[int, int]:
+        return (self.width // 2, self.height) if self.stereo else (self.width, self.height)
+
+    def set_camera(self, msg: CameraMessage) -> None:
+        if msg.id <= self.camera_id:
+            return  # an older camera overtaken by a newer one: latest camera wins
+        w, h = self.eye_size()
+        try:
+            self.camera = Camera(position=msg.position, look_at=msg.look_at, up=msg.up, fov_y=msg.fov, width=w,
+                                 height=h)
+        except VolrenError as exc:
+            raise ProtocolError(f"camera: {exc}") from None
+        self.camera_id = msg.id
+
+    def resize(self, width: int, height: int, stereo: bool, limits: Limits) -> None:
+        self.width, self.height = limits.clamp(width, height)
+        self.stereo = stereo
+        if self.camera is not None:
+            w, h = self.eye_size()
+            self.camera = replace(self.camera, width=w, height=h)
+            self.shown = (-1, -1)
+
+    def views(self, ipd: float) -> list[Camera]:
+        """This viewer's views: one camera, or a stereo viewer's two eyes (left first, a coupled CACRM pair)."""
+        assert self.camera is not None
+        return StereoRig(self.camera, ipd).eyes() if self.stereo else [self.camera]
+
+
+@dataclass
+class ViewerSet:
+    """The connected viewers, at most ``limit``; ids count up from 1."""
+
+    limit: int
+    viewers: dict[int, Viewer] = field(default_factory=dict)
+    next_id: int = 1
+
+    def add(self, send: Any, text: Any = None) -> Viewer:
+        if len(self.viewers) >= self.limit:
+            raise ProtocolError(f"server full: {self.limit} viewers connected (--max-viewers)")
+        v = Viewer(self.next_id, send, text)
+        self.viewers[v.id] = v
+        self.next_id += 1
+        return v
+
+    def remove(self, viewer: Viewer) -> None:
+        viewer.closed = True
+        self.viewers.pop(viewer.id, None)
+
+    def __len__(self) -> int:
+        return len(self.viewers)
+
+    def render_order(self) -> list[Viewer]:
+        """Viewers with a camera, stereo ones first, so every stereo pair sits at views (2k, 2k + 1) (CACRM couples
+        views in those pairs), then the mono ones; join order within each."""
+        ready = [v for v in self.viewers.values() if v.ready]
+        return [v for v in ready if v.stereo] + [v for v in ready if not v.stereo]
