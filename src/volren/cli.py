@@ -263,6 +263,37 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     o.add_argument("--tonemap", default="none", choices=TONEMAPS, help="PNG tone map")
 
 
+def add_serve_args(p: argparse.ArgumentParser) -> None:
+    from volren.presets import QUALITIES
+
+    p.add_argument("--scene", default=DEFAULT_SCENE, help="built-in scene (see `volren scenes`)")
+    p.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION, help="built-in volume scenes: voxels per "
+                   "axis, 64-512")
+    p.add_argument("--method", help="dssrm, cmsrm, cacrm, vpt or fog (default: dssrm, fog for fog scenes)")
+    p.add_argument("--quality", default="interactive", choices=QUALITIES, help="starting preset (viewers may switch)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on; any but loopback needs --token")
+    p.add_argument("--port", type=int, default=8000, help="TCP port, in [1, 65535]")
+    p.add_argument("--token", help="secret viewers pass as /?token=T (required with a non-loopback --host; "
+                   "default: none)")
+    p.add_argument("--max-viewers", type=int, default=16, help="viewers connected at once, in [1, 1024]")
+    p.add_argument("--max-width", type=int, default=1920, help="[px] largest viewer image (stereo: both eyes)")
+    p.add_argument("--max-height", type=int, default=1080, help="[px] largest viewer image")
+    add_device(p)
+
+
+def run_serve(args: argparse.Namespace) -> int:
+    from volren.serve.app import build_loop, check_bind, make_app, serve
+    from volren.serve.viewers import Limits
+
+    check_bind(args.host, args.token)
+    if not 1 <= args.port <= 65535:
+        raise CliError(f"--port must lie in [1, 65535], got {args.port}")
+    limits = Limits(args.max_viewers, args.max_width, args.max_height)
+    loop = build_loop(args.scene, args.method, args.quality, args.resolution, args.device, limits)
+    serve(make_app(loop, args.scene, args.token), args.host, args.port, args.token)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="volren", description="Multi-view volumetric density rendering (NVIDIA Warp, CPU or CUDA).")
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
@@ -281,6 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("ref", type=Path, help="reference image: .npy linear, or PNG/JPEG; its peak must be > 0")
     c.add_argument("test", type=Path, help="image to measure, same size and kind as REF")
     c.add_argument("--heatmap", type=Path, help="heat map PNG (default: next to TEST, *_error.png)")
+    add_serve_args(sub.add_parser("serve", help="serve a scene live to browsers: each viewer steers its own "
+                                  "camera; one render call per tick serves them all"))
     b = sub.add_parser("bench", help="run a benchmark suite; writes JSON and a Markdown table")
     b.add_argument("suite", help="suite name (see `volren bench list`)")
     b.add_argument("--quick", action="store_true", help="small sizes for a CPU")
@@ -701,6 +734,8 @@ def run_command(args: argparse.Namespace, command: str) -> int:
         return run_scenes()
     if args.command == "compare":
         return run_compare(args)
+    if args.command == "serve":
+        return run_serve(args)
     return run_bench(args)
 
 
