@@ -88,7 +88,8 @@ def animator(scene: Scene, name: str | None, device: str) -> Callable[[], Scene]
 
 class RenderLoop:
     """The shared renderer and its viewers. ``animate`` gives the next scene of an animation (None: not animated).
-    ``shared=False`` is the naive server of the benchmark: one render call per viewer (same renderer, same caches).
+    ``shared=False`` is the naive server of the benchmark: each viewer rendered by its own renderer (own light map,
+    shadow grid, majorants and history), one call per viewer, as if every viewer had a server of its own.
     ``overrides`` are config fields on top of the quality preset (tests use small light grids)."""
 
     def __init__(self, scene: Scene, method: str, quality: str = "interactive", *, limits: Limits | None = None,
@@ -120,6 +121,8 @@ class RenderLoop:
         """bumped by every change of the shared scene or settings; a viewer shown an older one needs a frame"""
         self._renderer_key: tuple | None = None
         self.renderer: Any = None
+        self._own: dict[int, Any] = {}
+        """shared=False: viewer id -> that viewer's renderer"""
         self._build_renderer()
         # counters (/health, tests, the bench)
         self.tick = 0
@@ -149,7 +152,9 @@ class RenderLoop:
             options["reuse_light_map"] = True
         if "transfer" in fields:
             options["transfer"] = None if self.tf == DENSITY_TF else self.tf
-        self.renderer = cls(quality_config(self.method, self.quality, **options), device=self.device)
+        self._make_renderer = lambda: cls(quality_config(self.method, self.quality, **options), device=self.device)
+        self.renderer = self._make_renderer()
+        self._own = {}
         self._renderer_key = key
 
     def shared_settings(self) -> dict[str, Any]:
@@ -255,8 +260,9 @@ class RenderLoop:
             images, passes = frame.images, dict(frame.stats.times_ms)
         else:
             images, passes = [], {}
-            for _, _, cams in jobs:
-                frame = renderer.render(scene, cams, frame=index)
+            self._own = {v.id: self._own.get(v.id) or self._make_renderer() for v, _, _ in jobs}
+            for v, _, cams in jobs:
+                frame = self._own[v.id].render(scene, cams, frame=index)
                 self.renders += 1
                 images += frame.images
                 for k, ms in frame.stats.times_ms.items():
