@@ -110,3 +110,119 @@ def test_gi_suite_rows_and_goals():
     smoke = {r["method"]: r for r in rows if r["scene"] == "smoke"}
     assert summary[0]["time_vs_restir"] == pytest.approx(smoke["sresir"]["gi_ms"] / smoke["restir"]["gi_ms"])
     assert summary[0]["db_vs_restir"] == pytest.approx(smoke["sresir"]["psnr"] - smoke["restir"]["psnr"])
+
+
+# ---------------------------------------------------------------- issue 14: instance scenes, bench oit, integrated
+
+
+@pytest.mark.parametrize("overlap", [False, True])
+def test_instances_layout_rows_in_depth(overlap):
+    import itertools
+
+    import numpy as np
+
+    from volren.data import builtin_scene
+    from volren.data.procedural import INSTANCE_FILL
+
+    scene = builtin_scene("instances-overlap" if overlap else "instances", 64, count=16, seed=1)
+    assert len(scene.volumes) == 16 and {v.density.shape for v in scene.volumes} == {(32, 32, 32)}
+    assert [v.name[:5] for v in scene.volumes[:5]] == ["smoke", "cloud", "smoke", "cloud", "cloud"]  # checkerboard
+    lo, hi = scene.bounds
+    np.testing.assert_allclose([lo[0], lo[2], hi[0], hi[2]], [-1.2, -1.2, 1.2, 1.2])
+    boxes = [(v.corners_world.min(axis=0), v.corners_world.max(axis=0)) for v in scene.volumes]
+    pitch = 2.4 / (4 - 1 + 2 * INSTANCE_FILL[overlap])
+    shared = []
+    for (lo_a, hi_a), (lo_b, hi_b) in itertools.combinations(boxes, 2):
+        shared.append((np.minimum(hi_a, hi_b) - np.maximum(lo_a, lo_b)).min())  # < 0: separated along some axis
+    # neighbours are separated by 0.2 pitch (disjoint) or share exactly 0.2 pitch (overlapping)
+    assert max(shared) == pytest.approx(0.2 * pitch if overlap else -0.2 * pitch)
+    # the x-z grid: every row of 4 at one depth, rows 1 pitch apart
+    centres = np.array([v.center_world for v in scene.volumes])
+    np.testing.assert_allclose(np.diff(np.unique(centres[:, 2].round(9))), pitch)
+
+
+def test_boxes_per_ray_counts_boxes_along_the_axis():
+    import numpy as np
+
+    from volren.bench.oit import boxes_per_ray
+    from volren.camera import Camera
+    from volren.scene import Scene, Volume, scale_translate
+
+    d = np.ones((4, 4, 4), np.float32)
+    scene = Scene((Volume(d, scale_translate(0.2, (0, 0, 0.5))), Volume(d, scale_translate(0.2, (0, 0, -0.5))),
+                   Volume(d, scale_translate(0.2, (0, 0, 5.0)))))  # the last one behind the eye
+    hits = boxes_per_ray(scene, Camera(position=(0, 0, 3), look_at=(0, 0, 0), width=9, height=9, fov_y=60))
+    assert hits[4, 4] == 2 and hits[0, 0] == 0 and hits.max() == 2
+
+
+def test_covered_psnr_is_the_psnr_of_the_covered_pixels():
+    import numpy as np
+
+    from volren.bench.oit import covered_psnr
+
+    ref = np.zeros((4, 4, 4), np.float32)
+    ref[:2, :, :] = 0.5  # 8 covered pixels (alpha 0.5), the rest empty
+    test = ref.copy()
+    test[0, 0, :3] += 0.1
+    test[3, 3, :3] += 5.0  # an error where the reference is empty does not count
+    assert covered_psnr(ref, test) == pytest.approx(10 * np.log10(0.5**2 / (0.1**2 / 8)))
+
+
+def test_oit_suite_counters_and_goals():
+    from volren.bench.oit import METHODS, goals, nearest_instance, run_config
+    from volren.data import builtin_scene
+    from volren.render.compositing.oit import TILE_LAYOUT, tile_layout
+
+    cfg = {"resolution": 64, "light_grid": 8, "counts": [16, 36], "samples": 32, "light_samples": 16, "k": 8,
+           "sizes": [(48, 27)], "quality_size": (48, 27), "reference": 48, "repeats": 1,
+           "scenes": ["instances-overlap"]}
+    result = run_config(cfg, "cpu")
+    rows = result["rows"]
+    speed = {(r["instances"], r["method"]): r for r in rows if r["table"] == "speed"}
+    tiles = tile_layout(48, 27, TILE_LAYOUT)
+    for n in cfg["counts"]:
+        sort, rt, tiled = (speed[n, m] for m in METHODS)
+        assert sort["pixels"] == 2 * 48 * 27
+        assert sort["box_tests"] == sort["pixels"] * n and sort["bvh_queries"] == 0  # every instance per pixel
+        assert rt["bvh_queries"] == rt["pixels"] and 0 < rt["box_tests"] < sort["box_tests"]
+        assert tiled["bvh_queries"] == 2 * tiles.tiles_x * tiles.tiles_y and tiled["tile_box_tests"] > 0
+        assert rt["density_samples"] == sort["density_samples"]  # both exact: the same layers
+        assert all(r["view_ms"] == pytest.approx(r["oit_ms"] + r["march_ms"]) for r in (sort, rt, tiled))
+    quality = {(r["instances"], r["method"]): r for r in rows if r["table"] == "quality"}
+    for n in cfg["counts"]:
+        assert quality[n, "pixel-sort"]["psnr"] == quality[n, "pixel-rt"]["psnr"] > 20
+        assert quality[n, "pixel-sort"]["psnr_single"] > 20 and quality[n, "pixel-sort"]["multi_box"] > 0.5
+    scene = builtin_scene("instances", 64, count=16)
+    near = nearest_instance(scene).volumes[0]
+    assert all(near.center_world[2] >= v.center_world[2] for v in scene.volumes)  # front row
+    summary, _ = result["summary"]
+    assert summary == goals(rows, cfg)
+    by_goal = {g["goal"]: g for g in summary}
+    flat = by_goal["tiled box tests per pixel, 36 / 16 instances, 48x27"]
+    assert flat["value"] == pytest.approx(speed[36, "tiled"]["box_tests_px"] / speed[16, "tiled"]["box_tests_px"])
+    assert flat["result"] == ("pass" if flat["value"] <= 1.1 else "fail")
+    contrast = by_goal["pixel-sort box tests per pixel, 36 / 16 instances, 48x27 (for contrast)"]
+    assert contrast["value"] == 2.25 and contrast["result"] == "pass"
+    ratio = by_goal["pixel-rt / tiled view passes (oit + march), 16 instances, 48x27"]
+    assert ratio["value"] == pytest.approx(speed[16, "pixel-rt"]["view_ms"] / speed[16, "tiled"]["view_ms"])
+    drop = by_goal["tiled PSNR - single-volume PSNR, instances-overlap, 36 instances [dB]"]
+    assert drop["value"] == pytest.approx(quality[36, "tiled"]["psnr"] - quality[36, "tiled"]["psnr_single"])
+    assert len(summary) == 2 + 2 * len(cfg["counts"]) + len(METHODS) * len(cfg["counts"])
+
+
+def test_integrated_suite_rows_and_ratios():
+    from volren.bench.integrated import OURS, VANILLA, run_config
+
+    cfg = {"resolution": 64, "light_grid": 8, "counts": [4], "samples": 32, "light_samples": 16,
+           "sizes": [(48, 27)], "repeats": 1}
+    result = run_config(cfg, "cpu")
+    rows = {r["method"]: r for r in result["rows"]}
+    assert list(rows) == [VANILLA, OURS]
+    for r in rows.values():
+        passes = [v for k, v in r.items() if k.endswith("_ms") and k != "frame_ms"]
+        assert r["frame_ms"] == pytest.approx(sum(passes)) and r["fps"] == pytest.approx(1e3 / r["frame_ms"])
+        assert r["gi_transform_ms"] > 0 and r["light_map_ms"] > 0
+    assert "march_ms" in rows[VANILLA] and "oit_ms" not in rows[VANILLA]
+    assert "cube_march_ms" in rows[OURS] and "oit_ms" in rows[OURS]  # the tiled k-buffer's phase 1
+    (ratio,), _ = result["summary"]
+    assert ratio["speedup"] == pytest.approx(rows[VANILLA]["frame_ms"] / rows[OURS]["frame_ms"])

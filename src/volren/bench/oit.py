@@ -43,10 +43,10 @@ from volren.scene import Scene
 
 FULL = {"resolution": 256, "light_grid": 96, "counts": [4, 16, 36], "samples": 100, "light_samples": 48, "k": 8,
         "sizes": [(1920, 1080), (2560, 1440), (3840, 2160)], "quality_size": (480, 270), "reference": 1024,
-        "repeats": 5}
+        "repeats": 5, "scenes": ["instances", "instances-overlap"]}
 QUICK = {"resolution": 64, "light_grid": 24, "counts": [4, 16, 36], "samples": 100, "light_samples": 48, "k": 8,
-         "sizes": [(480, 270), (640, 360), (960, 540)], "quality_size": (160, 90), "reference": 256, "repeats": 2}
-SCENES = ("instances", "instances-overlap")
+         "sizes": [(480, 270), (640, 360), (960, 540)], "quality_size": (160, 90), "reference": 256, "repeats": 2,
+         "scenes": ["instances", "instances-overlap"]}
 EYE = (0.0, 0.4, 3.2)
 """the CLI's default camera position (looking at the origin): rows of instances recede from it in depth"""
 METHODS = ("pixel-sort", "pixel-rt", "tiled")
@@ -104,7 +104,7 @@ def quality_rows(cfg: dict[str, Any], device: str) -> list[dict[str, Any]]:
     views = stereo(cfg["quality_size"])
     reference = Reference(ReferenceConfig(samples=cfg["reference"], light_samples=cfg["reference"]), device)
     rows = []
-    for name in SCENES:
+    for name in cfg["scenes"]:
         for n in cfg["counts"]:
             scene = builtin_scene(name, cfg["resolution"], count=n)
             single = nearest_instance(scene)
