@@ -5,7 +5,9 @@ samples across the box diagonal, midpoint or seeded-jittered positions), shade e
 from the light map (sigma_s * phase * T_light * E) plus the unshadowed ambient sigma_s * L_ambient and emission,
 composite front to back with early ray termination. Each pixel composites the boxes its ray meets in the order it
 meets them, overlapping ones marched jointly (`volren.render.compositing.oit`); a segment starts at the near plane
-when the eye is inside a box.
+when the eye is inside a box. Translucent mesh layers (paper 000 §3.3, the mesh k-buffer of
+`volren.render.compositing.mesh_layers`) split the march where they lie and are blended there; inside a joint run of
+overlapping boxes they are blended after the run (the joint march is not split).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import warp as wp
 from volren.camera import Camera
 from volren.device import launch_rows
 from volren.kernels.common import (
+    INF,
     CameraGPU,
     Medium,
     ViewBuffers,
@@ -29,9 +32,16 @@ from volren.kernels.common import (
     write_pixel,
 )
 from volren.render.base import LightMapMarchConfig, LightMapRenderer, frame_seed
+from volren.render.compositing.mesh_layers import (
+    MeshLayers,
+    blend_layers_before,
+    build_mesh_layers,
+    layer_stats,
+    march_between_layers,
+)
 from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, march_joint, pixel_layers
 from volren.render.frame import DENSITY_SAMPLES, JOINT_RAYS, LIGHTMAP_LOOKUPS, RAYS, SKIPPED_STEPS, PassClock
-from volren.render.marching.march import MarchParams, march_volume_light_map
+from volren.render.marching.march import MarchParams
 from volren.upload import DeviceScene, camera_struct
 
 
@@ -48,6 +58,7 @@ def dssrm_kernel(
     oit: OITParams,
     medium: Medium,
     params: MarchParams,
+    mesh: MeshLayers,
     buffers: ViewBuffers,
     counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
@@ -58,6 +69,8 @@ def dssrm_kernel(
     d, planes = pixel_ray(cam, buffers, row, col)
     layers = pixel_layers(oit, volumes, cam.origin, d, planes, row, col, counters)
     s = new_march_state()
+    facing = wp.dot(d, cam.forward)
+    next_mesh = int(0)
     joint = int(0)
     i = int(0)
     while i < layers.count:
@@ -67,13 +80,15 @@ def dssrm_kernel(
             offset = ray_jitter(params.seed, params.view, row, col, cam.width, cam.height, i)
         if end - i > 1:
             joint = 1
+            s, next_mesh = blend_layers_before(s, next_mesh, mesh, row, col, facing, layers.t_in[i])
             s = march_joint(s, layers, i, end, volumes, cam.origin, d, offset, medium, params)
         else:
-            s = march_volume_light_map(s, volumes[layers.volume[i]], cam.origin, d, layers.t_in[i], layers.t_out[i],
-                                       offset, medium, params)
+            s, next_mesh = march_between_layers(s, next_mesh, mesh, row, col, facing, volumes[layers.volume[i]],
+                                                cam.origin, d, layers.t_in[i], layers.t_out[i], offset, medium, params)
         if s.transmittance < params.min_transmittance:
             break
         i = end
+    s, next_mesh = blend_layers_before(s, next_mesh, mesh, row, col, facing, INF)
     count(counters, LIGHTMAP_LOOKUPS, s.shaded * medium.lights.shape[0])
     count(counters, RAYS, wp.min(layers.count, 1))
     count(counters, JOINT_RAYS, joint)
@@ -85,6 +100,7 @@ class DSSRM(LightMapRenderer):
     """Direct screen-space ray marching with a light map; ``config`` is a `DSSRMConfig`."""
 
     name = "dssrm"
+    translucent_meshes = True
 
     def __init__(self, config: DSSRMConfig | None = None, device: str = "auto") -> None:
         super().__init__(config or DSSRMConfig(), device)
@@ -107,12 +123,15 @@ class DSSRM(LightMapRenderer):
         params.min_transmittance = c.min_transmittance
         params.ambient = ds.ambient
         oit = self._layers.params(ds, cam, clock)
+        with clock.measure("mesh layers"):
+            mesh = build_mesh_layers(ds, camera_struct(cam), cam, buffers, c.mesh_layers, clock.counters)
+        self._frame_info["mesh_layers"] = layer_stats(mesh, c.mesh_layers, self._frame_info.get("mesh_layers"))
         with clock.measure("march"):
             launch_rows(
                 dssrm_kernel,
                 cam.height,
                 cam.width,
-                [camera_struct(cam), ds.volumes, oit, ds.medium(), params, buffers],
+                [camera_struct(cam), ds.volumes, oit, ds.medium(), params, mesh, buffers],
                 self.device,
                 clock.counters,
                 self.on_rows,
