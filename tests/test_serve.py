@@ -1,0 +1,319 @@
+"""`volren serve` in process (aiohttp's test client): the protocol, one render call per tick for every viewer, frame
+dropping, disconnects, the token, /health and the light-map cache. A 16^3 smoke at 64x48 keeps each tick ~10 ms."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import threading
+
+import numpy as np
+import pytest
+from aiohttp.test_utils import TestClient, TestServer
+
+from volren.camera import Camera, StereoRig
+from volren.data.procedural import smoke_density
+from volren.errors import VolrenError
+from volren.metrics import psnr
+from volren.presets import quality_config
+from volren.render import DSSRM
+from volren.scene import DirectionalLight, Environment, Scene, Volume
+from volren.serve.app import _serve, check_bind, make_app
+from volren.serve.jpeg import decode_jpeg, display_image
+from volren.serve.loop import RenderLoop
+from volren.serve.protocol import MAX_MESSAGE_BYTES, unpack_frame
+from volren.serve.viewers import Limits
+
+SMALL = {"samples": 64, "light_samples": 16, "light_grid": 8}
+W, H = 64, 48
+SCENE = Scene((Volume(smoke_density(64).reshape(16, 4, 16, 4, 16, 4).mean(axis=(1, 3, 5)), density_scale=13.0,
+                      albedo=0.85, g=0.2),),
+              (DirectionalLight((-0.5, -1.0, -0.35), (3.0, 3.0, 3.0)),), Environment((0.05, 0.065, 0.09)),
+              (0.015, 0.015, 0.02), name="smoke16")
+TIMEOUT = 60.0
+"""[s] per awaited message: the first tick compiles kernels when the cache is cold"""
+
+
+def cam_msg(i: int, x: float = 0.0) -> dict:
+    return {"type": "camera", "id": i, "position": [x, 0.2, 1.9], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 45}
+
+
+def offline(msg: dict, scene: Scene = SCENE, stereo: bool = False, **config) -> np.ndarray:
+    """The same camera rendered by a fresh renderer outside the server, as the server shows it (sRGB uint8)."""
+    cam = Camera(position=msg["position"], look_at=msg["look_at"], fov_y=msg["fov"], width=W // 2 if stereo else W,
+                 height=H)
+    views = StereoRig(cam).eyes() if stereo else [cam]
+    r = DSSRM(quality_config("dssrm", "interactive", **SMALL, **config), device="cpu")
+    return display_image(r.render(scene, views).images, scene.background)
+
+
+def db(ref: np.ndarray, image: np.ndarray) -> float:
+    return psnr(ref.astype(float), image.astype(float), data_range=255.0)
+
+
+def run(test, token: str | None = None, **loop_kw) -> None:
+    """Run ``test(client, loop)`` against a fresh server."""
+    async def main() -> None:
+        loop = RenderLoop(SCENE, "dssrm", "interactive", limits=Limits(4, 128, 96), device="cpu", overrides=SMALL,
+                          **loop_kw)
+        async with TestClient(TestServer(make_app(loop, "smoke16", token))) as client:
+            await test(client, loop)
+    asyncio.run(main())
+
+
+async def connect(client, width: int = W, height: int = H, stereo: bool = False):
+    ws = await client.ws_connect("/ws")
+    await ws.send_json({"type": "hello", "width": width, "height": height, "stereo": stereo})
+    welcome = await ws.receive_json(timeout=TIMEOUT)
+    assert welcome["type"] == "welcome"
+    return ws, welcome
+
+
+async def next_frame(ws) -> tuple[dict, np.ndarray]:
+    """The next binary frame (text messages before it are returned by `next_text` instead; here they fail)."""
+    msg = await ws.receive(timeout=TIMEOUT)
+    assert isinstance(msg.data, bytes), f"expected a frame, got {msg.data!r}"
+    header, jpeg = unpack_frame(msg.data)
+    return header, decode_jpeg(jpeg)
+
+
+async def frame_for(ws, camera_id: int) -> tuple[dict, np.ndarray]:
+    """Frames until the one answering ``camera_id``."""
+    while True:
+        header, image = await next_frame(ws)
+        if header["camera_id"] == camera_id:
+            return header, image
+
+
+def test_camera_in_tagged_jpeg_out_and_light_map_cached():
+    """A camera message comes back as a JPEG frame tagged with its id, the size asked for, matching an offline
+    render of that camera (JPEG loss only: measured 48 dB). The static scene's light map is computed on the first
+    tick only; a light_dir change recomputes it and the frame matches an offline render under the new light."""
+    async def test(client, loop):
+        ws, welcome = await connect(client)
+        assert welcome["method"] == "dssrm" and welcome["limits"]["max_viewers"] == 4
+        await ws.send_json(cam_msg(7))
+        header, image = await frame_for(ws, 7)
+        assert header["type"] == "frame" and (header["width"], header["height"]) == (W, H) and not header["stereo"]
+        assert image.shape == (H, W, 3) and image.std() > 10  # not blank: the plume over a dark background
+        assert db(offline(cam_msg(7)), image) > 40.0
+        assert "light_map" in header["pass_ms"]
+        await ws.send_json(cam_msg(8, x=0.5))
+        header, image = await frame_for(ws, 8)
+        assert "light_map" not in header["pass_ms"], "static scene and light: the light map is reused"
+        assert db(offline(cam_msg(8, x=0.5)), image) > 40.0
+        light = [0.3, -0.2, 1.0]  # backlit: 27.6 dB from the first light's image
+        await ws.send_json({"type": "settings", "light_dir": light})
+        await ws.send_json(cam_msg(9, x=0.5))
+        header, image = await frame_for(ws, 9)
+        assert "light_map" in header["pass_ms"]
+        lit = Scene(SCENE.volumes, (DirectionalLight(tuple(light), (3.0, 3.0, 3.0)),), SCENE.environment,
+                    SCENE.background)
+        assert db(offline(cam_msg(9, x=0.5), lit), image) > 40.0
+        # the old light's image differs clearly: the test above can tell the lights apart
+        assert db(offline(cam_msg(9, x=0.5)), image) < 32.0
+        await ws.close()
+
+    run(test)
+
+
+BAD = [
+    ("not json", "not valid JSON"),
+    ('{"type": "camera", "id": 1, "position": [NaN, 0, 3], "look_at": [0, 0, 0]}', "NaN"),
+    ('{"type": "camera", "id": 1, "position": [Infinity, 0, 3], "look_at": [0, 0, 0]}', "Infinity"),
+    ('{"type": "camera", "id": 1, "position": [1e400, 0, 3], "look_at": [0, 0, 0]}', "camera.position[0]"),
+    ('{"type": "camera", "id": 1, "position": [1e9, 0, 3], "look_at": [0, 0, 0]}', "camera.position[0]"),
+    ('{"type": "camera", "id": 1, "position": [0, 0, 3], "look_at": [0, 0, 0], "fov": 1e9}', "camera.fov"),
+    ('{"type": "camera", "id": 1, "position": [0, 0, 3], "look_at": [0, 0, 0], "fov": true}', "camera.fov"),
+    ('{"type": "camera", "id": 1, "position": "0,0,3", "look_at": [0, 0, 0]}', "camera.position"),
+    ('{"type": "camera", "id": 1.5, "position": [0, 0, 3], "look_at": [0, 0, 0]}', "camera.id"),
+    ('{"type": "camera", "id": 1, "position": [0, 0, 3], "look_at": [0, 0, 3]}', "camera:"),
+    ('{"type": "camera", "id": 1, "position": [0, 0, 3], "look_at": [0, 0, 0], "evil": 1}', "unknown field(s) evil"),
+    ('{"type": "camera", "id": 1, "position": [0, 0, 3]}', "missing field(s) look_at"),
+    ('{"type": "launch", "id": 1}', "type must be one of"),
+    ('[1, 2, 3]', "JSON object"),
+    ('{"type": "resize", "width": -5, "height": 48}', "resize.width"),
+    ('{"type": "settings", "method": "rm -rf"}', "settings.method"),
+    ('{"type": "settings", "light_dir": [0, 0, 0]}', "settings.light_dir"),
+    ('{"type": "settings", "playing": "yes"}', "settings.playing"),
+    ('{"type": "hello", "width": 64, "height": 48}', "already received"),
+    ("[" * 10_000 + "]" * 10_000, "not valid JSON"),
+    (json.dumps({"type": "settings", "tf": "x" * (MAX_MESSAGE_BYTES + 10)}), "too large"),
+]
+
+
+def test_bad_messages_get_an_error_and_the_connection_still_works():
+    """Every malformed message gets one error message naming what is wrong; the connection and the loop go on and
+    a good camera afterwards is answered. A camera before hello and a viewer over the limit are refused too."""
+    async def test(client, loop):
+        ws = await client.ws_connect("/ws")
+        await ws.send_json(cam_msg(1))
+        assert "send hello first" in (await ws.receive_json(timeout=TIMEOUT))["message"]
+        await ws.send_json({"type": "hello", "width": W, "height": H})
+        assert (await ws.receive_json(timeout=TIMEOUT))["type"] == "welcome"
+        for text, expected in BAD:
+            await ws.send_str(text)
+            reply = await ws.receive_json(timeout=TIMEOUT)
+            assert reply["type"] == "error" and expected in reply["message"], (text[:80], reply)
+            assert "\n" not in reply["message"]
+        await ws.send_bytes(b"\x00\x01")
+        assert "not binary" in (await ws.receive_json(timeout=TIMEOUT))["message"]
+        await ws.send_json(cam_msg(5))
+        await frame_for(ws, 5)
+        assert loop.tick >= 1 and not loop._task.done()
+        others = [(await connect(client))[0] for _ in range(3)]  # 4 viewers: the limit
+        extra = await client.ws_connect("/ws")
+        assert "server full" in (await extra.receive_json(timeout=TIMEOUT))["message"]
+        assert (await extra.receive(timeout=TIMEOUT)).type.name in ("CLOSE", "CLOSED")
+        for w in [ws, *others]:
+            await w.close()
+
+    run(test)
+
+
+def test_four_viewers_one_render_call_per_tick():
+    """Four viewers (one stereo) are rendered by ONE render call per tick: 5 views, the stereo eyes first (a coupled
+    pair); each viewer gets its own camera's image, the stereo one both eyes side by side."""
+    async def test(client, loop):
+        viewers = [await connect(client, stereo=(i == 2)) for i in range(4)]
+        xs = [-0.6, -0.2, 0.2, 0.6]
+        for i, (ws, _) in enumerate(viewers):
+            await ws.send_json(cam_msg(10 + i, xs[i]))
+        for i, (ws, _) in enumerate(viewers):
+            await frame_for(ws, 10 + i)
+        # every viewer now has a camera: each further tick renders all of them
+        for i, (ws, _) in enumerate(viewers):
+            await ws.send_json(cam_msg(20 + i, xs[i]))
+        images = [await frame_for(ws, 20 + i) for i, (ws, _) in enumerate(viewers)]
+        assert loop.renders == loop.tick, "one render call per tick"
+        assert loop.views_last == 5
+        for i, (header, image) in enumerate(images):
+            stereo = i == 2
+            assert header["stereo"] == stereo and image.shape == (H, W, 3) and header["viewers"] == 4
+            ref = offline(cam_msg(20 + i, xs[i]), stereo=stereo)
+            assert db(ref, image) > 40.0, i
+        health = await (await client.get("/health")).json()
+        assert health["renders"] == health["tick"] == loop.tick and health["views"] == 5
+        for ws, _ in viewers:
+            await ws.close()
+
+    run(test)
+
+
+def test_disconnect_during_a_frame():
+    """A viewer that leaves while its frame is being rendered is dropped cleanly: the others get their frames, the
+    loop keeps serving, and with every viewer gone it renders nothing more."""
+    async def test(client, loop):
+        started, release = threading.Event(), threading.Event()
+        render = loop._render_encode
+
+        def slow(*args):
+            started.set()
+            release.wait(TIMEOUT)
+            return render(*args)
+
+        a, _ = await connect(client)
+        b, _ = await connect(client)
+        loop._render_encode = slow
+        await a.send_json(cam_msg(1))
+        await b.send_json(cam_msg(2, 0.3))
+        await asyncio.to_thread(started.wait, TIMEOUT)
+        await a.close()  # mid-frame
+        while len(loop.viewers) != 1:
+            await asyncio.sleep(0.01)
+        release.set()
+        await frame_for(b, 2)
+        await b.send_json(cam_msg(3, 0.4))
+        header, _ = await frame_for(b, 3)
+        assert header["viewers"] == 1 and not loop._task.done()
+        health = await (await client.get("/health")).json()
+        assert health["viewers"] == 1
+        await b.close()
+        while len(loop.viewers):
+            await asyncio.sleep(0.01)
+        ticks = loop.tick
+        await asyncio.sleep(0.3)
+        assert loop.tick == ticks, "no viewers: no rendering"
+
+    run(test)
+
+
+def test_a_client_that_never_reads_does_not_stall_the_others():
+    """Viewer A's socket never drains (its send never completes, as for a client that stopped reading): A holds one
+    frame in flight and every later frame for it is dropped, never queued; viewer B keeps getting every frame."""
+    async def test(client, loop):
+        a, _ = await connect(client)
+        b, _ = await connect(client)
+        stuck = asyncio.Event()
+        sends = []
+
+        async def never_drains(payload: bytes) -> None:
+            sends.append(len(payload))
+            await stuck.wait()
+
+        viewer_a = next(v for v in loop.viewers.viewers.values() if v.id == 1)
+        viewer_a.send = never_drains
+        await a.send_json(cam_msg(1))
+        for i in range(5):
+            await b.send_json(cam_msg(10 + i, 0.1 * i))
+            await frame_for(b, 10 + i)
+        assert len(sends) == 1, "one frame in flight for the stalled viewer, none queued"
+        assert viewer_a.dropped >= 4
+        health = await (await client.get("/health")).json()
+        assert health["frames_dropped"] == viewer_a.dropped and health["frames_sent"] >= 5
+        stuck.set()
+        for w in (a, b):
+            await w.close()
+
+    run(test)
+
+
+def test_token_required_off_loopback_and_checked():
+    """A non-loopback bind needs a token (the CLI refuses in one line); with a token, /ws without it or with a wrong
+    one is refused with 403 before the upgrade, and the right one connects."""
+    from volren.cli import main
+
+    with pytest.raises(VolrenError, match="--token"):
+        check_bind("0.0.0.0", None)
+    check_bind("127.0.0.1", None)
+    check_bind("::1", None)
+    check_bind("0.0.0.0", "s3cret-token")
+    assert main(["serve", "--host", "192.168.1.5", "--port", "8123"]) == 2
+
+    async def test(client, loop):
+        for query in ("", "?token=wrong-token"):
+            resp = await client.get("/ws" + query)
+            assert resp.status == 403
+        ws = await client.ws_connect("/ws?token=s3cret-token")
+        await ws.send_json({"type": "hello", "width": W, "height": H})
+        assert (await ws.receive_json(timeout=TIMEOUT))["type"] == "welcome"
+        await ws.close()
+
+    run(test, token="s3cret-token")
+
+
+def test_health_fields_and_port_in_use():
+    async def test(client, loop):
+        page = await client.get("/")
+        assert page.status == 200 and "<html" in (await page.text()).lower()
+        health = await (await client.get("/health")).json()
+        assert health == {**health, "viewers": 0, "method": "dssrm", "scene": "smoke16", "fps": 0.0, "tick": 0,
+                          "renders": 0, "pass_ms": {}}
+        ws, _ = await connect(client, width=5000, height=3)  # clamped to the limits
+        await ws.send_json(cam_msg(1))
+        header, image = await frame_for(ws, 1)
+        assert (header["width"], header["height"]) == (128, 16) and image.shape == (16, 128, 3)
+        health = await (await client.get("/health")).json()
+        assert health["viewers"] == 1 and health["renders"] == health["tick"] == 1
+        assert {"march", "light_map"} <= set(health["pass_ms"])
+        await ws.close()
+
+    run(test)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        loop = RenderLoop(SCENE, "dssrm", device="cpu", overrides=SMALL)
+        with pytest.raises(VolrenError, match=f"--port {port}: address already in use"):
+            asyncio.run(_serve(make_app(loop, "smoke16"), "127.0.0.1", port, ""))
