@@ -12,6 +12,7 @@ from volren.camera import Camera
 from volren.device import check_allocation, resolve_device
 from volren.errors import VolrenError
 from volren.kernels.common import ViewBuffers
+from volren.render.compositing.surface_light import AO_COARSE, AO_RAYS, SURFACE_LIGHT_MAP, SurfaceLight, surface_light
 from volren.render.compositing.surfaces import check_user_depth, trace_surfaces, view_buffers
 from volren.render.frame import Frame, PassClock, Stats
 from volren.render.gi.ambient import AmbientGI, GIConfig
@@ -120,6 +121,10 @@ class Renderer:
     ) -> None:
         raise NotImplementedError
 
+    def _surface_light(self, ds: DeviceScene) -> SurfaceLight | None:
+        """How this frame's volumes shade the opaque surfaces (`surface_light`); None: they do not."""
+        return None
+
     def _render_views(
         self, ds: DeviceScene, views: list[Camera], frame: int, targets: list[ViewBuffers], clock: PassClock
     ) -> None:
@@ -157,11 +162,12 @@ class Renderer:
         self._frame_info: dict[str, Any] = {}
         ds = self._prepare(scene, clock, frame)
         targets = []
+        surface = self._surface_light(ds) if scene.opaque else None
         for v, cam in enumerate(views):
             buffers = view_buffers(cam, self.device)
             if scene.opaque or user_depth[v] is not None:
                 with clock.measure("surfaces"):
-                    trace_surfaces(ds, camera_struct(cam), cam, user_depth[v], buffers, clock.counters)
+                    trace_surfaces(ds, camera_struct(cam), cam, user_depth[v], buffers, clock.counters, surface)
             targets.append(buffers)
         self._render_views(ds, views, frame, targets, clock)
         with clock.measure("readback"):
@@ -197,6 +203,15 @@ class LightMapRenderer(Renderer):
         if self._gi is None or not self._gi.fits(ds, gi):
             self._gi = AmbientGI(gi, ds, self.config.seed)
         self._frame_info["gi"] = self._gi.update(ds, self.config.light_samples, clock)
+
+    def _surface_light(self, ds: DeviceScene) -> SurfaceLight:
+        """Shadows from this frame's light map (cross-volume with GI on); AO from the GI grid's SH coefficients
+        (every GI method but ``major``, which keeps none) near the volumes, else from coarse transmittance rays."""
+        c = self.config
+        sh = self._gi if c.gi.on and c.gi.method != "major" else None
+        return surface_light(ds, SURFACE_LIGHT_MAP, c.light_samples, AO_RAYS, max(1, c.light_samples // AO_COARSE),
+                             cross_volume=c.gi.on, sh=None if sh is None else sh.buffers.sh,
+                             order2=0 if sh is None else c.gi.order**2)
 
     @property
     def gi_state(self) -> AmbientGI | None:

@@ -49,7 +49,7 @@ SURFACE_UNLIT = wp.constant(0)
 """volumes neither shadow nor occlude surfaces (methods without a light map of their own: VPT, fog)"""
 SURFACE_LIGHT_MAP = wp.constant(1)
 SURFACE_BRUTE_FORCE = wp.constant(2)
-AO_RAYS = 16
+AO_RAYS = 32
 """cosine-distributed AO directions per surface point of the light-map methods"""
 AO_COARSE = 4
 """the light-map methods' AO rays march with 1/AO_COARSE of the light samples (GI's coarse step)"""
