@@ -13,7 +13,7 @@ const SEND_INTERVAL_MS = 16; // camera and light messages at most ~60 per second
 // State the page shows, also read by tests/test_browser.py.
 const state = (window.volren = {
   connected: false, welcome: null, frames: 0, lastHeader: null, latencies: [], errors: [],
-  fps: 0, cameraId: 0, stereo: false, playing: true, walk: false,
+  fps: 0, cameraId: 0, lastCamera: null, shownCameraId: -1, stereo: false, playing: true, walk: false,
 });
 
 // ---- camera: orbit about a target, or walk (eye fixed, look around) --------------------------------------------
@@ -46,7 +46,8 @@ function cameraMessage() {
   const dir = direction();
   const position = state.walk ? cam.eye : sub(cam.target, scale(dir, cam.radius));
   const lookAt = state.walk ? add(cam.eye, dir) : cam.target;
-  return { type: "camera", id: ++state.cameraId, position, look_at: lookAt, up: cam.up, fov: cam.fov };
+  state.lastCamera = { type: "camera", id: ++state.cameraId, position, look_at: lookAt, up: cam.up, fov: cam.fov };
+  return state.lastCamera;
 }
 
 // ---- socket --------------------------------------------------------------------------------------------------------
@@ -106,6 +107,8 @@ function onText(msg) {
     setCamera(msg.camera);
     if (msg.light_dir) setLight(msg.light_dir);
     if (typeof msg.playing === "boolean") setPlaying(msg.playing);
+    $("play").disabled = msg.animated === false;
+    if (typeof msg.stereo === "boolean") $("stereo").checked = state.stereo = msg.stereo;
     sendCamera();
   } else if (msg.type === "settings") { // another viewer switched a shared setting
     if (msg.method) $("method").value = msg.method;
@@ -143,7 +146,7 @@ function onFrame(buf) {
   frameTimes = frameTimes.filter((x) => now - x < 1000);
   state.fps = frameTimes.length;
   state.lastHeader = header;
-  waiting = new Blob([new Uint8Array(buf, 4 + n)], { type: "image/jpeg" });
+  waiting = { header, blob: new Blob([new Uint8Array(buf, 4 + n)], { type: "image/jpeg" }) };
   if (!drawing) drawNext();
   showOverlay(header);
 }
@@ -151,7 +154,7 @@ function onFrame(buf) {
 async function drawNext() {
   drawing = true;
   while (waiting) {
-    const blob = waiting;
+    const { header, blob } = waiting;
     waiting = null;
     try {
       const img = await createImageBitmap(blob);
@@ -161,6 +164,7 @@ async function drawNext() {
       ctx.drawImage(img, 0, 0);
       img.close();
       state.frames += 1;
+      state.shownCameraId = header.camera_id; // the camera of the image on the canvas
     } catch (err) {
       showStatus(`could not decode a frame: ${err}`, 4000);
     }
