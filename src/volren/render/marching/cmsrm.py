@@ -62,6 +62,14 @@ from volren.kernels.common import (
     write_pixel,
 )
 from volren.render.base import LightMapMarchConfig, LightMapRenderer
+from volren.render.compositing.mesh_layers import (
+    MeshLayers,
+    blend_layers_before,
+    build_mesh_layers,
+    layer_before,
+    layer_stats,
+    march_between_layers,
+)
 from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, march_joint, pixel_layers
 from volren.render.frame import DENSITY_SAMPLES, JOINT_RAYS, LIGHTMAP_LOOKUPS, RAYS, SKIPPED_STEPS, PassClock
 from volren.render.marching.cubemap import (
@@ -280,6 +288,7 @@ def cube_resample_kernel(
     cube_z: wp.array(dtype=float),
     medium: Medium,
     params: MarchParams,
+    mesh: MeshLayers,
     buffers: ViewBuffers,
     counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
@@ -287,24 +296,29 @@ def cube_resample_kernel(
     """Per pixel, front to back over the boxes its ray meets (`pixel_layers`): a cube-scheme volume alone on its
     stretch of the ray is looked up bilinearly where the ray leaves its box (enters, for exterior faces); a
     direct-scheme volume is marched here, as in DSSRM; boxes overlapping along the ray are marched jointly (a texel
-    holds one volume's march only, wrong where another box shares that stretch)."""
+    holds one volume's march only, wrong where another box shares that stretch). Translucent mesh layers (paper 000
+    §3.3) are blended between the boxes; a pixel with a layer inside a cube-scheme box marches that box directly,
+    split at its layers (`march_between_layers`, flagged in ``mesh.direct``): texel rays know no mesh layers."""
     r, col = wp.tid()
     counters = counter_row(counter_rows, r, col)
     row = r + row0
     d, planes = pixel_ray(cam, buffers, row, col)
     layers = pixel_layers(oit, volumes, cam.origin, d, planes, row, col, counters)
     s = new_march_state()
+    facing = wp.dot(d, cam.forward)
+    next_mesh = int(0)
     direct = int(0)
     joint = int(0)
     i = int(0)
     while i < layers.count:
         end = cluster_end(layers, i)
         v = layers.volume[i]
+        s, next_mesh = blend_layers_before(s, next_mesh, mesh, row, col, facing, layers.t_in[i])
         if end - i > 1:
             direct = 1
             joint = 1
             s = march_joint(s, layers, i, end, volumes, cam.origin, d, 0.5, medium, params)
-        elif scheme[v] == SCHEME_CUBE:
+        elif scheme[v] == SCHEME_CUBE and not layer_before(mesh, row, col, next_mesh, facing, layers.t_out[i]):
             vol = volumes[v]
             o_l = wp.transform_point(vol.to_local, cam.origin)
             d_l = wp.transform_vector(vol.to_local, d)
@@ -322,11 +336,14 @@ def cube_resample_kernel(
             s.transmittance = after
         else:
             direct = 1
-            s = march_volume_light_map(s, volumes[v], cam.origin, d, layers.t_in[i], layers.t_out[i], 0.5, medium,
-                                       params)
+            if scheme[v] == SCHEME_CUBE:
+                mesh.direct[row, col] = 1
+            s, next_mesh = march_between_layers(s, next_mesh, mesh, row, col, facing, volumes[v], cam.origin, d,
+                                                layers.t_in[i], layers.t_out[i], 0.5, medium, params)
         if s.transmittance < params.min_transmittance:
             break
         i = end
+    s, next_mesh = blend_layers_before(s, next_mesh, mesh, row, col, facing, INF)
     count(counters, RAYS, direct)
     count(counters, JOINT_RAYS, joint)
     count(counters, SKIPPED_STEPS, s.skipped)
@@ -377,6 +394,7 @@ class CMSRM(LightMapRenderer):
     """Cube-map-space ray marching; ``config`` is a `CMSRMConfig`."""
 
     name = "cmsrm"
+    translucent_meshes = True
 
     def __init__(self, config: CMSRMConfig | None = None, device: str = "auto") -> None:
         super().__init__(config or CMSRMConfig(), device)
@@ -570,6 +588,9 @@ class CMSRM(LightMapRenderer):
             per_volume = [wp.array(a, dtype=int, device=self.device)
                           for a in ([p["scheme"] for p in plans[view]], c.offsets, c.sizes)]
             oit = self._layers.params(ds, cam, clock)
+            with clock.measure("mesh layers"):
+                mesh = build_mesh_layers(ds, camera_struct(cam), cam, targets[view], self.config.mesh_layers,
+                                         clock.counters)
             with clock.measure("resample"):
                 launch_rows(
                     cube_resample_kernel,
@@ -577,7 +598,7 @@ class CMSRM(LightMapRenderer):
                     cam.width,
                     [camera_struct(cam), ds.volumes, oit, *per_volume, exterior, self.config.k_z, c.color,
                      c.t_half, c.z_end, ds.medium(),
-                     self._params(ds, view, self.config.samples), targets[view]],
+                     self._params(ds, view, self.config.samples), mesh, targets[view]],
                     self.device,
                     clock.counters,
                     self.on_rows,
@@ -590,4 +611,6 @@ class CMSRM(LightMapRenderer):
                  "tile_levels": p.get("tile_levels", [0] * (MAX_TILE_LEVEL + 1))}
                 for v, p in enumerate(plans[view])
             ])
+            self._frame_info["mesh_layers"] = layer_stats(mesh, self.config.mesh_layers,
+                                                          self._frame_info.get("mesh_layers"))
         self._frame_info["cube_map_bytes"] = sum(c.texels for c in cubes) * CUBE_TEXEL_BYTES

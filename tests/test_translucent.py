@@ -1,0 +1,167 @@
+"""Translucent meshes among the volumes (paper 000 §3.3): closed forms of alpha blending with a homogeneous slab, the
+mesh k-buffer (order, K nearest, dropped layers), every light-map method against the reference, alpha = 1 as the
+opaque mesh, and the refusals."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from conftest import DEVICE, axis_camera, chords, homogeneous_volume
+from volren.camera import Camera
+from volren.data import builtin_scene
+from volren.errors import VolrenError
+from volren.metrics import psnr
+from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
+from volren.render.vpt.tracer import VPT
+from volren.scene import DirectionalLight, Environment, Plane, Scene, Sphere, TriangleMesh
+
+SIGMA, EMISSION, AMBIENT, ALBEDO = 0.9, np.array([0.5, 0.2, 0.1]), 0.4, 0.6
+
+
+def quad(z: float, alpha: float, albedo=ALBEDO, half: float = 10.0, name: str = "quad") -> TriangleMesh:
+    """A square sheet facing +z at depth z (two triangles)."""
+    v = np.array([[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]])
+    return TriangleMesh(v, np.array([[0, 1, 2], [0, 2, 3]]), albedo=albedo, name=name, alpha=alpha)
+
+
+def slab_scene(*meshes: TriangleMesh) -> Scene:
+    """An emissive, absorbing cube [-1, 1]^3 (no scattering) and sheets lit by the ambient alone (no lights)."""
+    return Scene((homogeneous_volume(SIGMA, emission=EMISSION),), (), Environment(AMBIENT), opaque=meshes)
+
+
+def slab_closed_form(cam: Camera, z: float, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb, alpha) of every pixel for one sheet at depth z: the slab before the sheet, the sheet, the slab behind,
+    front to back. A slab chord l adds e (1 - exp(-sigma l)) / sigma; the sheet adds alpha * albedo * L_ambient."""
+    t0, chord = chords(cam)
+    d = cam.ray_directions()
+    t_sheet = (z - cam.position[2]) / d[..., 2]
+    front = np.where(chord > 0, np.clip(t_sheet - t0, 0.0, chord), 0.0)
+    back = chord - front
+
+    def slab(length):
+        return ((1 - np.exp(-SIGMA * length)) / SIGMA)[..., None] * EMISSION
+
+    rgb = slab(front) + np.exp(-SIGMA * front)[..., None] * (alpha * ALBEDO * AMBIENT + (1 - alpha) * slab(back))
+    return rgb, 1 - (1 - alpha) * np.exp(-SIGMA * chord)
+
+
+def render(method: str, scene: Scene, cams, **config):
+    renderers = {"reference": (Reference, ReferenceConfig), "dssrm": (DSSRM, DSSRMConfig)}
+    cls, cfg = renderers[method]
+    return cls(cfg(**config), device=DEVICE).render(scene, list(cams))
+
+
+@pytest.mark.parametrize("z", [2.0, 0.3, -2.0], ids=["front", "inside", "behind"])
+def test_sheet_and_slab_match_the_closed_form(method, z):
+    """Exact per pixel (homogeneous steps are exact): in front of, inside and behind the slab, rays missing it too."""
+    cam = axis_camera((0.2, -0.1, 3.0))
+    frame = render(method, slab_scene(quad(z, 0.35)), [cam], samples=64, min_transmittance=0.0)
+    rgb, alpha = slab_closed_form(cam, z, 0.35)
+    np.testing.assert_allclose(frame.images[0][..., :3], rgb, atol=2e-6)
+    np.testing.assert_allclose(frame.images[0][..., 3], alpha, atol=2e-6)
+
+
+def two_sheets():
+    """A far sheet listed before a near one (so the k-buffer must sort), both translucent, the near one inside."""
+    return quad(-2.0, 0.5, albedo=(0.2, 0.8, 0.3), name="far"), quad(0.4, 0.3, albedo=(0.9, 0.1, 0.6), name="near")
+
+
+def two_sheet_closed_form(cam: Camera) -> np.ndarray:
+    t0, chord = chords(cam)
+    d = cam.ray_directions()
+    t_near = (0.4 - cam.position[2]) / d[..., 2]
+    front = np.where(chord > 0, np.clip(t_near - t0, 0.0, chord), 0.0)
+
+    def slab(length):
+        return ((1 - np.exp(-SIGMA * length)) / SIGMA)[..., None] * EMISSION
+
+    far = 0.5 * np.array([0.2, 0.8, 0.3]) * AMBIENT
+    after_near = slab(chord - front) + np.exp(-SIGMA * (chord - front))[..., None] * far
+    near = 0.3 * np.array([0.9, 0.1, 0.6]) * AMBIENT
+    return slab(front) + np.exp(-SIGMA * front)[..., None] * (near + 0.7 * after_near)
+
+
+def test_two_sheets_in_any_listing_order(method):
+    cam = axis_camera((0.2, -0.1, 3.0))
+    frame = render(method, slab_scene(*two_sheets()), [cam], samples=64, min_transmittance=0.0)
+    np.testing.assert_allclose(frame.images[0][..., :3], two_sheet_closed_form(cam), atol=2e-6)
+
+
+def test_k_buffer_keeps_the_k_nearest_layers():
+    """K = 1 with two sheets on every ray: the far sheet is dropped (counted), the image is that of the near sheet
+    alone; K = 2 keeps both."""
+    cam = axis_camera((0.2, -0.1, 3.0))
+    far, near = two_sheets()
+    config = {"samples": 64, "min_transmittance": 0.0}
+    k1 = render("dssrm", slab_scene(far, near), [cam], mesh_layers=1, **config)
+    alone = render("dssrm", slab_scene(near), [cam], **config)
+    np.testing.assert_array_equal(k1.images[0], alone.images[0])
+    pixels = cam.width * cam.height
+    assert k1.stats.info["mesh_layers"] == {"k": 1, "pixels": pixels, "layers": pixels, "dropped": pixels,
+                                             "direct_pixels": 0}
+    k2 = render("dssrm", slab_scene(far, near), [cam], mesh_layers=2, **config)
+    assert k2.stats.info["mesh_layers"]["dropped"] == 0
+    np.testing.assert_allclose(k2.images[0][..., :3], two_sheet_closed_form(cam), atol=2e-6)
+
+
+def test_alpha_one_is_the_opaque_mesh():
+    """alpha = 1 goes through the opaque pass (bit for bit today's image); a layer of alpha 1 - 1e-6 gives the same
+    colours through the k-buffer path, so layers are shaded like the opaque surfaces (light, the sphere's shadow,
+    ambient). The sheet is in front of the volume, out of its shadow: translucent meshes cast no shadows, and the
+    volume behind an opaque sheet is cut while a layer's T = 1e-6 lets 1e-6 of it through."""
+    cam = Camera(position=(0.3, 0.6, 3.0), width=40, height=32)
+    light = DirectionalLight(direction=(0.3, -1.0, -0.4), irradiance=(2.0, 2.0, 2.0))
+    base = Scene((homogeneous_volume(0.8, albedo=0.7),), (light,), Environment(0.1),
+                 opaque=(Sphere((-0.27, 0.9, 1.86), 0.2, (0.8, 0.3, 0.2)),))
+    sheet = quad(1.5, 1.0, half=0.7)
+    for method in ("dssrm", "reference"):
+        config = {"samples": 64, "light_samples": 64}
+        opaque = render(method, dataclasses.replace(base, opaque=(*base.opaque, sheet)), [cam], **config)
+        almost = dataclasses.replace(sheet, alpha=1.0 - 1e-6)
+        layered = render(method, dataclasses.replace(base, opaque=(*base.opaque, almost)), [cam], **config)
+        np.testing.assert_allclose(layered.images[0], opaque.images[0], atol=1e-4)
+
+
+def lit_cloud(inside: bool) -> tuple[Scene, Camera]:
+    """The cloud (box [-1, 1]^3) over an opaque floor with two translucent sheets: both inside the box (one cutting
+    its middle), or one in front of it and a wide one behind it."""
+    if inside:
+        sheets = (quad(0.9, 0.25, albedo=(0.9, 0.6, 0.2), half=0.5), quad(0.1, 0.4, albedo=(0.2, 0.5, 0.9), half=0.45))
+    else:
+        sheets = (quad(1.2, 0.3, albedo=(0.9, 0.6, 0.2), half=0.6), quad(-1.3, 0.5, albedo=(0.2, 0.5, 0.9), half=2.0))
+    scene = dataclasses.replace(builtin_scene("cloud", 64), opaque=(*sheets, Plane((0, -0.8, 0), (0, 1, 0), 0.4)))
+    return scene, Camera(position=(0.2, 0.3, 3.0), width=48, height=32)
+
+
+CUBE = {"samples": 128, "light_samples": 32, "light_grid": 16}
+METHODS = {
+    "dssrm": lambda: DSSRM(DSSRMConfig(**CUBE), device=DEVICE),
+    "cmsrm": lambda: CMSRM(CMSRMConfig(**CUBE, hybrid=False), device=DEVICE),
+    "cacrm": lambda: CACRM(CACRMConfig(**CUBE, hybrid=False, vsa=False), device=DEVICE),
+}
+
+
+@pytest.mark.parametrize("inside", [True, False], ids=["inside", "outside"])
+@pytest.mark.parametrize("name", METHODS)
+def test_methods_agree_with_the_reference(name, inside):
+    """PSNR against the reference at 48 x 32, measured 36.0 dB (inside) and 36.9-37.0 dB (outside) for all three, the
+    cloud alone scoring 33.8 dB at this light grid. The cube methods march directly exactly the pixels with a layer
+    inside the box (all 329 layered pixels with the sheets inside, none with them outside: layers in front of and
+    behind a box are blended around its cube-map sample)."""
+    scene, cam = lit_cloud(inside)
+    ref = Reference(ReferenceConfig(samples=128, light_samples=32), device=DEVICE).render(scene, [cam]).images[0]
+    frame = METHODS[name]().render(scene, [cam])
+    assert psnr(ref, frame.images[0]) > (35.0 if inside else 36.0)
+    info = frame.stats.info["mesh_layers"]
+    assert info["pixels"] == (329 if inside else 1014)
+    assert info["direct_pixels"] == (info["pixels"] if inside and name != "dssrm" else 0)
+
+
+def test_alpha_is_validated_and_other_methods_refuse():
+    with pytest.raises(VolrenError, match="alpha must lie in"):
+        quad(0.0, 1.5)
+    with pytest.raises(VolrenError, match="draws no translucent meshes"):
+        VPT(device=DEVICE).render(slab_scene(quad(0.0, 0.5)), [axis_camera()])
