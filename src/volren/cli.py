@@ -174,6 +174,10 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     opq.add_argument("--mesh-scale", type=float, default=1.0, help="scale applied to every --mesh (about the origin), "
                      "> 0")
     opq.add_argument("--mesh-translate", type=vec3, default=(0.0, 0.0, 0.0), help="then translation x,y,z [m]")
+    opq.add_argument("--mesh-alpha", type=float, action="append", default=[],
+                     help="opacity A in [0, 1] of the --mesh at the same position (repeatable; one value applies to "
+                     "every --mesh; default 1 = opaque); A < 1: translucent layers blended among the volumes (paper "
+                     "000 §3.3; reference, dssrm, cmsrm, cacrm)")
     opq.add_argument("--depth-image", type=Path,
                      help=".npy linear depth (H, W), or (views, H, W), of geometry drawn elsewhere; inf = none "
                                               "(default: none)")
@@ -377,7 +381,9 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     if not (math.isfinite(args.mesh_scale) and args.mesh_scale > 0):
         raise CliError(f"--mesh-scale must be a positive number, got {args.mesh_scale:g}")
     opaque = list(scene.opaque) + [Sphere(tuple(s[:3]), s[3]) for s in args.sphere]
-    opaque += [load_mesh_file(m, scale=args.mesh_scale, translate=args.mesh_translate) for m in args.mesh]
+    alphas = mesh_alphas(args.mesh_alpha, len(args.mesh))
+    opaque += [load_mesh_file(m, scale=args.mesh_scale, translate=args.mesh_translate, alpha=a)
+               for m, a in zip(args.mesh, alphas, strict=True)]
     if args.ground is not None:
         opaque.append(Plane((0.0, args.ground, 0.0), (0.0, 1.0, 0.0)))
     environment = scene.environment
@@ -606,6 +612,16 @@ def sequence_from_args(args: argparse.Namespace):
         switch_frame, switch_tf = int(frame), tf
     return Sequence(frames=args.frames, orbit=args.orbit, light_orbit=args.light_orbit, switch_frame=switch_frame,
                     switch_transfer=switch_tf, fps=args.fps)
+
+
+def mesh_alphas(values: list[float], meshes: int) -> list[float]:
+    """One opacity per --mesh from --mesh-alpha: none (all opaque), one for all, or one each."""
+    if len(values) not in (0, 1, meshes):
+        raise CliError(f"--mesh-alpha given {len(values)} times for {meshes} --mesh: give it once or once per --mesh")
+    bad = [a for a in values if not 0.0 <= a <= 1.0]
+    if bad:
+        raise CliError(f"--mesh-alpha must lie in [0, 1], got {bad[0]:g}")
+    return values * meshes if len(values) == 1 else values or [1.0] * meshes
 
 
 def estimate_memory(args: argparse.Namespace, scene, views, method: str) -> int:
