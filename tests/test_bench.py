@@ -21,9 +21,11 @@ def test_resolution_suite_rows_and_ratios():
     assert all(0 < r["ssim"] <= 1 and r["psnr"] > 20 for r in smallest)
     assert all("psnr" not in r for r in rows if r["size"] == "96x54")
     at = {(r["size"], r["method"]): r for r in rows}
-    # DSSRM's work follows the viewport (4x the pixels, 4x the samples); at these sizes CMSRM's hybrid choice
-    # marches directly (fewer projected pixels than visible texels), so its counters and image equal DSSRM's.
-    dssrm = [at[size, "DSSRM:360:96"]["density_samples"] for size in ("48x27", "96x54")]
+    # DSSRM's work follows the viewport (4x the pixels, 4x the steps, sampled or skipped as empty); at these sizes
+    # CMSRM's hybrid choice marches directly (fewer projected pixels than visible texels), so its counters and image
+    # equal DSSRM's.
+    dssrm = [at[size, "DSSRM:360:96"]["density_samples"] + at[size, "DSSRM:360:96"]["skipped_steps"]
+             for size in ("48x27", "96x54")]
     assert dssrm[1] / dssrm[0] == pytest.approx(4.0, rel=0.02)
     assert all(at[k]["density_samples"] == at[k[0], k[1].replace("CMSRM", "DSSRM")]["density_samples"]
                for k in at if k[1].startswith("CMSRM"))

@@ -43,7 +43,8 @@ W, H = 24, 16
 SCENES = ("smoke", "cloud", "phantom", "multi")
 FOG_SCENE_NAMES = ("hall", "courtyard", "dynamic")
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
-            "shadow_rays", "shadow_voxels", "box_tests", "tile_box_tests", "bvh_queries", "joint_rays")
+            "shadow_rays", "shadow_voxels", "box_tests", "tile_box_tests", "bvh_queries", "joint_rays",
+            "skipped_steps")
 GARBAGE = b"this is not a volume \x00\x01\x02\xff" * 8
 
 

@@ -177,7 +177,8 @@ def test_lod_marches_the_formula_n_steps_on_a_distant_volume():
     at N = 39, level 1)."""
     scene = builtin_scene("cloud", 64)
     cam = Camera(position=(0.0, 0.0, 8.0), width=96, height=64)
-    config = CMSRMConfig(**MATCHED, hybrid=False, cull_tiles=False, min_transmittance=0.0)
+    # every step sampled (no empty-space skipping), so density_samples is the step formula's sum
+    config = CMSRMConfig(**MATCHED, hybrid=False, cull_tiles=False, min_transmittance=0.0, skip_empty=False)
     frame = CMSRM(config, device=DEVICE).render(scene, [cam])
     info = frame.stats.info["volumes"][0][0]
     n, level = lod_formula(scene, cam, 64, MATCHED["samples"])

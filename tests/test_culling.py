@@ -96,8 +96,10 @@ def test_culled_tiles_only_see_zero_density(faces, level, eye):
 def test_culling_leaves_the_image_unchanged_and_saves_samples(method, config):
     scene = builtin_scene("cloud", 128)
     views = make_views(Camera(position=(0.0, 0.4, 3.2), width=96, height=64), "stereo")
-    full = method(config(hybrid=False, light_grid=32, cull_tiles=False), device=DEVICE).render(scene, views)
-    culled = method(config(hybrid=False, light_grid=32), device=DEVICE).render(scene, views)
+    # tile culling alone: with empty-space skipping on, the culled rays' steps would be skipped, not sampled
+    full = method(config(hybrid=False, light_grid=32, cull_tiles=False, skip_empty=False), device=DEVICE).render(
+        scene, views)
+    culled = method(config(hybrid=False, light_grid=32, skip_empty=False), device=DEVICE).render(scene, views)
     for a, b in zip(full.images, culled.images, strict=True):
         np.testing.assert_array_equal(a, b)
     assert culled.stats.counters["density_samples"] < 0.8 * full.stats.counters["density_samples"]
@@ -115,7 +117,7 @@ def test_exterior_faces_cull_only_empty_tiles():
     exterior scheme's texel aliasing, paper 001 Fig. 2 (a)); the bug left an empty image."""
     scene = builtin_scene("cloud", 64)
     cam = Camera(position=(1.3, 1.2, 1.3), width=96, height=64)
-    config = {"cube_faces": "exterior", "hybrid": False, "light_grid": 32, "light_samples": 64}
+    config = {"cube_faces": "exterior", "hybrid": False, "light_grid": 32, "light_samples": 64, "skip_empty": False}
     culled = CMSRM(CMSRMConfig(**config), device=DEVICE).render(scene, [cam])
     full = CMSRM(CMSRMConfig(**config, cull_tiles=False), device=DEVICE).render(scene, [cam])
     np.testing.assert_array_equal(culled.images[0], full.images[0])

@@ -107,20 +107,25 @@ class DeviceScene:
     mesh_ids: wp.array
     mesh_albedo: wp.array
     max_density: wp.array
-    """per volume one coarse level of its conservative max-density pyramid, packed (for empty-tile culling)"""
+    """packed conservative max-density cells: per volume one coarse level of its max-density pyramid (for
+    empty-tile culling, with ``mip_levels``), then per volume and uploaded mip level its `skip_grid` (for empty-space
+    skipping; each `VolumeGPU` holds its ``skip_offset``)"""
     max_grids: list[tuple[int, tuple[int, int, int]]]
-    """per volume (offset into ``max_density``, resolution (x, y, z)) of that level"""
+    """per volume (offset into ``max_density``, resolution (x, y, z)) of its culling level"""
     levels: list[list[VolumeGPU]]
     """per volume, its struct at each uploaded mip level (level 0 only unless uploaded with ``mip_levels``);
     levels differ only in ``offset`` and ``res``: same box, material and light map"""
     ambient_grid: wp.array
     """packed per-voxel ambient radiance (vec3) of the GI passes (`volren.render.gi.ambient`); read only when ``gi``"""
     gi: bool = False
+    skip_empty: bool = True
+    """marches skip steps in empty max-density cells (set from the renderer's config each frame)"""
 
     def medium(self) -> Medium:
         m = Medium()
         m.density, m.lightmap, m.lights = self.density, self.lightmap, self.lights
         m.ambient, m.gi = self.ambient_grid, int(self.gi)
+        m.max_density, m.skip = self.max_density, int(self.skip_empty)
         return m
 
     @property
@@ -147,6 +152,27 @@ def coarse_max_level(vol: Volume) -> np.ndarray:
         if max(level.shape) <= CULL_GRID:
             return level
     return vol.max_pyramid[-1]
+
+
+SKIP_CELL = 4
+"""[voxels] edge of an empty-space-skipping cell (`skip_grid`): smaller cells hug the density closer but cost more
+cell lookups per ray."""
+
+
+def skip_grid(density: np.ndarray, cell: int = SKIP_CELL) -> np.ndarray:
+    """The empty-space-skipping level of a [z, y, x] grid: per block of ``cell``^3 voxels the max over the block
+    dilated by one voxel (edges clamped), so the cell bounds every trilinear sample whose point lies in the block's
+    footprint (a sample reads the 2x2x2 voxels around it, all within one voxel of the voxel holding the point; the
+    same rule as `Volume.max_pyramid`, block max by padding odd ends with their last voxel)."""
+    g = density
+    for axis in range(3):
+        padded = np.pad(g, [(1, 1) if a == axis else (0, 0) for a in range(3)], mode="edge")
+        n = g.shape[axis]
+        g = np.maximum(np.maximum(padded.take(range(0, n), axis), padded.take(range(1, n + 1), axis)),
+                       padded.take(range(2, n + 2), axis))
+    cells = [-(-n // cell) for n in g.shape]
+    g = np.pad(g, [(0, c * cell - n) for c, n in zip(cells, g.shape, strict=True)], mode="edge")
+    return g.reshape(cells[0], cell, cells[1], cell, cells[2], cell).max(axis=(1, 3, 5)).astype(np.float32)
 
 
 def volume_struct(
@@ -211,6 +237,12 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     for grid in max_levels:
         max_grids.append((max_offset, grid.shape[::-1]))
         max_offset += grid.size
+    for vol, per_level in zip(scene.volumes, levels, strict=True):
+        for level, s in zip(vol.mip_pyramid, per_level, strict=False):
+            cells = skip_grid(level)
+            s.skip_offset, s.skip_res, s.skip_cell = max_offset, wp.vec3i(*cells.shape[::-1]), SKIP_CELL
+            max_levels.append(cells)
+            max_offset += cells.size
     try:
         density = wp.array(np.concatenate(grids) if grids else np.zeros(1), dtype=float, device=device)
         lightmap = wp.ones(max(light_offset, 1), dtype=float, device=device)

@@ -51,6 +51,13 @@ class VolumeGPU:
     emission: wp.vec3
     diagonal: float
     """[m] longest world-space box diagonal: uniform steps put at most V samples across it"""
+    skip_offset: int
+    """first cell of this volume's empty-space-skipping level (of its max-density pyramid) in the packed
+    ``Medium.max_density`` array"""
+    skip_res: wp.vec3i
+    """cells per axis (x, y, z) of that level"""
+    skip_cell: int
+    """voxels per cell edge of that level (a power of 2)"""
 
 
 @wp.struct
@@ -81,6 +88,10 @@ class Medium:
     lights: wp.array(dtype=LightGPU)
     ambient: wp.array(dtype=wp.vec3)
     gi: int
+    max_density: wp.array(dtype=float)
+    """packed conservative max-density cells (each volume's ``skip_offset``): zero where every sample is zero"""
+    skip: int
+    """1: marches skip runs of steps in cells whose max density is 0 (empty-space skipping)"""
 
 
 @wp.struct
@@ -120,6 +131,8 @@ class MarchState:
     """density fetches on this ray"""
     shaded: int
     """samples that were lit (non-zero density): each costs one light-map lookup or shadow ray per light"""
+    skipped: int
+    """steps not sampled because their max-density cell is empty (empty-space skipping)"""
 
 
 @wp.func
@@ -473,6 +486,7 @@ def new_march_state() -> MarchState:
     s.depth_t = INF
     s.samples = 0
     s.shaded = 0
+    s.skipped = 0
     return s
 
 

@@ -69,6 +69,8 @@ class LightMapMarchConfig:
     """K: at most this many boxes per pixel (and per tile), the nearest; farther boxes on the ray are dropped"""
     mesh_layers: int = 4
     """K of the mesh k-buffer (paper 000 §3.3): translucent mesh layers kept per pixel, the nearest"""
+    skip_empty: bool = True
+    """empty-space skipping: the march leaves out steps in empty cells of the max-density grid (same image)"""
 
     def __post_init__(self) -> None:
         if isinstance(self.mesh_layers, bool) or int(self.mesh_layers) != self.mesh_layers or self.mesh_layers < 1:
@@ -192,6 +194,7 @@ class LightMapRenderer(Renderer):
         is a new upload (`_upload`), whose light map starts unlit"""
 
     def _lighting(self, ds: DeviceScene, clock: PassClock) -> None:
+        ds.skip_empty = self.config.skip_empty  # read by this frame's marches (`DeviceScene.medium`)
         gi = self.config.gi
         last = self._light_map_of
         if not (self.config.reuse_light_map and last is not None and last[0] is ds

@@ -1,6 +1,11 @@
 """The light-map march shared by DSSRM, CMSRM's texel rays and CACRM: uniform steps through one volume's box, each
 sample shaded with single scattering from the light map (sigma_s * phase * T_light * E) plus ambient and emission,
-composited front to back with early ray termination (paper 000 §3.1, paper 001 §3.1)."""
+composited front to back with early ray termination (paper 000 §3.1, paper 001 §3.1).
+
+Empty-space skipping (not in the papers, which march every step): a step whose point lies in an empty cell of the
+volume's conservative max-density grid (`volren.upload.skip_grid`) samples zero density, so the march jumps to the
+first step of its lattice past the cell's exit. The steps it lands on are the ones it would have taken, hence the
+same image; ``MarchState.skipped`` counts the steps not sampled."""
 
 from __future__ import annotations
 
@@ -16,6 +21,7 @@ from volren.kernels.common import (
     light_irradiance,
     light_travel_dir,
     march_step_count,
+    safe_inverse,
     sample_grid,
     sample_grid_rgb,
     state_accumulator,
@@ -78,6 +84,34 @@ def lit_step(
 
 
 @wp.func
+def skip_cell_max(vol: VolumeGPU, max_density: wp.array(dtype=float), p: wp.vec3) -> wp.vec4:
+    """The skip cell holding local ``p`` (clamped to the grid): (x, y, z) cell index and its max density."""
+    res = vol.res
+    cells = vol.skip_res
+    c = wp.vec3i(
+        wp.clamp(int(wp.floor((p[0] + 1.0) * 0.5 * float(res[0]))), 0, res[0] - 1) / vol.skip_cell,
+        wp.clamp(int(wp.floor((p[1] + 1.0) * 0.5 * float(res[1]))), 0, res[1] - 1) / vol.skip_cell,
+        wp.clamp(int(wp.floor((p[2] + 1.0) * 0.5 * float(res[2]))), 0, res[2] - 1) / vol.skip_cell,
+    )
+    peak = max_density[vol.skip_offset + (c[2] * cells[1] + c[1]) * cells[0] + c[0]]
+    return wp.vec4(float(c[0]), float(c[1]), float(c[2]), peak)
+
+
+@wp.func
+def cell_exit(vol: VolumeGPU, cell: wp.vec4, o: wp.vec3, inv_d: wp.vec3) -> float:
+    """Ray distance where the local ray ``o + t d`` (``inv_d`` = 1 / d per axis) leaves the skip cell's box: the
+    voxels [c * skip_cell, (c + 1) * skip_cell) of each axis, clipped to the grid, in local [-1, 1] coordinates."""
+    t = float(1.0e30)
+    for a in range(3):
+        n = float(vol.res[a])
+        first = cell[a] * float(vol.skip_cell)
+        lo = -1.0 + 2.0 * first / n
+        hi = -1.0 + 2.0 * wp.min(first + float(vol.skip_cell), n) / n
+        t = wp.min(t, wp.max((lo - o[a]) * inv_d[a], (hi - o[a]) * inv_d[a]))
+    return t
+
+
+@wp.func
 def march_volume_light_map(
     state: MarchState,
     vol: VolumeGPU,
@@ -90,18 +124,39 @@ def march_volume_light_map(
     params: MarchParams,
 ) -> MarchState:
     """March [t0, t1] of one volume with uniform steps (offset in [0, 1) within each step), shading from the light
-    map; stops early below params.min_transmittance. ``state.samples`` counts density fetches."""
+    map; stops early below params.min_transmittance. ``state.samples`` counts density fetches, ``state.skipped``
+    the steps empty-space skipping (``medium.skip``) left out.
+
+    With skipping, each cell the ray enters is looked up once: a non-empty one is marched step by step up to its exit
+    (``check_t``), an empty one is left at once for the first step at or after its exit, less a margin of float
+    rounding (the step landed on may still lie in the cell: it is looked up again, never sampled)."""
     o_l = wp.transform_point(vol.to_local, origin)
     d_l = wp.transform_vector(vol.to_local, d)
+    inv_d = wp.vec3(safe_inverse(d_l[0]), safe_inverse(d_l[1]), safe_inverse(d_l[2]))
     n = march_step_count(t1 - t0, vol.diagonal, params.samples)
     dt = (t1 - t0) / float(n)
     acc = state_accumulator(state)
     depth_t = state.depth_t
     shaded = int(0)
     taken = int(0)
-    for i in range(n):
+    skipped = int(0)
+    check_t = float(-1.0e30)
+    if medium.skip == 0:
+        check_t = float(1.0e30)
+    i = int(0)
+    while i < n:
         t = t0 + (float(i) + offset) * dt
         p = o_l + t * d_l
+        if t >= check_t:
+            cell = skip_cell_max(vol, medium.max_density, p)
+            check_t = cell_exit(vol, cell, o_l, inv_d)
+            if cell[3] <= 0.0:
+                margin = 1.0e-5 * (1.0 + wp.abs(check_t))
+                j = wp.min(wp.max(int(wp.ceil((check_t - margin - t0) / dt - offset)), i + 1), n)
+                skipped += j - i
+                i = j
+                check_t = float(-1.0e30)
+                continue
         rho = sample_grid(medium.density, vol.offset, vol.res, p)
         taken += 1
         if rho > 0.0:
@@ -111,8 +166,10 @@ def march_volume_light_map(
             depth_t = half_depth(depth_t, before, acc[3], t)
             if acc[3] < params.min_transmittance:
                 break
+        i += 1
     s = with_accumulator(state, acc)
     s.depth_t = depth_t
     s.samples = s.samples + taken
     s.shaded = s.shaded + shaded
+    s.skipped = s.skipped + skipped
     return s
