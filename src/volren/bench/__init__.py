@@ -43,11 +43,12 @@ def all_suites() -> dict[str, Suite]:
     from volren.bench.integrated import SUITE as INTEGRATED_SUITE
     from volren.bench.oit import SUITE as OIT_SUITE
     from volren.bench.resolution import SUITE as RESOLUTION_SUITE
+    from volren.bench.serve import SUITE as SERVE_SUITE
     from volren.bench.viewers import SUITE as VIEWERS_SUITE
     from volren.bench.vpt import SUITE as VPT_SUITE
 
     return {s.name: s for s in (DSSRM_SUITE, RESOLUTION_SUITE, BINOCULAR_SUITE, VIEWERS_SUITE, VPT_SUITE, GI_SUITE,
-                                OIT_SUITE, INTEGRATED_SUITE)}
+                                OIT_SUITE, INTEGRATED_SUITE, SERVE_SUITE)}
 
 
 NOT_PASSES = ("upload", "readback", "fog_bake")

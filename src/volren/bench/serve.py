@@ -1,0 +1,274 @@
+"""Suite ``serve``: `volren serve` under 1, 2, 4, 8 and 16 simulated clients, the shared render loop against a
+naive server (issue 15: papers 000, 002 and 003 as live many-viewer systems).
+
+Each client is an aiohttp WebSocket client on a rig: volume scenes orbit the scene's centre (phases spread evenly,
+alternate directions), fog scenes stand at the scene's viewpoint and look around; every fourth client is a stereo
+pair (one viewer, two eyes side by side: a coupled pair for CACRM). Clients send their camera open-loop at
+``camera_hz`` like a page during a drag, and the scene plays (the advected smoke, the fog scene's moving geometry),
+so every tick renders every viewer and recomputes the passes that depend on the scene (light map, shadow grid).
+The shared server renders all viewers in one multi-view call per tick (`RenderLoop(shared=True)`); the naive one
+renders each viewer with a renderer of its own (`shared=False`: as if each viewer had a server). Server and clients
+share one event loop (one process), frames cross a real TCP socket on 127.0.0.1.
+
+Per row: tick time (wall time per tick over the measured window), the render call(s) per tick, total frames per
+second over all clients and the slowest client's, round-trip latency (camera sent -> first frame answering its id:
+median and 95th percentile over all clients, and the worst client's p95), bytes per second received.
+Goals (issue 15), measured in one run: at 8 clients the shared server delivers >= 1.5x the naive server's total
+frames per second, and no client's p95 latency exceeds 3 frame times (the shared run's tick time).
+Full (GPU): 256^3 smoke, 480x270 per eye, 10 s per point. Quick (CPU): 64^3 smoke, 160x90 per eye, 3 s per point.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import statistics
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from volren.bench import Suite
+from volren.camera import Camera
+from volren.errors import VolrenError
+
+FULL = {"cases": [("fog", "dynamic"), ("cacrm", "smoke")], "resolution": 256, "size": (480, 270),
+        "counts": [1, 2, 4, 8, 16], "seconds": 10.0, "min_ticks": 10, "camera_hz": 60.0, "overrides": {}}
+QUICK = {"cases": [("fog", "dynamic"), ("cacrm", "smoke")], "resolution": 64, "size": (160, 90),
+         "counts": [1, 2, 4, 8, 16], "seconds": 3.0, "min_ticks": 4, "camera_hz": 30.0, "overrides": {}}
+STEREO_EVERY = 4
+"""client i is a stereo pair when i % STEREO_EVERY == STEREO_EVERY - 1 (2 of 8 clients, 4 of 16)"""
+ORBIT_RAD_S = 0.5
+"""[rad/s] of a client's orbit (volume scenes) or look-around swing (fog scenes)"""
+LOOK_SWING = 0.6
+"""[rad] half-angle of a fog client's look-around"""
+GOAL_CLIENTS, GOAL_SPEEDUP, GOAL_LATENCY_FRAMES = 8, 1.5, 3.0
+WARMUP_FRAMES = 2
+"""frames every client receives before the window opens (kernel compilation, the naive renderers' first upload)"""
+WARMUP_TIMEOUT_S = 600.0
+
+
+def rig_camera(base: Camera, walk: bool, index: int, count: int, t: float) -> dict[str, Any]:
+    """Client ``index`` of ``count``'s camera message fields at time ``t`` [s]."""
+    phase = 2 * math.pi * index / count + (1 if index % 2 == 0 else -1) * ORBIT_RAD_S * t
+    eye, target = np.asarray(base.position, float), np.asarray(base.look_at, float)
+    if walk:  # stand at the viewpoint, swing the gaze about +y
+        a = LOOK_SWING * math.sin(phase)
+        d = target - eye
+        d = np.array([d[0] * math.cos(a) + d[2] * math.sin(a), d[1], -d[0] * math.sin(a) + d[2] * math.cos(a)])
+        position, look_at = eye, eye + d
+    else:  # orbit the target at the base camera's distance and height
+        offset = eye - target
+        radius = math.hypot(offset[0], offset[2])
+        position = target + np.array([radius * math.sin(phase), offset[1], radius * math.cos(phase)])
+        look_at = target
+    return {"position": [float(x) for x in position], "look_at": [float(x) for x in look_at],
+            "up": [float(x) for x in base.up], "fov": float(base.fov_y)}
+
+
+@dataclass
+class ClientRecord:
+    """What one simulated client saw while the window was open."""
+
+    stereo: bool
+    frames: int = 0
+    bytes: int = 0
+    latencies_ms: list[float] = field(default_factory=list)
+    render_ms: dict[int, float] = field(default_factory=dict)
+    """tick -> render time of that tick (frame headers)"""
+    warm: asyncio.Event = field(default_factory=asyncio.Event)
+
+
+async def run_client(session: Any, url: str, rec: ClientRecord, index: int, count: int, size: tuple[int, int],
+                     base: Camera, walk: bool, hz: float, measuring: asyncio.Event) -> None:
+    """Connect, send hello, then cameras at ``hz`` while receiving frames until cancelled."""
+    from aiohttp import WSMsgType
+
+    from volren.serve.protocol import unpack_frame
+
+    width = size[0] * (2 if rec.stereo else 1)
+    async with session.ws_connect(url, max_msg_size=0) as ws:
+        await ws.send_json({"type": "hello", "width": width, "height": size[1], "stereo": rec.stereo})
+        sent: dict[int, float] = {}
+        start = time.perf_counter()
+
+        async def cameras() -> None:
+            cam_id = 0
+            while True:
+                cam_id += 1
+                sent[cam_id] = time.perf_counter()
+                msg = rig_camera(base, walk, index, count, sent[cam_id] - start)
+                await ws.send_json({"type": "camera", "id": cam_id, **msg})
+                await asyncio.sleep(1.0 / hz)
+
+        sender: asyncio.Task | None = None
+        seen = 0
+        try:
+            async for msg in ws:
+                if msg.type == WSMsgType.TEXT:
+                    data = msg.json()
+                    if data["type"] == "error":
+                        raise VolrenError(f"bench serve: the server refused client {index}: {data['message']}")
+                    if data["type"] == "welcome":
+                        sender = asyncio.create_task(cameras())
+                    continue
+                if msg.type != WSMsgType.BINARY:
+                    break
+                now = time.perf_counter()
+                header, _ = unpack_frame(msg.data)
+                answered = header["camera_id"]
+                t = sent.get(answered)
+                for k in [k for k in sent if k <= answered]:
+                    del sent[k]
+                seen += 1
+                if seen >= WARMUP_FRAMES:
+                    rec.warm.set()
+                if measuring.is_set():
+                    rec.frames += 1
+                    rec.bytes += len(msg.data)
+                    rec.render_ms[header["tick"]] = header["render_ms"]
+                    if t is not None:
+                        rec.latencies_ms.append((now - t) * 1e3)
+        finally:
+            if sender is not None:
+                sender.cancel()
+
+
+async def measure_point(loop: Any, count: int, cfg: dict[str, Any], base: Camera, walk: bool) -> dict[str, Any]:
+    """Serve ``loop`` to ``count`` clients on 127.0.0.1; the figures of one measured window."""
+    import aiohttp
+    from aiohttp import web
+
+    from volren.serve.app import make_app
+
+    runner = web.AppRunner(make_app(loop, "bench"))
+    await runner.setup()
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    await site.start()
+    url = f"http://127.0.0.1:{runner.addresses[0][1]}/ws"
+    measuring = asyncio.Event()
+    recs = [ClientRecord(stereo=i % STEREO_EVERY == STEREO_EVERY - 1) for i in range(count)]
+    try:
+        async with aiohttp.ClientSession() as session:
+            tasks = [asyncio.create_task(run_client(session, url, rec, i, count, cfg["size"], base, walk,
+                                                    cfg["camera_hz"], measuring))
+                     for i, rec in enumerate(recs)]
+            try:
+                warm = asyncio.ensure_future(asyncio.gather(*(r.warm.wait() for r in recs)))
+                done, _ = await asyncio.wait([*tasks, warm], timeout=WARMUP_TIMEOUT_S,
+                                             return_when=asyncio.FIRST_COMPLETED)
+                if warm not in done:
+                    warm.cancel()
+                    for t in done:
+                        t.result()  # a client failed: raise its error
+                    raise VolrenError(f"bench serve: {count} clients not all served within {WARMUP_TIMEOUT_S:.0f} s")
+                tick0, renders0 = loop.tick, loop.renders
+                t0 = time.perf_counter()
+                measuring.set()
+                while time.perf_counter() - t0 < cfg["seconds"] or loop.tick - tick0 < cfg["min_ticks"]:
+                    await asyncio.sleep(0.02)
+                    for t in tasks:
+                        if t.done():
+                            t.result()
+                measuring.clear()
+                elapsed, ticks, renders = time.perf_counter() - t0, loop.tick - tick0, loop.renders - renders0
+            finally:
+                for t in tasks:
+                    t.cancel()
+                await asyncio.gather(*tasks, return_exceptions=True)
+    finally:
+        await runner.cleanup()
+    return summarize(recs, elapsed, ticks, renders)
+
+
+def summarize(recs: list[ClientRecord], elapsed: float, ticks: int, renders: int) -> dict[str, Any]:
+    lat = [x for r in recs for x in r.latencies_ms]
+    render_ms = {k: v for r in recs for k, v in r.render_ms.items()}
+    fps = [r.frames / elapsed for r in recs]
+    return {
+        "clients": len(recs), "stereo_clients": sum(r.stereo for r in recs), "seconds": elapsed, "ticks": ticks,
+        "renders": renders, "renders_per_tick": renders / max(ticks, 1), "tick_ms": 1e3 * elapsed / max(ticks, 1),
+        "render_ms": statistics.median(render_ms.values()) if render_ms else None,
+        "frames": sum(r.frames for r in recs), "fps_total": sum(fps), "fps_client_min": min(fps),
+        "latency_median_ms": float(np.median(lat)) if lat else None,
+        "latency_p95_ms": float(np.percentile(lat, 95)) if lat else None,
+        "latency_worst_p95_ms": max((float(np.percentile(r.latencies_ms, 95)) for r in recs if r.latencies_ms),
+                                    default=None),
+        "latency_samples": len(lat), "bytes_per_s": sum(r.bytes for r in recs) / elapsed,
+    }
+
+
+def make_loop(method: str, scene_name: str, cfg: dict[str, Any], shared: bool, device: str) -> tuple[Any, Camera,
+                                                                                                       bool]:
+    """A playing render loop of a built-in scene at the interactive quality, its start camera and whether its
+    clients walk (fog) rather than orbit."""
+    from volren.data import builtin_scene
+    from volren.data.fog_scenes import FOG_SCENES, fog_scene, fog_scene_camera
+    from volren.serve.loop import RenderLoop, animator
+    from volren.serve.viewers import Limits
+
+    if scene_name in FOG_SCENES:
+        scene = fog_scene(scene_name)
+        spot = fog_scene_camera(scene_name)
+        base = Camera(position=spot["position"], look_at=spot["look_at"])
+    else:
+        scene = builtin_scene(scene_name, cfg["resolution"])
+        base = Camera(position=(0.0, 0.4, 3.2))
+    w, h = cfg["size"]
+    limits = Limits(max_viewers=max(cfg["counts"]), max_width=2 * w, max_height=h)
+    loop = RenderLoop(scene, method, "interactive", limits=limits, camera=base, device=device, shared=shared,
+                      animate=animator(scene, scene_name, device), overrides=cfg["overrides"])
+    loop.playing = loop.animated
+    return loop, base, scene.fog is not None
+
+
+async def run_async(cfg: dict[str, Any], device: str) -> dict[str, Any]:
+    rows, summary = [], []
+    for method, scene_name in cfg["cases"]:
+        at: dict[tuple[str, int], dict[str, Any]] = {}
+        for count in cfg["counts"]:
+            for mode in ("shared", "naive"):
+                loop, base, walk = make_loop(method, scene_name, cfg, mode == "shared", device)
+                row = {"scene": scene_name, "method": method, "mode": mode,
+                       **await measure_point(loop, count, cfg, base, walk)}
+                at[mode, count] = row
+                rows.append(row)
+        goal_n = GOAL_CLIENTS if GOAL_CLIENTS in cfg["counts"] else cfg["counts"][-1]
+        shared, naive = at["shared", goal_n], at["naive", goal_n]
+        speedup = shared["fps_total"] / naive["fps_total"]
+        latency_frames = (shared["latency_worst_p95_ms"] or math.inf) / shared["tick_ms"]
+        summary.append({"scene": scene_name, "method": method, "clients": goal_n, "speedup": speedup,
+                        "speedup_goal": GOAL_SPEEDUP, "latency_frames": latency_frames,
+                        "latency_goal": GOAL_LATENCY_FRAMES,
+                        "goals": "pass" if speedup >= GOAL_SPEEDUP and latency_frames <= GOAL_LATENCY_FRAMES
+                        else "fail"})
+    columns = [
+        ("scene", "scene", "s"), ("method", "method", "s"), ("mode", "server", "s"), ("clients", "clients", "d"),
+        ("stereo_clients", "stereo", "d"), ("tick_ms", "tick [ms]", ".1f"), ("render_ms", "render [ms]", ".1f"),
+        ("renders_per_tick", "render calls/tick", ".2f"), ("fps_total", "fps total", ".1f"),
+        ("fps_client_min", "fps slowest client", ".2f"), ("latency_median_ms", "latency median [ms]", ".0f"),
+        ("latency_p95_ms", "latency p95 [ms]", ".0f"), ("latency_worst_p95_ms", "worst client p95 [ms]", ".0f"),
+        ("bytes_per_s", "bytes/s", ".3g"),
+    ]
+    summary_columns = [
+        ("scene", "scene", "s"), ("method", "method", "s"), ("clients", "clients", "d"),
+        ("speedup", "shared/naive fps", ".2f"), ("speedup_goal", "goal >=", ".1f"),
+        ("latency_frames", "worst p95 latency [tick times]", ".2f"), ("latency_goal", "goal <=", ".0f"),
+        ("goals", "goals", "s"),
+    ]
+    settings = {k: v for k, v in cfg.items() if k != "overrides"} | {
+        "quality": "interactive", "stereo_every": STEREO_EVERY, "orbit_rad_s": ORBIT_RAD_S,
+        "timing": "CPU, 2 cores, shared with other jobs" if device == "cpu" else device}
+    return {"settings": settings, "rows": rows, "columns": columns, "summary": (summary, summary_columns)}
+
+
+def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
+    return asyncio.run(run_async(cfg, device))
+
+
+def run(quick: bool, device: str) -> dict[str, Any]:
+    return run_config(QUICK if quick else FULL, device)
+
+
+SUITE = Suite("serve", "volren serve: 1-16 clients, shared render loop vs one renderer per viewer (issue 15)", run)
