@@ -228,3 +228,23 @@ def test_integrated_suite_rows_and_ratios():
     assert "cube_march_ms" in rows[OURS] and "oit_ms" in rows[OURS]  # the tiled k-buffer's phase 1
     (ratio,), _ = result["summary"]
     assert ratio["speedup"] == pytest.approx(rows[VANILLA]["frame_ms"] / rows[OURS]["frame_ms"])
+
+
+def test_binocular_translucent_mesh_rows():
+    from volren.bench.binocular import MESH_METHODS, run_config
+
+    cfg = {"scenes": [], "resolution": 64, "light_grid": 16, "frames": 2, "quality_size": (48, 32),
+           "reference": 64, "sizes": [(32, 18), (64, 36)], "repeats": 1, "mesh_scene": "smoke"}
+    result = run_config(cfg, "cpu")
+    speed = {(r["size"], r["method"]): r for r in result["rows"] if r["table"] == "transl. mesh-vol."}
+    assert len(speed) == 2 * 2 * len(MESH_METHODS)
+    fig9 = {r["method"]: r for r in result["rows"] if r["table"] == "fig. 9"}
+    assert list(fig9) == ["CACRM vs reference", "DSSRM:360:96 vs reference", "CACRM vs DSSRM:360:96"]
+    assert all(r["psnr"] > 30 and 0.9 < r["ssim"] <= 1 for r in fig9.values())
+    (summary,), _ = result["summary"]
+    assert summary["scene"] == "smoke + sheets"
+    for m in MESH_METHODS:
+        translucent, opaque = speed["64x36", f"{m} alpha 0.4"], speed["64x36", f"{m} opaque"]
+        assert summary[f"mesh_cost_{m}"] == pytest.approx(translucent["frame_min_ms"] / opaque["frame_min_ms"])
+        # the opaque sheet cuts the volume behind it; the translucent one lets the march go on through
+        assert translucent["gathers"] > opaque["gathers"]

@@ -17,14 +17,22 @@ The cube methods run with the hybrid choice off: it would march small views dire
 
 Goals (issue 4): CACRM within 0.5 dB of CMSRM:360:96, at least 10% faster than it, with fewer voxel gathers than
 CMSRM:100:48; coupling cuts the pair's gathers by at least 25% against two independent cube marches (+VSA vs +RCp).
+Transl. mesh-vol. (Table 1's last rows, Fig. 9): the ``mesh_scene`` with two translucent sheets (`mesh_sheets`: one
+through the middle of the box, one in front of it) against the same sheets opaque, per stereo frame at the speed
+sizes for DSSRM:360:96, CMSRM:360:96 and CACRM (paper: the mesh k-buffers cost about 30% over an opaque mesh), and
+Fig. 9's PSNR/SSIM of CACRM and DSSRM:360:96 with the translucent sheets at the quality size, frame 0 of the path,
+against the reference (exact for translucent layers) and against DSSRM:360:96 (the paper's ground truth).
 Full (GPU): 256^3 scenes, 128^3 light grid, 60 frames, quality at 480x270 against 1024:1024, speed at 1080p, 2K, 4K.
 Quick (CPU): 64^3 scenes, 32^3 light grid, 12 frames, quality at 160x90 against 256:256, speed at a quarter of those.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
+
+import numpy as np
 
 from volren.bench import Suite, measure
 from volren.camera import Camera, make_views
@@ -41,12 +49,14 @@ from volren.render import (
     ReferenceConfig,
     Renderer,
 )
+from volren.scene import Scene, TriangleMesh
 
 FULL = {"scenes": ["smoke", "cloud", "phantom"], "resolution": 256, "light_grid": 128, "frames": 60,
         "quality_size": (480, 270), "reference": 1024, "sizes": [(1920, 1080), (2560, 1440), (3840, 2160)],
-        "repeats": 5}
+        "repeats": 5, "mesh_scene": "smoke"}
 QUICK = {"scenes": ["smoke", "cloud", "phantom"], "resolution": 64, "light_grid": 32, "frames": 12,
-         "quality_size": (160, 90), "reference": 256, "sizes": [(480, 270), (640, 360), (960, 540)], "repeats": 3}
+         "quality_size": (160, 90), "reference": 256, "sizes": [(480, 270), (640, 360), (960, 540)], "repeats": 3,
+         "mesh_scene": "smoke"}
 RADIUS = 3.2
 
 
@@ -133,6 +143,50 @@ def equal_gathers(scene, frames: list[list[Camera]], light_grid: int, device: st
     return out
 
 
+MESH_METHODS = ("DSSRM:360:96", "CMSRM:360:96", "CACRM")
+"""the methods timed with the translucent sheets (Table 1's "Transl. mesh-vol." rows, fewer columns to save time)"""
+
+
+def mesh_sheets(alpha: float) -> tuple[TriangleMesh, ...]:
+    """Two square sheets facing +z, opacity ``alpha``: one through the middle of the box (z = 0.1, half-width 0.45),
+    one in front of it (z = 1.2, half-width 0.6), tinted so that the layers' order shows in the colour."""
+    def sheet(z: float, half: float, albedo: tuple[float, float, float], name: str) -> TriangleMesh:
+        v = np.array([[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]])
+        return TriangleMesh(v, np.array([[0, 1, 2], [0, 2, 3]]), albedo=albedo, name=name, alpha=alpha)
+
+    return sheet(0.1, 0.45, (0.2, 0.5, 0.9), "inner sheet"), sheet(1.2, 0.6, (0.9, 0.6, 0.2), "front sheet")
+
+
+def translucent_mesh(scene: Scene, cfg: dict[str, Any], renderers: dict[str, Renderer], reference: Reference
+                     ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Table 1's "Transl. mesh-vol." rows and Fig. 9's PSNR (module docstring), and the translucent / opaque time
+    ratios at the largest size."""
+    name = f"{scene.name} + sheets"
+    scenes = {alpha: dataclasses.replace(scene, opaque=(*scene.opaque, *mesh_sheets(alpha))) for alpha in (1.0, 0.4)}
+    rows = []
+    times: dict[tuple[str, float], float] = {}
+    for size in cfg["sizes"]:
+        views = make_views(path_camera(0, cfg["frames"], size), "stereo")
+        for m in MESH_METHODS:
+            for alpha, s in scenes.items():
+                row = measure(renderers[m], s, views, cfg["repeats"])
+                if size == cfg["sizes"][-1]:
+                    times[m, alpha] = row["frame_min_ms"]
+                rows.append({"table": "transl. mesh-vol.", "scene": name, "size": f"{size[0]}x{size[1]}",
+                             "method": f"{m} {'opaque' if alpha == 1 else f'alpha {alpha:g}'}",
+                             "frame_ms": row["frame_ms"], "frame_min_ms": row["frame_min_ms"], "gathers": gathers(row)})
+    views = make_views(path_camera(0, cfg["frames"], cfg["quality_size"]), "stereo")
+    ref = reference.render(scenes[0.4], views).images
+    images = {m: renderers[m].render(scenes[0.4], views).images for m in ("DSSRM:360:96", "CACRM")}
+    for m, against in (("CACRM", "reference"), ("DSSRM:360:96", "reference"), ("CACRM", "DSSRM:360:96")):
+        gt = ref if against == "reference" else images[against]
+        rows.append({"table": "fig. 9", "scene": name, "method": f"{m} vs {against}",
+                     "psnr": sum(psnr(a, b) for a, b in zip(gt, images[m], strict=True)) / 2,
+                     "ssim": sum(ssim(a, b) for a, b in zip(gt, images[m], strict=True)) / 2})
+    summary = {"scene": name, **{f"mesh_cost_{m}": times[m, 0.4] / times[m, 1.0] for m in MESH_METHODS}}
+    return rows, summary
+
+
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     rows, summary = [], []
     for name in cfg["scenes"]:
@@ -183,6 +237,12 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             "tlod_speedup_largest": times["CACRM", big] / times["CACRM +TLOD", big],
             **{f"vsa_gain_{n}_db": q[vsa] - q[uni] for n, (vsa, uni) in zip(VSA_BUDGETS, pairs, strict=True)},
         })
+    if cfg.get("mesh_scene"):
+        reference = Reference(ReferenceConfig(samples=cfg["reference"], light_samples=cfg["reference"]), device)
+        mesh_rows, mesh_summary = translucent_mesh(builtin_scene(cfg["mesh_scene"], cfg["resolution"]), cfg,
+                                                   methods(cfg["light_grid"], device), reference)
+        rows += mesh_rows
+        summary.append(mesh_summary)
     columns = [
         ("table", "table", "s"), ("scene", "scene", "s"), ("size", "stereo view size", "s"), ("method", "method", "s"),
         ("psnr", "PSNR [dB]", ".2f"), ("ssim", "SSIM", ".5f"), ("frame_ms", "frame [ms]", ".1f"),
@@ -199,6 +259,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("tlod_psnr_db", "PSNR +TLOD - CACRM [dB]", ".2f"),
         ("tlod_speedup_largest", "CACRM / +TLOD time, largest", ".2f"),
         *[(f"vsa_gain_{n}_db", f"PSNR VSA - uniform at equal gathers, N = {n} [dB]", ".2f") for n in VSA_BUDGETS],
+        *[(f"mesh_cost_{m}", f"{m}: translucent / opaque sheets time, largest (paper ~1.3)", ".2f")
+          for m in MESH_METHODS],
     ]
     settings = {k: v for k, v in cfg.items() if k not in ("sizes", "quality_size")} | {
         "sizes": [f"{w}x{h}" for w, h in cfg["sizes"]], "quality_size": "x".join(map(str, cfg["quality_size"])),
