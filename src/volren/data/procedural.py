@@ -12,6 +12,7 @@ cloud and puffs and at most about 3.4 through the phantom, so images are neither
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import operator
 from collections.abc import Callable, Iterator
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from volren.errors import VolrenError
-from volren.scene import DirectionalLight, Environment, Scene, Volume, scale_translate
+from volren.scene import DirectionalLight, Environment, Plane, Scene, Volume, scale_translate
 
 MIN_RESOLUTION = 64
 MAX_RESOLUTION = 512
@@ -333,6 +334,12 @@ def _smoke_scene(resolution: int, *, count: int = 4, seed: int = 0) -> Scene:
     return Scene((volume,), _LIGHTS, _SKY, _BACKGROUND, name="smoke")
 
 
+def _smoke_floor_scene(resolution: int, *, count: int = 4, seed: int = 0) -> Scene:
+    """The smoke over a grey floor at its box's base: the plume's shadow and ambient occlusion on the floor."""
+    scene = _smoke_scene(resolution, seed=seed)
+    return dataclasses.replace(scene, name="smoke-floor", opaque=(Plane((0.0, -1.0, 0.0), (0.0, 1.0, 0.0), 0.35),))
+
+
 def _cloud_scene(resolution: int, *, count: int = 4, seed: int = 0) -> Scene:
     volume = Volume(cloud_density(resolution, seed), density_scale=11.0, albedo=(0.97, 0.97, 0.97), g=0.5, name="cloud")
     return Scene((volume,), _LIGHTS, _SKY, _BACKGROUND, name="cloud")
@@ -445,6 +452,8 @@ BUILTIN_SCENES: dict[str, BuiltinScene] = {
                      "depth, disjoint boxes, lit from overhead", _instances_scene),
         BuiltinScene("instances-overlap", "the instances grid with boxes overlapping their neighbours by 0.2 of the "
                      "pitch", functools.partial(_instances_scene, overlap=True)),
+        BuiltinScene("smoke-floor", "the smoke plume over a grey floor that it shadows and occludes",
+                     _smoke_floor_scene),
     )
 }
 
