@@ -248,3 +248,46 @@ def test_binocular_translucent_mesh_rows():
         assert summary[f"mesh_cost_{m}"] == pytest.approx(translucent["frame_min_ms"] / opaque["frame_min_ms"])
         # the opaque sheet cuts the volume behind it; the translucent one lets the march go on through
         assert translucent["gathers"] > opaque["gathers"]
+
+
+def test_serve_suite_counters_and_goal_ratios():
+    import numpy as np
+
+    from volren.bench.serve import GOAL_LATENCY_FRAMES, GOAL_SPEEDUP, STEREO_EVERY, rig_camera, run_config
+    from volren.camera import Camera
+
+    cfg = {"cases": [("dssrm", "smoke"), ("fog", "dynamic")], "resolution": 64, "size": (48, 32), "counts": [1, 4],
+           "seconds": 0.5, "min_ticks": 3, "camera_hz": 30.0,
+           "overrides": {"samples": 32, "light_samples": 8, "light_grid": 8}}
+    result = run_config(cfg, "cpu")
+    rows = {(r["scene"], r["mode"], r["clients"]): r for r in result["rows"]}
+    assert len(rows) == len(result["rows"]) == 2 * 2 * 2
+    for (_, mode, n), r in rows.items():
+        assert r["stereo_clients"] == n // STEREO_EVERY
+        assert r["ticks"] >= cfg["min_ticks"] and r["tick_ms"] == pytest.approx(1e3 * r["seconds"] / r["ticks"])
+        # the scene plays, so every tick renders every client: in one call (shared) or one per client (naive)
+        assert r["renders_per_tick"] == (1 if mode == "shared" else n)
+        # at most one frame per client per tick (latest camera wins, nothing queued; +1: a tick in flight as the
+        # window opened), and every client is served
+        assert 0 < r["frames"] <= (r["ticks"] + 1) * n and r["fps_client_min"] > 0
+        assert r["fps_total"] == pytest.approx(r["frames"] / r["seconds"])
+        assert 0 < r["latency_median_ms"] <= r["latency_p95_ms"] and r["latency_worst_p95_ms"] > 0
+        assert r["bytes_per_s"] / r["fps_total"] > 200  # a JPEG and its header per frame
+    # the orbit keeps its distance and height and looks at the centre; the fog rig stands still and turns
+    base = Camera(position=(1.0, 0.4, 3.0), look_at=(0.0, 0.2, 0.0))
+    for t in (0.0, 1.3):
+        orbit, look = rig_camera(base, False, 1, 4, t), rig_camera(base, True, 1, 4, t)
+        assert np.hypot(orbit["position"][0], orbit["position"][2]) == pytest.approx(np.hypot(1.0, 3.0))
+        assert orbit["position"][1] == pytest.approx(0.4) and orbit["look_at"] == pytest.approx([0.0, 0.2, 0.0])
+        gaze = np.subtract(look["look_at"], look["position"])
+        assert look["position"] == pytest.approx([1.0, 0.4, 3.0]) and gaze[1] == pytest.approx(-0.2)
+        assert np.linalg.norm(gaze) == pytest.approx(np.linalg.norm([1.0, 0.2, 3.0]))
+        assert gaze[0] != pytest.approx(-1.0)  # turned away from the base gaze
+    summary, _ = result["summary"]
+    assert [(s["scene"], s["clients"]) for s in summary] == [("smoke", 4), ("dynamic", 4)]
+    for s in summary:
+        shared, naive = rows[s["scene"], "shared", 4], rows[s["scene"], "naive", 4]
+        assert s["speedup"] == pytest.approx(shared["fps_total"] / naive["fps_total"])
+        assert s["latency_frames"] == pytest.approx(shared["latency_worst_p95_ms"] / shared["tick_ms"])
+        met = s["speedup"] >= GOAL_SPEEDUP and s["latency_frames"] <= GOAL_LATENCY_FRAMES
+        assert s["goals"] == ("pass" if met else "fail")

@@ -142,6 +142,18 @@ async def measure_point(loop: Any, count: int, cfg: dict[str, Any], base: Camera
 
     from volren.serve.app import make_app
 
+    calls: dict[int, int] = {}
+    """tick -> render calls it made (counted around the worker-thread job, so a window edge cannot split a tick)"""
+    render_encode = loop._render_encode
+
+    def counted(jobs: list, index: int, advance: bool, viewers: int) -> list[bytes]:
+        before = loop.renders
+        try:
+            return render_encode(jobs, index, advance, viewers)
+        finally:
+            calls[index] = loop.renders - before
+
+    loop._render_encode = counted
     runner = web.AppRunner(make_app(loop, "bench"))
     await runner.setup()
     site = web.TCPSite(runner, "127.0.0.1", 0)
@@ -163,7 +175,7 @@ async def measure_point(loop: Any, count: int, cfg: dict[str, Any], base: Camera
                     for t in done:
                         t.result()  # a client failed: raise its error
                     raise VolrenError(f"bench serve: {count} clients not all served within {WARMUP_TIMEOUT_S:.0f} s")
-                tick0, renders0 = loop.tick, loop.renders
+                tick0 = loop.tick
                 t0 = time.perf_counter()
                 measuring.set()
                 while time.perf_counter() - t0 < cfg["seconds"] or loop.tick - tick0 < cfg["min_ticks"]:
@@ -172,7 +184,8 @@ async def measure_point(loop: Any, count: int, cfg: dict[str, Any], base: Camera
                         if t.done():
                             t.result()
                 measuring.clear()
-                elapsed, ticks, renders = time.perf_counter() - t0, loop.tick - tick0, loop.renders - renders0
+                elapsed, ticks = time.perf_counter() - t0, loop.tick - tick0
+                renders = sum(calls[k] for k in range(tick0, tick0 + ticks))
             finally:
                 for t in tasks:
                     t.cancel()
