@@ -84,7 +84,7 @@ def small_tiles(monkeypatch):
 def test_schemes_agree_bit_for_bit(method: str, scene: str, small_tiles) -> None:
     scene, cam = {"crowd": (CROWD, CROWD_CAM), "slabs": (SLABS, AXIS_CAM)}[scene]
     images = [make(method, s).render(scene, [cam]).images[0] for s in SCHEMES]
-    assert images[0][..., 3].max() > 0.5
+    assert (images[0][..., 3] > 1e-3).sum() > 300, "the boxes cover much of the image"
     for scheme, image in zip(SCHEMES[1:], images[1:], strict=True):
         np.testing.assert_array_equal(image, images[0], err_msg=scheme)
 
