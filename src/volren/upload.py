@@ -156,23 +156,40 @@ def coarse_max_level(vol: Volume) -> np.ndarray:
 
 SKIP_CELL = 4
 """[voxels] edge of an empty-space-skipping cell (`skip_grid`): smaller cells hug the density closer but cost more
-cell lookups per ray."""
+cell lookups per ray. Measured on the smoke 64^3 at 480x270 (docs/BENCHMARKS.md, "interactive")."""
+
+
+def _max3(grid: np.ndarray, pad_mode: str, **pad: float) -> np.ndarray:
+    """Max over each cell's 3x3x3 neighbourhood, separably (three passes of 3), padded by ``np.pad(mode=...)``."""
+    for axis in range(3):
+        n = grid.shape[axis]
+        padded = np.pad(grid, [(1, 1) if a == axis else (0, 0) for a in range(3)], mode=pad_mode, **pad)
+        grid = np.maximum(np.maximum(padded.take(range(n), axis), padded.take(range(1, n + 1), axis)),
+                          padded.take(range(2, n + 2), axis))
+    return grid
 
 
 def skip_grid(density: np.ndarray, cell: int = SKIP_CELL) -> np.ndarray:
-    """The empty-space-skipping level of a [z, y, x] grid: per block of ``cell``^3 voxels the max over the block
-    dilated by one voxel (edges clamped), so the cell bounds every trilinear sample whose point lies in the block's
-    footprint (a sample reads the 2x2x2 voxels around it, all within one voxel of the voxel holding the point; the
-    same rule as `Volume.max_pyramid`, block max by padding odd ends with their last voxel)."""
-    g = density
-    for axis in range(3):
-        padded = np.pad(g, [(1, 1) if a == axis else (0, 0) for a in range(3)], mode="edge")
-        n = g.shape[axis]
-        g = np.maximum(np.maximum(padded.take(range(0, n), axis), padded.take(range(1, n + 1), axis)),
-                       padded.take(range(2, n + 2), axis))
-    cells = [-(-n // cell) for n in g.shape]
-    g = np.pad(g, [(0, c * cell - n) for c, n in zip(cells, g.shape, strict=True)], mode="edge")
-    return g.reshape(cells[0], cell, cells[1], cell, cells[2], cell).max(axis=(1, 3, 5)).astype(np.float32)
+    """The empty-space-skipping grid of a [z, y, x] density: one value per block of ``cell``^3 voxels.
+
+    A non-empty block holds its max density dilated by one voxel (edges clamped, odd ends padded with their last
+    voxel): a trilinear sample reads the 2x2x2 voxels around it, all within one voxel of the voxel holding the point,
+    so a block whose value is 0 reads zero density anywhere in its footprint and up to half a voxel beyond it (the
+    rule of `Volume.max_pyramid`). An empty block holds -r, r >= 0 the chessboard radius of the cube of empty blocks
+    centred on it (blocks outside the grid count as empty): a ray may leave that whole cube at once (proximity
+    clouds, Cohen and Sheffer 1994), so one lookup skips a long empty run."""
+    dilated = _max3(density, "edge")
+    blocks = [-(-n // cell) for n in density.shape]
+    dilated = np.pad(dilated, [(0, b * cell - n) for b, n in zip(blocks, density.shape, strict=True)], mode="edge")
+    peak = dilated.reshape(blocks[0], cell, blocks[1], cell, blocks[2], cell).max(axis=(1, 3, 5))
+    occupied = peak > 0
+    radius = np.zeros(peak.shape, np.int32)
+    for r in range(1, max(blocks)):
+        occupied = _max3(occupied, "constant", constant_values=False)
+        if occupied.all():
+            break
+        radius[~occupied] = r
+    return np.where(peak > 0, peak, -radius).astype(np.float32)
 
 
 def volume_struct(

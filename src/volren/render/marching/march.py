@@ -84,31 +84,20 @@ def lit_step(
 
 
 @wp.func
-def skip_cell_max(vol: VolumeGPU, max_density: wp.array(dtype=float), p: wp.vec3) -> wp.vec4:
-    """The skip cell holding local ``p`` (clamped to the grid): (x, y, z) cell index and its max density."""
-    res = vol.res
+def skip_lookup(vol: VolumeGPU, max_density: wp.array(dtype=float), q: wp.vec3, o: wp.vec3, inv_d: wp.vec3) -> wp.vec2:
+    """(value, exit) of the skip cell holding ``q`` (skip-cell coordinates, clamped to the grid) for the ray
+    ``o + t d`` in those coordinates: its `skip_grid` value (> 0: not empty; -r <= 0: the cube of radius r around it
+    is empty) and the ray distance where the ray leaves that cell (not empty) or that cube (empty)."""
     cells = vol.skip_res
-    c = wp.vec3i(
-        wp.clamp(int(wp.floor((p[0] + 1.0) * 0.5 * float(res[0]))), 0, res[0] - 1) / vol.skip_cell,
-        wp.clamp(int(wp.floor((p[1] + 1.0) * 0.5 * float(res[1]))), 0, res[1] - 1) / vol.skip_cell,
-        wp.clamp(int(wp.floor((p[2] + 1.0) * 0.5 * float(res[2]))), 0, res[2] - 1) / vol.skip_cell,
-    )
-    peak = max_density[vol.skip_offset + (c[2] * cells[1] + c[1]) * cells[0] + c[0]]
-    return wp.vec4(float(c[0]), float(c[1]), float(c[2]), peak)
-
-
-@wp.func
-def cell_exit(vol: VolumeGPU, cell: wp.vec4, o: wp.vec3, inv_d: wp.vec3) -> float:
-    """Ray distance where the local ray ``o + t d`` (``inv_d`` = 1 / d per axis) leaves the skip cell's box: the
-    voxels [c * skip_cell, (c + 1) * skip_cell) of each axis, clipped to the grid, in local [-1, 1] coordinates."""
+    c = wp.vec3i(wp.clamp(int(wp.floor(q[0])), 0, cells[0] - 1), wp.clamp(int(wp.floor(q[1])), 0, cells[1] - 1),
+                 wp.clamp(int(wp.floor(q[2])), 0, cells[2] - 1))
+    value = max_density[vol.skip_offset + (c[2] * cells[1] + c[1]) * cells[0] + c[0]]
+    r = wp.max(-value, 0.0)
     t = float(1.0e30)
     for a in range(3):
-        n = float(vol.res[a])
-        first = cell[a] * float(vol.skip_cell)
-        lo = -1.0 + 2.0 * first / n
-        hi = -1.0 + 2.0 * wp.min(first + float(vol.skip_cell), n) / n
-        t = wp.min(t, wp.max((lo - o[a]) * inv_d[a], (hi - o[a]) * inv_d[a]))
-    return t
+        lo = float(c[a]) - r
+        t = wp.min(t, wp.max((lo - o[a]) * inv_d[a], (lo + 1.0 + 2.0 * r - o[a]) * inv_d[a]))
+    return wp.vec2(value, t)
 
 
 @wp.func
@@ -128,11 +117,16 @@ def march_volume_light_map(
     the steps empty-space skipping (``medium.skip``) left out.
 
     With skipping, each cell the ray enters is looked up once: a non-empty one is marched step by step up to its exit
-    (``check_t``), an empty one is left at once for the first step at or after its exit, less a margin of float
-    rounding (the step landed on may still lie in the cell: it is looked up again, never sampled)."""
+    (``check_t``), an empty one's cube of empty cells is left at once for the first step at or after its exit. Float
+    rounding of that exit cannot make a skipped step matter: an empty cell reads zero density up to half a voxel
+    beyond its footprint (`volren.upload.skip_grid`)."""
     o_l = wp.transform_point(vol.to_local, origin)
     d_l = wp.transform_vector(vol.to_local, d)
-    inv_d = wp.vec3(safe_inverse(d_l[0]), safe_inverse(d_l[1]), safe_inverse(d_l[2]))
+    # the ray in skip-cell coordinates (cell c spans [c, c + 1) on each axis): q = (p + 1) res / (2 skip_cell)
+    to_cell = wp.vec3(float(vol.res[0]), float(vol.res[1]), float(vol.res[2])) * (0.5 / float(vol.skip_cell))
+    o_c = wp.cw_mul(o_l + wp.vec3(1.0), to_cell)
+    d_c = wp.cw_mul(d_l, to_cell)
+    inv_d = wp.vec3(safe_inverse(d_c[0]), safe_inverse(d_c[1]), safe_inverse(d_c[2]))
     n = march_step_count(t1 - t0, vol.diagonal, params.samples)
     dt = (t1 - t0) / float(n)
     acc = state_accumulator(state)
@@ -146,17 +140,15 @@ def march_volume_light_map(
     i = int(0)
     while i < n:
         t = t0 + (float(i) + offset) * dt
-        p = o_l + t * d_l
         if t >= check_t:
-            cell = skip_cell_max(vol, medium.max_density, p)
-            check_t = cell_exit(vol, cell, o_l, inv_d)
-            if cell[3] <= 0.0:
-                margin = 1.0e-5 * (1.0 + wp.abs(check_t))
-                j = wp.min(wp.max(int(wp.ceil((check_t - margin - t0) / dt - offset)), i + 1), n)
+            cell = skip_lookup(vol, medium.max_density, o_c + t * d_c, o_c, inv_d)
+            check_t = cell[1]
+            if cell[0] <= 0.0:
+                j = wp.min(wp.max(int(wp.ceil((check_t - t0) / dt - offset)), i + 1), n)
                 skipped += j - i
                 i = j
-                check_t = float(-1.0e30)
                 continue
+        p = o_l + t * d_l
         rho = sample_grid(medium.density, vol.offset, vol.res, p)
         taken += 1
         if rho > 0.0:
