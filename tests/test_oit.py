@@ -53,7 +53,7 @@ CROWD = Scene((
     blob((2.0, 0.2, 2.0), 0.4, (0.1, 0.0, -1.2), rotated((0.5, 0.3, 0.3), (0.1, 0.0, -1.2), -0.4)),
     blob((1.0, 1.0, 1.0), 0.15, (-0.9, -0.4, 1.2)),
 ), (), Environment((0.4, 0.4, 0.4)))
-CROWD_CAM = Camera(position=(0.3, 0.4, 4.0), look_at=(0.0, 0.0, 0.0), width=W, height=H)
+CROWD_CAM = Camera(position=(0.2, 0.3, 2.6), look_at=(-0.1, 0.0, 0.0), width=W, height=H)
 RNG = np.random.default_rng(7)
 SLABS = Scene(tuple(blob((1.0, 0.5, 0.2), (*RNG.uniform(0.1, 0.35, 2), 0.01), (*RNG.uniform(-1.0, 1.0, 2), z))
                     for z in np.linspace(-1.0, 1.0, 10)), (), Environment((0.4, 0.4, 0.4)))
@@ -84,7 +84,7 @@ def small_tiles(monkeypatch):
 def test_schemes_agree_bit_for_bit(method: str, scene: str, small_tiles) -> None:
     scene, cam = {"crowd": (CROWD, CROWD_CAM), "slabs": (SLABS, AXIS_CAM)}[scene]
     images = [make(method, s).render(scene, [cam]).images[0] for s in SCHEMES]
-    assert (images[0][..., 3] > 1e-3).sum() > 300, "the boxes cover much of the image"
+    assert (images[0][..., 3] > 1e-3).sum() > 200, "the boxes cover much of the image"
     for scheme, image in zip(SCHEMES[1:], images[1:], strict=True):
         np.testing.assert_array_equal(image, images[0], err_msg=scheme)
 
