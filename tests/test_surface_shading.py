@@ -12,7 +12,7 @@ from conftest import DEVICE, homogeneous_volume, scene_of
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.metrics import psnr
-from volren.render import DSSRM, DSSRMConfig, Reference, ReferenceConfig
+from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
 from volren.render.compositing.surfaces import trace_surfaces, view_buffers
 from volren.render.frame import PassClock
 from volren.render.gi.ambient import GIConfig
@@ -53,6 +53,14 @@ def dssrm(**kw) -> DSSRM:
     return DSSRM(DSSRMConfig(samples=64, light_samples=32, light_grid=8, **kw), device=DEVICE)
 
 
+MARCHERS = {
+    "dssrm": dssrm,
+    "cmsrm": lambda: CMSRM(CMSRMConfig(samples=64, light_samples=32, light_grid=8, hybrid=False), device=DEVICE),
+    "cacrm": lambda: CACRM(CACRMConfig(samples=64, light_samples=32, light_grid=8, hybrid=False, vsa=False),
+                           device=DEVICE),
+}
+
+
 def reference(light_samples: int = 32) -> Reference:
     return Reference(ReferenceConfig(samples=64, light_samples=light_samples), device=DEVICE)
 
@@ -74,12 +82,12 @@ def test_light_map_holds_the_transmittance_through_the_whole_box():
     np.testing.assert_allclose(grid[through_top], np.exp(-SIGMA * length[through_top]), rtol=1e-5)
 
 
-@pytest.mark.parametrize("name", ["dssrm", "reference"])
+@pytest.mark.parametrize("name", [*MARCHERS, "reference"])
 def test_floor_under_a_slab_matches_the_closed_form(name):
     """Floor under a homogeneous slab (thickness 0.5 m) lit obliquely: L = albedo / pi * E * cos * exp(-sigma 0.5 /
     cos) wherever the shadow ray crosses bottom and top face. The light-map lookup at the box entry includes the
     half-voxel shell before the outermost voxel centres (without it: 3% too bright on this 8^3 light grid)."""
-    r = dssrm() if name == "dssrm" else reference()
+    r = MARCHERS[name]() if name in MARCHERS else reference()
     img = r.render(floor_scene(slab(0.5, 1.0)), [UNDER]).images[0]
     mask = shadowed_floor(UNDER, 1.0)
     assert mask.sum() >= 300
