@@ -224,6 +224,11 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
     r.add_argument("--no-vsa", action="store_true", help="cacrm: uniform steps (no variable step amplification)")
     r.add_argument("--no-interleave", action="store_true", help="cacrm: no interleaved spatial reuse of 2x2 quads")
+    r.add_argument("--oit", choices=("tiled", "pixel-rt", "pixel-sort"), help="dssrm/cmsrm/cacrm: how each pixel "
+                   "finds the boxes its ray meets, in ray order: tiled (paper 000 §3.4 tiled k-buffer, default), "
+                   "pixel-rt (per-pixel BVH ray queries) or pixel-sort (every box tested per pixel)")
+    r.add_argument("--oit-k", type=int, help="dssrm/cmsrm/cacrm: K, boxes kept per pixel (the nearest), in [1, 16] "
+                   "(default 8)")
     r.add_argument("--gi", choices=GI_METHODS, help="dssrm/cmsrm/cacrm: ambient global illumination (paper 000 "
                    "§3.2): sresir (ours), restir (strict ReSTIR), prt, major (major direction), brute (ground truth), "
                    "none (default: constant ambient)")
@@ -552,6 +557,8 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "share_voxels": (False if args.no_share else None, "--no-share"),
         "vsa": (False if args.no_vsa else None, "--no-vsa"),
         "interleave": (False if args.no_interleave else None, "--no-interleave"),
+        "oit": (args.oit, "--oit"),
+        "oit_k": (args.oit_k, "--oit-k"),
         "spp": (args.spp, "--spp"),
         "max_bounces": (args.max_bounces, "--max-bounces"),
         "shading": (args.shading, "--shading"),
