@@ -21,7 +21,7 @@ from volren.render import DSSRM
 from volren.scene import DirectionalLight, Environment, Scene, Volume
 from volren.serve.app import _serve, check_bind, make_app
 from volren.serve.jpeg import decode_jpeg, display_image
-from volren.serve.loop import RenderLoop
+from volren.serve.loop import RenderLoop, animator
 from volren.serve.protocol import MAX_MESSAGE_BYTES, unpack_frame
 from volren.serve.viewers import Limits
 
@@ -60,6 +60,15 @@ def run(test, token: str | None = None, **loop_kw) -> None:
         async with TestClient(TestServer(make_app(loop, "smoke16", token))) as client:
             await test(client, loop)
     asyncio.run(main())
+
+
+async def until(condition, what: str) -> None:
+    """Wait (bounded) for ``condition()``, polling the event loop."""
+    for _ in range(int(TIMEOUT / 0.01)):
+        if condition():
+            return
+        await asyncio.sleep(0.01)
+    raise AssertionError(f"timed out waiting for {what}")
 
 
 async def connect(client, width: int = W, height: int = H, stereo: bool = False):
@@ -173,9 +182,18 @@ def test_bad_messages_get_an_error_and_the_connection_still_works():
 
 
 def test_four_viewers_one_render_call_per_tick():
-    """Four viewers (one stereo) are rendered by ONE render call per tick: 5 views, the stereo eyes first (a coupled
-    pair); each viewer gets its own camera's image, the stereo one both eyes side by side."""
+    """Four viewers (the third stereo) are rendered by ONE render call per tick: 5 views, the stereo eyes first (views
+    0 and 1, the pair CACRM couples); each viewer gets its own camera's image, the stereo one both eyes side by
+    side."""
     async def test(client, loop):
+        widths = []
+        render = loop.renderer.render
+
+        def recorded(scene, views, frame=0):
+            widths.append([c.width for c in views])
+            return render(scene, views, frame)
+
+        loop.renderer.render = recorded
         viewers = [await connect(client, stereo=(i == 2)) for i in range(4)]
         xs = [-0.6, -0.2, 0.2, 0.6]
         for i, (ws, _) in enumerate(viewers):
@@ -186,8 +204,8 @@ def test_four_viewers_one_render_call_per_tick():
         for i, (ws, _) in enumerate(viewers):
             await ws.send_json(cam_msg(20 + i, xs[i]))
         images = [await frame_for(ws, 20 + i) for i, (ws, _) in enumerate(viewers)]
-        assert loop.renders == loop.tick, "one render call per tick"
-        assert loop.views_last == 5
+        assert loop.renders == loop.tick == len(widths), "one render call per tick"
+        assert loop.views_last == 5 and widths[-1] == [W // 2, W // 2, W, W, W], "the stereo eyes first, a pair"
         for i, (header, image) in enumerate(images):
             stereo = i == 2
             assert header["stereo"] == stereo and image.shape == (H, W, 3) and header["viewers"] == 4
@@ -220,8 +238,7 @@ def test_disconnect_during_a_frame():
         await b.send_json(cam_msg(2, 0.3))
         await asyncio.to_thread(started.wait, TIMEOUT)
         await a.close()  # mid-frame
-        while len(loop.viewers) != 1:
-            await asyncio.sleep(0.01)
+        await until(lambda: len(loop.viewers) == 1, "the closed viewer's removal")
         release.set()
         await frame_for(b, 2)
         await b.send_json(cam_msg(3, 0.4))
@@ -230,8 +247,7 @@ def test_disconnect_during_a_frame():
         health = await (await client.get("/health")).json()
         assert health["viewers"] == 1
         await b.close()
-        while len(loop.viewers):
-            await asyncio.sleep(0.01)
+        await until(lambda: not len(loop.viewers), "every viewer's removal")
         ticks = loop.tick
         await asyncio.sleep(0.3)
         assert loop.tick == ticks, "no viewers: no rendering"
@@ -317,3 +333,27 @@ def test_health_fields_and_port_in_use():
         loop = RenderLoop(SCENE, "dssrm", device="cpu", overrides=SMALL)
         with pytest.raises(VolrenError, match=f"--port {port}: address already in use"):
             asyncio.run(_serve(make_app(loop, "smoke16"), "127.0.0.1", port, ""))
+
+
+def test_playing_advances_the_advected_smoke():
+    """While playing, every tick advects the smoke one step (`volren.simulate`) and renders it without any new
+    camera: successive frames differ; paused, the loop stops rendering."""
+    async def test(client, loop):
+        ws, welcome = await connect(client)
+        assert welcome["animated"] and not welcome["playing"]
+        await ws.send_json(cam_msg(1))
+        _, still = await frame_for(ws, 1)
+        await ws.send_json({"type": "settings", "playing": True})
+        frames = [(await next_frame(ws))[1] for _ in range(3)]
+        assert not any(np.array_equal(a, b) for a, b in zip([still, *frames], frames, strict=False)), "steps move"
+        assert db(still, frames[0]) > db(still, frames[2]) + 3.0, "and the motion adds up"  # 48.5, 42.6 dB
+        await ws.send_json({"type": "settings", "playing": False})
+        for _ in range(20):  # a tick under way when the pause arrived still finishes
+            ticks = loop.tick
+            await asyncio.sleep(0.3)
+            if loop.tick == ticks:
+                break
+        assert loop.tick == ticks, "paused: no rendering"
+        await ws.close()
+
+    run(test, animate=animator(SCENE, None, "cpu"))
