@@ -194,6 +194,14 @@ def blend_layers_before(
 
 
 @wp.func
+def layer_before(layers: MeshLayers, row: int, col: int, i: int, facing: float, t: float) -> bool:
+    """Whether the pixel has a layer ``i`` and it lies before ray distance t."""
+    if i < layers.count[row, col]:
+        return layers.depth[row, col, i] / facing < t
+    return False
+
+
+@wp.func
 def march_between_layers(
     s: MarchState,
     first: int,
