@@ -165,3 +165,23 @@ def test_alpha_is_validated_and_other_methods_refuse():
         quad(0.0, 1.5)
     with pytest.raises(VolrenError, match="draws no translucent meshes"):
         VPT(device=DEVICE).render(slab_scene(quad(0.0, 0.5)), [axis_camera()])
+
+
+def test_mesh_alpha_option(tmp_path):
+    """--mesh-alpha: none (opaque), one for every --mesh, one per --mesh; wrong counts and values refused."""
+    from volren.cli import CliError, build_parser, scene_from_args
+
+    path = tmp_path / "sheet.obj"
+    path.write_text("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nf 1 2 3\nf 1 3 4\n")
+
+    def alphas(*argv):
+        args = build_parser().parse_args(["render", "--scene", "cloud", "--resolution", "64", *map(str, argv)])
+        return [o.alpha for o in scene_from_args(args).opaque if isinstance(o, TriangleMesh)]
+
+    assert alphas("--mesh", path, "--mesh", path) == [1.0, 1.0]
+    assert alphas("--mesh", path, "--mesh", path, "--mesh-alpha", 0.3) == [0.3, 0.3]
+    assert alphas("--mesh", path, "--mesh-alpha", 0.3, "--mesh", path, "--mesh-alpha", 1) == [0.3, 1.0]
+    with pytest.raises(CliError, match="given 2 times for 3 --mesh"):
+        alphas("--mesh", path, "--mesh", path, "--mesh", path, "--mesh-alpha", 0.3, "--mesh-alpha", 1)
+    with pytest.raises(CliError, match=r"must lie in \[0, 1\], got -0.1"):
+        alphas("--mesh", path, "--mesh-alpha", -0.1)
