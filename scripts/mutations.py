@@ -49,9 +49,9 @@ class Outcome:
     detail: str
 
 
-def load(path: Path) -> list[Mutant]:
-    """Parse and check the catalogue: unknown or missing fields, duplicate names and edits that do not apply are
-    errors before any test runs."""
+def load(path: Path, only: list[str]) -> list[Mutant]:
+    """Parse and check the catalogue (the mutants whose names start with a prefix in ``only``, or all): unknown or
+    missing fields, duplicate names and edits that do not apply are errors before any test runs."""
     try:
         tables = tomllib.loads(path.read_text())["mutant"]
     except (OSError, tomllib.TOMLDecodeError, KeyError) as exc:
@@ -63,6 +63,9 @@ def load(path: Path) -> list[Mutant]:
             problems.append(f"{label}: fields {sorted(set(t) ^ FIELDS)} missing or unknown")
             continue
         m = Mutant(t["name"], t["part"], t["file"], t["find"], t["replace"], tuple(t["tests"]))
+        if only and not any(m.name.startswith(p) for p in only):
+            mutants.append(m)  # kept for the duplicate-name check only
+            continue
         source = ROOT / m.file
         count = source.read_text().count(m.find) if source.is_file() else -1
         if count != 1:
@@ -118,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per mutant's tests (default 900)")
     ap.add_argument("--list", action="store_true", help="list the catalogue and exit")
     args = ap.parse_args(argv)
-    mutants = load(args.catalogue)
+    mutants = load(args.catalogue, args.only)
     if args.only:
         mutants = [m for m in mutants if any(m.name.startswith(p) for p in args.only)]
         if not mutants:

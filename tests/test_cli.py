@@ -1225,3 +1225,58 @@ def test_vpt_denoise_and_rect_light_options(capfd, tmp_path: Path, denoise: str)
 def test_bad_rect_light(capfd, tmp_path: Path) -> None:
     assert_error(capfd, ["render", "--method", "vpt", "--scene", "cloud", "--rect-light", "0,3,0,0,1,20", "--device",
                          "cpu", "--out", tmp_path / "o"], "positive width")
+
+
+def test_run_time_estimate_refuses_before_output(capfd, tmp_path: Path) -> None:
+    # issue 13 item 8: 1,024 views of 640x360 once ran minutes and died; a quarter-size probe estimates it up front
+    render_error(capfd, tmp_path, ["--views", "1024", "--rig", "arc", "--width", "640", "--height", "360",
+                                   "--max-minutes", "0.001"],
+                 "1024 view(s) of 640x360", "would take about", "160x90 probe", "--max-minutes 0.001")
+
+
+def test_run_time_check_refuses_over_the_limit_and_passes_under_it() -> None:
+    from volren.cli import CliError, build_parser, check_run_time, scene_from_args, views_from_args
+
+    def check(*extra: str) -> None:
+        args = build_parser().parse_args(["render", "--views", "64", "--rig", "arc", "--width", "1280", "--height",
+                                          "720", "--samples", "8", "--light-samples", "4",
+                                          *extra])
+        check_run_time(args, scene_from_args(args), views_from_args(args), "dssrm")
+
+    with pytest.raises(CliError, match=r"would take about .* over --max-minutes 1e-06"):
+        check("--max-minutes", "0.000001")
+    check("--max-minutes", "600")  # the same probe, well under the limit
+    check("--max-minutes", "0")  # no limit: no probe
+
+
+def test_run_time_estimate_extrapolates_each_pass_by_its_own_work() -> None:
+    from types import SimpleNamespace
+
+    from volren.camera import Camera
+    from volren.estimates import estimate_seconds
+
+    probed = []
+
+    def probe(cam: Camera):
+        probed.append((cam.width, cam.height))
+        times = {"upload": 10.0, "light_map": 5.0, "cube_march": 2.0, "march": 3.0}
+        return SimpleNamespace(stats=SimpleNamespace(times_ms=times))
+
+    views = [Camera(width=400, height=400), Camera(position=(1.0, 0.0, 3.0), width=400, height=400)]
+    est = estimate_seconds(views, 3, probe)
+    assert probed == [(100, 100)]
+    # upload once, the light map per frame, cube maps per view, the march per pixel (2 x 400^2 / 100^2 = 32x)
+    assert est.seconds == pytest.approx((10.0 + 3 * (5.0 + 2 * 2.0 + 32 * 3.0)) / 1e3)
+    assert est.probe_ms == 20.0
+
+
+def test_contact_sheet_of_many_views_is_bounded() -> None:
+    from volren.output import MAX_SHEET_SIDE, contact_sheet
+
+    images = [np.full((360, 640, 4), float(i), np.float32) for i in range(100)]
+    sheet = contact_sheet(images)
+    # 10 x 10 cells of 640x360 halved (the whole factor that brings 6400 px under MAX_SHEET_SIDE)
+    assert MAX_SHEET_SIDE == 4096 and sheet.shape == (1800, 3200, 4)
+    assert sheet[180 * 3 + 5, 320 * 7 + 9, 0] == 37.0  # block means keep each view's value in its cell
+    small = contact_sheet(images[:5])
+    assert small.shape == (2 * 360, 3 * 640, 4) and small[360, 640, 0] == 4.0

@@ -215,6 +215,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                    "density's axis)")
     r.add_argument("--no-lod", action="store_true", help="cmsrm: no adaptive LOD (level 0, N = --samples)")
     r.add_argument("--no-hybrid", action="store_true", help="cmsrm: always march the cube map, never directly")
+    r.add_argument("--no-skip", action="store_true", help="dssrm/cmsrm/cacrm: sample every step, no empty-space "
+                   "skipping (the same image, more density samples)")
     r.add_argument("--no-cull", action="store_true", help="cmsrm/cacrm: march empty tiles too (no culling)")
     r.add_argument("--tile-lod", action="store_true", help="cmsrm/cacrm: per-tile LOD 0-2 (fewer samples for distant "
                    "faces, lower PSNR)")
@@ -263,6 +265,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--frames", type=int, default=60 if animate else 1, help="render N >= 1 frames (temporal methods), "
                    "keep every frame")
     r.add_argument("--seed", type=int, default=0, help="random seed (jitter, scenes, viewers): any integer")
+    r.add_argument("--max-minutes", type=float, default=60.0, help="refuse a render estimated to run longer "
+                   "(estimated by a quarter-size probe when views x pixels x frames exceeds 20 M; 0: no limit)")
     add_device(p)
     o = p.add_argument_group("output")
     o.add_argument("--out", type=Path, default=Path("out"), help="output folder")
@@ -551,6 +555,7 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "adaptive_lod": (False if args.no_lod else None, "--no-lod"),
         "hybrid": (False if args.no_hybrid else None, "--no-hybrid"),
         "cull_tiles": (False if args.no_cull else None, "--no-cull"),
+        "skip_empty": (False if args.no_skip else None, "--no-skip"),
         "tile_lod": (args.tile_lod or None, "--tile-lod"),
         "k_z": (args.k_z, "--k-z"),
         "coupling": (False if args.no_coupling else None, "--no-coupling"),
@@ -648,6 +653,24 @@ def estimate_memory(args: argparse.Namespace, scene, views, method: str) -> int:
     return total
 
 
+def check_run_time(args: argparse.Namespace, scene, views, method: str) -> None:
+    """Refuse, before any output, a render estimated to run longer than --max-minutes (`volren.estimates`)."""
+    from volren.estimates import estimate_seconds, needs_estimate
+
+    if not (math.isfinite(args.max_minutes) and args.max_minutes >= 0):
+        raise CliError(f"--max-minutes must be >= 0 (0: no limit), got {args.max_minutes}")
+    if args.max_minutes == 0 or not needs_estimate(views, args.frames):
+        return
+    probe = renderer_from_args(args, method)
+    est = estimate_seconds(views, args.frames, lambda cam: probe.render(scene, [cam]))
+    what = f"{len(views)} view(s) of {views[0].width}x{views[0].height} for {args.frames} frame(s) with {method}"
+    if est.seconds > 60 * args.max_minutes:
+        raise CliError(f"{what} would take about {est.seconds / 60:.0f} min on {probe.device} (a "
+                       f"{est.probe[0]}x{est.probe[1]} probe took {est.probe_ms:.0f} ms), over --max-minutes "
+                       f"{args.max_minutes:g}: render fewer or smaller views or frames, or raise --max-minutes")
+    print(f"{what}: about {est.seconds / 60:.1f} min estimated on {probe.device}", file=sys.stderr)
+
+
 def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     from volren.animate import frame_config, frame_scene, frame_views, write_mp4
     from volren.imageio import composite, to_srgb8
@@ -672,6 +695,7 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
 
     check_allocation(estimate_memory(args, scene, views, method), renderer.device,
                      f"{len(views)} view(s) of {args.width}x{args.height} for {args.frames} frame(s) with {method}")
+    check_run_time(args, scene, views, method)
     sequence = sequence_from_args(args)
     if sequence is not None:
         frame_config(sequence, renderer.config, sequence.frames - 1)  # refuse a switch the method cannot take

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from skimage.transform import downscale_local_mean
 
 from volren.errors import VolrenError
 from volren.imageio import save_linear, save_png, save_side_by_side
@@ -122,14 +123,25 @@ def write_frame(
     return paths
 
 
+MAX_SHEET_SIDE = 4096
+"""[px] a contact sheet's longer side at most: its cells shrink by a whole factor (block means) to fit, so that 1,024
+views of 640x360 give a 4096x2304 sheet instead of a 20480x11520 one (3.8 GB of float32 plus the PNG's temporaries:
+what ran a 24 GB machine out of memory)."""
+
+
 def contact_sheet(images: list[np.ndarray]) -> np.ndarray:
-    """The views on a near-square grid, row by row (cells of the largest view's size, views top-left aligned)."""
+    """The views on a near-square grid, row by row (cells of the largest view's size divided by a whole factor so
+    that the sheet's longer side is at most ``MAX_SHEET_SIDE``, views top-left aligned)."""
     cols = math.ceil(math.sqrt(len(images)))
     rows = math.ceil(len(images) / cols)
     h = max(i.shape[0] for i in images)
     w = max(i.shape[1] for i in images)
+    f = max(1, math.ceil(max(rows * h, cols * w) / MAX_SHEET_SIDE))
+    h, w = -(-h // f), -(-w // f)
     sheet = np.zeros((rows * h, cols * w, 4), dtype=np.float32)
     for n, image in enumerate(images):
+        if f > 1:
+            image = downscale_local_mean(image, (f, f, 1)).astype(np.float32)
         r, c = divmod(n, cols)
         sheet[r * h:r * h + image.shape[0], c * w:c * w + image.shape[1]] = image
     return sheet
