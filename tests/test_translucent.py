@@ -48,10 +48,24 @@ def slab_closed_form(cam: Camera, z: float, alpha: float) -> tuple[np.ndarray, n
     return rgb, 1 - (1 - alpha) * np.exp(-SIGMA * chord)
 
 
-def render(method: str, scene: Scene, cams, **config):
-    renderers = {"reference": (Reference, ReferenceConfig), "dssrm": (DSSRM, DSSRMConfig)}
-    cls, cfg = renderers[method]
-    return cls(cfg(**config), device=DEVICE).render(scene, list(cams))
+class UnshadedReference(Reference):
+    """Surfaces and layers not shaded by the volumes (no volume shadow, no ambient occlusion), as the closed forms
+    assume; `test_alpha_one_is_the_opaque_mesh` checks that layers are shaded by the volumes like opaque surfaces."""
+
+    def _surface_light(self, ds):
+        return None
+
+
+class UnshadedDSSRM(DSSRM):
+    def _surface_light(self, ds):
+        return None
+
+
+def render(method: str, scene: Scene, cams, shaded: bool = False, **config):
+    renderers = {"reference": (Reference, UnshadedReference, ReferenceConfig),
+                 "dssrm": (DSSRM, UnshadedDSSRM, DSSRMConfig)}
+    lit, unshaded, cfg = renderers[method]
+    return (lit if shaded else unshaded)(cfg(**config), device=DEVICE).render(scene, list(cams))
 
 
 @pytest.mark.parametrize("z", [2.0, 0.3, -2.0], ids=["front", "inside", "behind"])
@@ -109,19 +123,19 @@ def test_k_buffer_keeps_the_k_nearest_layers():
 
 def test_alpha_one_is_the_opaque_mesh():
     """alpha = 1 goes through the opaque pass (bit for bit today's image); a layer of alpha 1 - 1e-6 gives the same
-    colours through the k-buffer path, so layers are shaded like the opaque surfaces (light, the sphere's shadow,
-    ambient). The sheet is in front of the volume, out of its shadow: translucent meshes cast no shadows, and the
-    volume behind an opaque sheet is cut while a layer's T = 1e-6 lets 1e-6 of it through."""
+    colours through the k-buffer path, so layers are shaded like the opaque surfaces (light, the sphere's shadow, the
+    volume's shadow and ambient occlusion: the sheet cuts the volume). No floor: translucent meshes cast no shadows.
+    The volume behind an opaque sheet is cut, a layer's T = 1e-6 lets 1e-6 of it through."""
     cam = Camera(position=(0.3, 0.6, 3.0), width=40, height=32)
     light = DirectionalLight(direction=(0.3, -1.0, -0.4), irradiance=(2.0, 2.0, 2.0))
     base = Scene((homogeneous_volume(0.8, albedo=0.7),), (light,), Environment(0.1),
-                 opaque=(Sphere((-0.27, 0.9, 1.86), 0.2, (0.8, 0.3, 0.2)),))
-    sheet = quad(1.5, 1.0, half=0.7)
+                 opaque=(Sphere((-0.27, 1.4, 1.86), 0.2, (0.8, 0.3, 0.2)),))
+    sheet = quad(-0.2, 1.0, half=1.5)
     for method in ("dssrm", "reference"):
         config = {"samples": 64, "light_samples": 64}
-        opaque = render(method, dataclasses.replace(base, opaque=(*base.opaque, sheet)), [cam], **config)
+        opaque = render(method, dataclasses.replace(base, opaque=(*base.opaque, sheet)), [cam], True, **config)
         almost = dataclasses.replace(sheet, alpha=1.0 - 1e-6)
-        layered = render(method, dataclasses.replace(base, opaque=(*base.opaque, almost)), [cam], **config)
+        layered = render(method, dataclasses.replace(base, opaque=(*base.opaque, almost)), [cam], True, **config)
         np.testing.assert_allclose(layered.images[0], opaque.images[0], atol=1e-4)
 
 

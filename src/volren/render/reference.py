@@ -157,10 +157,10 @@ def reference_kernel(
     s = new_march_state()
     if t1 > t0:
         count(counters, RAYS, 1)
-    layer = next_layer(sc, cam.origin, d, 0.0)
+    layer = next_layer(sc, cam.origin, d, 0.0, counters)
     while layer.t < wp.min(t0, planes[1]):
         s = blend_layer(s, layer.color, layer.t)
-        layer = next_layer(sc, cam.origin, d, layer.t)
+        layer = next_layer(sc, cam.origin, d, layer.t, counters)
     t = t0
     while t < t1 and s.transmittance >= params.min_transmittance:
         t_next = wp.min(wp.min(next_box_boundary(cam.origin, d, t, volumes, 0, n_vol), t1), layer.t)
@@ -176,10 +176,10 @@ def reference_kernel(
         t = t_next
         if layer.t <= t:
             s = blend_layer(s, layer.color, layer.t)
-            layer = next_layer(sc, cam.origin, d, layer.t)
+            layer = next_layer(sc, cam.origin, d, layer.t, counters)
     while layer.t < planes[1]:
         s = blend_layer(s, layer.color, layer.t)
-        layer = next_layer(sc, cam.origin, d, layer.t)
+        layer = next_layer(sc, cam.origin, d, layer.t, counters)
     write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
 
 
@@ -210,7 +210,8 @@ class Reference(Renderer):
                 reference_kernel,
                 cam.height,
                 cam.width,
-                [camera_struct(cam), ds.volumes, ds.density, ds.lights, params, layer_scene(ds), buffers],
+                [camera_struct(cam), ds.volumes, ds.density, ds.lights, params,
+                 layer_scene(ds, self._surface_light(ds)), buffers],
                 self.device,
                 clock.counters,
                 self.on_rows,

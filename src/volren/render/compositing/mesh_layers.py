@@ -1,8 +1,9 @@
 """Translucent meshes among the volumes: the mesh k-buffer of paper 000 §3.3.
 
 A translucent mesh (`TriangleMesh.alpha` < 1) is a set of layers: each crossing of its surface along a view ray adds
-alpha * c (c: the surface shaded like the opaque ones, `shade_surface`, either side facing the eye) and multiplies
-the transmittance behind it by 1 - alpha. Volumes and layers are blended front to back in the order the ray meets
+alpha * c (c: the surface shaded like the opaque ones, `shade_lit_surface` with the renderer's `SurfaceLight`, so the
+volumes shadow it the same way, either side facing the eye) and multiplies the transmittance behind it by 1 - alpha.
+Translucent meshes cast no shadows. Volumes and layers are blended front to back in the order the ray meets
 them; a layer inside a volume splits the march there (the paper's "insert the k-buffer depths of the mesh ... into
 the ray marching").
 
@@ -34,12 +35,14 @@ from volren.kernels.common import (
     ViewBuffers,
     VolumeGPU,
     camera_ray,
+    counter_row,
     half_depth,
     occluder_t,
     state_accumulator,
     with_accumulator,
 )
-from volren.render.compositing.surfaces import MESH_RANGE, SURFACE_EPSILON, mesh_group, shade_surface
+from volren.render.compositing.surface_light import SurfaceLight, unlit
+from volren.render.compositing.surfaces import MESH_RANGE, SURFACE_EPSILON, mesh_group, shade_lit_surface
 from volren.render.marching.march import MarchParams, march_volume_light_map
 from volren.upload import DeviceScene
 
@@ -58,6 +61,8 @@ class LayerScene:
     opaque_mesh_ids: wp.array(dtype=wp.uint64)
     lights: wp.array(dtype=LightGPU)
     ambient: wp.vec3
+    light: SurfaceLight
+    """how the volumes shade the layers: the renderer's, as for its opaque surfaces"""
 
 
 @wp.struct
@@ -94,13 +99,16 @@ def mesh_hit_after(mesh_id: wp.uint64, origin: wp.vec3, d: wp.vec3, t_after: flo
 
 
 @wp.func
-def layer_color(sc: LayerScene, k: int, x: wp.vec3, normal: wp.vec3, d: wp.vec3) -> wp.vec4:
-    rgb = shade_surface(x, normal, d, sc.albedo[k], sc.lights, sc.ambient, sc.opaque, sc.opaque_mesh_ids)
+def layer_color(sc: LayerScene, k: int, x: wp.vec3, normal: wp.vec3, d: wp.vec3,
+                counters: wp.array(dtype=wp.int64)) -> wp.vec4:
+    rgb = shade_lit_surface(x, normal, d, sc.albedo[k], sc.lights, sc.ambient, sc.opaque, sc.opaque_mesh_ids, sc.light,
+                            counters)
     return wp.vec4(rgb[0], rgb[1], rgb[2], sc.alpha[k])
 
 
 @wp.func
-def next_layer(sc: LayerScene, origin: wp.vec3, d: wp.vec3, t_after: float) -> LayerHit:
+def next_layer(sc: LayerScene, origin: wp.vec3, d: wp.vec3, t_after: float,
+               counters: wp.array(dtype=wp.int64)) -> LayerHit:
     """The nearest translucent layer past t_after over all meshes, shaded (the reference's exact walk)."""
     h = LayerHit()
     h.t = INF
@@ -114,7 +122,7 @@ def next_layer(sc: LayerScene, origin: wp.vec3, d: wp.vec3, t_after: float) -> L
             normal = n
             best = k
     if best >= 0:
-        h.color = layer_color(sc, best, origin + h.t * d, normal, d)
+        h.color = layer_color(sc, best, origin + h.t * d, normal, d, counters)
     return h
 
 
@@ -162,6 +170,7 @@ def mesh_layers_kernel(
 ):
     """One pass per pixel: every translucent mesh's hits in front of the opaque surface into the k-buffer."""
     r, col = wp.tid()
+    counters = counter_row(counter_rows, r, col)
     row = r + row0
     d = camera_ray(cam, row, col, 0.5, 0.5)
     t_end = occluder_t(buffers, cam, d, row, col)
@@ -172,7 +181,7 @@ def mesh_layers_kernel(
             t, n = mesh_hit_after(sc.mesh_ids[k], cam.origin, d, t)
             if t >= t_end:
                 break
-            insert_layer(layers, row, col, t * facing, layer_color(sc, k, cam.origin + t * d, n, d))
+            insert_layer(layers, row, col, t * facing, layer_color(sc, k, cam.origin + t * d, n, d, counters))
 
 
 @wp.func
@@ -238,8 +247,10 @@ def march_between_layers(
     return out, i
 
 
-def layer_scene(ds: DeviceScene) -> LayerScene:
+def layer_scene(ds: DeviceScene, light: SurfaceLight | None = None) -> LayerScene:
+    """The translucent meshes of ``ds``, shaded with ``light`` (None: the volumes do not shade them)."""
     sc = LayerScene()
+    sc.light = light if light is not None else unlit(ds)
     sc.mesh_ids, sc.albedo, sc.alpha = mesh_group(ds, translucent=True)
     sc.opaque_mesh_ids = mesh_group(ds, translucent=False)[0]
     sc.opaque = ds.opaque
@@ -249,11 +260,18 @@ def layer_scene(ds: DeviceScene) -> LayerScene:
 
 
 def build_mesh_layers(
-    ds: DeviceScene, cam_gpu: CameraGPU, cam: Camera, buffers: ViewBuffers, k: int, counters: wp.array
+    ds: DeviceScene,
+    cam_gpu: CameraGPU,
+    cam: Camera,
+    buffers: ViewBuffers,
+    k: int,
+    counters: wp.array,
+    light: SurfaceLight | None = None,
 ) -> MeshLayers:
-    """The view's mesh k-buffer with ``k`` layers per pixel (after the opaque pass filled ``buffers``); an empty
-    one (no layer anywhere, no pass run) when the scene has no translucent mesh."""
-    sc = layer_scene(ds)
+    """The view's mesh k-buffer with ``k`` layers per pixel (after the opaque pass filled ``buffers``), shaded with
+    ``light`` (the renderer's `_surface_light`); an empty one (no layer anywhere, no pass run) when the scene has no
+    translucent mesh."""
+    sc = layer_scene(ds, light)
     shape = (cam.height, cam.width)
     layers = MeshLayers()
     layers.count = wp.zeros(shape, dtype=int, device=ds.device)

@@ -124,7 +124,8 @@ class DSSRM(LightMapRenderer):
         params.ambient = ds.ambient
         oit = self._layers.params(ds, cam, clock)
         with clock.measure("mesh layers"):
-            mesh = build_mesh_layers(ds, camera_struct(cam), cam, buffers, c.mesh_layers, clock.counters)
+            mesh = build_mesh_layers(ds, camera_struct(cam), cam, buffers, c.mesh_layers, clock.counters,
+                                     self._surface_light(ds))
         self._frame_info["mesh_layers"] = layer_stats(mesh, c.mesh_layers, self._frame_info.get("mesh_layers"))
         with clock.measure("march"):
             launch_rows(
