@@ -12,7 +12,14 @@ from volren.camera import Camera
 from volren.device import check_allocation, resolve_device
 from volren.errors import VolrenError
 from volren.kernels.common import ViewBuffers
-from volren.render.compositing.surface_light import AO_COARSE, AO_RAYS, SURFACE_LIGHT_MAP, SurfaceLight, surface_light
+from volren.render.compositing.surface_light import (
+    AO_COARSE,
+    AO_RAYS,
+    SH_AO_METHODS,
+    SURFACE_LIGHT_MAP,
+    SurfaceLight,
+    surface_light,
+)
 from volren.render.compositing.surfaces import check_user_depth, trace_surfaces, view_buffers
 from volren.render.frame import Frame, PassClock, Stats
 from volren.render.gi.ambient import AmbientGI, GIConfig
@@ -208,10 +215,10 @@ class LightMapRenderer(Renderer):
         self._frame_info["gi"] = self._gi.update(ds, self.config.light_samples, clock)
 
     def _surface_light(self, ds: DeviceScene) -> SurfaceLight:
-        """Shadows from this frame's light map (cross-volume with GI on); AO from the GI grid's SH coefficients
-        (every GI method but ``major``, which keeps none) near the volumes, else from coarse transmittance rays."""
+        """Shadows from this frame's light map (cross-volume with GI on); AO from the GI grid's SH coefficients near
+        the volumes where they are converged per voxel (`SH_AO_METHODS`), else from coarse transmittance rays."""
         c = self.config
-        sh = self._gi if c.gi.on and c.gi.method != "major" else None
+        sh = self._gi if c.gi.method in SH_AO_METHODS else None
         return surface_light(ds, SURFACE_LIGHT_MAP, c.light_samples, AO_RAYS, max(1, c.light_samples // AO_COARSE),
                              cross_volume=c.gi.on, sh=None if sh is None else sh.buffers.sh,
                              order2=0 if sh is None else c.gi.order**2)
