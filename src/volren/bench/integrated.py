@@ -7,7 +7,8 @@ k-buffer (``oit="tiled"``), both at V:L and light grid as configured, with the p
 Scene ``instances`` (4, 16, 36 smoke and cloud instances in rows receding in depth) from the default camera, stereo
 at three viewport sizes. Per row: the median time of every pass over the timed frames (after a warm-up frame, so
 the GI runs in its amortised steady state: ``volumes_per_frame`` volumes relit per frame), the frame time (sum of
-the passes) and its frame rate. Summary: vanilla / ours frame time per N and size (the paper's FPS ratios, 2.6-12).
+the passes) and its frame rate, and the fastest frame. Summary: vanilla / ours fastest frame per N and size (the
+paper's FPS ratios, 2.6-12; the fastest frame is the least disturbed on a shared machine, as in `bench binocular`).
 Full (GPU): 128^3 instances, 96^3 light grids, 1080p/2K/4K, 360:96. Quick (CPU): 32^3, 24^3, sizes / 4, 100:48.
 """
 
@@ -49,16 +50,17 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
                 row.pop("frame")
                 times = {k: v for k, v in row.items() if k.endswith("_ms") and k not in ("frame_ms", "frame_min_ms")}
                 passes += [k for k in times if k not in passes]
-                frame_ms[name] = row["frame_ms"]
+                frame_ms[name] = row["frame_min_ms"]
                 rows.append({"instances": n, "size": f"{size[0]}x{size[1]}", "method": name,
-                             "frame_ms": row["frame_ms"], "fps": 1e3 / row["frame_ms"], **times})
+                             "frame_ms": row["frame_ms"], "frame_min_ms": row["frame_min_ms"],
+                             "fps": 1e3 / row["frame_ms"], **times})
             summary.append({"instances": n, "size": f"{size[0]}x{size[1]}",
                             "speedup": frame_ms[VANILLA] / frame_ms[OURS]})
     columns = [("instances", "N", "d"), ("size", "stereo view size", "s"), ("method", "pipeline", "s"),
-               ("frame_ms", "frame [ms]", ".1f"), ("fps", "frames / s", ".1f"),
+               ("frame_ms", "frame [ms]", ".1f"), ("frame_min_ms", "fastest [ms]", ".1f"), ("fps", "frames / s", ".1f"),
                *[(k, f"{k.removesuffix('_ms')} [ms]", ".1f") for k in passes]]
     summary_columns = [("instances", "N", "d"), ("size", "stereo view size", "s"),
-                       ("speedup", f"{VANILLA} / {OURS} frame time (paper: 2.6-12)", ".2f")]
+                       ("speedup", f"{VANILLA} / {OURS} fastest frame (paper: 2.6-12)", ".2f")]
     settings = {k: v for k, v in cfg.items() if k != "sizes"} | {
         "sizes": [f"{w}x{h}" for w, h in cfg["sizes"]], "environment": "procedural sky",
         "pipelines": [VANILLA, OURS]}
