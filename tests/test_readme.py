@@ -101,6 +101,8 @@ def test_every_readme_command_runs_at_reduced_size(tmp_path, monkeypatch, capsys
     assert len(commands) >= 35  # 44 volren lines, 8 of them benches
     stand_ins(tmp_path)
     monkeypatch.chdir(tmp_path)
+    # `volren serve` builds its scene, render loop and app, then would listen until interrupted: not here
+    monkeypatch.setattr("volren.serve.app.serve", lambda app, host, port, token: None)
     failed = []
     for args in commands:
         code = main(args)

@@ -357,3 +357,26 @@ def test_playing_advances_the_advected_smoke():
         await ws.close()
 
     run(test, animate=animator(SCENE, None, "cpu"))
+
+
+def test_settings_switch_the_method_for_everyone():
+    """A method switch from one viewer changes the shared renderer (a coupled CACRM pair for the stereo viewer) and
+    the other viewer is told; both then get frames of the new method."""
+    async def test(client, loop):
+        a, _ = await connect(client, stereo=True)
+        b, _ = await connect(client)
+        await a.send_json({"type": "settings", "method": "cacrm"})
+        note = await b.receive_json(timeout=TIMEOUT)
+        assert note["type"] == "settings" and note["method"] == "cacrm" and note["quality"] == "interactive"
+        await a.send_json(cam_msg(1))
+        await b.send_json(cam_msg(2, 0.4))
+        header, image = await frame_for(a, 1)
+        await frame_for(b, 2)
+        assert type(loop.renderer).__name__ == "CACRM" and loop.renderer.config.reuse_light_map
+        assert header["stereo"] and image.shape == (H, W, 3) and image.std() > 10
+        health = await (await client.get("/health")).json()
+        assert health["method"] == "cacrm" and health["views"] == 3
+        for w in (a, b):
+            await w.close()
+
+    run(test)
