@@ -170,3 +170,33 @@ def test_oit_config_is_validated() -> None:
         with pytest.raises(VolrenError, match="oit"):
             DSSRMConfig(**bad)
     assert replace(DSSRMConfig(), oit="pixel-rt", oit_k=16).oit_k == 16
+
+
+def test_culling_kernel_matches_the_host_plan() -> None:
+    """Paper 001 §3.4's culling pass on the device gives the host plan's scheme, LOD, N and faces for 36 random
+    instances (rotated, some behind the eye, outside the frustum or around it) from several views and settings."""
+    from volren.render.marching.cmsrm import CMSRMConfig, host_plan
+
+    rng = np.random.default_rng(3)
+    volumes = []
+    for _ in range(36):
+        n = int(rng.choice([4, 8, 16]))
+        m = rotated(rng.uniform(0.2, 1.5, 3), rng.uniform(-6, 6, 3), rng.uniform(-np.pi, np.pi))
+        volumes.append(Volume(rng.uniform(0, 1, (n, n, n)).astype(np.float32), m))
+    scene = Scene(tuple(volumes), (), Environment(0.0))
+    r = CMSRM(CMSRMConfig(samples=128), device=DEVICE)
+    ds = r._upload(scene, PassClock(DEVICE), None, mip_levels=True)
+    seen = set()
+    for _ in range(6):
+        cam = Camera(position=tuple(rng.uniform(-7, 7, 3)), look_at=tuple(rng.uniform(-2, 2, 3)),
+                     width=int(rng.integers(32, 400)), height=int(rng.integers(32, 300)))
+        for hybrid, faces in ((True, "interior"), (False, "exterior")):
+            r.config = CMSRMConfig(samples=128, hybrid=hybrid, cube_faces=faces)
+            for vol, plan in zip(volumes, r._plan(ds, cam), strict=True):
+                host = host_plan(vol, cam, r.config)
+                lod, ref = plan["lod"], host["lod"]
+                assert (plan["scheme"], plan["faces"], lod.level, lod.size, lod.samples) == (
+                    host["scheme"], host["faces"], ref.level, ref.size, ref.samples)
+                assert plan["pixels"] == pytest.approx(host["pixels"], rel=1e-4, abs=1e-3)
+                seen.add((plan["scheme"], plan["lod"].level))
+    assert {s for s, _ in seen} == {-1, 0, 1} and len({lvl for _, lvl in seen}) >= 2
