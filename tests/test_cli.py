@@ -33,6 +33,7 @@ import warp as wp
 from conftest import DEVICE
 from volren.cli import main
 from volren.device import init_warp
+from volren.errors import VolrenError
 
 BASE = ("--width", "24", "--height", "16", "--samples", "16", "--light-samples", "8", "--device", "cpu")
 """Tiny settings every method takes (render's built-in scenes default to 64 voxels per axis; --volume and fog
@@ -925,21 +926,37 @@ def test_one_dcm_file_renders_its_series(capfd, tmp_path: Path) -> None:
 
 
 def test_one_dcm_file_refused_naming_it(capfd, tmp_path: Path) -> None:
-    """A .dcm file whose folder holds two series, or a .dcm that is no DICOM: one line naming the file given."""
+    """A .dcm that is no DICOM, or one whose series has a gap: one line naming the file given."""
     from test_loaders import write_dicom_series
 
-    write_dicom_series(tmp_path / "ct", [(0, 0, z) for z in (0.0, 2.0, 4.0)], size=(4, 4), radius=1.0, series="1.2.3")
-    write_dicom_series(tmp_path / "b", [(0, 0, z) for z in (0.0, 2.0)], size=(4, 4), radius=1.0, series="1.2.4")
-    for f in (tmp_path / "b").iterdir():
-        f.rename(tmp_path / "ct" / f"b{f.name}")
-    file = tmp_path / "ct" / "im001.dcm"
-    render_error(capfd, tmp_path, ["--volume", file], f"--volume {file}: reading the DICOM series in its folder: "
-                 f"{tmp_path / 'ct'}: holds 2 DICOM series (first files bim000.dcm, im000.dcm); put each series in its "
-                 "own folder")
     (tmp_path / "junk").mkdir()
     (tmp_path / "junk" / "j.dcm").write_bytes(GARBAGE)
     render_error(capfd, tmp_path, ["--volume", tmp_path / "junk" / "j.dcm"], f"--volume {tmp_path / 'junk' / 'j.dcm'}",
-                 "j.dcm is not a DICOM file")
+                 "j.dcm: not a DICOM file")
+    write_dicom_series(tmp_path / "gap", [(0, 0, z) for z in (0.0, 2.0, 6.0)], size=(4, 4), radius=1.0)
+    file = tmp_path / "gap" / "im001.dcm"
+    render_error(capfd, tmp_path, ["--volume", file], f"--volume {file}: reading the DICOM series in its folder: "
+                 f"{tmp_path / 'gap'}: uneven slice spacing")
+
+
+def test_one_dcm_file_picks_its_series_among_several(tmp_path: Path) -> None:
+    """A folder holding two series (as scanners export them): ``--volume ct/FILE.dcm`` reads FILE's series only; the
+    folder itself stays refused, naming both series."""
+    from test_loaders import write_dicom_series
+    from volren.cli import build_parser, scene_from_args
+
+    write_dicom_series(tmp_path / "ct", [(0, 0, z) for z in (0.0, 2.0, 4.0)], size=(4, 4), radius=1.0, series="1.2.3")
+    write_dicom_series(tmp_path / "b", [(0, 0, z) for z in (0.0, 3.0)], size=(6, 5), radius=1.0, series="1.2.4")
+    for f in (tmp_path / "b").iterdir():
+        f.rename(tmp_path / "ct" / f"b{f.name}")
+
+    def shape(path: Path) -> tuple[int, ...]:
+        return scene_from_args(build_parser().parse_args(["render", "--volume", str(path)])).volumes[0].density.shape
+
+    assert shape(tmp_path / "ct" / "im001.dcm") == (3, 4, 4)
+    assert shape(tmp_path / "ct" / "bim001.dcm") == (2, 6, 5)
+    with pytest.raises(VolrenError, match="holds 2 DICOM series"):
+        shape(tmp_path / "ct")
 
 
 def test_volume_beyond_float32_range(capfd, tmp_path: Path) -> None:

@@ -240,8 +240,13 @@ def test_unplaced_formats_keep_their_aspect(tmp_path: Path) -> None:
         load_volume(tmp_path / "p.nrrd", spacing=(1, 1, 1))
     with pytest.raises(VolrenError, match=r"spacing must be three positive voxel sizes x,y,z"):
         load_volume(tmp_path / "a.npy", spacing=(1, 0, 1))
-    with pytest.raises(VolrenError, match=r"units must be one of m, mm, got 'cm'"):
-        load_volume(tmp_path / "a.npy", units="cm")
+    # centimetres and microns (microscopy): the same spacing, scaled
+    np.testing.assert_allclose(load_volume(tmp_path / "a.npy", spacing=(1, 1, 3), units="cm").to_world[:3, :3],
+                               np.diag([0.2, 0.1, 0.15]))
+    np.testing.assert_allclose(load_volume(tmp_path / "a.npy", spacing=(1, 1, 3), units="um").to_world[:3, :3],
+                               np.diag([2e-5, 1e-5, 1.5e-5]))
+    with pytest.raises(VolrenError, match=r"units must be one of m, cm, mm, um, got 'km'"):
+        load_volume(tmp_path / "a.npy", units="km")
 
 
 def test_non_square_spacing_nrrd_keeps_its_aspect(tmp_path: Path) -> None:

@@ -137,8 +137,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
         src.add_argument("--spacing", type=vec3, help="voxel size x,y,z in --units for .npy .npz raw files, or to "
                          "replace a .tif's or .nvdb's own (default: what the file stores, else cubic voxels, longest "
                          "side 2 m)")
-        src.add_argument("--units", choices=("m", "mm"), help="unit of the file's coordinates and --spacing "
-                         "(default: what the file states, e.g. a TIFF's microns, else mm)")
+        src.add_argument("--units", choices=("m", "cm", "mm", "um"), help="unit of the file's coordinates and "
+                         "--spacing (default: what the file states, e.g. a TIFF's microns, else mm)")
     # None unless given, so --volume and the fog scenes (which take no voxel count) can refuse it
     src.add_argument("--resolution", type=int, default=128 if demo else None, help="built-in volume scenes: voxels "
                      f"per axis, 64-512{'' if demo else f' (default: {DEFAULT_RESOLUTION})'}")
@@ -434,12 +434,13 @@ def rect_light(x: float, y: float, z: float, width: float, height: float, radian
 
 def _load_volume(path: Path, shape, dtype, spacing, units):
     """``--volume`` read once: the scene and the default camera framing both need it (keyed on the file's mtime too,
-    so a rewritten file is read again). One ``.dcm`` file stands for its series: the DICOM folder holding it."""
+    so a rewritten file is read again). One ``.dcm`` file stands for its series: the files of its folder with its
+    SeriesInstanceUID (other series beside it are skipped)."""
     dicom_file = path.suffix.lower() == ".dcm" and path.is_file()
     source = path.parent if dicom_file else path
     stamp = source.stat().st_mtime_ns if source.exists() else None
     try:
-        return _load_volume_cached(source, stamp, shape, dtype, spacing, units)
+        return _load_volume_cached(path, stamp, shape, dtype, spacing, units)
     except VolrenError as exc:
         if not dicom_file:
             raise

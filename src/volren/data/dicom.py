@@ -32,8 +32,10 @@ def _vector(ds, keyword: str, count: int, folder: Path, file: Path) -> np.ndarra
     return np.asarray([float(v) for v in value], dtype=np.float64)
 
 
-def read_dicom_series(folder: Path):
-    """Read the series in ``folder`` as a ``volren.data.loaders._Grid`` (values float32, rescaled; index -> LPS mm)."""
+def read_dicom_series(folder: Path, member: Path | None = None):
+    """Read the series in ``folder`` as a ``volren.data.loaders._Grid`` (values float32, rescaled; index -> LPS mm).
+    With ``member`` (one of its files), read that file's series (its SeriesInstanceUID) and skip the folder's other
+    series; without it, a folder of several series is refused."""
     import pydicom  # lazy: only DICOM users pay for the import
     from pydicom.errors import InvalidDicomError
 
@@ -42,10 +44,19 @@ def read_dicom_series(folder: Path):
     files = _series_files(folder)
     if not files:
         raise VolrenError(f"{folder}: empty folder; a DICOM series needs its slice files (.dcm)")
+    wanted = None
+    if member is not None:
+        try:
+            wanted = str(getattr(pydicom.dcmread(member, stop_before_pixels=True), "SeriesInstanceUID", ""))
+        except InvalidDicomError:
+            raise VolrenError(f"{member}: not a DICOM file") from None
     slices = []
     series: dict[str, Path] = {}  # SeriesInstanceUID -> its first file
     for file in files:
         try:
+            if wanted is not None and str(getattr(pydicom.dcmread(file, stop_before_pixels=True),
+                                                  "SeriesInstanceUID", "")) != wanted:
+                continue  # another series in the same folder
             ds = pydicom.dcmread(file)
             pixels = ds.pixel_array if "PixelData" in ds else None
         except InvalidDicomError:

@@ -30,7 +30,7 @@ _MAX_NVDB_VOXELS = 1 << 30
 """A dense copy of a sparse grid larger than this (4 GiB of float32) is refused rather than exhausting memory."""
 
 
-UNITS = {"m": 1.0, "mm": 1e-3}
+UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
 """``--units``: metres per unit of the file's coordinates (or of ``spacing``)."""
 _FILE_UNITS = {"m": 1.0, "meter": 1.0, "cm": 1e-2, "mm": 1e-3, "millimeter": 1e-3, "um": 1e-6, "micron": 1e-6,
                "microns": 1e-6, "µm": 1e-6, "\\u00b5m": 1e-6, "nm": 1e-9}
@@ -339,7 +339,8 @@ def load_volume(
     ImagePositionPatient / ImageOrientationPatient / PixelSpacing and the slice positions (LPS); anatomical frames
     map to the world as the module docstring says; ImageJ TIFF voxel sizes (centred) and the NanoVDB index-to-world
     map. Units: what the file states (NRRD ``space units``, NIfTI ``xyzt_units``, ImageJ ``unit``), else millimetres
-    (DICOM is always mm; NanoVDB states none); ``units`` ("m" or "mm") overrides both. ``spacing`` = voxel size
+    (DICOM is always mm; NanoVDB states none); ``units`` (a key of ``UNITS``) overrides both. A ``.dcm`` file is
+    read as its series (the files of its folder with its SeriesInstanceUID). ``spacing`` = voxel size
     (x, y, z) in ``units`` (default mm) places ``.npy``, ``.npz``, raw, ``.tif``/``.tiff`` and ``.nvdb`` (replacing
     what a TIFF or NanoVDB stores), centred on the origin; without it and without a stored placement they get cubic
     voxels with the longest side 2 m, centred. ``spacing`` is refused for NRRD, NIfTI and DICOM.
@@ -357,6 +358,12 @@ def load_volume(
         if shape is not None or dtype is not None:
             raise VolrenError(f"{path}: shape/dtype apply to raw binary files only; a DICOM series stores its own")
         grid = read_dicom_series(path)
+    elif path.suffix.lower() == ".dcm" and path.is_file():  # one slice stands for its series, in its folder
+        from volren.data.dicom import read_dicom_series
+
+        if shape is not None or dtype is not None:
+            raise VolrenError(f"{path}: shape/dtype apply to raw binary files only; a DICOM series stores its own")
+        grid = read_dicom_series(path.parent, member=path)
     else:
         grid = _read_file(path, shape, dtype)
     if grid.index_to_file is not None and spacing is not None and not grid.spacing_replaces:
