@@ -42,6 +42,8 @@ TINY = (*BASE, "--light-grid", "16")
 """Tiny settings for dssrm and demo (reference takes no --light-grid)."""
 W, H = 24, 16
 SCENES = ("smoke", "cloud", "phantom", "multi")
+LISTED_SCENES = (*SCENES, "instances", "instances-overlap", "smoke-floor")
+"""every built-in volume scene in `volren scenes` order (SCENES: those rendered one by one here)"""
 FOG_SCENE_NAMES = ("hall", "courtyard", "dynamic")
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
             "shadow_rays", "shadow_voxels", "box_tests", "tile_box_tests", "bvh_queries", "joint_rays",
@@ -506,7 +508,7 @@ def test_environment_image(capfd, tmp_path: Path, baseline: np.ndarray) -> None:
 def test_scenes_lists_builtins(capfd) -> None:
     r = ok(capfd, "scenes")
     names = [line.split()[0] for line in r.out.splitlines() if line.strip()]
-    assert names == [*SCENES, *FOG_SCENE_NAMES]
+    assert names == [*LISTED_SCENES, *FOG_SCENE_NAMES]
 
 
 def _images(tmp_path: Path) -> tuple[Path, Path]:
@@ -677,7 +679,7 @@ def test_console_script(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert done.stderr == ""
     assert "Traceback" not in done.stdout
-    assert [line.split()[0] for line in done.stdout.splitlines()] == [*SCENES, *FOG_SCENE_NAMES]
+    assert [line.split()[0] for line in done.stdout.splitlines()] == [*LISTED_SCENES, *FOG_SCENE_NAMES]
     bad = subprocess.run([exe, "render", "--device", "tpu"], capture_output=True, text=True, timeout=120,
                          cwd=tmp_path)
     assert bad.returncode == 2
@@ -745,7 +747,8 @@ BAD_RENDER_ARGS = {
     "unknown-option": (["--bogus-option"], ["unrecognized arguments", "--bogus-option"]),
     # issue 13 item 10: every message names the flag and what is wrong
     "unknown-scene-lists-all": (["--scene", "tornado"], ["--scene: unknown scene 'tornado': choose from smoke, cloud, "
-                                                         "phantom, multi, hall, courtyard, dynamic"]),
+                                                         "phantom, multi, instances, instances-overlap, smoke-floor, "
+                                                         "hall, courtyard, dynamic"]),
     "mesh-scale-0": (["--mesh-scale", "0"], ["--mesh-scale must be a positive number, got 0"]),
     "mesh-scale-negative": (["--mesh-scale", "-2"], ["--mesh-scale must be a positive number, got -2"]),
     "rig-with-stereo": (["--rig", "wander", "--views", "stereo"], ["--rig wander places N viewers, not --views "
