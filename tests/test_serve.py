@@ -380,3 +380,46 @@ def test_settings_switch_the_method_for_everyone():
             await w.close()
 
     run(test)
+
+
+def test_majorants_rebuilt_only_for_a_new_transfer_function():
+    """VPT's majorant octrees are built on the first tick, reused while the transfer function stays, and rebuilt
+    when a viewer switches it."""
+    async def test(client, loop):
+        ws, _ = await connect(client)
+        await ws.send_json({"type": "settings", "method": "vpt"})
+        passes = []
+        for i, tf in enumerate((None, None, "smoke", None)):
+            if tf is not None:
+                await ws.send_json({"type": "settings", "tf": tf})
+            await ws.send_json(cam_msg(i + 1, 0.1 * i))
+            header, image = await frame_for(ws, i + 1)
+            passes.append("majorants" in header["pass_ms"])
+        assert passes == [True, False, True, False]
+        assert loop.renderer.config.transfer == "smoke" and image.std() > 5
+        await ws.close()
+
+    run(test)
+
+
+def test_naive_mode_renders_each_viewer_alone():
+    """shared=False (the benchmark's naive server): one render call per viewer and tick, each viewer with its own
+    renderer; the images are the same."""
+    async def test(client, loop):
+        viewers = [(await connect(client))[0] for _ in range(2)]
+        for i, ws in enumerate(viewers):
+            await ws.send_json(cam_msg(1 + i, 0.3 * i))
+        for i, ws in enumerate(viewers):
+            await frame_for(ws, 1 + i)
+        renders, ticks = loop.renders, loop.tick  # from here on every tick has both viewers
+        for i, ws in enumerate(viewers):
+            await ws.send_json(cam_msg(3 + i, 0.3 * i + 0.1))
+        images = [(await frame_for(ws, 3 + i))[1] for i, ws in enumerate(viewers)]
+        assert loop.tick > ticks and loop.renders - renders == 2 * (loop.tick - ticks)
+        for i, image in enumerate(images):
+            assert db(offline(cam_msg(3 + i, 0.3 * i + 0.1)), image) > 40.0
+        assert len(loop._own) == 2 and loop._own[1] is not loop._own[2]
+        for ws in viewers:
+            await ws.close()
+
+    run(test, shared=False)

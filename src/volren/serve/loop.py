@@ -120,6 +120,8 @@ class RenderLoop:
         self.version = 0
         """bumped by every change of the shared scene or settings; a viewer shown an older one needs a frame"""
         self._renderer_key: tuple | None = None
+        self._config: Any = None
+        self._renderer_cls: Any = None
         self.renderer: Any = None
         self._own: dict[int, Any] = {}
         """shared=False: viewer id -> that viewer's renderer"""
@@ -142,20 +144,30 @@ class RenderLoop:
     # ---- settings -------------------------------------------------------------------------------------------
 
     def _build_renderer(self) -> None:
-        key = (self.method, self.quality, self.tf)
-        if key == self._renderer_key:
-            return
+        """The renderer(s) for the current method and quality. A transfer-function switch only replaces the config's
+        ``transfer`` (as `volren animate` does), so a renderer keeps its history (VPT's denoiser) and rebuilds its
+        majorants itself."""
         cls, config_cls = METHODS[self.method]
         fields = {f.name for f in dataclasses.fields(config_cls)}
-        options = {k: v for k, v in self.overrides.items() if k in fields}
-        if issubclass(config_cls, LightMapMarchConfig):
-            options["reuse_light_map"] = True
-        if "transfer" in fields:
-            options["transfer"] = None if self.tf == DENSITY_TF else self.tf
-        self._make_renderer = lambda: cls(quality_config(self.method, self.quality, **options), device=self.device)
-        self.renderer = self._make_renderer()
-        self._own = {}
-        self._renderer_key = key
+        if (self.method, self.quality) != self._renderer_key:
+            self._renderer_cls = cls
+            options = {k: v for k, v in self.overrides.items() if k in fields}
+            if issubclass(config_cls, LightMapMarchConfig):
+                options["reuse_light_map"] = True
+            self._config = quality_config(self.method, self.quality, **options)
+            self.renderer = self._make_renderer()
+            self._own = {}
+            self._renderer_key = (self.method, self.quality)
+        transfer = None if self.tf == DENSITY_TF else self.tf
+        if "transfer" in fields and self._config.transfer != transfer:
+            self._config = dataclasses.replace(self._config, transfer=transfer)
+            for r in (self.renderer, *self._own.values()):
+                r.config = self._config
+
+    def _make_renderer(self) -> Any:
+        """(also from the worker thread, for a new viewer of the naive server: settings may change meanwhile, so
+        the class and config are those `_build_renderer` fixed for this tick)"""
+        return self._renderer_cls(self._config, device=self.device)
 
     def shared_settings(self) -> dict[str, Any]:
         return {"method": self.method, "quality": self.quality, "tf": self.tf,
