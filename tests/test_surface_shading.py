@@ -146,8 +146,8 @@ def reference_ao() -> np.ndarray:
 
 def test_ao_darkens_the_floor_under_the_plume(reference_ao):
     """No light, ambient 1, albedo 1: the floor's radiance is AO. Brute force (256 rays, L = 128) darkens the floor
-    under the plume to 0.904; the light-map methods' 32 coarse rays (L / 4) darken it as much (measured ratio of
-    the darkening 1.004) and are within 0.036 everywhere (fixed directions: a ray hits or misses the box)."""
+    under the plume to 0.904; the light-map methods' 32 coarse rays (L / 8) darken it as much (measured ratio of
+    the darkening 0.998) and are within 0.036 everywhere (fixed directions: a ray hits or misses the box)."""
     assert reference_ao.min() == pytest.approx(0.904, abs=0.01)
     got = ambient_occlusion(DSSRM(DSSRMConfig(samples=64, light_samples=128), device=DEVICE))
     under = reference_ao < 0.95

@@ -51,8 +51,9 @@ SURFACE_LIGHT_MAP = wp.constant(1)
 SURFACE_BRUTE_FORCE = wp.constant(2)
 AO_RAYS = 32
 """cosine-distributed AO directions per surface point of the light-map methods"""
-AO_COARSE = 4
-"""the light-map methods' AO rays march with 1/AO_COARSE of the light samples (GI's coarse step)"""
+AO_COARSE = 8
+"""the light-map methods' AO rays march with 1/AO_COARSE of the light samples: measured on the smoke over a floor
+(32 rays), max AO error 0.0350 at L / 8 and 0.0353 at L / 4, mean 0.0099 and 0.0098, a third less time"""
 REFERENCE_AO_RAYS = 256
 SH_AO_METHODS = ("prt", "brute")
 """GI methods whose SH grid gives the surfaces' AO: those that project many rays per voxel. The per-frame methods'
