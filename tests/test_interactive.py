@@ -145,3 +145,34 @@ def test_interactive_preset_keeps_the_reference_psnr(smoke):
                for q in ("interactive", "default")}
     assert quality["default"] > 51.0
     assert quality["interactive"] > quality["default"] - 0.5
+
+
+def test_interactive_bench_rows_at_toy_size():
+    """The suite's rows at 48x27 (timings unchecked): skipping changes the work, never the image."""
+    from volren.bench.interactive import RUNS, run_config
+
+    result = run_config({"resolution": 64, "size": (48, 27), "views": "mono", "repeats": 1, "reference": 64}, "cpu")
+    rows = {(r["method"], r["quality"], r["skip"]): r for r in result["rows"]}
+    assert len(rows) == len(RUNS)
+    on, off = rows["dssrm", "interactive", "on"], rows["dssrm", "interactive", "off"]
+    assert on["psnr"] == off["psnr"] and off["skipped_steps"] == 0
+    assert on["density_samples"] + on["skipped_steps"] == off["density_samples"]
+    assert all(r["fps"] == pytest.approx(1e3 / r["render_ms"]) for r in rows.values())
+
+
+def test_kept_render_targets_are_cleared_and_frames_keep_their_images(smoke):
+    """A renderer keeps its views' render targets between frames: a frame clipped by a depth image, then one without
+    it from another eye, each equal a fresh renderer's, and the first frame's arrays are not overwritten."""
+    cams = [Camera(position=(0.0, 0.4, 3.2), width=40, height=24), Camera(position=(0.5, 0.2, 3.0), width=40,
+                                                                          height=24)]
+    wall = np.full((24, 40), 3.0, np.float32)
+    config = DSSRMConfig(samples=64, light_samples=16, light_grid=16)
+    kept = DSSRM(config, DEVICE)
+    first = kept.render(smoke, cams[:1], occluder_depth=[wall])
+    image, depth = first.images[0].copy(), first.depths[0].copy()
+    second = kept.render(smoke, cams[1:])
+    np.testing.assert_array_equal(first.images[0], image)
+    np.testing.assert_array_equal(first.depths[0], depth)
+    np.testing.assert_array_equal(second.images[0], DSSRM(config, DEVICE).render(smoke, cams[1:]).images[0])
+    np.testing.assert_array_equal(image, DSSRM(config, DEVICE).render(smoke, cams[:1], occluder_depth=[wall]).images[0])
+    assert not np.array_equal(image, second.images[0])

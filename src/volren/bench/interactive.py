@@ -1,0 +1,92 @@
+"""Suite ``interactive``: frames per second of one viewer of the default scene (smoke 64^3, the CLI's default eye) per
+method and quality preset, with and without empty-space skipping (issue 15 item 4: >= 10 fps at 480x270 on two CPU
+cores; on a GPU, 1080p stereo at headset rates).
+
+Frames per second = 1 / the median wall time of a whole ``render`` call on a warm renderer, the scene unchanged (so
+the interactive preset's light map, kept while the scene stands still, is computed in the warm-up frame only). On
+the CPU each row also gives the process CPU time per frame (all threads), the figure least disturbed by other jobs
+on a shared machine, and the median time of each pass. Work: density samples, steps skipped, light samples (exact
+counters). Quality: PSNR of the (left) image against the reference renderer at the same size.
+Quick (CPU): 480x270 mono. Full (GPU): 1920x1080 stereo.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from typing import Any
+
+from volren.bench import NOT_PASSES, Suite
+from volren.camera import Camera, make_views
+from volren.data import builtin_scene
+from volren.metrics import psnr
+from volren.presets import quality_config
+from volren.render import METHODS, Reference, ReferenceConfig
+
+EYE = (0.0, 0.4, 3.2)
+"""The CLI's default camera position (``--camera-pos``)."""
+QUICK = {"resolution": 64, "size": (480, 270), "views": "mono", "repeats": 10, "reference": 1024}
+FULL = {"resolution": 64, "size": (1920, 1080), "views": "stereo", "repeats": 20, "reference": 1024}
+RUNS = [("dssrm", "interactive", True), ("dssrm", "interactive", False), ("dssrm", "default", True),
+        ("dssrm", "default", False), ("cmsrm", "interactive", True), ("cmsrm", "default", True),
+        ("cacrm", "interactive", True), ("cacrm", "default", True), ("vpt", "interactive", None),
+        ("vpt", "default", None)]
+"""(method, quality, empty-space skipping: on, off, or None where the method has no such switch)"""
+GOAL_FPS = 10.0
+
+
+def time_frames(renderer, scene, views: list[Camera], repeats: int) -> dict[str, Any]:
+    """Wall and CPU time per whole ``render`` call after a warm-up frame, median pass times, the last frame."""
+    renderer.render(scene, views)
+    walls, cpus, frames = [], [], []
+    for i in range(repeats):
+        wall, cpu = time.perf_counter(), time.process_time()
+        frames.append(renderer.render(scene, views, frame=i + 1))
+        cpus.append(time.process_time() - cpu)
+        walls.append(time.perf_counter() - wall)
+    passes = sorted({k for f in frames for k in f.stats.times_ms if k not in NOT_PASSES})
+    wall_ms = 1e3 * statistics.median(walls)
+    return {"fps": 1e3 / wall_ms, "render_ms": wall_ms, "render_min_ms": 1e3 * min(walls),
+            "cpu_ms": 1e3 * statistics.median(cpus),
+            **{f"{k}_ms": statistics.median(f.stats.times_ms.get(k, 0.0) for f in frames) for k in passes},
+            "frame": frames[-1]}
+
+
+def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
+    scene = builtin_scene("smoke", cfg["resolution"])
+    width, height = cfg["size"]
+    views = make_views(Camera(position=EYE, width=width, height=height), cfg["views"])
+    reference = Reference(ReferenceConfig(samples=cfg["reference"], light_samples=cfg["reference"]), device)
+    ref = reference.render(scene, views[:1]).images[0]
+    rows = []
+    for method, quality, skip in RUNS:
+        options = {} if skip is None else {"skip_empty": skip}
+        config = quality_config(method, quality, **options)
+        row = time_frames(METHODS[method][0](config, device), scene, views, cfg["repeats"])
+        frame = row.pop("frame")
+        c = frame.stats.counters
+        settings = {k: getattr(config, k) for k in ("samples", "light_samples", "light_grid", "spp") if
+                    hasattr(config, k)}
+        rows.append({"method": method, "quality": quality, "skip": {None: "", True: "on", False: "off"}[skip],
+                     "settings": ", ".join(f"{k} {v}" for k, v in settings.items()), **row,
+                     "density_samples": c["density_samples"], "skipped_steps": c["skipped_steps"],
+                     "light_samples": c["light_samples"], "psnr": psnr(ref, frame.images[0]),
+                     "goal_met": row["fps"] >= GOAL_FPS})
+    columns = [
+        ("method", "method", "s"), ("quality", "quality", "s"), ("skip", "skipping", "s"),
+        ("settings", "settings", "s"), ("fps", "fps", ".1f"), ("render_ms", "render [ms]", ".1f"),
+        ("render_min_ms", "fastest [ms]", ".1f"), ("cpu_ms", "CPU [ms]", ".1f"),
+        ("light_map_ms", "light map [ms]", ".1f"), ("march_ms", "march [ms]", ".1f"),
+        ("density_samples", "density samples", ","), ("skipped_steps", "skipped steps", ","),
+        ("light_samples", "light samples", ","), ("psnr", "PSNR [dB]", ".2f"),
+    ]
+    settings = {"scene": "smoke", **cfg, "size": f"{width}x{height}", "camera": list(EYE), "goal_fps": GOAL_FPS}
+    return {"settings": settings, "rows": rows, "columns": columns}
+
+
+def run(quick: bool, device: str) -> dict[str, Any]:
+    return run_config(QUICK if quick else FULL, device)
+
+
+SUITE = Suite("interactive", "frames per second of one viewer of the default scene per method and quality preset, "
+              "empty-space skipping on and off (issue 15 item 4)", run)
