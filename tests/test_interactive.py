@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+from math import inf
 
 import numpy as np
 import pytest
@@ -153,7 +154,9 @@ def test_interactive_bench_rows_at_toy_size():
 
     result = run_config({"resolution": 64, "size": (48, 27), "views": "mono", "repeats": 1, "reference": 64}, "cpu")
     rows = {(r["method"], r["quality"], r["skip"]): r for r in result["rows"]}
-    assert len(rows) == len(RUNS)
+    assert len(rows) == len(RUNS) + 2  # and fog on hall: default, interactive
+    fog = rows["fog", "interactive", ""]
+    assert fog["scene"] == "hall" and fog["psnr_against"] == "fog default" and rows["fog", "default", ""]["psnr"] == inf
     on, off = rows["dssrm", "interactive", "on"], rows["dssrm", "interactive", "off"]
     assert on["psnr"] == off["psnr"] and off["skipped_steps"] == 0
     assert on["density_samples"] + on["skipped_steps"] == off["density_samples"]
