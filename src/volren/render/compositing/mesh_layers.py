@@ -15,6 +15,15 @@ those pixels miss the dropped layers' colour and attenuation, and ``dropped`` co
 renderer can report how many it lost. The paper requires closed meshes and reads the layers in pairs (entry, exit);
 here every layer stands alone, so open sheets (a quad) and meshes that enclose a volume's samples work too.
 
+DSSRM (paper 000 Fig. 9's ground truth) marches each box with `march_between_layers`. The cube methods depart from
+the paper: instead of texel rays storing a segmented transmittance per mesh depth of the pixel they project to (a cube
+k-buffer, blended in the integration pass as c = c^V + c^M), their resampling pass blends the layers in front of and
+behind a box around its cube-map sample, and a pixel with a layer inside a cube-scheme box marches that box directly
+(`MeshLayers.direct`). Exact per pixel, at the price of direct marching there: with the two sheets of `volren bench
+binocular` (one cutting the smoke's box) 4,418 of 64,800 pixels (6.8%; 24% of the pixels with a layer) at 240x135
+stereo. In a joint run of overlapping boxes (`volren.render.compositing.oit.march_joint`) layers are blended after
+the run, not where they lie.
+
 The reference renderer does not use the k-buffer: it walks the hits along each ray exactly (`next_layer`), any number
 of them.
 """
