@@ -17,7 +17,8 @@ second over all clients and the slowest client's, round-trip latency (camera sen
 median and 95th percentile over all clients, and the worst client's p95), bytes per second received.
 Goals (issue 15), measured in one run: at 8 clients the shared server delivers >= 1.5x the naive server's total
 frames per second, and no client's p95 latency exceeds 3 frame times (the shared run's tick time).
-Full (GPU): 256^3 smoke, 480x270 per eye, 3 windows of 10 s per point and server. Quick (CPU): 64^3 smoke, 160x90 per eye, 2 windows of 3 s per point and server.
+Full (GPU): 256^3 smoke, 480x270 per eye, 3 windows of 10 s per point and server.
+Quick (CPU): 64^3 smoke, 160x90 per eye, 2 windows of 3 s per point and server.
 """
 
 from __future__ import annotations
