@@ -40,6 +40,7 @@ import numpy as np
 import warp as wp
 
 from volren.camera import Camera
+from volren.device import launch_rows
 from volren.kernels.common import (
     INF,
     CameraGPU,
@@ -275,11 +276,13 @@ def tile_layers_kernel(
     tile_ids: wp.array2d(dtype=int),
     tile_count: wp.array(dtype=int),
     counter_rows: wp.array2d(dtype=wp.int64),
+    row0: int,
 ):
     """Phase 1 of the tiled k-buffer: one view-space ray through each tile's centre against the BVH over the
     conservative boxes; the tile keeps the K nearest instance IDs (by entry into the enlarged box) in order."""
-    ty, tx = wp.tid()
-    counters = counter_row(counter_rows, ty, tx)
+    r, tx = wp.tid()
+    counters = counter_row(counter_rows, r, tx)
+    ty = r + row0
     x = ((float(tx) + 0.5) * float(tile_w) / float(cam.width) * 2.0 - 1.0) * cam.tan_half_fov * cam.aspect
     y = (1.0 - (float(ty) + 0.5) * float(tile_h) / float(cam.height) * 2.0) * cam.tan_half_fov
     d = wp.vec3(x, y, 1.0)
@@ -370,8 +373,8 @@ class LayerFinder:
             bvh = wp.Bvh(lo_d, hi_d)
             p.tile_ids = wp.zeros((tiles.tiles_x * tiles.tiles_y, self.k), dtype=int, device=self.device)
             p.tile_count = wp.zeros(tiles.tiles_x * tiles.tiles_y, dtype=int, device=self.device)
-            wp.launch(tile_layers_kernel, dim=(tiles.tiles_y, tiles.tiles_x),
-                      inputs=[camera_struct(cam), bvh.id, lo_d, hi_d, tiles.tile_w, tiles.tile_h, tiles.tiles_x,
-                              self.k, p.tile_ids, p.tile_count, clock.counters], device=self.device)
+            launch_rows(tile_layers_kernel, tiles.tiles_y, tiles.tiles_x,
+                        [camera_struct(cam), bvh.id, lo_d, hi_d, tiles.tile_w, tiles.tile_h, tiles.tiles_x, self.k,
+                         p.tile_ids, p.tile_count], self.device, clock.counters)
         self._keep = (bvh, lo_d, hi_d)
         return p
