@@ -19,6 +19,8 @@ KERNEL_MODULES = [
     "volren.render.marching.cmsrm",
     "volren.render.marching.cacrm",
     "volren.render.marching.interleave",
+    "volren.render.marching.culling",
+    "volren.render.compositing.oit",
     "volren.render.fog.renderer",
     "volren.render.fog.froxels",
     "volren.render.vpt.tracer",
