@@ -179,6 +179,11 @@ def test_alpha_is_validated_and_other_methods_refuse():
         quad(0.0, 1.5)
     with pytest.raises(VolrenError, match="draws no translucent meshes"):
         VPT(device=DEVICE).render(slab_scene(quad(0.0, 0.5)), [axis_camera()])
+    from volren.render import DSSRMConfig
+
+    for k in (0, 65, 10**9):  # 10^9 layers would ask for 20 GB per megapixel
+        with pytest.raises(VolrenError, match=r"mesh_layers .* must be an integer in \[1, 64\]"):
+            DSSRMConfig(mesh_layers=k)
 
 
 def test_mesh_alpha_option(tmp_path):

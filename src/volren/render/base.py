@@ -37,6 +37,8 @@ OIT_SCHEMES = ("tiled", "pixel-rt", "pixel-sort")
 MAX_OIT_K = 16
 """layers a pixel keeps in registers (`volren.render.compositing.oit.LayerIds`)"""
 
+MAX_MESH_LAYERS = 64
+"""Cap on K of the mesh k-buffer: K x 20 bytes per pixel; paper 000 §3.3 keeps a few layers."""
 MAX_SAMPLES = 65536
 """Cap on V and L: kernels count steps in 32-bit ints, and more samples than this per diagonal buys nothing."""
 
@@ -80,8 +82,10 @@ class LightMapMarchConfig:
     """empty-space skipping: the march leaves out steps in empty cells of the max-density grid (same image)"""
 
     def __post_init__(self) -> None:
-        if isinstance(self.mesh_layers, bool) or int(self.mesh_layers) != self.mesh_layers or self.mesh_layers < 1:
-            raise VolrenError(f"mesh_layers (K of the mesh k-buffer) must be an integer >= 1, got {self.mesh_layers}")
+        if (isinstance(self.mesh_layers, bool) or int(self.mesh_layers) != self.mesh_layers
+                or not 1 <= self.mesh_layers <= MAX_MESH_LAYERS):
+            raise VolrenError(f"mesh_layers (K of the mesh k-buffer) must be an integer in [1, {MAX_MESH_LAYERS}], "
+                              f"got {self.mesh_layers}")
         if self.oit not in OIT_SCHEMES:
             raise VolrenError(f"oit must be one of {', '.join(OIT_SCHEMES)}, got '{self.oit}'")
         if isinstance(self.oit_k, bool) or int(self.oit_k) != self.oit_k or not 1 <= self.oit_k <= MAX_OIT_K:
