@@ -17,10 +17,16 @@ Mesh occlusion (§3.2): each texel ray stops at the opaque surface of the z-buff
 edge-stopping w_z = max(1 - k_z |z_buffer - z_cube|, 0) (k_z = 0.5) so that texels cut at a different depth than
 the pixel's own ray do not bleed across occlusion edges (the halo of plain bilinear).
 
-Frustum culling (§3.4's culling pass, per volume and view): a box that a frustum plane or a box face plane separates
-from the view frustum (`frustum_visible`) gets no cube map, no tiles and no rays, and is left out of the per-pixel
-loop; without it a box behind the eye counted as covering the viewport, and with the hybrid off a cloud 30 m to the
-side cost 8,192 texel rays for no visible pixel.
+Frustum culling (§3.4's culling pass, per volume and view, on the device with the LOD, scheme and face mask in
+`volren.render.marching.culling`; `frustum_visible` is its host reference): a box that a frustum plane or a box face
+plane separates from the view frustum gets no cube map, no tiles and no rays, and no pixel ray meets it; without it a
+box behind the eye counted as covering the viewport, and with the hybrid off a cloud 30 m to the side cost 8,192
+texel rays for no visible pixel.
+
+Several volumes (§3.4's ray-traced multi-volume pass, issue 14): each pixel takes the boxes its ray meets in ray
+order from `volren.render.compositing.oit` (tiled k-buffer, per-pixel BVH queries or per-pixel sorting); a
+cube-scheme box alone on its stretch of the ray is read from its cube map, a run of boxes overlapping along the ray is
+marched jointly at N_max (``joint_rays``), since a texel holds only its own volume's march.
 
 Empty-tile culling (paper 000 §3's coarse phase, shared with CACRM): faces are marched in 32x32-texel tiles, and a
 coarse pass drops the tiles whose rays can only meet zero density according to the conservative max-density pyramid
