@@ -54,6 +54,8 @@ CROWD = Scene((
     blob((1.0, 1.0, 1.0), 0.15, (-0.9, -0.4, 1.2)),
 ), (), Environment((0.4, 0.4, 0.4)))
 CROWD_CAM = Camera(position=(0.2, 0.3, 2.6), look_at=(-0.1, 0.0, 0.0), width=W, height=H)
+INSIDE_CAM = Camera(position=(0.1, 0.0, -1.2), look_at=(-0.2, 0.1, 1.0), width=W, height=H)
+"""inside the sixth (rotated) box of CROWD, looking at the others: boxes crossing the near plane cover every tile"""
 RNG = np.random.default_rng(7)
 SLABS = Scene(tuple(blob((1.0, 0.5, 0.2), (*RNG.uniform(0.1, 0.35, 2), 0.01), (*RNG.uniform(-1.0, 1.0, 2), z))
                     for z in np.linspace(-1.0, 1.0, 10)), (), Environment((0.4, 0.4, 0.4)))
@@ -63,6 +65,7 @@ FRONT = blob((2.0, 0.2, 0.2), 0.4, (0.0, 0.0, 0.6))
 BACK = blob((0.2, 0.2, 2.0), 0.4, (0.0, 0.0, -0.6))
 AXIS_CAM = Camera(position=(0.0, 0.0, 3.0), width=W, height=H)
 """on the axis of FRONT and BACK: every ray that meets BACK meets FRONT first"""
+VIEWS = {"crowd": (CROWD, CROWD_CAM), "inside": (CROWD, INSIDE_CAM), "slabs": (SLABS, AXIS_CAM)}
 
 
 def make(method: str, scheme: str, k: int = 8):
@@ -80,9 +83,9 @@ def small_tiles(monkeypatch):
 
 
 @pytest.mark.parametrize(("method", "scene"), [("dssrm", "crowd"), ("cmsrm", "crowd"), ("cacrm", "crowd"),
-                                               ("dssrm", "slabs")])
+                                               ("dssrm", "slabs"), ("dssrm", "inside"), ("cmsrm", "inside")])
 def test_schemes_agree_bit_for_bit(method: str, scene: str, small_tiles) -> None:
-    scene, cam = {"crowd": (CROWD, CROWD_CAM), "slabs": (SLABS, AXIS_CAM)}[scene]
+    scene, cam = VIEWS[scene]
     images = [make(method, s).render(scene, [cam]).images[0] for s in SCHEMES]
     assert (images[0][..., 3] > 1e-3).sum() > 200, "the boxes cover much of the image"
     for scheme, image in zip(SCHEMES[1:], images[1:], strict=True):
@@ -90,11 +93,11 @@ def test_schemes_agree_bit_for_bit(method: str, scene: str, small_tiles) -> None
 
 
 @pytest.mark.parametrize("layout", [SMALL_TILES, (6, 4)])
-@pytest.mark.parametrize("scene", ["crowd", "slabs"])
+@pytest.mark.parametrize("scene", VIEWS)
 def test_tile_kbuffer_holds_every_box_touching_the_tile(scene: str, layout, monkeypatch) -> None:
     """Phase 1 is conservative: each pixel's boxes (found by testing every box) are in its tile's list."""
     monkeypatch.setattr(oit, "TILE_LAYOUT", layout)
-    scene, cam = {"crowd": (CROWD, CROWD_CAM), "slabs": (SLABS, AXIS_CAM)}[scene]
+    scene, cam = VIEWS[scene]
     ds = upload_scene(scene, DEVICE)
     p = oit.LayerFinder("tiled", 16, DEVICE).params(ds, cam, PassClock(DEVICE))
     ids, counts = p.tile_ids.numpy(), p.tile_count.numpy()
