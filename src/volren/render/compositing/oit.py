@@ -356,6 +356,8 @@ class LayerFinder:
 
     def __init__(self, scheme: str, k: int, device: str) -> None:
         self.scheme, self.k, self.device = scheme, k, device
+        self._keep: tuple = ()
+        """the last view's phase-1 BVH and boxes: `OITParams` holds only the BVH's id, so they must outlive it"""
 
     def params(self, ds: DeviceScene, cam: Camera, clock: PassClock) -> OITParams:
         p = OITParams()
