@@ -356,8 +356,9 @@ class LayerFinder:
 
     def __init__(self, scheme: str, k: int, device: str) -> None:
         self.scheme, self.k, self.device = scheme, k, device
-        self._keep: tuple = ()
-        """the last view's phase-1 BVH and boxes: `OITParams` holds only the BVH's id, so they must outlive it"""
+        self._keep: list = []
+        """every view's phase-1 BVH and boxes (a finder lives one frame): `OITParams` holds only the BVH's id, and
+        on CUDA the view's kernels may still run after the next view's phase 1"""
 
     def params(self, ds: DeviceScene, cam: Camera, clock: PassClock) -> OITParams:
         p = OITParams()
@@ -378,5 +379,5 @@ class LayerFinder:
             launch_rows(tile_layers_kernel, tiles.tiles_y, tiles.tiles_x,
                         [camera_struct(cam), bvh.id, lo_d, hi_d, tiles.tile_w, tiles.tile_h, tiles.tiles_x, self.k,
                          p.tile_ids, p.tile_count], self.device, clock.counters)
-        self._keep = (bvh, lo_d, hi_d)
+        self._keep.append((bvh, lo_d, hi_d))
         return p
