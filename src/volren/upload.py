@@ -156,36 +156,58 @@ def coarse_max_level(vol: Volume) -> np.ndarray:
 
 SKIP_CELL = 4
 """[voxels] edge of an empty-space-skipping cell (`skip_grid`): smaller cells hug the density closer but cost more
-cell lookups per ray. Measured on the smoke 64^3 at 480x270 (docs/BENCHMARKS.md, "interactive")."""
+cell lookups per ray and memory. Measured on the smoke 64^3 at 480x270, DSSRM:160:48, CPU time per frame on one
+thread: cells of 2, 4, 8, 16 voxels took 44.6, 46.6, 47.0, 50.1 ms (docs/BENCHMARKS.md, "interactive"); 4 keeps the
+grid at 1/64 of the density's size."""
+MAX_SKIP_RADIUS = 8
+"""[cells] cap on an empty cell's radius: one lookup skips at most 17 cells, and building the grid takes at most this
+many dilation passes (a 512^3 volume's 128^3 cells)."""
 
 
-def _max3(grid: np.ndarray, pad_mode: str, **pad: float) -> np.ndarray:
-    """Max over each cell's 3x3x3 neighbourhood, separably (three passes of 3), padded by ``np.pad(mode=...)``."""
+def _max3(grid: np.ndarray) -> np.ndarray:
+    """Max over each cell's 3x3x3 neighbourhood (cells outside count as False/0), separably: three passes of 3."""
     for axis in range(3):
         n = grid.shape[axis]
-        padded = np.pad(grid, [(1, 1) if a == axis else (0, 0) for a in range(3)], mode=pad_mode, **pad)
+        padded = np.pad(grid, [(1, 1) if a == axis else (0, 0) for a in range(3)])
         grid = np.maximum(np.maximum(padded.take(range(n), axis), padded.take(range(1, n + 1), axis)),
                           padded.take(range(2, n + 2), axis))
+    return grid
+
+
+def _block_max(grid: np.ndarray, cell: int) -> np.ndarray:
+    """Per block of ``cell`` voxels on each axis, the max over the block widened by one voxel each side (clamped to the
+    grid): the block max of the grid dilated by one voxel, computed axis by axis on the shrinking array."""
+    for axis in range(3):
+        n = grid.shape[axis]
+        blocks = -(-n // cell)
+        if blocks * cell != n:
+            grid = np.pad(grid, [(0, blocks * cell - n) if a == axis else (0, 0) for a in range(3)], mode="edge")
+        split = grid.reshape(*grid.shape[:axis], blocks, cell, *grid.shape[axis + 1:])
+        out = split.max(axis=axis + 1)
+        first, last = split.take(0, axis + 1), split.take(cell - 1, axis + 1)
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[axis], hi[axis] = slice(1, None), slice(None, -1)
+        out[tuple(lo)] = np.maximum(out[tuple(lo)], last[tuple(hi)])  # the left neighbour's last voxel
+        out[tuple(hi)] = np.maximum(out[tuple(hi)], first[tuple(lo)])  # the right neighbour's first voxel
+        grid = out
     return grid
 
 
 def skip_grid(density: np.ndarray, cell: int = SKIP_CELL) -> np.ndarray:
     """The empty-space-skipping grid of a [z, y, x] density: one value per block of ``cell``^3 voxels.
 
-    A non-empty block holds its max density dilated by one voxel (edges clamped, odd ends padded with their last
-    voxel): a trilinear sample reads the 2x2x2 voxels around it, all within one voxel of the voxel holding the point,
-    so a block whose value is 0 reads zero density anywhere in its footprint and up to half a voxel beyond it (the
-    rule of `Volume.max_pyramid`). An empty block holds -r, r >= 0 the chessboard radius of the cube of empty blocks
-    centred on it (blocks outside the grid count as empty): a ray may leave that whole cube at once (proximity
-    clouds, Cohen and Sheffer 1994), so one lookup skips a long empty run."""
-    dilated = _max3(density, "edge")
-    blocks = [-(-n // cell) for n in density.shape]
-    dilated = np.pad(dilated, [(0, b * cell - n) for b, n in zip(blocks, density.shape, strict=True)], mode="edge")
-    peak = dilated.reshape(blocks[0], cell, blocks[1], cell, blocks[2], cell).max(axis=(1, 3, 5))
+    A non-empty block holds its max density dilated by one voxel (edges clamped): a trilinear sample reads the 2x2x2
+    voxels around it, all within one voxel of the voxel holding the point, so a block whose value is 0 reads zero
+    density anywhere in its footprint and up to half a voxel beyond it (the rule of `Volume.max_pyramid`). An empty
+    block holds -r, r >= 0 the chessboard radius of the cube of empty blocks centred on it (blocks outside the grid
+    count as empty; r <= `MAX_SKIP_RADIUS`): a ray may leave that whole cube at once (proximity clouds, Cohen and
+    Sheffer 1994), so one lookup skips a long empty run."""
+    peak = _block_max(density, cell)
     occupied = peak > 0
     radius = np.zeros(peak.shape, np.int32)
-    for r in range(1, max(blocks)):
-        occupied = _max3(occupied, "constant", constant_values=False)
+    for r in range(1, min(max(peak.shape), MAX_SKIP_RADIUS + 1)):
+        occupied = _max3(occupied)
         if occupied.all():
             break
         radius[~occupied] = r
