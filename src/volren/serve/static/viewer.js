@@ -24,6 +24,7 @@ const scale = (a, s) => [a[0] * s, a[1] * s, a[2] * s];
 const norm = (a) => Math.hypot(a[0], a[1], a[2]);
 const clamp = (x, lo, hi) => Math.min(hi, Math.max(lo, x));
 const PITCH_LIMIT = 1.5; // rad, short of the poles where look-at with up = +y degenerates
+const WALK_SPEED = 2.0; // [m/s] a brisk walk (fog scenes are in metres)
 
 function direction() { // unit vector from the eye towards where it looks
   const c = Math.cos(cam.pitch);
@@ -39,7 +40,6 @@ function setCamera(c) {
   cam.pitch = Math.asin(clamp(d[1] / cam.radius, -1, 1));
   cam.target = c.look_at.slice();
   cam.eye = c.position.slice();
-  cam.walkSpeed = Math.max(0.5, 0.5 * cam.radius); // [m/s]
 }
 
 function cameraMessage() {
@@ -217,7 +217,7 @@ canvas.addEventListener("pointerup", endDrag);
 canvas.addEventListener("pointercancel", endDrag);
 canvas.addEventListener("wheel", (e) => {
   e.preventDefault();
-  if (state.walk) cam.eye = add(cam.eye, scale(direction(), -e.deltaY * 0.002 * cam.walkSpeed));
+  if (state.walk) cam.eye = add(cam.eye, scale(direction(), -e.deltaY * 0.002 * WALK_SPEED));
   else cam.radius = clamp(cam.radius * Math.exp(e.deltaY * 0.001), 0.05, 1e4);
   sendCamera();
 }, { passive: false });
@@ -237,7 +237,7 @@ window.addEventListener("blur", () => held.clear());
 
 function walkStep() {
   if (!held.size) { clearInterval(walkTimer); walkTimer = null; return; }
-  const now = performance.now(), step = cam.walkSpeed * (now - walkLast) / 1000;
+  const now = performance.now(), step = WALK_SPEED * (now - walkLast) / 1000;
   walkLast = now;
   const f = [-Math.sin(cam.yaw), 0, -Math.cos(cam.yaw)]; // forward on the ground plane
   const r = [-f[2], 0, f[0]];
