@@ -123,7 +123,7 @@ def march_volume_light_map(
     o_l = wp.transform_point(vol.to_local, origin)
     d_l = wp.transform_vector(vol.to_local, d)
     # the ray in skip-cell coordinates (cell c spans [c, c + 1) on each axis): q = (p + 1) res / (2 skip_cell)
-    to_cell = wp.vec3(float(vol.res[0]), float(vol.res[1]), float(vol.res[2])) * (0.5 / float(vol.skip_cell))
+    to_cell = wp.vec3(float(vol.res[0]), float(vol.res[1]), float(vol.res[2])) * (0.5 / float(wp.max(vol.skip_cell, 1)))
     o_c = wp.cw_mul(o_l + wp.vec3(1.0), to_cell)
     d_c = wp.cw_mul(d_l, to_cell)
     inv_d = wp.vec3(safe_inverse(d_c[0]), safe_inverse(d_c[1]), safe_inverse(d_c[2]))
@@ -135,7 +135,7 @@ def march_volume_light_map(
     taken = int(0)
     skipped = int(0)
     check_t = float(-1.0e30)
-    if medium.skip == 0:
+    if medium.skip == 0 or vol.skip_cell == 0:  # off, or a volume struct without a skip grid
         check_t = float(1.0e30)
     i = int(0)
     while i < n:
