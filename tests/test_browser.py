@@ -2,7 +2,8 @@
 
 A server on a free port (16^3 smoke, 96x72 at most) and two pages with the token in their URL; the mouse drags each
 page's view a different way. Each canvas must show what the server rendered for that page's own camera (against the
-same camera rendered offline), differ from its image before the drag, and differ from the other page's. Skipped
+same camera rendered offline), differ from its image before the drag, and differ from the other page's; then one
+page switches to side-by-side stereo and must show its camera's two eyes while the other stays mono. Skipped
 only when /usr/bin/chromium is missing, and then never in CI (CI=true): there it fails (.ci/run installs it).
 """
 
@@ -21,7 +22,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from volren.camera import Camera
+from volren.camera import Camera, StereoRig
 from volren.data.procedural import smoke_density
 from volren.metrics import psnr
 from volren.presets import quality_config
@@ -103,13 +104,14 @@ def settle(page) -> np.ndarray:
 
 def offline(page, cam: Camera | None = None) -> np.ndarray:
     """The page's newest camera (or ``cam``) rendered outside the server at the page's image size, as the server
-    shows it."""
+    shows it (a stereo frame: both eyes side by side)."""
     h = page.evaluate("window.volren.lastHeader")
     if cam is None:
         msg = page.evaluate("window.volren.lastCamera")
         cam = Camera(position=msg["position"], look_at=msg["look_at"], up=msg["up"], fov_y=msg["fov"])
-    cam = dataclasses.replace(cam, width=h["width"], height=h["height"])
-    frame = DSSRM(quality_config("dssrm", "interactive", **SMALL), device="cpu").render(SCENE, [cam])
+    cam = dataclasses.replace(cam, width=h["width"] // (2 if h["stereo"] else 1), height=h["height"])
+    views = StereoRig(cam).eyes() if h["stereo"] else [cam]
+    frame = DSSRM(quality_config("dssrm", "interactive", **SMALL), device="cpu").render(SCENE, views)
     return display_image(frame.images, SCENE.background)
 
 
@@ -149,6 +151,12 @@ def test_two_pages_each_steer_their_own_view(server):
                 assert db(old, new) < CHANGED_DB, "the drag did not change the view"
                 assert page.evaluate("window.volren.latencies.length") >= 2
             assert db(after[0], after[1]) < CHANGED_DB, "the two pages show the same view"
+            # side-by-side stereo on one page: its eyes, the other page's frames stay mono
+            pages[0].check("#stereo")
+            pages[0].wait_for_function("window.volren.shownStereo", timeout=TIMEOUT_MS / 3)  # kernels compiled
+            pair = canvas(pages[0])
+            assert pair.shape == (72, 96, 3) and db(offline(pages[0]), pair) > MATCH_DB, "not the two eyes"
+            assert not pages[1].evaluate("window.volren.lastHeader.stereo")
             assert not errors, errors
         finally:
             browser.close()

@@ -13,7 +13,7 @@ const SEND_INTERVAL_MS = 16; // camera and light messages at most ~60 per second
 // State the page shows, also read by tests/test_browser.py.
 const state = (window.volren = {
   connected: false, welcome: null, frames: 0, lastHeader: null, latencies: [], errors: [],
-  fps: 0, cameraId: 0, lastCamera: null, shownCameraId: -1, stereo: false, playing: true, walk: false,
+  fps: 0, cameraId: 0, lastCamera: null, shownCameraId: -1, shownStereo: false, stereo: false, playing: true, walk: false,
 });
 
 // ---- camera: orbit about a target, or walk (eye fixed, look around) --------------------------------------------
@@ -165,6 +165,7 @@ async function drawNext() {
       img.close();
       state.frames += 1;
       state.shownCameraId = header.camera_id; // the camera of the image on the canvas
+      state.shownStereo = header.stereo;
     } catch (err) {
       showStatus(`could not decode a frame: ${err}`, 4000);
     }
