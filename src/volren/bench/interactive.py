@@ -3,7 +3,8 @@ method and quality preset, with and without empty-space skipping (issue 15 item 
 cores; on a GPU, 1080p stereo at headset rates).
 
 Frames per second = 1 / the median wall time of a whole ``render`` call on a warm renderer, the scene unchanged (so
-the interactive preset's light map, kept while the scene stands still, is computed in the warm-up frame only). On
+the interactive preset's light map, kept while the scene stands still, is computed in the warm-up frame only); the
+runs take turns frame by frame, so other jobs on a shared machine slow them alike. On
 the CPU each row also gives the process CPU time per frame (all threads), the figure least disturbed by other jobs
 on a shared machine, and the median time of each pass. Work: density samples, steps skipped, light samples (exact
 counters). Quality: PSNR of the (left) image against the reference renderer at the same size (single scattering;
@@ -38,15 +39,16 @@ RUNS = [("dssrm", "interactive", True), ("dssrm", "interactive", False), ("dssrm
 GOAL_FPS = 10.0
 
 
-def time_frames(renderer, scene, views: list[Camera], repeats: int) -> dict[str, Any]:
-    """Wall and CPU time per whole ``render`` call after a warm-up frame, median pass times, the last frame."""
-    renderer.render(scene, views)
-    walls, cpus, frames = [], [], []
-    for i in range(repeats):
-        wall, cpu = time.perf_counter(), time.process_time()
-        frames.append(renderer.render(scene, views, frame=i + 1))
-        cpus.append(time.process_time() - cpu)
-        walls.append(time.perf_counter() - wall)
+def timed_frame(renderer, scene, views: list[Camera], frame: int) -> tuple[float, float, Any]:
+    """(wall [s], process CPU [s], frame) of one whole ``render`` call."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    out = renderer.render(scene, views, frame=frame)
+    return time.perf_counter() - wall, time.process_time() - cpu, out
+
+
+def summary(timings: list[tuple[float, float, Any]]) -> dict[str, Any]:
+    """fps from the median wall time, the fastest frame, the median CPU time and pass times, the last frame."""
+    walls, cpus, frames = zip(*timings, strict=True)
     passes = sorted({k for f in frames for k in f.stats.times_ms if k not in NOT_PASSES})
     wall_ms = 1e3 * statistics.median(walls)
     medians = {k: statistics.median(f.stats.times_ms.get(k, 0.0) for f in frames) for k in passes}
@@ -56,6 +58,8 @@ def time_frames(renderer, scene, views: list[Camera], repeats: int) -> dict[str,
 
 
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
+    """Every run's renderer is warmed up first, then the runs take turns frame by frame (``repeats`` rounds), so
+    other jobs on a shared machine slow them alike."""
     scene = builtin_scene("smoke", cfg["resolution"])
     width, height = cfg["size"]
     views = make_views(Camera(position=EYE, width=width, height=height), cfg["views"])
@@ -67,11 +71,17 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
                                    fov_y=60.0), cfg["views"])
     runs = [(m, q, skip, "smoke", scene, views) for m, q, skip in RUNS]
     runs += [("fog", q, None, "hall", hall, hall_views) for q in ("default", "interactive")]
+    configs = [quality_config(m, q, **({} if skip is None else {"skip_empty": skip})) for m, q, skip, *_ in runs]
+    renderers = [METHODS[run[0]][0](config, device) for run, config in zip(runs, configs, strict=True)]
+    for r, (*_, sc, vs) in zip(renderers, runs, strict=True):
+        r.render(sc, vs)
+    timings: list[list[tuple[float, float, Any]]] = [[] for _ in runs]
+    for i in range(cfg["repeats"]):
+        for k, (r, (*_, sc, vs)) in enumerate(zip(renderers, runs, strict=True)):
+            timings[k].append(timed_frame(r, sc, vs, i + 1))
     rows, fog_default = [], None
-    for method, quality, skip, scene_name, sc, vs in runs:
-        options = {} if skip is None else {"skip_empty": skip}
-        config = quality_config(method, quality, **options)
-        row = time_frames(METHODS[method][0](config, device), sc, vs, cfg["repeats"])
+    for (method, quality, skip, scene_name, _, _), config, times in zip(runs, configs, timings, strict=True):
+        row = summary(times)
         frame = row.pop("frame")
         c = frame.stats.counters
         fields = ("samples", "light_samples", "light_grid", "spp", "max_bounces", "slices", "tile")
