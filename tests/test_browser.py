@@ -97,8 +97,8 @@ def canvas(page) -> np.ndarray:
 
 def settle(page) -> np.ndarray:
     """The canvas once it shows the frame answering the page's newest camera."""
-    page.wait_for_function("window.volren.cameraId > 0 && window.volren.shownCameraId === window.volren.cameraId",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function("() => { const s = window.volren; return s.cameraId > 0 && !s.cameraPending && "
+                           "s.shownCameraId === s.cameraId; }", timeout=TIMEOUT_MS)
     return canvas(page)
 
 

@@ -66,17 +66,22 @@ function send(msg) {
 // Throttled senders: the newest value is sent at most every SEND_INTERVAL_MS.
 function throttled(build) {
   let timer = null, last = 0;
-  return () => {
+  const schedule = () => {
     if (timer !== null) return;
+    schedule.pending = true;
     timer = setTimeout(() => {
       timer = null; last = performance.now();
+      schedule.pending = false;
       const msg = build();
       if (msg.type === "camera") sentAt.set(msg.id, performance.now());
       send(msg);
     }, Math.max(0, SEND_INTERVAL_MS - (performance.now() - last)));
   };
+  schedule.pending = false; // a newer value waits to be sent
+  return schedule;
 }
 const sendCamera = throttled(cameraMessage);
+Object.defineProperty(state, "cameraPending", { get: () => sendCamera.pending });
 
 function canvasSize() {
   const r = canvas.getBoundingClientRect();
