@@ -14,6 +14,7 @@ from volren.errors import VolrenError
 from volren.kernels.common import INF, ViewBuffers
 from volren.render.compositing.surface_light import (
     AO_COARSE,
+    AO_CONE_RAYS,
     AO_RAYS,
     SH_AO_METHODS,
     SURFACE_LIGHT_MAP,
@@ -80,6 +81,10 @@ class LightMapMarchConfig:
     """K of the mesh k-buffer (paper 000 §3.3): translucent mesh layers kept per pixel, the nearest"""
     skip_empty: bool = True
     """empty-space skipping: the march leaves out steps in empty cells of the max-density grid (same image)"""
+    ao_rays: int = AO_RAYS
+    """surfaces' AO rays per point that samples the whole hemisphere (in or beside a volume's occupied box)"""
+    ao_cone_rays: int = AO_CONE_RAYS
+    """surfaces' AO rays per point that sees the volumes' occupied boxes in a cone (`surface_light.box_cone`)"""
 
     def __post_init__(self) -> None:
         if (isinstance(self.mesh_layers, bool) or int(self.mesh_layers) != self.mesh_layers
@@ -95,6 +100,8 @@ class LightMapMarchConfig:
         check_sample_count("samples (V)", self.samples)
         check_sample_count("light samples (L)", self.light_samples)
         check_transmittance_threshold(self.min_transmittance)
+        check_sample_count("ao_rays", self.ao_rays)
+        check_sample_count("ao_cone_rays", self.ao_cone_rays)
 
 
 class Renderer:
@@ -245,9 +252,9 @@ class LightMapRenderer(Renderer):
         the volumes where they are converged per voxel (`SH_AO_METHODS`), else from coarse transmittance rays."""
         c = self.config
         sh = self._gi if c.gi.method in SH_AO_METHODS else None
-        return surface_light(ds, SURFACE_LIGHT_MAP, c.light_samples, AO_RAYS, max(1, c.light_samples // AO_COARSE),
+        return surface_light(ds, SURFACE_LIGHT_MAP, c.light_samples, c.ao_rays, max(1, c.light_samples // AO_COARSE),
                              cross_volume=c.gi.on, sh=None if sh is None else sh.buffers.sh,
-                             order2=0 if sh is None else c.gi.order**2)
+                             order2=0 if sh is None else c.gi.order**2, cone_rays=c.ao_cone_rays)
 
     @property
     def gi_state(self) -> AmbientGI | None:

@@ -25,6 +25,7 @@ with `REFERENCE_AO_RAYS` rays at full samples and brute-force shadow rays: the g
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from volren.kernels.common import (
@@ -41,7 +42,7 @@ from volren.kernels.common import (
     sample_grid,
     transmittance_bvh,
 )
-from volren.render.frame import LIGHT_SAMPLES, LIGHTMAP_LOOKUPS
+from volren.render.frame import BVH_QUERIES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS
 from volren.sh import sh_basis16, vec16
 from volren.upload import DeviceScene
 
@@ -50,7 +51,11 @@ SURFACE_UNLIT = wp.constant(0)
 SURFACE_LIGHT_MAP = wp.constant(1)
 SURFACE_BRUTE_FORCE = wp.constant(2)
 AO_RAYS = 32
-"""cosine-distributed AO directions per surface point of the light-map methods"""
+"""default cosine-distributed AO rays per surface point of the light-map methods where the hemisphere is sampled"""
+AO_CONE_RAYS = 8
+"""default AO rays per surface point that sees the volumes' occupied boxes in a cone (`box_cone`): measured on the
+smoke over a floor (96x54, against 1024 hemisphere rays), max AO error 0.040 and PSNR 41.9 dB of the AO term, as
+with 32 hemisphere rays everywhere (0.040, 40.5 dB), at 4x less surface-pass time (320x180)"""
 AO_COARSE = 8
 """the light-map methods' AO rays march with 1/AO_COARSE of the light samples: measured on the smoke over a floor
 (32 rays), max AO error 0.0350 at L / 8 and 0.0353 at L / 4, mean 0.0099 and 0.0098, a third less time"""
@@ -63,6 +68,14 @@ noise into darkening: measured on the smoke over a floor (16^3 grid), sresir dar
 NEAR_VOXELS = wp.constant(1.0)
 """with GI on, points at most this many light voxels outside a box read AO from its SH grid"""
 GOLDEN_ANGLE = wp.constant(2.39996323)
+NO_CONE = wp.constant(2.0)
+"""cone "cos theta" of no box above the horizon"""
+WIDE_CONE = wp.constant(-2.0)
+"""cone "cos theta" where the AO rays take the whole hemisphere (x inside a box, or the cone too wide)"""
+WIDEST_CONE = wp.constant(0.7)
+"""cones wider than this cos theta (45.6 degrees) sample the hemisphere with `AO_RAYS` cosine-distributed rays
+instead: measured on the smoke over a floor (96x54, 8 cone rays, against 1024 hemisphere rays), a threshold of 0.5
+gave a max AO error of 0.045, 0.7 gave 0.040 (that of the hemisphere rays alone); 0.3, 0.054"""
 
 
 @wp.struct
@@ -80,19 +93,57 @@ class SurfaceLight:
     samples: int
     """L: at most this many samples across a box diagonal on shadow rays and the light-map shell"""
     ao_rays: int
+    """AO rays per surface point that samples the hemisphere (brute force, or a point in or beside a volume)"""
+    cone_rays: int
+    """AO rays per surface point that sees the volumes in a cone (`box_cone`)"""
     ao_samples: int
     """L of the AO rays"""
+    occupied: wp.array2d(dtype=float)
+    """per volume the local box (x0, y0, z0, x1, y1, z1) outside which its density reads zero (`occupied_boxes`)"""
     sh: wp.array(dtype=float)
     """the GI grid's SH coefficients of T(x, w), ``order2`` per light voxel (packed like the ambient grids)"""
     order2: int
     """0: no SH grid (GI off, or a GI method without coefficients)"""
 
 
+@wp.kernel
+def occupied_kernel(volumes: wp.array(dtype=VolumeGPU), max_density: wp.array(dtype=float),
+                    boxes: wp.array2d(dtype=float)):
+    v, i = wp.tid()
+    vol = volumes[v]
+    r = vol.skip_res
+    if i >= r[0] * r[1] * r[2] or max_density[vol.skip_offset + i] <= 0.0:
+        return
+    cell = wp.vec3i(i % r[0], (i / r[0]) % r[1], i / (r[0] * r[1]))
+    for a in range(3):
+        # the cell's voxels widened by one: a trilinear sample reads voxels within one of the one holding it
+        lo = -1.0 + 2.0 * float(cell[a] * vol.skip_cell - 1) / float(vol.res[a])
+        hi = -1.0 + 2.0 * float((cell[a] + 1) * vol.skip_cell + 1) / float(vol.res[a])
+        wp.atomic_min(boxes, v, a, wp.max(lo, -1.0))
+        wp.atomic_max(boxes, v, a + 3, wp.min(hi, 1.0))
+
+
+def occupied_boxes(ds: DeviceScene) -> wp.array2d:
+    """Per volume the local box of its non-empty skip cells (`volren.upload.skip_grid`, level 0), widened by a
+    voxel: its density reads zero outside, so the AO rays aim there (an empty volume gets an empty box, lo > hi)."""
+    n = len(ds.levels)
+    init = np.tile(np.array([2.0, 2.0, 2.0, -2.0, -2.0, -2.0], np.float32), (max(n, 1), 1))
+    boxes = wp.array(init, dtype=float, device=ds.device)
+    cells = max((int(np.prod(lv[0].skip_res)) for lv in ds.levels), default=0)
+    if n and cells:
+        wp.launch(occupied_kernel, (n, cells), [ds.volumes, ds.max_density, boxes], device=ds.device)
+    return boxes
+
+
 def surface_light(ds: DeviceScene, mode: int, samples: int = 1, ao_rays: int = 0, ao_samples: int = 1,
-                  cross_volume: bool = False, sh: wp.array | None = None, order2: int = 0) -> SurfaceLight:
+                  cross_volume: bool = False, sh: wp.array | None = None, order2: int = 0,
+                  cone_rays: int = 0) -> SurfaceLight:
+    """``cone_rays`` 0: every point samples the hemisphere with ``ao_rays`` (the reference's brute force)."""
     s = SurfaceLight()
     s.mode, s.volumes, s.density, s.lightmap, s.bvh = mode, ds.volumes, ds.density, ds.lightmap, ds.volume_bvh.id
     s.cross_volume, s.samples, s.ao_rays, s.ao_samples = int(cross_volume), samples, ao_rays, ao_samples
+    s.cone_rays = cone_rays
+    s.occupied = occupied_boxes(ds) if cone_rays > 0 else wp.zeros((1, 6), dtype=float, device=ds.device)
     s.sh = sh if sh is not None else wp.zeros(1, dtype=float, device=ds.device)
     s.order2 = order2 if sh is not None else 0
     return s
@@ -180,6 +231,16 @@ def cosine_direction(frame: wp.mat33, k: int, rays: int) -> wp.vec3:
 
 
 @wp.func
+def cone_direction(frame: wp.mat33, cos_max: float, k: int, rays: int) -> wp.vec3:
+    """Direction k of ``rays`` fixed uniform ones in the cone cos theta >= cos_max about the frame's third axis (a
+    Fibonacci spiral: uniform in cos theta, golden-angle steps in phi)."""
+    ct = 1.0 - (float(k) + 0.5) / float(rays) * (1.0 - cos_max)
+    st = wp.sqrt(wp.max(1.0 - ct * ct, 0.0))
+    phi = float(k) * GOLDEN_ANGLE
+    return frame * wp.vec3(st * wp.cos(phi), st * wp.sin(phi), ct)
+
+
+@wp.func
 def sh_cosine_visibility(sl: SurfaceLight, vol: VolumeGPU, p: wp.vec3, n: wp.vec3) -> float:
     """(1 / pi) integral of T(x, w) max(n.w, 0) dw from the GI grid's SH coefficients of T, trilinear at local p."""
     y = sh_basis16(n)
@@ -201,6 +262,58 @@ def sh_cosine_visibility(sl: SurfaceLight, vol: VolumeGPU, p: wp.vec3, n: wp.vec
                 s += sl.sh[idx * sl.order2 + c] * lobe[c]
         total += corner_weight(corner, a) * s
     return wp.clamp(total, 0.0, 1.0)
+
+
+@wp.func
+def box_cone(sl: SurfaceLight, v: int, x: wp.vec3, n: wp.vec3) -> wp.vec4:
+    """(axis, cos theta) of the cone about the direction from x to the centre of volume v's occupied box that holds
+    the box's 8 corners, so every direction into the box (their convex hull: with theta < 90 degrees the cone is
+    convex). cos theta = NO_CONE: the box is empty or lies below x's tangent plane (no direction into it has
+    n.w > 0); WIDE_CONE: x is inside it."""
+    vol = sl.volumes[v]
+    lo = wp.vec3(sl.occupied[v, 0], sl.occupied[v, 1], sl.occupied[v, 2])
+    hi = wp.vec3(sl.occupied[v, 3], sl.occupied[v, 4], sl.occupied[v, 5])
+    if lo[0] > hi[0]:
+        return wp.vec4(n[0], n[1], n[2], NO_CONE)
+    p = wp.transform_point(vol.to_local, x)
+    if p[0] >= lo[0] and p[0] <= hi[0] and p[1] >= lo[1] and p[1] <= hi[1] and p[2] >= lo[2] and p[2] <= hi[2]:
+        return wp.vec4(n[0], n[1], n[2], WIDE_CONE)
+    axis = wp.normalize(wp.transform_point(vol.to_world, 0.5 * (lo + hi)) - x)
+    cos_max = float(1.0)
+    above = bool(False)
+    for c in range(8):
+        local = wp.vec3(wp.where(c % 2 == 0, lo[0], hi[0]), wp.where((c / 2) % 2 == 0, lo[1], hi[1]),
+                        wp.where(c / 4 == 0, lo[2], hi[2]))
+        d = wp.transform_point(vol.to_world, local) - x
+        above = above or wp.dot(d, n) > 0.0
+        cos_max = wp.min(cos_max, wp.dot(axis, d) / wp.length(d))
+    if not above:
+        return wp.vec4(axis[0], axis[1], axis[2], NO_CONE)
+    return wp.vec4(axis[0], axis[1], axis[2], cos_max)
+
+
+@wp.func
+def cone_union(a: wp.vec4, b: wp.vec4) -> wp.vec4:
+    """The narrowest cone holding cones a and b, each (axis, cos theta) with theta < 90 degrees (Conty Estevez and
+    Kulla 2018, Alg. 1); cos theta = WIDE_CONE when it would reach 90 degrees."""
+    if a[3] == NO_CONE:
+        return b
+    ua = wp.vec3(a[0], a[1], a[2])
+    ub = wp.vec3(b[0], b[1], b[2])
+    ta = wp.acos(a[3])
+    tb = wp.acos(b[3])
+    td = wp.acos(wp.clamp(wp.dot(ua, ub), -1.0, 1.0))
+    if ta >= td + tb:
+        return a
+    if tb >= td + ta:
+        return b
+    to = 0.5 * (ta + td + tb)
+    if to >= 0.5 * wp.pi:
+        return wp.vec4(ua[0], ua[1], ua[2], WIDE_CONE)
+    # rotate a's axis towards b's by to - ta (td > 0 here: equal axes keep the wider cone above)
+    perp = wp.normalize(ub - wp.dot(ua, ub) * ua)
+    axis = wp.cos(to - ta) * ua + wp.sin(to - ta) * perp
+    return wp.vec4(axis[0], axis[1], axis[2], wp.cos(to))
 
 
 @wp.func
@@ -227,9 +340,34 @@ def ambient_occlusion(sl: SurfaceLight, x: wp.vec3, n: wp.vec3, counters: wp.arr
             return sh_cosine_visibility(sl, vol, wp.transform_point(vol.to_local, x), n)
     if sl.ao_rays == 0:
         return 1.0
-    frame = tangent_frame(n)
+    cone = wp.vec4(0.0, 0.0, 0.0, NO_CONE)
+    if sl.cone_rays == 0:
+        cone = wp.vec4(n[0], n[1], n[2], WIDE_CONE)
+    else:
+        for v in range(sl.volumes.shape[0]):
+            c = box_cone(sl, v, x, n)
+            if c[3] != NO_CONE and cone[3] != WIDE_CONE:
+                cone = wp.where(c[3] < WIDEST_CONE, wp.vec4(c[0], c[1], c[2], WIDE_CONE), cone_union(cone, c))
+    if cone[3] == NO_CONE:
+        return 1.0  # no box above the horizon: nothing to march
     total = float(0.0)
-    for k in range(sl.ao_rays):
-        total += transmittance_bvh(x, cosine_direction(frame, k, sl.ao_rays), INF, sl.bvh, sl.volumes, sl.density,
-                                   sl.ao_samples, counters, LIGHT_SAMPLES)
-    return total / float(sl.ao_rays)
+    if cone[3] < WIDEST_CONE:
+        # cosine-distributed directions over the hemisphere: pdf cos / pi, so AO is the mean transmittance
+        count(counters, BVH_QUERIES, sl.ao_rays)
+        frame = tangent_frame(n)
+        for k in range(sl.ao_rays):
+            total += transmittance_bvh(x, cosine_direction(frame, k, sl.ao_rays), INF, sl.bvh, sl.volumes,
+                                       sl.density, sl.ao_samples, counters, LIGHT_SAMPLES)
+        return total / float(sl.ao_rays)
+    count(counters, BVH_QUERIES, sl.cone_rays)
+    # Uniform directions in the cone (pdf 1 / omega): 1 - T vanishes outside it, so AO = 1 - (omega / pi) E[(1 - T)
+    # max(n.w, 0)]; directions below the horizon weigh 0 and are not marched.
+    frame = tangent_frame(wp.vec3(cone[0], cone[1], cone[2]))
+    for k in range(sl.cone_rays):
+        w = cone_direction(frame, cone[3], k, sl.cone_rays)
+        cos_n = wp.dot(w, n)
+        if cos_n > 0.0:
+            t = transmittance_bvh(x, w, INF, sl.bvh, sl.volumes, sl.density, sl.ao_samples, counters, LIGHT_SAMPLES)
+            total += (1.0 - t) * cos_n
+    omega = 2.0 * wp.pi * (1.0 - cone[3])
+    return wp.max(1.0 - omega * total / (wp.pi * float(sl.cone_rays)), 0.0)
