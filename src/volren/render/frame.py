@@ -27,8 +27,9 @@ ray-traced light-visibility queries of the fog method (one per light and froxel,
 shadow_voxels: shadow-grid voxels re-traced this frame; box_tests: exact ray/box tests of pixel rays finding their
 layers (multi-volume OIT, `volren.render.compositing.oit`: instances per pixel for pixel-sort, boxes the BVH reported
 for pixel-rt, the tile's instances for tiled); tile_box_tests: the tiled k-buffer's phase-1 tests of tile rays against
-the boxes its BVH reported; bvh_queries: BVH ray queries (pixel-rt: one per pixel, tiled: one per tile; Warp's
-query does not report the nodes it visits); joint_rays: pixel rays that marched overlapping boxes jointly;
+the boxes its BVH reported; bvh_queries: BVH ray queries (pixel-rt: one per pixel, tiled: one per tile, the
+surfaces' AO: one per ray; Warp's query does not report the nodes it visits); joint_rays: pixel rays that
+marched overlapping boxes jointly;
 skipped_steps: view-ray steps of the light-map march left unsampled by empty-space skipping (with it off they would
 be density_samples)."""
 (DENSITY_SAMPLES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, INTERLEAVED_SAMPLES, SHADOW_RAYS,
