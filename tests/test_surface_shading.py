@@ -204,13 +204,15 @@ horizon"""
 def test_ao_cone_beside_the_plume_matches_brute_force():
     """Points beside the plume at its mid height: 32 uniform rays in the cone about the occupied box (those below the
     horizon not marched) against 4096 cosine-distributed hemisphere rays at full L. Measured: occlusion 0.0023-0.0087,
-    max error 0.0032 (8 cone rays: 0.0067; 32 hemisphere rays: 0.0087, a pixel none of them saw occluded)."""
+    max error 0.0032, mean occlusion 0.985 times brute force's (8 cone rays: max error 0.0067; 32 hemisphere rays:
+    0.0087, a pixel none of them saw occluded)."""
     scene = smoke_over_plane(-0.2)
     brute, _ = ao_pass(scene, BESIDE, lambda ds: surface_light(ds, SURFACE_BRUTE_FORCE, 96, 4096, 96))
     got, counters = ao_pass(scene, BESIDE, cone_rays=32)
     assert (1.0 - brute).min() > 0.002
     assert counters["bvh_queries"] == 32 * got.size  # one BVH query per AO ray, every pixel casting them
     assert np.abs(got - brute).max() < 0.004
+    assert (1.0 - got).mean() / (1.0 - brute).mean() == pytest.approx(1.0, abs=0.03)  # measured 0.985: no bias
 
 
 def test_ao_without_a_box_above_the_horizon_is_one_and_free():
