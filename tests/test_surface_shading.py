@@ -13,7 +13,7 @@ from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
-from volren.render.compositing.surface_light import AO_CONE_RAYS, SURFACE_BRUTE_FORCE, surface_light
+from volren.render.compositing.surface_light import AO_CONE_RAYS, SURFACE_BRUTE_FORCE, SURFACE_LIGHT_MAP, surface_light
 from volren.render.compositing.surfaces import trace_surfaces, view_buffers
 from volren.render.frame import PassClock
 from volren.render.gi.ambient import GIConfig
@@ -222,3 +222,21 @@ def test_ao_without_a_box_above_the_horizon_is_one_and_free():
     got, counters = ao_pass(smoke_over_plane(1.2), cam)
     assert np.all(got == 1.0)
     assert counters["bvh_queries"] == 0 and counters["light_samples"] == 0
+
+
+def test_ao_cones_of_several_volumes_merge():
+    """Four boxes over a floor: their cones merge into one (`cone_union`), sampled with 128 rays per point, against
+    2048 hemisphere rays. Measured: darkening 1.015 times brute force's, mean error 0.0008 (max 0.017: brute force's
+    own noise, its fixed directions hit or miss a box). 48x32, default 8/32 rays: mean error 0.0049, 32 hemisphere
+    rays everywhere 0.0077."""
+    scene = builtin_scene("multi", 64, count=4)
+    floor_y = min(np.asarray(v.to_world)[1, 3] - np.abs(np.asarray(v.to_world)[1, :3]).sum() for v in scene.volumes)
+    scene = dataclasses.replace(scene, opaque=(Plane((0, floor_y - 0.1, 0), (0, 1, 0), 1.0),), lights=(),
+                                environment=Environment(1.0))
+    cam = Camera(position=(0.0, floor_y + 3.9, 4.0), look_at=(0.0, floor_y - 0.1, 0.0), width=32, height=24)
+    brute, _ = ao_pass(scene, cam, lambda ds: surface_light(ds, SURFACE_BRUTE_FORCE, 64, 2048, 64))
+    got, _ = ao_pass(scene, cam, lambda ds: surface_light(ds, SURFACE_LIGHT_MAP, 64, 128, 64, cone_rays=128))
+    floor = brute > 0
+    assert (1.0 - brute[floor]).max() > 0.05
+    assert (1.0 - got[floor]).mean() / (1.0 - brute[floor]).mean() == pytest.approx(1.0, abs=0.03)
+    assert np.abs(got - brute)[floor].mean() < 0.0015
