@@ -28,7 +28,7 @@ _LIGHT_MAP_INTERACTIVE = {"samples": 160, "light_samples": 48, "light_grid": 32,
                           "reuse_light_map": True}
 """V:L = 160:48, a 32^3 light grid, early termination at T < 1%, the light map kept while scene and light stand still.
 Measured on the smoke 64^3 at 480x270 against the reference (docs/BENCHMARKS.md, "interactive"): 52.2 dB (default
-360:96: 52.3 dB) for 0.64x its CPU time per frame (44.4 against 69.3 ms, both with empty-space skipping)."""
+360:96: 52.3 dB) for 0.66x its CPU time per frame (47.5 against 72.5 ms, both with empty-space skipping)."""
 _LIGHT_MAP_HIGH = {"samples": 720, "light_samples": 192, "light_grid": 128, "min_transmittance": 1e-4}
 """The light grid is what limits the light-map methods against the reference: on the smoke 64^3 at 480x270 a 64^3
 grid gave 63.5 dB where the default (half the density, 32^3) gave 52.3 dB; this preset 75.3 dB (1.9 s a frame on the
@@ -54,9 +54,9 @@ QUALITY_PRESETS = _frozen({
     },
 })
 """quality -> method -> config fields that differ from the method's defaults (the reference is the ground truth at
-every quality). Interactive fog (16 px froxels, 64 slices) on ``hall`` at 480x270: 8.1 fps against 5.3, 44.2 dB
+every quality). Interactive fog (16 px froxels, 64 slices) on ``hall`` at 480x270: 17.8 fps against 11.0, 44.2 dB
 against the default's image (the ray-cast surfaces take most of its frame); interactive VPT (1 path per pixel, one
-bounce): 17.8 fps against 2.7 (docs/BENCHMARKS.md, "interactive")."""
+bounce): 35.2 fps against 6.0 (docs/BENCHMARKS.md, "interactive")."""
 
 
 def quality_options(method: str, quality: str) -> dict[str, Any]:
