@@ -696,10 +696,10 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
 
     check_allocation(estimate_memory(args, scene, views, method), renderer.device,
                      f"{len(views)} view(s) of {args.width}x{args.height} for {args.frames} frame(s) with {method}")
-    check_run_time(args, scene, views, method)
     sequence = sequence_from_args(args)
     if sequence is not None:
         frame_config(sequence, renderer.config, sequence.frames - 1)  # refuse a switch the method cannot take
+    check_run_time(args, scene, views, method)  # the last check: it renders a probe
     base_scene, base_views, base_config = scene, views, renderer.config
     frames, files, movie = [], [], []
     start = time.perf_counter()
