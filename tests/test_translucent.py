@@ -204,3 +204,15 @@ def test_mesh_alpha_option(tmp_path):
         alphas("--mesh", path, "--mesh", path, "--mesh", path, "--mesh-alpha", 0.3, "--mesh-alpha", 1)
     with pytest.raises(CliError, match=r"must lie in \[0, 1\], got -0.1"):
         alphas("--mesh", path, "--mesh-alpha", -0.1)
+
+
+@pytest.mark.parametrize("name", METHODS)
+def test_no_mesh_layers_pass_without_translucent_meshes(name):
+    """Without a translucent mesh the mesh-layers pass is skipped: no pass time, no layer, nothing marched directly;
+    with one the pass is timed."""
+    cam = axis_camera((0.2, -0.1, 3.0))
+    opaque = slab_scene(quad(-2.0, 1.0))
+    frame = METHODS[name]().render(opaque, [cam])
+    assert "mesh layers" not in frame.stats.times_ms
+    assert frame.stats.info["mesh_layers"] == {"k": 4, "pixels": 0, "layers": 0, "dropped": 0, "direct_pixels": 0}
+    assert "mesh layers" in METHODS[name]().render(slab_scene(quad(-2.0, 0.5)), [cam]).stats.times_ms

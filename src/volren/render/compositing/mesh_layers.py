@@ -52,8 +52,10 @@ from volren.kernels.common import (
 )
 from volren.render.compositing.surface_light import SurfaceLight, unlit
 from volren.render.compositing.surfaces import MESH_RANGE, SURFACE_EPSILON, mesh_group, shade_lit_surface
+from volren.render.frame import PassClock
 from volren.render.marching.march import MarchParams, march_volume_light_map
-from volren.upload import DeviceScene
+from volren.scene import TriangleMesh
+from volren.upload import DeviceScene, camera_struct
 
 MAX_HITS = wp.constant(1024)
 """hits walked per ray and mesh at most (a guard against a ray that keeps re-hitting one edge)"""
@@ -294,6 +296,27 @@ def build_mesh_layers(
     layers.color = wp.zeros((*shape, k), dtype=wp.vec4, device=ds.device)
     launch_rows(mesh_layers_kernel, cam.height, cam.width, [cam_gpu, sc, buffers, layers], ds.device, counters)
     return layers
+
+
+def has_translucent(ds: DeviceScene) -> bool:
+    """Whether the scene has a translucent mesh (otherwise the mesh-layers pass is skipped: no launch, no time)."""
+    return any(isinstance(o, TriangleMesh) and o.translucent for o in ds.scene.opaque)
+
+
+def mesh_layers_pass(
+    ds: DeviceScene,
+    cam: Camera,
+    buffers: ViewBuffers,
+    k: int,
+    clock: PassClock,
+    light: SurfaceLight | None = None,
+) -> MeshLayers:
+    """The view's k-buffer (`build_mesh_layers`), timed as the "mesh layers" pass only when the scene has a
+    translucent mesh: without one the empty k-buffer is made outside the clock, so no pass time is recorded."""
+    if not has_translucent(ds):
+        return build_mesh_layers(ds, camera_struct(cam), cam, buffers, k, clock.counters, light)
+    with clock.measure("mesh layers"):
+        return build_mesh_layers(ds, camera_struct(cam), cam, buffers, k, clock.counters, light)
 
 
 def layer_stats(layers: MeshLayers, k: int, total: dict[str, int] | None = None) -> dict[str, int]:

@@ -72,10 +72,10 @@ from volren.render.base import LightMapMarchConfig, LightMapRenderer
 from volren.render.compositing.mesh_layers import (
     MeshLayers,
     blend_layers_before,
-    build_mesh_layers,
     layer_before,
     layer_stats,
     march_between_layers,
+    mesh_layers_pass,
 )
 from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, march_joint, pixel_layers
 from volren.render.frame import DENSITY_SAMPLES, JOINT_RAYS, LIGHTMAP_LOOKUPS, RAYS, SKIPPED_STEPS, PassClock
@@ -615,9 +615,7 @@ class CMSRM(LightMapRenderer):
             per_volume = [wp.array(a, dtype=int, device=self.device)
                           for a in ([p["scheme"] for p in plans[view]], c.offsets, c.sizes)]
             oit = self._layers.params(ds, cam, clock)
-            with clock.measure("mesh layers"):
-                mesh = build_mesh_layers(ds, camera_struct(cam), cam, targets[view], self.config.mesh_layers,
-                                         clock.counters, self._surface_light(ds))
+            mesh = mesh_layers_pass(ds, cam, targets[view], self.config.mesh_layers, clock, self._surface_light(ds))
             with clock.measure("resample"):
                 launch_rows(
                     cube_resample_kernel,

@@ -35,9 +35,9 @@ from volren.render.base import LightMapMarchConfig, LightMapRenderer, frame_seed
 from volren.render.compositing.mesh_layers import (
     MeshLayers,
     blend_layers_before,
-    build_mesh_layers,
     layer_stats,
     march_between_layers,
+    mesh_layers_pass,
 )
 from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, march_joint, pixel_layers
 from volren.render.frame import DENSITY_SAMPLES, JOINT_RAYS, LIGHTMAP_LOOKUPS, RAYS, SKIPPED_STEPS, PassClock
@@ -123,9 +123,7 @@ class DSSRM(LightMapRenderer):
         params.min_transmittance = c.min_transmittance
         params.ambient = ds.ambient
         oit = self._layers.params(ds, cam, clock)
-        with clock.measure("mesh layers"):
-            mesh = build_mesh_layers(ds, camera_struct(cam), cam, buffers, c.mesh_layers, clock.counters,
-                                     self._surface_light(ds))
+        mesh = mesh_layers_pass(ds, cam, buffers, c.mesh_layers, clock, self._surface_light(ds))
         self._frame_info["mesh_layers"] = layer_stats(mesh, c.mesh_layers, self._frame_info.get("mesh_layers"))
         with clock.measure("march"):
             launch_rows(
