@@ -50,6 +50,7 @@ from volren.kernels.common import (
     state_accumulator,
     with_accumulator,
 )
+from volren.render.compositing.oit import Layers, march_joint
 from volren.render.compositing.surface_light import SurfaceLight, unlit
 from volren.render.compositing.surfaces import MESH_RANGE, SURFACE_EPSILON, mesh_group, shade_lit_surface
 from volren.render.frame import PassClock
@@ -255,6 +256,48 @@ def march_between_layers(
         i += 1
     if t < t1 and out.transmittance >= params.min_transmittance:
         out = march_volume_light_map(out, vol, origin, d, t, t1, offset, medium, params)
+    return out, i
+
+
+@wp.func
+def march_joint_between_layers(
+    s: MarchState,
+    first: int,
+    mesh: MeshLayers,
+    row: int,
+    col: int,
+    facing: float,
+    layers: Layers,
+    i0: int,
+    i1: int,
+    volumes: wp.array(dtype=VolumeGPU),
+    origin: wp.vec3,
+    d: wp.vec3,
+    offset: float,
+    medium: Medium,
+    params: MarchParams,
+):
+    """`march_between_layers` for a joint run of overlapping boxes (layers [i0, i1) of the pixel's box k-buffer):
+    the run is marched by `march_joint` in pieces between the mesh layers inside it, each layer blended where it
+    lies. Returns the state and the index of the first mesh layer not yet blended."""
+    t0 = layers.t_in[i0]
+    t1 = layers.t_out[i0]
+    for j in range(i0 + 1, i1):
+        t1 = wp.max(t1, layers.t_out[j])
+    out, i = blend_layers_before(s, first, mesh, row, col, facing, t0)
+    t = t0
+    n = mesh.count[row, col]
+    while i < n and out.transmittance >= params.min_transmittance:
+        tl = mesh.depth[row, col, i] / facing
+        if tl >= t1:
+            break
+        if tl > t:
+            out = march_joint(out, layers, i0, i1, volumes, origin, d, offset, medium, params, wp.vec2(t, tl))
+            t = tl
+        out = blend_layer(out, mesh.color[row, col, i], tl)
+        i += 1
+    if t < t1 and out.transmittance >= params.min_transmittance:
+        out = march_joint(out, layers, i0, i1, volumes, origin, d, offset, medium, params, wp.vec2(t, t1))
     return out, i
 
 

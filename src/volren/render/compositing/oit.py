@@ -196,18 +196,22 @@ def march_joint(
     offset: float,
     medium: Medium,
     params: MarchParams,
+    span: wp.vec2,
 ) -> MarchState:
-    """March the overlapping layers [first, last) together from the first entry to the last exit: pieces between
-    box boundaries, each with the step count of its smallest covering diagonal; per sample the extinctions of the
-    covering volumes add and each contributes its own shaded scattering and emission (reference.py's sum)."""
+    """March the overlapping layers [first, last) together from the first entry to the last exit, clipped to the ray
+    distances ``span`` (so that a translucent mesh layer inside the run is blended where it lies, between two calls):
+    pieces between box boundaries, each with the step count of its smallest covering diagonal; per sample the
+    extinctions of the covering volumes add and each contributes its own shaded scattering and emission
+    (reference.py's sum)."""
     acc = state_accumulator(state)
     depth_t = state.depth_t
     taken = int(0)
     shaded = int(0)
-    t = layers.t_in[first]
+    t = wp.max(layers.t_in[first], span[0])
     t_end = layers.t_out[first]
     for i in range(first + 1, last):
         t_end = wp.max(t_end, layers.t_out[i])
+    t_end = wp.min(t_end, span[1])
     while t < t_end and acc[3] >= params.min_transmittance:
         t_next = wp.min(next_boundary(layers, first, last, t), t_end)
         mid = 0.5 * (t + t_next)

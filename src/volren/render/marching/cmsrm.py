@@ -75,9 +75,10 @@ from volren.render.compositing.mesh_layers import (
     layer_before,
     layer_stats,
     march_between_layers,
+    march_joint_between_layers,
     mesh_layers_pass,
 )
-from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, march_joint, pixel_layers
+from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, pixel_layers
 from volren.render.frame import DENSITY_SAMPLES, JOINT_RAYS, LIGHTMAP_LOOKUPS, RAYS, SKIPPED_STEPS, PassClock
 from volren.render.marching.cubemap import (
     FACE_COUNT,
@@ -328,7 +329,8 @@ def cube_resample_kernel(
         if end - i > 1:
             direct = 1
             joint = 1
-            s = march_joint(s, layers, i, end, volumes, cam.origin, d, 0.5, medium, params)
+            s, next_mesh = march_joint_between_layers(s, next_mesh, mesh, row, col, facing, layers, i, end, volumes,
+                                                      cam.origin, d, 0.5, medium, params)
         elif scheme[v] == SCHEME_CUBE and not layer_before(mesh, row, col, next_mesh, facing, layers.t_out[i]):
             vol = volumes[v]
             o_l = wp.transform_point(vol.to_local, cam.origin)

@@ -37,9 +37,10 @@ from volren.render.compositing.mesh_layers import (
     blend_layers_before,
     layer_stats,
     march_between_layers,
+    march_joint_between_layers,
     mesh_layers_pass,
 )
-from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, march_joint, pixel_layers
+from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, pixel_layers
 from volren.render.frame import DENSITY_SAMPLES, JOINT_RAYS, LIGHTMAP_LOOKUPS, RAYS, SKIPPED_STEPS, PassClock
 from volren.render.marching.march import MarchParams
 from volren.upload import DeviceScene, camera_struct
@@ -80,8 +81,8 @@ def dssrm_kernel(
             offset = ray_jitter(params.seed, params.view, row, col, cam.width, cam.height, i)
         if end - i > 1:
             joint = 1
-            s, next_mesh = blend_layers_before(s, next_mesh, mesh, row, col, facing, layers.t_in[i])
-            s = march_joint(s, layers, i, end, volumes, cam.origin, d, offset, medium, params)
+            s, next_mesh = march_joint_between_layers(s, next_mesh, mesh, row, col, facing, layers, i, end, volumes,
+                                                      cam.origin, d, offset, medium, params)
         else:
             s, next_mesh = march_between_layers(s, next_mesh, mesh, row, col, facing, volumes[layers.volume[i]],
                                                 cam.origin, d, layers.t_in[i], layers.t_out[i], offset, medium, params)
