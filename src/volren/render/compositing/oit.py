@@ -335,24 +335,21 @@ def conservative_view_boxes(scene_corners: list[np.ndarray], cam: Camera, tiles:
     pixel = 2.0 * cam.tan_half_fov / cam.height
     half = np.array([tiles.tile_w, tiles.tile_h]) * 0.5 * pixel * (1 + 1e-4)
     far_tan = cam.tan_half_fov * max(1.0, cam.width / cam.height) * 4.0
-    lo, hi = [], []
-    for corners in scene_corners:
-        c = (corners - np.asarray(cam.position)) @ axes.T
-        z0, z1 = c[:, 2].min(), c[:, 2].max()
-        if z1 <= 0.0:
-            lo.append((0.0, 0.0, -1.0))
-            hi.append((0.0, 0.0, -1.0))
-            continue
-        if z0 <= cam.near:
-            reach = z1 * far_tan
-            lo.append((-reach, -reach, min(z0, 0.0)))
-            hi.append((reach, reach, z1))
-            continue
-        slope = c[:, :2] / c[:, 2:3]
-        a0, a1 = slope.min(axis=0) - half, slope.max(axis=0) + half
-        lo.append((*np.minimum(z0 * a0, z1 * a0), z0))
-        hi.append((*np.maximum(z0 * a1, z1 * a1), z1))
-    return np.array(lo, np.float32), np.array(hi, np.float32)
+    # all instances at once: a per-instance Python loop cost ~1 ms per view at 36 instances (CPU)
+    c = (np.stack(scene_corners) - np.asarray(cam.position)) @ axes.T
+    z0, z1 = c[..., 2].min(axis=1), c[..., 2].max(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = c[..., :2] / c[..., 2:3]
+    a0, a1 = slope.min(axis=1) - half, slope.max(axis=1) + half
+    lo = np.column_stack([np.minimum(z0[:, None] * a0, z1[:, None] * a0), z0])
+    hi = np.column_stack([np.maximum(z0[:, None] * a1, z1[:, None] * a1), z1])
+    reach = z1 * far_tan
+    crossing = (z1 > 0.0) & (z0 <= cam.near)
+    lo[crossing] = np.column_stack([-reach, -reach, np.minimum(z0, 0.0)])[crossing]
+    hi[crossing] = np.column_stack([reach, reach, z1])[crossing]
+    behind = z1 <= 0.0
+    lo[behind] = hi[behind] = (0.0, 0.0, -1.0)
+    return lo.astype(np.float32), hi.astype(np.float32)
 
 
 class LayerFinder:
