@@ -363,27 +363,117 @@ def covering_diagonal(x: wp.vec3, volumes: wp.array(dtype=VolumeGPU), v_begin: i
 
 
 @wp.func
-def optical_depth(
-    vol: VolumeGPU, x: wp.vec3, toward: wp.vec3, t_limit: float, density: wp.array(dtype=float), samples: int
-) -> wp.vec2:
-    """(tau, fetches): the optical depth of one volume along ``x + t toward``, 0 <= t <= t_limit, by uniform midpoint
-    steps of at most diagonal / samples over its chord, sampled in local space (no per-sample transform)."""
+def skip_lookup(vol: VolumeGPU, max_density: wp.array(dtype=float), q: wp.vec3, o: wp.vec3, inv_d: wp.vec3) -> wp.vec2:
+    """(value, exit) of the skip cell holding ``q`` (skip-cell coordinates, clamped to the grid) for the ray
+    ``o + t d`` in those coordinates: its `skip_grid` value (> 0: not empty; -r <= 0: the cube of radius r around it
+    is empty) and the ray distance where the ray leaves that cell (not empty) or that cube (empty)."""
+    cells = vol.skip_res
+    c = wp.vec3i(wp.clamp(int(wp.floor(q[0])), 0, cells[0] - 1), wp.clamp(int(wp.floor(q[1])), 0, cells[1] - 1),
+                 wp.clamp(int(wp.floor(q[2])), 0, cells[2] - 1))
+    value = max_density[vol.skip_offset + (c[2] * cells[1] + c[1]) * cells[0] + c[0]]
+    r = wp.max(-value, 0.0)
+    t = float(1.0e30)
+    for a in range(3):
+        lo = float(c[a]) - r
+        t = wp.min(t, wp.max((lo - o[a]) * inv_d[a], (lo + 1.0 + 2.0 * r - o[a]) * inv_d[a]))
+    return wp.vec2(value, t)
+
+
+@wp.func
+def optical_depth_skipping(
+    vol: VolumeGPU,
+    x: wp.vec3,
+    toward: wp.vec3,
+    t_limit: float,
+    density: wp.array(dtype=float),
+    max_density: wp.array(dtype=float),
+    skip: int,
+    samples: int,
+) -> wp.vec3:
+    """(tau, fetches, skipped): `optical_depth` with empty-space skipping when ``skip`` is 1 (and the volume has a
+    skip grid): a step in an empty cell of ``max_density`` (`volren.upload.skip_grid`, zero density up to half a
+    voxel beyond the cell) samples exactly 0 and adds nothing to the sum, so it is left unsampled and only the
+    position advances (by the same float additions), and tau is bit-identical to skipping off. Cells are looked up
+    as in the view march (`volren.render.marching.march.march_volume_light_map`): once per cell entered."""
     o_l = wp.transform_point(vol.to_local, x)
     d_l = wp.transform_vector(vol.to_local, toward)
     h = box_hit(o_l, d_l)
     t0 = wp.max(h[0], 0.0)
     t1 = wp.min(h[1], t_limit)
     if t1 <= t0:
-        return wp.vec2(0.0, 0.0)
+        return wp.vec3(0.0, 0.0, 0.0)
     n = march_step_count(t1 - t0, vol.diagonal, samples)
     dt = (t1 - t0) / float(n)
     p = o_l + (t0 + 0.5 * dt) * d_l
     step = dt * d_l
+    # the ray in skip-cell coordinates (cell c spans [c, c + 1) on each axis): q = (p + 1) res / (2 skip_cell)
+    to_cell = wp.vec3(float(vol.res[0]), float(vol.res[1]), float(vol.res[2])) * (0.5 / float(wp.max(vol.skip_cell, 1)))
+    o_c = wp.cw_mul(o_l + wp.vec3(1.0), to_cell)
+    d_c = wp.cw_mul(d_l, to_cell)
+    inv_d = wp.vec3(safe_inverse(d_c[0]), safe_inverse(d_c[1]), safe_inverse(d_c[2]))
+    check_t = float(-1.0e30)
+    if skip == 0 or vol.skip_cell == 0:
+        check_t = float(1.0e30)
     rho_sum = float(0.0)
-    for _i in range(n):
+    skipped = int(0)
+    i = int(0)
+    while i < n:
+        t = t0 + (float(i) + 0.5) * dt
+        if t >= check_t:
+            cell = skip_lookup(vol, max_density, o_c + t * d_c, o_c, inv_d)
+            check_t = cell[1]
+            if cell[0] <= 0.0:
+                j = wp.min(wp.max(int(wp.ceil((check_t - t0) / dt - 0.5)), i + 1), n)
+                skipped += j - i
+                for _k in range(j - i):
+                    p = p + step
+                i = j
+                continue
         rho_sum += sample_grid(density, vol.offset, vol.res, p)
         p = p + step
-    return wp.vec2(vol.density_scale * rho_sum * dt, float(n))
+        i += 1
+    return wp.vec3(vol.density_scale * rho_sum * dt, float(n - skipped), float(skipped))
+
+
+@wp.func
+def optical_depth(
+    vol: VolumeGPU, x: wp.vec3, toward: wp.vec3, t_limit: float, density: wp.array(dtype=float), samples: int
+) -> wp.vec2:
+    """(tau, fetches): the optical depth of one volume along ``x + t toward``, 0 <= t <= t_limit, by uniform midpoint
+    steps of at most diagonal / samples over its chord, sampled in local space (no per-sample transform)."""
+    r = optical_depth_skipping(vol, x, toward, t_limit, density, density, 0, samples)
+    return wp.vec2(r[0], r[1])
+
+
+@wp.func
+def transmittance_toward_skipping(
+    x: wp.vec3,
+    toward: wp.vec3,
+    t_limit: float,
+    volumes: wp.array(dtype=VolumeGPU),
+    v_begin: int,
+    v_end: int,
+    density: wp.array(dtype=float),
+    max_density: wp.array(dtype=float),
+    skip: int,
+    samples: int,
+    counters: wp.array(dtype=wp.int64),
+    counter_index: int,
+    skipped_index: int,
+) -> float:
+    """`transmittance_toward` with empty-space skipping (`optical_depth_skipping`): the same T bit for bit; counts
+    the fetches at ``counter_index`` and the steps left unsampled at ``skipped_index``."""
+    tau = float(0.0)
+    fetched = float(0.0)
+    skipped = float(0.0)
+    for v in range(v_begin, v_end):
+        r = optical_depth_skipping(volumes[v], x, toward, t_limit, density, max_density, skip, samples)
+        tau += r[0]
+        fetched += r[1]
+        skipped += r[2]
+    count(counters, counter_index, int(fetched))
+    count(counters, skipped_index, int(skipped))
+    return wp.exp(-tau)
 
 
 @wp.func
@@ -402,13 +492,38 @@ def transmittance_toward(
     """Transmittance from world point ``x`` along unit ``toward`` up to ``t_limit`` through volumes
     [v_begin, v_end) (paper 000 Eq. 2). Optical depths add even where boxes overlap, so T is the product of each
     volume's own chord march (order-independent, as paper 000 §3.2 notes for its any-hit traversal)."""
+    return transmittance_toward_skipping(x, toward, t_limit, volumes, v_begin, v_end, density, density, 0, samples,
+                                         counters, counter_index, counter_index)
+
+
+@wp.func
+def transmittance_bvh_skipping(
+    x: wp.vec3,
+    toward: wp.vec3,
+    t_limit: float,
+    bvh: wp.uint64,
+    volumes: wp.array(dtype=VolumeGPU),
+    density: wp.array(dtype=float),
+    max_density: wp.array(dtype=float),
+    skip: int,
+    samples: int,
+    counters: wp.array(dtype=wp.int64),
+    counter_index: int,
+    skipped_index: int,
+) -> float:
+    """`transmittance_bvh` with empty-space skipping (`optical_depth_skipping`): the same T bit for bit."""
     tau = float(0.0)
     fetched = float(0.0)
-    for v in range(v_begin, v_end):
-        r = optical_depth(volumes[v], x, toward, t_limit, density, samples)
+    skipped = float(0.0)
+    query = wp.bvh_query_ray(bvh, x, toward)
+    v = int(0)
+    while wp.bvh_query_next(query, v):
+        r = optical_depth_skipping(volumes[v], x, toward, t_limit, density, max_density, skip, samples)
         tau += r[0]
         fetched += r[1]
+        skipped += r[2]
     count(counters, counter_index, int(fetched))
+    count(counters, skipped_index, int(skipped))
     return wp.exp(-tau)
 
 
@@ -426,16 +541,8 @@ def transmittance_bvh(
 ) -> float:
     """`transmittance_toward` through every volume whose world box the ray hits, found by a BVH over the boxes
     (paper 000 §3.2.3's any-hit traversal: the optical depths add in any order)."""
-    tau = float(0.0)
-    fetched = float(0.0)
-    query = wp.bvh_query_ray(bvh, x, toward)
-    v = int(0)
-    while wp.bvh_query_next(query, v):
-        r = optical_depth(volumes[v], x, toward, t_limit, density, samples)
-        tau += r[0]
-        fetched += r[1]
-    count(counters, counter_index, int(fetched))
-    return wp.exp(-tau)
+    return transmittance_bvh_skipping(x, toward, t_limit, bvh, volumes, density, density, 0, samples, counters,
+                                      counter_index, counter_index)
 
 
 @wp.func

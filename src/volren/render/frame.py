@@ -15,7 +15,7 @@ from volren.device import counter_rows_for, synchronize
 
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
             "shadow_rays", "shadow_voxels", "box_tests", "tile_box_tests", "bvh_queries", "joint_rays",
-            "skipped_steps")
+            "skipped_steps", "light_skipped")
 """Work counters gathered by the kernels (wp.atomic_add into one int64 array, indexed by position here):
 density_samples: trilinear density fetches on view rays; light_samples: density fetches on rays towards lights
 (light-map pass or the reference's per-sample shadow rays); lightmap_lookups: light-map fetches while shading;
@@ -31,9 +31,10 @@ the boxes its BVH reported; bvh_queries: BVH ray queries (pixel-rt: one per pixe
 surfaces' AO: one per ray; Warp's query does not report the nodes it visits); joint_rays: pixel rays that
 marched overlapping boxes jointly;
 skipped_steps: view-ray steps of the light-map march left unsampled by empty-space skipping (with it off they would
-be density_samples)."""
+be density_samples); light_skipped: steps of the light-map pass's rays towards lights left unsampled by empty-space
+skipping (with it off they would be light_samples)."""
 (DENSITY_SAMPLES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, INTERLEAVED_SAMPLES, SHADOW_RAYS,
- SHADOW_VOXELS, BOX_TESTS, TILE_BOX_TESTS, BVH_QUERIES, JOINT_RAYS, SKIPPED_STEPS) = range(len(COUNTERS))
+ SHADOW_VOXELS, BOX_TESTS, TILE_BOX_TESTS, BVH_QUERIES, JOINT_RAYS, SKIPPED_STEPS, LIGHT_SKIPPED) = range(len(COUNTERS))
 
 
 @dataclass

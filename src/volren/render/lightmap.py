@@ -4,6 +4,10 @@ The light grid has its own resolution (e.g. 128^3 for 256^3 density) and one cha
 point). Marching uses L uniform samples at most across the box diagonal ("L" of the papers' METHOD:V:L). Without GI
 only the volume's own density attenuates (paper 001); with GI on, the march crosses every volume its ray hits, found
 through the BVH over the volumes' boxes (paper 000 §3.2.3's lighting update: shadows between volumes).
+
+Empty-space skipping (not in the papers; on with the renderer's ``skip_empty``): the march towards the light leaves
+out steps in empty cells of each volume's skip grid, as the view march does (`volren.kernels.common.
+optical_depth_skipping`), with the same light map bit for bit; the ``light_skipped`` counter counts those steps.
 """
 
 from __future__ import annotations
@@ -17,11 +21,11 @@ from volren.kernels.common import (
     counter_row,
     light_distance,
     light_travel_dir,
-    transmittance_bvh,
-    transmittance_toward,
+    transmittance_bvh_skipping,
+    transmittance_toward_skipping,
     voxel_center,
 )
-from volren.render.frame import LIGHT_SAMPLES, PassClock
+from volren.render.frame import LIGHT_SAMPLES, LIGHT_SKIPPED, PassClock
 from volren.upload import DeviceScene
 
 
@@ -30,6 +34,8 @@ def light_map_kernel(
     volumes: wp.array(dtype=VolumeGPU),
     v: int,
     density: wp.array(dtype=float),
+    max_density: wp.array(dtype=float),
+    skip: int,
     lights: wp.array(dtype=LightGPU),
     light_samples: int,
     bvh: wp.uint64,
@@ -53,15 +59,17 @@ def light_map_kernel(
         reach = light_distance(light, x)
         t = float(0.0)
         if cross_volume != 0:
-            t = transmittance_bvh(x, toward, reach, bvh, volumes, density, light_samples, counters, LIGHT_SAMPLES)
+            t = transmittance_bvh_skipping(x, toward, reach, bvh, volumes, density, max_density, skip, light_samples,
+                                           counters, LIGHT_SAMPLES, LIGHT_SKIPPED)
         else:
-            t = transmittance_toward(x, toward, reach, volumes, v, v + 1, density, light_samples, counters,
-                                     LIGHT_SAMPLES)
+            t = transmittance_toward_skipping(x, toward, reach, volumes, v, v + 1, density, max_density, skip,
+                                              light_samples, counters, LIGHT_SAMPLES, LIGHT_SKIPPED)
         lightmap[vol.light_offset + li * count + (k * res[1] + j) * res[0] + i] = t
 
 
 def compute_light_map(ds: DeviceScene, light_samples: int, clock: PassClock, cross_volume: bool = False) -> None:
-    """Fill ``ds.lightmap`` for every volume and light (``cross_volume``: through every volume, not just its own)."""
+    """Fill ``ds.lightmap`` for every volume and light (``cross_volume``: through every volume, not just its own),
+    skipping empty space when ``ds.skip_empty``."""
     if ds.light_count == 0:
         return
     with clock.measure("light_map"):
@@ -70,8 +78,8 @@ def compute_light_map(ds: DeviceScene, light_samples: int, clock: PassClock, cro
                 light_map_kernel,
                 nz * ny,
                 nx,
-                [ds.volumes, v, ds.density, ds.lights, light_samples, ds.volume_bvh.id, int(cross_volume),
-                 ds.lightmap],
+                [ds.volumes, v, ds.density, ds.max_density, int(ds.skip_empty), ds.lights, light_samples,
+                 ds.volume_bvh.id, int(cross_volume), ds.lightmap],
                 ds.device,
                 clock.counters,
             )

@@ -24,6 +24,7 @@ from volren.kernels.common import (
     safe_inverse,
     sample_grid,
     sample_grid_rgb,
+    skip_lookup,
     state_accumulator,
     with_accumulator,
 )
@@ -81,23 +82,6 @@ def lit_step(
     light = shade_light_map(vol, medium, p, x, d, ambient)
     source = wp.cw_mul(vol.albedo, light) * sigma_t + vol.emission * rho
     return composite_step(acc, source, sigma_t, dt)
-
-
-@wp.func
-def skip_lookup(vol: VolumeGPU, max_density: wp.array(dtype=float), q: wp.vec3, o: wp.vec3, inv_d: wp.vec3) -> wp.vec2:
-    """(value, exit) of the skip cell holding ``q`` (skip-cell coordinates, clamped to the grid) for the ray
-    ``o + t d`` in those coordinates: its `skip_grid` value (> 0: not empty; -r <= 0: the cube of radius r around it
-    is empty) and the ray distance where the ray leaves that cell (not empty) or that cube (empty)."""
-    cells = vol.skip_res
-    c = wp.vec3i(wp.clamp(int(wp.floor(q[0])), 0, cells[0] - 1), wp.clamp(int(wp.floor(q[1])), 0, cells[1] - 1),
-                 wp.clamp(int(wp.floor(q[2])), 0, cells[2] - 1))
-    value = max_density[vol.skip_offset + (c[2] * cells[1] + c[1]) * cells[0] + c[0]]
-    r = wp.max(-value, 0.0)
-    t = float(1.0e30)
-    for a in range(3):
-        lo = float(c[a]) - r
-        t = wp.min(t, wp.max((lo - o[a]) * inv_d[a], (lo + 1.0 + 2.0 * r - o[a]) * inv_d[a]))
-    return wp.vec2(value, t)
 
 
 @wp.func
