@@ -57,14 +57,15 @@ def run(test, token: str | None = None, **loop_kw) -> None:
     async def main() -> None:
         loop = RenderLoop(SCENE, "dssrm", "interactive", limits=Limits(4, 128, 96), device="cpu", overrides=SMALL,
                           **loop_kw)
-        async with TestClient(TestServer(make_app(loop, "smoke16", token))) as client:
+        # a failing test leaves sockets open: do not wait a minute for them at shutdown
+        async with TestClient(TestServer(make_app(loop, "smoke16", token), shutdown_timeout=1.0)) as client:
             await test(client, loop)
     asyncio.run(main())
 
 
 async def until(condition, what: str) -> None:
-    """Wait (bounded) for ``condition()``, polling the event loop."""
-    for _ in range(int(TIMEOUT / 0.01)):
+    """Wait (20 s at most: nothing to compile here) for ``condition()``, polling the event loop."""
+    for _ in range(2000):
         if condition():
             return
         await asyncio.sleep(0.01)
@@ -423,3 +424,30 @@ def test_naive_mode_renders_each_viewer_alone():
             await ws.close()
 
     run(test, shared=False)
+
+
+def test_a_failing_render_is_reported_and_the_loop_goes_on():
+    """An unexpected error in a tick reaches every viewer as one error message; the next camera is rendered."""
+    async def test(client, loop):
+        ws, _ = await connect(client)
+        render = loop.renderer.render
+        calls = []
+
+        def fails_once(scene, views, frame=0):
+            calls.append(frame)
+            if len(calls) == 1:
+                raise RuntimeError("boom\nsecond line")
+            return render(scene, views, frame)
+
+        loop.renderer.render = fails_once
+        await ws.send_json(cam_msg(1))
+        reply = asyncio.ensure_future(ws.receive_json())
+        await asyncio.wait({reply, loop._task}, timeout=TIMEOUT, return_when=asyncio.FIRST_COMPLETED)
+        assert not loop._task.done(), "the loop died"
+        assert reply.result() == {"type": "error", "message": "render failed: boom"}
+        await ws.send_json(cam_msg(2))
+        _, image = await frame_for(ws, 2)
+        assert image.std() > 10 and not loop._task.done()
+        await ws.close()
+
+    run(test)

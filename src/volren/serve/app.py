@@ -91,10 +91,7 @@ async def handle_text(loop: RenderLoop, viewer: Viewer, data: Any, scene: str) -
     elif isinstance(msg, Resize):
         viewer.resize(msg.width, msg.height, viewer.stereo, loop.limits)
     elif isinstance(msg, Settings) and loop.apply(msg, viewer):
-        note = json.dumps({"type": "settings", **loop.shared_settings()})
-        for other in list(loop.viewers.viewers.values()):
-            if other is not viewer:
-                await other.text(note)
+        loop.broadcast(json.dumps({"type": "settings", **loop.shared_settings()}), skip=viewer)
     loop.wake()
 
 

@@ -203,11 +203,16 @@ class RenderLoop:
     async def stop(self) -> None:
         if self._task is not None:
             self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
+            try:
                 await self._task
+            except asyncio.CancelledError:
+                pass
+            except Exception:  # it had died already (a bug): say so, and still shut down
+                log.exception("the render loop had failed")
         for v in list(self.viewers.viewers.values()):
-            if v.sending is not None:
-                v.sending.cancel()
+            for task in (v.sending, v.texting):
+                if task is not None:
+                    task.cancel()
 
     def _due(self) -> bool:
         """Some viewer free to receive needs a frame (new camera, size or settings, or the scene plays)."""
@@ -226,7 +231,7 @@ class RenderLoop:
                 except Exception as exc:  # never let one bad tick end the loop: tell the viewers, carry on
                     log.exception("render tick failed")
                     text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-                    await self._broadcast(error_message(f"render failed: {text}"))
+                    self.broadcast(error_message(f"render failed: {text}"))
                     for v in self.viewers.render_order():
                         v.shown = (v.camera_id, self.version)
                 await asyncio.sleep(0)  # let the event loop read messages between ticks
@@ -245,7 +250,7 @@ class RenderLoop:
         except VolrenError as exc:
             for v, cam_id, _ in jobs:
                 v.shown = (cam_id, version)
-            await self._broadcast(error_message(str(exc)))
+            self.broadcast(error_message(str(exc)))
             return
         self.tick += 1
         self._tick_times.append(time.perf_counter())
@@ -302,11 +307,17 @@ class RenderLoop:
         finally:
             self.wake()  # it may need the newest camera now
 
-    async def _broadcast(self, text: str, skip: Viewer | None = None) -> None:
+    def broadcast(self, text: str, skip: Viewer | None = None) -> None:
+        """A text message to every viewer but ``skip``, never awaited: a viewer whose previous text message is still
+        on its way misses this one (like frames: a stalled client stalls nobody; the messages are snapshots)."""
         for v in list(self.viewers.viewers.values()):
-            if v is not skip and v.text is not None:
-                with contextlib.suppress(ConnectionError, RuntimeError):
-                    await v.text(text)
+            if v is not skip and v.text is not None and (v.texting is None or v.texting.done()):
+                v.texting = asyncio.create_task(self._send_text(v, text))
+
+    @staticmethod
+    async def _send_text(viewer: Viewer, text: str) -> None:
+        with contextlib.suppress(ConnectionError, RuntimeError):  # gone: its handler drops it
+            await viewer.text(text)
 
     # ---- reporting ------------------------------------------------------------------------------------------
 

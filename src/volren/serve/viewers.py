@@ -47,6 +47,8 @@ class Viewer:
     shown: tuple[int, int] = (-1, -1)
     """(camera id, scene version) of the last frame rendered for this viewer"""
     sending: asyncio.Task | None = None
+    texting: asyncio.Task | None = None
+    """the text message (settings, error) still on its way, if any"""
     frames: int = 0
     dropped: int = 0
     closed: bool = False
