@@ -4,6 +4,8 @@ cross-volume march through the BVH), and the fetches plus the skipped steps are 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -38,3 +40,18 @@ def test_light_map_skipping_is_bit_identical_with_exact_counters(multi, cross_vo
     assert c_off["light_skipped"] == 0
     assert c_on["light_samples"] + c_on["light_skipped"] == c_off["light_samples"]
     assert c_on["light_skipped"] > 0.3 * c_off["light_samples"], (c_on, c_off)
+
+
+def test_one_launch_for_every_volume_matches_each_volume_alone(multi) -> None:
+    """The pass launches once over every volume's light-grid rows (``row_start``): with light grids of different
+    shapes (boxes of different aspect), each volume's part of the light map equals, bit for bit, the light map of
+    that volume uploaded alone (own-volume march: nothing else casts a shadow)."""
+    rng = np.random.default_rng(4)
+    shapes = ((6, 14, 22), (20, 9, 12), (11, 11, 5))
+    volumes = tuple(dataclasses.replace(multi.volumes[0], density=rng.uniform(0, 1, s).astype(np.float32))
+                    for s in shapes)
+    together, _ = light_map(dataclasses.replace(multi, volumes=volumes), True, False)
+    ds = upload_scene(dataclasses.replace(multi, volumes=volumes), DEVICE, light_grid=16)
+    assert len(set(ds.light_res)) == 3
+    alone = np.concatenate([light_map(dataclasses.replace(multi, volumes=(v,)), True, False)[0] for v in volumes])
+    np.testing.assert_array_equal(together, alone)
