@@ -46,7 +46,9 @@ from volren.kernels.common import (
     camera_ray,
     counter_row,
     half_depth,
+    new_march_state,
     occluder_t,
+    project_pixel,
     state_accumulator,
     with_accumulator,
 )
@@ -54,6 +56,7 @@ from volren.render.compositing.oit import Layers, march_joint
 from volren.render.compositing.surface_light import SurfaceLight, unlit
 from volren.render.compositing.surfaces import MESH_RANGE, SURFACE_EPSILON, mesh_group, shade_lit_surface
 from volren.render.frame import PassClock
+from volren.render.marching.cubemap import cube_segment, cube_segment_weights
 from volren.render.marching.march import MarchParams, march_volume_light_map
 from volren.scene import TriangleMesh
 from volren.upload import DeviceScene, camera_struct
@@ -299,6 +302,143 @@ def march_joint_between_layers(
     if t < t1 and out.transmittance >= params.min_transmittance:
         out = march_joint(out, layers, i0, i1, volumes, origin, d, offset, medium, params, wp.vec2(t, t1))
     return out, i
+
+
+@wp.func
+def append_segment(s: MarchState, g: MarchState, t_end: float) -> MarchState:
+    """Composite the segment state g (marched from T = 1) behind s; the half-transmittance depth is g's own where
+    the sum crosses 1/2 in g (its end t_end when g never reached 1/2 alone)."""
+    out = s
+    out.color = s.color + s.transmittance * g.color
+    out.transmittance = s.transmittance * g.transmittance
+    out.depth_t = half_depth(s.depth_t, s.transmittance, out.transmittance, wp.min(g.depth_t, t_end))
+    out.samples = s.samples + g.samples
+    out.shaded = s.shaded + g.shaded
+    out.skipped = s.skipped + g.skipped
+    return out
+
+
+@wp.func
+def march_texel_segments(
+    mesh: MeshLayers,
+    cam: CameraGPU,
+    x: wp.vec3,
+    seg: wp.array(dtype=wp.vec4),
+    seg_z: wp.array(dtype=float),
+    segments: int,
+    texel: int,
+    vol: VolumeGPU,
+    d: wp.vec3,
+    t0: float,
+    t1: float,
+    medium: Medium,
+    params: MarchParams,
+) -> MarchState:
+    """A texel ray of the cube k-buffer (paper 000 §3.3, Fig. 5 (b)): the march over [t0, t1] towards the world
+    texel point x is split at the mesh layers of the pixel x projects to (nearest, as the opaque cut), and segment
+    j, the volume between that pixel's layers j - 1 and j, is stored as (premultiplied colour, transmittance) from
+    T = 1 with the depth where it ends (``segments`` = K + 1 per texel; none stored when 0). Returns the whole ray
+    (the segments composited, the volume alone) for the plain cube map."""
+    out = new_march_state()
+    facing = wp.dot(d, cam.forward)
+    n = int(0)
+    row = int(0)
+    col = int(0)
+    if segments > 0:
+        pix = project_pixel(cam, x)
+        col = int(wp.floor(pix[0]))
+        row = int(wp.floor(pix[1]))
+        if col >= 0 and col < cam.width and row >= 0 and row < cam.height:
+            n = wp.min(mesh.count[row, col], segments - 1)
+    t = t0
+    base = texel * segments
+    for j in range(n + 1):
+        te = t1
+        if j < n:
+            te = wp.clamp(mesh.depth[row, col, j] / facing, t0, t1)
+        g = new_march_state()
+        if te > t and out.transmittance >= params.min_transmittance:
+            g = march_volume_light_map(g, vol, cam.origin, d, t, te, 0.5, medium, params)
+        t = wp.max(t, te)
+        if segments > 0:
+            seg[base + j] = wp.vec4(g.color[0], g.color[1], g.color[2], g.transmittance)
+            seg_z[base + j] = te * facing
+        out = append_segment(out, g, te)
+    for j in range(n + 1, segments):
+        seg[base + j] = wp.vec4(0.0, 0.0, 0.0, 1.0)
+        seg_z[base + j] = t1 * facing
+    return out
+
+
+@wp.func
+def layers_inside(mesh: MeshLayers, row: int, col: int, first: int, facing: float, t_out: float) -> int:
+    """One past the last layer from ``first`` on that lies before ray distance t_out."""
+    m = first
+    while layer_before(mesh, row, col, m, facing, t_out):
+        m += 1
+    return m
+
+
+@wp.func
+def segment_end(mesh: MeshLayers, row: int, col: int, j: int, first: int, m: int, z_in: float, z_out: float) -> float:
+    """Linear depth where the pixel's segment j of a box (layers [first, m) inside it) ends: the box entry z_in
+    for j < first, its layer j inside the box, else the box exit z_out."""
+    if j < first:
+        return z_in
+    if j < m:
+        return mesh.depth[row, col, j]
+    return z_out
+
+
+@wp.func
+def blend_cube_segments(
+    s: MarchState,
+    first: int,
+    mesh: MeshLayers,
+    row: int,
+    col: int,
+    facing: float,
+    seg: wp.array(dtype=wp.vec4),
+    seg_z: wp.array(dtype=float),
+    segments: int,
+    offset: int,
+    size: int,
+    p: wp.vec3,
+    t_in: float,
+    t_out: float,
+    k_z: float,
+):
+    """The integration pass with the cube k-buffer (paper 000 §3.3): the pixel's layers [first, m) inside a
+    cube-scheme box and the volume segments between them, front to back: segment j (the 2x2 texels at the box-surface
+    point p, weighted by Eq. 13 with z_cube the depth where each texel's segment j ends and z_buffer where the
+    pixel's does), then layer j. Returns (state, m, 1), or (s, first, 0) where the scheme cannot apply: no cube
+    k-buffer (``segments`` 0) or a segment whose four Eq. 13 weights all vanish (the texels' pixels have no layer
+    near this pixel's, at a sheet's silhouette); the caller then marches the box directly."""
+    m = layers_inside(mesh, row, col, first, facing, t_out)
+    z_in = t_in * facing
+    z_out = t_out * facing
+    if segments == 0 or m >= segments:
+        return s, first, 0
+    for j in range(first, m + 1):
+        w = cube_segment_weights(seg_z, segments, offset, size, p, j,
+                                 segment_end(mesh, row, col, j - 1, first, m, z_in, z_out),
+                                 segment_end(mesh, row, col, j, first, m, z_in, z_out), k_z)
+        if w[0] + w[1] + w[2] + w[3] < 1.0e-6:
+            return s, first, 0
+    out = s
+    for j in range(first, m + 1):
+        w = cube_segment_weights(seg_z, segments, offset, size, p, j,
+                                 segment_end(mesh, row, col, j - 1, first, m, z_in, z_out),
+                                 segment_end(mesh, row, col, j, first, m, z_in, z_out), k_z)
+        c = cube_segment(seg, segments, offset, size, p, j, w)
+        after = out.transmittance * c[3]
+        t_end = segment_end(mesh, row, col, j, first, m, z_in, z_out) / facing
+        out.depth_t = half_depth(out.depth_t, out.transmittance, after, t_end)
+        out.color = out.color + out.transmittance * wp.vec3(c[0], c[1], c[2])
+        out.transmittance = after
+        if j < m:
+            out = blend_layer(out, mesh.color[row, col, j], t_end)
+    return out, m, 1
 
 
 def layer_scene(ds: DeviceScene, light: SurfaceLight | None = None) -> LayerScene:

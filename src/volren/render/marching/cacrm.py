@@ -296,6 +296,7 @@ class CACRM(CMSRM):
     """Coupled binocular cube-map ray marching; ``config`` is a `CACRMConfig`."""
 
     name = "cacrm"
+    cube_kbuffer = False
 
     def __init__(self, config: CACRMConfig | None = None, device: str = "auto") -> None:
         super().__init__(config or CACRMConfig(), device)

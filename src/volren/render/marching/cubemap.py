@@ -115,6 +115,13 @@ class CubeTarget:
     t_half: wp.array(dtype=float)
     z_end: wp.array(dtype=float)
     offset: int
+    seg: wp.array(dtype=wp.vec4)
+    """the cube k-buffer (paper 000 §3.3): per texel ``segments`` (premultiplied colour, transmittance) of the volume
+    between the mesh layers of the pixel the texel projects to, texel i's at [i segments, (i + 1) segments)"""
+    seg_z: wp.array(dtype=float)
+    """linear depth where each segment ends (INF for a texel not marched, a culled empty tile: transparent)"""
+    segments: int
+    """K + 1 for a mesh k-buffer of K layers; 0: no cube k-buffer (no translucent mesh)"""
 
 
 @wp.func
@@ -136,19 +143,9 @@ def edge_stop(z_pixel: float, z_cube: float, k_z: float) -> float:
 
 
 @wp.func
-def cube_sample(
-    cube: wp.array(dtype=wp.vec4),
-    cube_z: wp.array(dtype=float),
-    offset: int,
-    size: int,
-    p: wp.vec3,
-    z_pixel: float,
-    k_z: float,
-) -> wp.vec4:
-    """Sample the cube map (texels ``offset ...``) at the box-surface point ``p`` from the 2x2 texels bilinear
-    filtering would use (seamless across face edges), each weighted by its bilinear weight times the edge-stopping
-    w_z = max(1 - k_z |z_pixel - z_cube|, 0) of paper 001 §3.2 (z: linear depth where the texel's / pixel's ray
-    ends). k_z = 0 is plain bilinear; where every w_z is 0 the plain bilinear weights are used."""
+def cube_quad(offset: int, size: int, p: wp.vec3):
+    """The 2x2 texels bilinear filtering uses at the box-surface point ``p`` (seamless across face edges): their
+    indices (texels ``offset ...``) and bilinear weights."""
     f = point_face(p)
     a = f / 2
     x = (p[(a + 1) % 3] + 1.0) * 0.5 * float(size) - 0.5
@@ -172,22 +169,67 @@ def cube_sample(
         i10 = offset + texel_index(f, x0 + 1, y0, size)
         i01 = offset + texel_index(f, x0, y0 + 1, size)
         i11 = offset + texel_index(f, x0 + 1, y0 + 1, size)
-    b00 = (1.0 - fx) * (1.0 - fy)
-    b10 = fx * (1.0 - fy)
-    b01 = (1.0 - fx) * fy
-    b11 = fx * fy
-    w00 = b00 * edge_stop(z_pixel, cube_z[i00], k_z)
-    w10 = b10 * edge_stop(z_pixel, cube_z[i10], k_z)
-    w01 = b01 * edge_stop(z_pixel, cube_z[i01], k_z)
-    w11 = b11 * edge_stop(z_pixel, cube_z[i11], k_z)
-    total = w00 + w10 + w01 + w11
+    return (wp.vec4i(i00, i10, i01, i11),
+            wp.vec4((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy))
+
+
+@wp.func
+def cube_sample(
+    cube: wp.array(dtype=wp.vec4),
+    cube_z: wp.array(dtype=float),
+    offset: int,
+    size: int,
+    p: wp.vec3,
+    z_pixel: float,
+    k_z: float,
+) -> wp.vec4:
+    """Sample the cube map (texels ``offset ...``) at the box-surface point ``p`` from the 2x2 texels bilinear
+    filtering would use (`cube_quad`), each weighted by its bilinear weight times the edge-stopping
+    w_z = max(1 - k_z |z_pixel - z_cube|, 0) of paper 001 §3.2 (z: linear depth where the texel's / pixel's ray
+    ends). k_z = 0 is plain bilinear; where every w_z is 0 the plain bilinear weights are used."""
+    idx, b = cube_quad(offset, size, p)
+    out = wp.vec4(0.0)
+    plain = wp.vec4(0.0)
+    total = float(0.0)
+    for k in range(4):
+        w = b[k] * edge_stop(z_pixel, cube_z[idx[k]], k_z)
+        out += cube[idx[k]] * w
+        plain += cube[idx[k]] * b[k]
+        total += w
     if total < 1.0e-6:
-        w00 = b00
-        w10 = b10
-        w01 = b01
-        w11 = b11
-        total = 1.0
-    return (cube[i00] * w00 + cube[i10] * w10 + cube[i01] * w01 + cube[i11] * w11) / total
+        return plain
+    return out / total
+
+
+@wp.func
+def cube_segment_weights(seg_z: wp.array(dtype=float), segments: int, offset: int, size: int, p: wp.vec3, j: int,
+                         z_start: float, z_end: float, k_z: float) -> wp.vec4:
+    """Eq. 13 across segment depths for segment j of the cube k-buffer (`CubeTarget.seg`): per texel of the 2x2
+    quad at p its bilinear weight times w_z(z_cube, z_pixel) at both ends of the segment, z_cube the depths where the
+    texel's segments j - 1 and j end (the mesh layers of the pixel the texel projects to, or its ray's end) and
+    z_start, z_end the pixel's. The start is compared from j = 1 on (segment 0 starts at the box entry in both).
+    Both ends, not the paper's one depth: a texel whose pixel has no layer where this pixel has one holds the whole
+    ray in one segment and an empty one after it, each matching this pixel's at one end only."""
+    idx, b = cube_quad(offset, size, p)
+    w = wp.vec4(0.0)
+    for k in range(4):
+        base = idx[k] * segments
+        w[k] = b[k] * edge_stop(z_end, seg_z[base + j], k_z)
+        if j > 0:
+            w[k] = w[k] * edge_stop(z_start, seg_z[base + j - 1], k_z)
+    return w
+
+
+@wp.func
+def cube_segment(seg: wp.array(dtype=wp.vec4), segments: int, offset: int, size: int, p: wp.vec3, j: int,
+                 w: wp.vec4) -> wp.vec4:
+    """Segment j's (premultiplied colour, transmittance) filtered with the weights ``w`` (`cube_segment_weights`,
+    summing to more than 0)."""
+    idx, _b = cube_quad(offset, size, p)
+    out = wp.vec4(0.0)
+    for k in range(4):
+        out += seg[idx[k] * segments + j] * w[k]
+    return out / (w[0] + w[1] + w[2] + w[3])
 
 
 @wp.func
