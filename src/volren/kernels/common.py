@@ -380,6 +380,25 @@ def skip_lookup(vol: VolumeGPU, max_density: wp.array(dtype=float), q: wp.vec3, 
 
 
 @wp.func
+def skip_cell_ray(vol: VolumeGPU, o_l: wp.vec3, d_l: wp.vec3):
+    """The local ray ``o_l + t d_l`` in skip-cell coordinates (cell c spans [c, c + 1) on each axis:
+    q = (p + 1) res / (2 skip_cell)): its origin, direction and the direction's inverse (for `skip_lookup`)."""
+    to_cell = wp.vec3(float(vol.res[0]), float(vol.res[1]), float(vol.res[2])) * (0.5 / float(wp.max(vol.skip_cell, 1)))
+    o_c = wp.cw_mul(o_l + wp.vec3(1.0), to_cell)
+    d_c = wp.cw_mul(d_l, to_cell)
+    return o_c, d_c, wp.vec3(safe_inverse(d_c[0]), safe_inverse(d_c[1]), safe_inverse(d_c[2]))
+
+
+@wp.func
+def first_skip_check(vol: VolumeGPU, skip: int) -> float:
+    """The ray distance of a march's first skip-cell lookup: at once, or never when skipping is off (``skip`` 0) or
+    the volume struct has no skip grid."""
+    if skip == 0 or vol.skip_cell == 0:
+        return 1.0e30
+    return -1.0e30
+
+
+@wp.func
 def optical_depth_skipping(
     vol: VolumeGPU,
     x: wp.vec3,
@@ -406,14 +425,8 @@ def optical_depth_skipping(
     dt = (t1 - t0) / float(n)
     p = o_l + (t0 + 0.5 * dt) * d_l
     step = dt * d_l
-    # the ray in skip-cell coordinates (cell c spans [c, c + 1) on each axis): q = (p + 1) res / (2 skip_cell)
-    to_cell = wp.vec3(float(vol.res[0]), float(vol.res[1]), float(vol.res[2])) * (0.5 / float(wp.max(vol.skip_cell, 1)))
-    o_c = wp.cw_mul(o_l + wp.vec3(1.0), to_cell)
-    d_c = wp.cw_mul(d_l, to_cell)
-    inv_d = wp.vec3(safe_inverse(d_c[0]), safe_inverse(d_c[1]), safe_inverse(d_c[2]))
-    check_t = float(-1.0e30)
-    if skip == 0 or vol.skip_cell == 0:
-        check_t = float(1.0e30)
+    o_c, d_c, inv_d = skip_cell_ray(vol, o_l, d_l)
+    check_t = first_skip_check(vol, skip)
     rho_sum = float(0.0)
     skipped = int(0)
     i = int(0)

@@ -16,14 +16,15 @@ from volren.kernels.common import (
     Medium,
     VolumeGPU,
     composite_step,
+    first_skip_check,
     half_depth,
     hg_phase,
     light_irradiance,
     light_travel_dir,
     march_step_count,
-    safe_inverse,
     sample_grid,
     sample_grid_rgb,
+    skip_cell_ray,
     skip_lookup,
     state_accumulator,
     with_accumulator,
@@ -106,11 +107,7 @@ def march_volume_light_map(
     beyond its footprint (`volren.upload.skip_grid`)."""
     o_l = wp.transform_point(vol.to_local, origin)
     d_l = wp.transform_vector(vol.to_local, d)
-    # the ray in skip-cell coordinates (cell c spans [c, c + 1) on each axis): q = (p + 1) res / (2 skip_cell)
-    to_cell = wp.vec3(float(vol.res[0]), float(vol.res[1]), float(vol.res[2])) * (0.5 / float(wp.max(vol.skip_cell, 1)))
-    o_c = wp.cw_mul(o_l + wp.vec3(1.0), to_cell)
-    d_c = wp.cw_mul(d_l, to_cell)
-    inv_d = wp.vec3(safe_inverse(d_c[0]), safe_inverse(d_c[1]), safe_inverse(d_c[2]))
+    o_c, d_c, inv_d = skip_cell_ray(vol, o_l, d_l)
     n = march_step_count(t1 - t0, vol.diagonal, params.samples)
     dt = (t1 - t0) / float(n)
     acc = state_accumulator(state)
@@ -118,9 +115,7 @@ def march_volume_light_map(
     shaded = int(0)
     taken = int(0)
     skipped = int(0)
-    check_t = float(-1.0e30)
-    if medium.skip == 0 or vol.skip_cell == 0:  # off, or a volume struct without a skip grid
-        check_t = float(1.0e30)
+    check_t = first_skip_check(vol, medium.skip)
     i = int(0)
     while i < n:
         t = t0 + (float(i) + offset) * dt
