@@ -56,7 +56,7 @@ from volren.render.compositing.oit import Layers, march_joint
 from volren.render.compositing.surface_light import SurfaceLight, unlit
 from volren.render.compositing.surfaces import MESH_RANGE, SURFACE_EPSILON, mesh_group, shade_lit_surface
 from volren.render.frame import PassClock
-from volren.render.marching.cubemap import cube_segment, cube_segment_weights
+from volren.render.marching.cubemap import CubeTarget, cube_segment, cube_segment_weights
 from volren.render.marching.march import MarchParams, march_volume_light_map
 from volren.scene import TriangleMesh
 from volren.upload import DeviceScene, camera_struct
@@ -368,6 +368,68 @@ def march_texel_segments(
         seg[base + j] = wp.vec4(0.0, 0.0, 0.0, 1.0)
         seg_z[base + j] = t1 * facing
     return out
+
+
+@wp.func
+def texel_layers(mesh: MeshLayers, cam: CameraGPU, x: wp.vec3, segments: int) -> wp.vec3i:
+    """(row, col, n) of the pixel the world texel point x projects to (nearest) and the n of its mesh layers the
+    cube k-buffer splits at (at most K = segments - 1); n = 0 outside the viewport (one segment: the whole ray)."""
+    pix = project_pixel(cam, x)
+    col = int(wp.floor(pix[0]))
+    row = int(wp.floor(pix[1]))
+    if segments > 0 and col >= 0 and col < cam.width and row >= 0 and row < cam.height:
+        return wp.vec3i(row, col, wp.min(mesh.count[row, col], segments - 1))
+    return wp.vec3i(0, 0, 0)
+
+
+@wp.func
+def layer_ray_t(mesh: MeshLayers, pix: wp.vec3i, j: int, seg: wp.vec4) -> float:
+    """Ray distance of the texel pixel's layer j (n: the ray's end), clamped to the eye segment
+    seg = (t_min, t_max, facing, valid) of `cubemap.eye_segment`."""
+    if j < pix[2]:
+        return wp.clamp(mesh.depth[pix[0], pix[1], j] / seg[2], seg[0], seg[1])
+    return seg[1]
+
+
+@wp.func
+def store_relative(target: CubeTarget, i: int, snap: wp.vec4, acc: wp.vec4, z: float):
+    """Segment i of the cube k-buffer from two snapshots of a ray's accumulator (premultiplied rgb, T): what the ray
+    gathered between them, relative to T = 1 at the first."""
+    out = wp.vec4(0.0, 0.0, 0.0, 1.0)
+    if snap[3] > 0.0:
+        inv = 1.0 / snap[3]
+        out = wp.vec4((acc[0] - snap[0]) * inv, (acc[1] - snap[1]) * inv, (acc[2] - snap[2]) * inv, acc[3] * inv)
+    target.seg[i] = out
+    target.seg_z[i] = z
+
+
+@wp.func
+def segment_advance(mesh: MeshLayers, pix: wp.vec3i, target: CubeTarget, base: int, seg: wp.vec4, j: int,
+                    snap: wp.vec4, acc: wp.vec4, t: float):
+    """The cube k-buffer of a march that composites sample by sample (CACRM's coupled and quad kernels): before the
+    sample at ray distance t, close every segment whose layer lies before t (the sample belongs to the segment its
+    midpoint lies in). Returns the current segment and the accumulator where it began."""
+    jj = j
+    sn = snap
+    while target.segments > 0 and jj < pix[2]:
+        tl = layer_ray_t(mesh, pix, jj, seg)
+        if t <= tl:
+            break
+        store_relative(target, base + jj, sn, acc, tl * seg[2])
+        sn = acc
+        jj += 1
+    return jj, sn
+
+
+@wp.func
+def segment_finish(mesh: MeshLayers, pix: wp.vec3i, target: CubeTarget, base: int, seg: wp.vec4, j: int,
+                   snap: wp.vec4, acc: wp.vec4):
+    """Close the current segment at the end of the march and write the empty ones after it."""
+    if target.segments > 0:
+        store_relative(target, base + j, snap, acc, layer_ray_t(mesh, pix, j, seg) * seg[2])
+        for jj in range(j + 1, target.segments):
+            target.seg[base + jj] = wp.vec4(0.0, 0.0, 0.0, 1.0)
+            target.seg_z[base + jj] = layer_ray_t(mesh, pix, jj, seg) * seg[2]
 
 
 @wp.func

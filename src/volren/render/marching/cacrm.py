@@ -54,6 +54,7 @@ from volren.kernels.common import (
     half_depth,
     interpolate_cell,
 )
+from volren.render.compositing.mesh_layers import MeshLayers, segment_advance, segment_finish, texel_layers
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, PassClock
 from volren.render.marching.cmsrm import CMSRM, CMSRMConfig, TileGroup
 from volren.render.marching.cubemap import (
@@ -177,12 +178,16 @@ def coupled_march_kernel(
     vp: VSAParams,
     buffers0: ViewBuffers,
     buffers1: ViewBuffers,
+    mesh0: MeshLayers,
+    mesh1: MeshLayers,
     target0: CubeTarget,
     target1: CubeTarget,
     counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
-    """One texel, both eyes (eye 1 only when eyes == 2): synchronised anchored steps, shared cell fetches."""
+    """One texel, both eyes (eye 1 only when eyes == 2): synchronised anchored steps, shared cell fetches; with
+    translucent meshes each eye's ray is cut into its cube k-buffer's segments at the mesh layers of the pixel the
+    texel projects to in that eye (`segment_advance`)."""
     r, c = wp.tid()
     counters = counter_row(counter_rows, r, c)
     q = tile_texel(tiles, tile, apron, size, r + row0, c)
@@ -218,6 +223,14 @@ def coupled_march_kernel(
     absorb = vol.density_scale * dt
     # The pair walks back from each eye's texel in units of the base step, front to back: pos base steps remain
     # before the texel, and each step covers m of them (m = 1: uniform steps on the texel-anchored lattice).
+    # Cube k-buffer per eye (paper 000 §3.3): the texel's pixel and layers, the open segment and where it began.
+    texel = texel_index(q[0], q[1], q[2], size)
+    pix0 = texel_layers(mesh0, cam0, x, target0.segments)
+    pix1 = texel_layers(mesh1, cam1, x, target1.segments)
+    j0 = int(0)
+    j1 = int(0)
+    snap0 = acc0
+    snap1 = acc1
     pos = float(n)
     m = float(1.0)
     while pos > END:
@@ -260,6 +273,8 @@ def coupled_march_kernel(
         next_m = float(1.0)
         if in0:
             samples += 1
+            j0, snap0 = segment_advance(mesh0, pix0, target0, (target0.offset + texel) * target0.segments, seg0, j0,
+                                        snap0, acc0, s0[0])
             acc0, half0, prev0, prev_t0, lit, m0 = eye_update(
                 acc0, half0, prev0, prev_t0, rho0, vol, medium, p0, cam0.origin + s0[0] * d0, d0, s0, seg0,
                 vp, dt, absorb, params.ambient,
@@ -268,6 +283,8 @@ def coupled_march_kernel(
             next_m = wp.max(next_m, m0)
         if in1:
             samples += 1
+            j1, snap1 = segment_advance(mesh1, pix1, target1, (target1.offset + texel) * target1.segments, seg1, j1,
+                                        snap1, acc1, s1[0])
             acc1, half1, prev1, prev_t1, lit, m1 = eye_update(
                 acc1, half1, prev1, prev_t1, rho1, vol, medium, p1, cam1.origin + s1[0] * d1, d1, s1, seg1,
                 vp, dt, absorb, params.ambient,
@@ -276,10 +293,13 @@ def coupled_march_kernel(
             next_m = wp.max(next_m, m1)
         pos = pos - m
         m = next_m
-    texel = texel_index(q[0], q[1], q[2], size)
     store_texel(target0, texel, acc0, half0, seg0[1] * seg0[2])
+    if seg0[3] > 0.0:
+        segment_finish(mesh0, pix0, target0, (target0.offset + texel) * target0.segments, seg0, j0, snap0, acc0)
     if eyes == 2:
         store_texel(target1, texel, acc1, half1, seg1[1] * seg1[2])
+        if seg1[3] > 0.0:
+            segment_finish(mesh1, pix1, target1, (target1.offset + texel) * target1.segments, seg1, j1, snap1, acc1)
     count(counters, DENSITY_SAMPLES, samples)
     count(counters, SHARED_SAMPLES, shared)
     count(counters, LIGHTMAP_LOOKUPS, shaded * medium.lights.shape[0])
@@ -296,7 +316,6 @@ class CACRM(CMSRM):
     """Coupled binocular cube-map ray marching; ``config`` is a `CACRMConfig`."""
 
     name = "cacrm"
-    cube_kbuffer = False
 
     def __init__(self, config: CACRMConfig | None = None, device: str = "auto") -> None:
         super().__init__(config or CACRMConfig(), device)
@@ -353,8 +372,8 @@ class CACRM(CMSRM):
                 cols,
                 [camera_struct(views[first]), camera_struct(views[last]), len(group), int(self.config.share_voxels),
                  level, origins, tiles.rows, tiles.apron, tiles.size, ds.medium(),
-                 self._params(ds, first, samples), self._vsa_params(), targets[first], targets[last], dest[0],
-                 dest[-1]],
+                 self._params(ds, first, samples), self._vsa_params(), targets[first], targets[last],
+                 self._meshes[first], self._meshes[last], dest[0], dest[-1]],
                 self.device,
                 clock.counters,
             )

@@ -53,6 +53,7 @@ from volren.kernels.common import (
     interpolate_cell,
     vec8,
 )
+from volren.render.compositing.mesh_layers import MeshLayers, segment_advance, segment_finish, texel_layers
 from volren.render.frame import DENSITY_SAMPLES, INTERLEAVED_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES
 from volren.render.marching.cubemap import CubeTarget, eye_segment, store_texel, texel_index, texel_point, tile_texel
 from volren.render.marching.march import MarchParams, lit_step
@@ -63,6 +64,8 @@ LANES = 8
 mat84 = wp.types.matrix(shape=(LANES, 4), dtype=wp.float32)
 mat83 = wp.types.matrix(shape=(LANES, 3), dtype=wp.float32)
 mat88 = wp.types.matrix(shape=(LANES, 8), dtype=wp.float32)
+mat84i = wp.types.matrix(shape=(LANES, 4), dtype=wp.int32)
+vec8i = wp.types.vector(length=LANES, dtype=wp.int32)
 
 
 @wp.func
@@ -100,12 +103,15 @@ def quad_march_kernel(
     vp: VSAParams,
     buffers0: ViewBuffers,
     buffers1: ViewBuffers,
+    mesh0: MeshLayers,
+    mesh1: MeshLayers,
     target0: CubeTarget,
     target1: CubeTarget,
     counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
-    """One 2x2 texel quad for both eyes of a pair (lanes 0-3: eye 0, 4-7: eye 1 when eyes == 2)."""
+    """One 2x2 texel quad for both eyes of a pair (lanes 0-3: eye 0, 4-7: eye 1 when eyes == 2); with translucent
+    meshes each lane also writes its cube k-buffer segments (`segment_advance`, as the texel kernel)."""
     r, c = wp.tid()
     counters = counter_row(counter_rows, r, c)
     row = r + row0
@@ -116,18 +122,29 @@ def quad_march_kernel(
     seg = mat84()
     dw = mat83()
     dl = mat83()
+    # Cube k-buffer cursor per lane: texel pixel (row, col, layers), segment base index and the open segment.
+    cursor = mat84i()
     o0 = wp.transform_point(vol.to_local, cam0.origin)
     o1 = wp.transform_point(vol.to_local, cam1.origin)
     for lane in range(LANES):
         q = quad_lane_texel(tiles, tile, apron, size, k, qr, c, lane % 4)
         if q[0] >= 0 and lane / 4 < eyes:
             x = wp.transform_point(vol.to_world, texel_point(q, size))
+            texel = texel_index(q[0], q[1], q[2], size)
+            pix = wp.vec3i(0)
             if lane < 4:
                 seg[lane] = eye_segment(cam0, vol, x, buffers0)
                 dw[lane] = wp.normalize(x - cam0.origin)
+                pix = texel_layers(mesh0, cam0, x, target0.segments)
+                cursor[lane, 3] = (target0.offset + texel) * target0.segments
             else:
                 seg[lane] = eye_segment(cam1, vol, x, buffers1)
                 dw[lane] = wp.normalize(x - cam1.origin)
+                pix = texel_layers(mesh1, cam1, x, target1.segments)
+                cursor[lane, 3] = (target1.offset + texel) * target1.segments
+            cursor[lane, 0] = pix[0]
+            cursor[lane, 1] = pix[1]
+            cursor[lane, 2] = pix[2]
             dl[lane] = wp.transform_vector(vol.to_local, dw[lane])
     dt = vol.diagonal / float(params.samples)
     # Per eye: the shared lattice anchor (farthest texel), the nearest segment start, and t_s, the distance up to
@@ -162,11 +179,14 @@ def quad_march_kernel(
     if anchor[1] > start[1]:
         n1 = int(wp.ceil((anchor[1] - start[1]) / dt - 1.0e-6))
     acc = mat84()
+    snap = mat84()
+    open_seg = vec8i()
     half = vec8()
     prev = vec8()
     prev_t = vec8()
     for lane in range(LANES):
         acc[lane] = wp.vec4(0.0, 0.0, 0.0, 1.0)
+        snap[lane] = acc[lane]
         half[lane] = INF
         prev[lane] = -1.0
     cells = mat88()
@@ -262,6 +282,15 @@ def quad_march_kernel(
                             extra += 1
                         if rho > 0.0:
                             shaded += 1
+                            pix = wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2])
+                            j = open_seg[lane]
+                            sn = snap[lane]
+                            if e == 0:
+                                j, sn = segment_advance(mesh0, pix, target0, cursor[lane, 3], seg[lane], j, sn, a, t)
+                            else:
+                                j, sn = segment_advance(mesh1, pix, target1, cursor[lane, 3], seg[lane], j, sn, a, t)
+                            open_seg[lane] = j
+                            snap[lane] = sn
                             b = a
                             a = lit_step(a, rho, vol, medium, p, x, dw[lane], sub_hi - sub_lo, params.ambient)
                             h = half_depth(h, b[3], a[3], t)
@@ -284,10 +313,17 @@ def quad_march_kernel(
         q = quad_lane_texel(tiles, tile, apron, size, k, qr, c, lane % 4)
         if q[0] >= 0 and lane / 4 < eyes:
             texel = texel_index(q[0], q[1], q[2], size)
+            pix = wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2])
             if lane < 4:
                 store_texel(target0, texel, acc[lane], half[lane], seg[lane, 1] * seg[lane, 2])
+                if seg[lane, 3] > 0.0:
+                    segment_finish(mesh0, pix, target0, cursor[lane, 3], seg[lane], open_seg[lane], snap[lane],
+                                   acc[lane])
             else:
                 store_texel(target1, texel, acc[lane], half[lane], seg[lane, 1] * seg[lane, 2])
+                if seg[lane, 3] > 0.0:
+                    segment_finish(mesh1, pix, target1, cursor[lane, 3], seg[lane], open_seg[lane], snap[lane],
+                                   acc[lane])
             count(counters, RAYS, int(seg[lane, 3]))
     count(counters, DENSITY_SAMPLES, samples)
     count(counters, SHARED_SAMPLES, shared)
