@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 
 from conftest import DEVICE
+from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.render.frame import PassClock
 from volren.render.lightmap import compute_light_map
+from volren.render.marching.cacrm import CACRM, CACRMConfig
 from volren.upload import upload_scene
 
 
@@ -55,3 +57,22 @@ def test_one_launch_for_every_volume_matches_each_volume_alone(multi) -> None:
     assert len(set(ds.light_res)) == 3
     alone = np.concatenate([light_map(dataclasses.replace(multi, volumes=(v,)), True, False)[0] for v in volumes])
     np.testing.assert_array_equal(together, alone)
+
+
+@pytest.mark.parametrize("vsa", [False, True], ids=["uniform", "vsa"])
+def test_cacrm_coupled_march_skipping_is_bit_identical_with_exact_counters(multi, vsa: bool) -> None:
+    """CACRM's coupled march (both eyes per texel, shared cells) skips empty cells per eye: the same stereo images
+    with skipping on and off, uniform or VSA steps (a skipped step reads the 0 a fetch would read, so VSA's proposals
+    are unchanged), and the steps fetched plus skipped are the fetches without skipping."""
+    views = make_views(Camera(position=(0.3, 0.5, 2.2), width=64, height=40), "stereo")
+    # hybrid off: every pixel through the cube map (hybrid marches some pixels directly, DSSRM's march)
+    config = CACRMConfig(samples=160, light_samples=16, light_grid=16, vsa=vsa, interleave=False, hybrid=False)
+    on = CACRM(config, DEVICE).render(multi, views)
+    off = CACRM(dataclasses.replace(config, skip_empty=False), DEVICE).render(multi, views)
+    for a, b in zip(on.images, off.images, strict=True):
+        np.testing.assert_array_equal(a, b)
+    c_on, c_off = on.stats.counters, off.stats.counters
+    assert c_off["skipped_steps"] == 0 and c_off["shared_samples"] > 0  # the coupled kernel ran
+    assert c_on["density_samples"] + c_on["skipped_steps"] == c_off["density_samples"]
+    assert c_on["skipped_steps"] > 10 * c_on["density_samples"], (c_on, c_off)  # measured 12.9x (uniform), 13.1x
+    assert c_on["lightmap_lookups"] == c_off["lightmap_lookups"]
