@@ -4,8 +4,11 @@ dropping, disconnects, the token, /health and the light-map cache. A 16^3 smoke 
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
+import os
 import socket
+import struct
 import threading
 
 import numpy as np
@@ -55,8 +58,8 @@ def db(ref: np.ndarray, image: np.ndarray) -> float:
 def run(test, token: str | None = None, **loop_kw) -> None:
     """Run ``test(client, loop)`` against a fresh server."""
     async def main() -> None:
-        loop = RenderLoop(SCENE, "dssrm", "interactive", limits=Limits(4, 128, 96), device="cpu", overrides=SMALL,
-                          **loop_kw)
+        loop = RenderLoop(SCENE, "dssrm", "interactive", **{"limits": Limits(4, 128, 96), **loop_kw},
+                          device="cpu", overrides=SMALL)
         # a failing test leaves sockets open: do not wait a minute for them at shutdown
         async with TestClient(TestServer(make_app(loop, "smoke16", token), shutdown_timeout=1.0)) as client:
             await test(client, loop)
@@ -451,3 +454,38 @@ def test_a_failing_render_is_reported_and_the_loop_goes_on():
         await ws.close()
 
     run(test)
+
+
+def masked_text_frame(text: str) -> bytes:
+    """A client's WebSocket text frame (RFC 6455 §5.2: clients mask), for a raw-socket client."""
+    data, mask = text.encode(), os.urandom(4)
+    size = bytes([0x80 | len(data)]) if len(data) < 126 else bytes([0x80 | 126]) + struct.pack(">H", len(data))
+    return bytes([0x81]) + size + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(data))
+
+
+def test_a_real_client_that_never_reads_gets_frames_dropped():
+    """A raw TCP client with a 4 KiB receive buffer says hello at 640x480 and never reads again. The server's
+    bounded send buffer (SEND_BUFFER_BYTES) fills within ~10 frames; from then on its frames are dropped while the
+    other viewer is served every frame (unbounded kernel buffers swallowed 41 frames without a drop)."""
+    async def test(client, loop):
+        raw = socket.socket()
+        raw.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        raw.connect((client.server.host, client.server.port))
+        key = base64.b64encode(os.urandom(16))
+        raw.sendall(b"GET /ws HTTP/1.1\r\nHost: test\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                    b"Sec-WebSocket-Key: " + key + b"\r\nSec-WebSocket-Version: 13\r\n\r\n")
+        raw.sendall(masked_text_frame(json.dumps({"type": "hello", "width": 640, "height": 480})))
+        raw.sendall(masked_text_frame(json.dumps(cam_msg(1))))
+        await until(lambda: any(v.ready and v.width == 640 for v in loop.viewers.viewers.values()), "the raw hello")
+        stalled = next(v for v in loop.viewers.viewers.values() if v.width == 640)
+        b, _ = await connect(client)
+        for i in range(40):
+            await b.send_json(cam_msg(10 + i, 0.02 * i))
+            await frame_for(b, 10 + i)  # every frame reaches the reading viewer
+            if stalled.dropped >= 3:
+                break
+        assert stalled.dropped >= 3 and stalled.busy, (stalled.frames, stalled.dropped)
+        raw.close()
+        await b.close()
+
+    run(test, limits=Limits(4, 640, 480), jpeg_quality=100)
