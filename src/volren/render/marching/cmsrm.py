@@ -118,6 +118,8 @@ from volren.upload import DeviceScene, camera_struct
 SCHEME_NAMES = {SCHEME_CULLED: "culled", SCHEME_DIRECT: "direct", SCHEME_CUBE: "cube"}
 CUBE_TEXEL_BYTES = 24
 """a cube-map texel: premultiplied RGB and transmittance, t_half, z_end (float32 each)"""
+SEGMENT_BYTES = 20
+"""a cube k-buffer segment: premultiplied RGB and transmittance, end depth (float32 each)"""
 
 
 @dataclass
@@ -332,8 +334,10 @@ def cube_resample_kernel(
     stretch of the ray is looked up bilinearly where the ray leaves its box (enters, for exterior faces); a
     direct-scheme volume is marched here, as in DSSRM; boxes overlapping along the ray are marched jointly (a texel
     holds one volume's march only, wrong where another box shares that stretch). Translucent mesh layers (paper 000
-    §3.3) are blended between the boxes; a pixel with a layer inside a cube-scheme box marches that box directly,
-    split at its layers (`march_between_layers`, flagged in ``mesh.direct``): texel rays know no mesh layers."""
+    §3.3) are blended between the boxes; with layers inside a cube-scheme box the pixel blends the cube k-buffer's
+    segments and its layers in turn (`blend_cube_segments`), and marches the box directly, split at its layers
+    (`march_between_layers`, flagged in ``mesh.direct``), only where Eq. 13 leaves a segment without weight or there
+    is no cube k-buffer (tile LOD on)."""
     r, col = wp.tid()
     counters = counter_row(counter_rows, r, col)
     row = r + row0
@@ -695,4 +699,5 @@ class CMSRM(LightMapRenderer):
             ])
             self._frame_info["mesh_layers"] = layer_stats(mesh, self.config.mesh_layers,
                                                           self._frame_info.get("mesh_layers"))
-        self._frame_info["cube_map_bytes"] = sum(c.texels for c in cubes) * CUBE_TEXEL_BYTES
+        self._frame_info["cube_map_bytes"] = sum(c.texels * (CUBE_TEXEL_BYTES + c.segments * SEGMENT_BYTES)
+                                                 for c in cubes)
