@@ -7,7 +7,13 @@ previous one is still being sent (then the frame is dropped: latest-camera-wins,
 encoding run in a worker thread (`asyncio.to_thread`), so the event loop keeps reading messages meanwhile.
 
 A tick runs only when some viewer that is free to receive needs a frame: its camera or size changed, the shared
-settings changed, or the scene is playing. No viewers, no rendering.
+settings changed, the scene is playing, or its still view is refining. No viewers, no rendering.
+
+Progressive refinement: methods with temporal state converge over frames of a still view (VPT's paths, fog's jittered
+froxels blended with their history, the GI passes' accumulation), so the loop keeps ticking while a viewer's camera,
+size and the shared settings stay, up to `refine_frames` frames, then idles; any change starts the count again.
+VPT without a denoiser has no history of its own: the loop averages its frames of the still view (a progressive path
+tracer's running mean). Every refinement tick still renders all viewers in one call.
 """
 
 from __future__ import annotations
@@ -16,17 +22,21 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
+import math
 import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any
+
+import numpy as np
 
 from volren.camera import Camera
 from volren.errors import VolrenError
 from volren.presets import QUALITIES, quality_config
 from volren.render import METHODS
 from volren.render.base import LightMapMarchConfig
-from volren.render.fog.renderer import FogRenderer
+from volren.render.fog.renderer import FogConfig, FogRenderer
+from volren.render.vpt.tracer import VPTConfig
 from volren.scene import DirectionalLight, Scene
 from volren.serve.jpeg import JPEG_QUALITY, display_image, encode_jpeg
 from volren.serve.protocol import Choices, Settings, error_message, pack_frame
@@ -42,6 +52,40 @@ DENSITY_TF = "density"
 LIVE_METHODS = ("dssrm", "cmsrm", "cacrm", "vpt", "fog")
 """offered live; the reference (per-sample shadow rays, seconds per frame) is the offline ground truth"""
 FPS_WINDOW_S = 2.0
+REFINE_VPT_PATHS = 256
+"""[paths per pixel] a still VPT view gathers before the loop idles: 256 frames at the interactive preset (1 path a
+frame), 32 at default (8), 8 at high (32)"""
+REFINE_TOLERANCE = 0.01
+"""fog refines until the first frame's weight in its exponential history is below this: 44 frames at weight 0.1"""
+
+
+def refine_frames(config: Any, volumes: int = 1) -> int:
+    """Frames a still view is rendered for (the first included) before the loop idles; 1 = no refinement (methods
+    without temporal state: the light-map marchers without GI are deterministic). VPT: REFINE_VPT_PATHS paths per
+    pixel; fog with temporal blending: until the first frame weighs < REFINE_TOLERANCE, ceil(ln tol / ln(1 - w));
+    a light-map method with accumulating GI (not the precomputed prt and brute): the GI's convergence frame count N
+    (its lambda(n) = 1 / min(n + 1, N)) per update of every one of the scene's ``volumes`` (volumes_per_frame a
+    frame)."""
+    if isinstance(config, VPTConfig):
+        return math.ceil(REFINE_VPT_PATHS / config.spp)
+    if isinstance(config, FogConfig):
+        w = config.temporal_weight
+        return math.ceil(math.log(REFINE_TOLERANCE) / math.log1p(-w)) if config.temporal and w < 1 else 1
+    gi = getattr(config, "gi", None)
+    if gi is None or gi.method in ("none", "prt", "brute"):
+        return 1
+    return gi.convergence_frames * math.ceil(volumes / gi.volumes_per_frame)
+
+
+@dataclasses.dataclass
+class Still:
+    """A viewer's still view: ``key`` (its camera object, scene version and animation step) stays while nothing
+    changes; ``frames`` rendered since; ``mean`` the running mean of its images when the loop averages (VPT without
+    a denoiser), else None."""
+
+    key: tuple
+    frames: int
+    mean: list[np.ndarray] | None
 
 
 def scene_methods(scene: Scene) -> tuple[str, ...]:
@@ -90,12 +134,13 @@ class RenderLoop:
     """The shared renderer and its viewers. ``animate`` gives the next scene of an animation (None: not animated).
     ``shared=False`` is the naive server of the benchmark: each viewer rendered by its own renderer (own light map,
     shadow grid, majorants and history), one call per viewer, as if every viewer had a server of its own.
-    ``overrides`` are config fields on top of the quality preset (tests use small light grids)."""
+    ``overrides`` are config fields on top of the quality preset (tests use small light grids). ``refine``: frames a
+    still view is refined for by a temporal method (None: `refine_frames` of the method's config; 1: off)."""
 
     def __init__(self, scene: Scene, method: str, quality: str = "interactive", *, limits: Limits | None = None,
                  camera: Camera | None = None, device: str = "cpu", shared: bool = True, ipd: float = 0.063,
                  jpeg_quality: int = JPEG_QUALITY, animate: Callable[[], Scene] | None = None,
-                 overrides: dict[str, Any] | None = None) -> None:
+                 overrides: dict[str, Any] | None = None, refine: int | None = None) -> None:
         self.methods = scene_methods(scene)
         if method not in self.methods:
             raise VolrenError(f"--method: '{method}' cannot serve scene '{scene.name}': choose from "
@@ -104,6 +149,15 @@ class RenderLoop:
             raise VolrenError(f"--quality: unknown quality '{quality}': choose from {', '.join(QUALITIES)}")
         if not 1 <= jpeg_quality <= 100:
             raise VolrenError(f"JPEG quality must lie in [1, 100], got {jpeg_quality}")
+        if refine is not None and refine < 1:
+            raise VolrenError(f"refine must be at least 1 frame, got {refine}")
+        self.refine = refine
+        self._still: dict[int, Still] = {}
+        """viewer id -> its still view (refinement state), as of the last tick"""
+        self._sent: dict[int, int] = {}
+        """viewer id -> the refinement frame count of the last frame handed to it"""
+        self._step = 0
+        """animation steps taken (part of a still view's key)"""
         self.limits = limits or Limits()
         self.choices = Choices(self.methods, QUALITIES, (DENSITY_TF, *PRESETS))
         self.viewers = ViewerSet(self.limits.max_viewers)
@@ -214,9 +268,32 @@ class RenderLoop:
                 if task is not None:
                     task.cancel()
 
+    @property
+    def refine_budget(self) -> int:
+        """Frames a still view is rendered for (`refine_frames`, or the ``refine`` given)."""
+        return self.refine if self.refine is not None else refine_frames(self._config, len(self.scene.volumes))
+
+    @property
+    def _averages(self) -> bool:
+        """The loop itself averages a still view's frames: VPT without a denoiser (whose frames share no history)."""
+        return isinstance(self._config, VPTConfig) and self._config.denoise == "none"
+
+    def _refining(self, v: Viewer) -> bool:
+        """``v``'s still view has frames of refinement left, or a refined frame it has not been handed (dropped
+        while it was busy)."""
+        still = self._still.get(v.id)
+        if still is None or still.key != self._still_key(v):
+            return False
+        return still.frames < self.refine_budget or self._sent.get(v.id) != still.frames
+
+    def _still_key(self, v: Viewer) -> tuple:
+        return (v.camera, self.version, self._step)
+
     def _due(self) -> bool:
-        """Some viewer free to receive needs a frame (new camera, size or settings, or the scene plays)."""
-        return any(not v.busy and ((self.playing and self.animated) or v.shown != (v.camera_id, self.version))
+        """Some viewer free to receive needs a frame (new camera, size or settings, the scene plays, or its still view
+        is refining)."""
+        return any(not v.busy and ((self.playing and self.animated) or v.shown != (v.camera_id, self.version)
+                                   or self._refining(v))
                    for v in self.viewers.render_order())
 
     async def run(self) -> None:
@@ -234,6 +311,7 @@ class RenderLoop:
                     self.broadcast(error_message(f"render failed: {text}"))
                     for v in self.viewers.render_order():
                         v.shown = (v.camera_id, self.version)
+                    self._still.clear()  # no refining of a view that fails: wait for a change
                 await asyncio.sleep(0)  # let the event loop read messages between ticks
 
     async def step(self) -> None:
@@ -242,34 +320,43 @@ class RenderLoop:
         order = self.viewers.render_order()
         if not order:
             return
+        advance = self.playing and self.animated
+        step = self._step + advance
         jobs = [(v, v.camera_id, v.views(self.ipd)) for v in order]
         version, index = self.version, self.tick
-        advance = self.playing and self.animated
+        # the previous still views, and each viewer's key after this tick's animation step
+        stills = [(self._still.get(v.id), (v.camera, version, step)) for v in order]
         try:
-            frames = await asyncio.to_thread(self._render_encode, jobs, index, advance, len(self.viewers))
+            frames = await asyncio.to_thread(self._render_encode, jobs, stills, index, advance, len(self.viewers))
         except VolrenError as exc:
             for v, cam_id, _ in jobs:
                 v.shown = (cam_id, version)
+            self._still.clear()
             self.broadcast(error_message(str(exc)))
             return
+        self._step = step
         self.tick += 1
         self._tick_times.append(time.perf_counter())
-        for (v, cam_id, _), payload in zip(jobs, frames, strict=True):
-            v.shown = (cam_id, version)
+        self._still = {v.id: still for (v, _, _), (_, still) in zip(jobs, frames, strict=True)}
+        self._sent = {i: n for i, n in self._sent.items() if i in self._still}
+        for (v, cam_id, _), (payload, still) in zip(jobs, frames, strict=True):
             if v.closed:
                 continue
-            if v.busy:
+            if v.busy:  # dropped: it still needs this state's frame once it is free (`_due`)
                 v.dropped += 1
                 continue
+            v.shown = (cam_id, version)
+            self._sent[v.id] = still.frames
             v.sending = asyncio.create_task(self._send(v, payload))
 
-    def _render_encode(self, jobs: list[tuple[Viewer, int, list[Camera]]], index: int, advance: bool,
-                       viewers: int) -> list[bytes]:
-        """In the worker thread: advance the animation, render, encode; one packed frame per job."""
+    def _render_encode(self, jobs: list[tuple[Viewer, int, list[Camera]]], stills: list[tuple[Still | None, tuple]],
+                       index: int, advance: bool, viewers: int) -> list[tuple[bytes, Still]]:
+        """In the worker thread: advance the animation, render, refine, encode; per job its packed frame and still
+        view."""
         if advance:
             self._frame_scene = self._animate()
             self.scene = with_light(self._frame_scene, self.light_dir)
-        scene, renderer = self.scene, self.renderer
+        scene, renderer, averages = self.scene, self.renderer, self._averages
         start = time.perf_counter()
         if self.shared:
             frame = renderer.render(scene, [c for _, _, cams in jobs for c in cams], frame=index)
@@ -288,13 +375,21 @@ class RenderLoop:
         self.pass_ms, self.views_last = passes, len(images)
         start = time.perf_counter()
         out, k = [], 0
-        for _, cam_id, cams in jobs:
-            rgb = display_image(images[k:k + len(cams)], scene.background)
+        for (_, cam_id, cams), (old, key) in zip(jobs, stills, strict=True):
+            own = images[k:k + len(cams)]
             k += len(cams)
+            if old is not None and old.key == key:
+                n = old.frames + 1
+                if averages and old.mean is not None:  # the running mean: mean += (x - mean) / n
+                    own = [m + (x - m) / n for m, x in zip(old.mean, own, strict=True)]
+                still = Still(key, n, own if averages else None)
+            else:
+                still = Still(key, 1, own if averages else None)
+            rgb = display_image(own, scene.background)
             header = {"camera_id": cam_id, "tick": index, "width": rgb.shape[1], "height": rgb.shape[0],
-                      "stereo": len(cams) == 2, "render_ms": round(self.render_ms, 3),
+                      "stereo": len(cams) == 2, "refine": still.frames, "render_ms": round(self.render_ms, 3),
                       "pass_ms": {p: round(ms, 3) for p, ms in passes.items()}, "viewers": viewers}
-            out.append(pack_frame(header, encode_jpeg(rgb, self.jpeg_quality)))
+            out.append((pack_frame(header, encode_jpeg(rgb, self.jpeg_quality)), still))
         self.encode_ms = (time.perf_counter() - start) * 1e3
         return out
 
