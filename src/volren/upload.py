@@ -6,7 +6,7 @@ kernel can walk every volume of the scene in one launch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import warp as wp
@@ -245,6 +245,40 @@ def volume_bvh(scene: Scene, device: str) -> wp.Bvh:
     return wp.Bvh(wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device))
 
 
+def light_structs(scene: Scene, device: str) -> wp.array:
+    """``scene``'s lights as a `LightGPU` array on ``device``."""
+    lights = []
+    for light in scene.lights:
+        s = LightGPU()
+        s.axis, s.cos_inner, s.cos_outer = wp.vec3(0.0, -1.0, 0.0), 1.0, 0.0
+        s.edge_u, s.edge_v = wp.vec3(0.0), wp.vec3(0.0)
+        if isinstance(light, DirectionalLight):
+            s.kind, s.vector, s.power = LIGHT_DIRECTIONAL, wp.vec3(*light.direction), wp.vec3(*light.irradiance)
+        elif isinstance(light, RectLight):
+            s.kind, s.vector, s.power = LIGHT_RECT, wp.vec3(*light.position), wp.vec3(*light.radiance)
+            s.edge_u, s.edge_v = wp.vec3(*light.edge_u), wp.vec3(*light.edge_v)
+        elif isinstance(light, SpotLight):
+            s.kind, s.vector, s.power = LIGHT_SPOT, wp.vec3(*light.position), wp.vec3(*light.intensity)
+            s.axis = wp.vec3(*light.direction)
+            s.cos_inner, s.cos_outer = (float(np.cos(np.radians(a))) for a in (light.inner_angle, light.outer_angle))
+        else:
+            s.kind, s.vector, s.power = LIGHT_POINT, wp.vec3(*light.position), wp.vec3(*light.intensity)
+        lights.append(s)
+    return wp.array(lights, dtype=LightGPU, device=device)
+
+
+def upload_lights(ds: DeviceScene, scene: Scene) -> DeviceScene | None:
+    """``ds`` for ``scene`` when it differs from ``ds.scene`` only in its lights (as many; every other field the same
+    object, as ``dataclasses.replace(scene, lights=...)`` leaves them): a new DeviceScene sharing the densities,
+    volume structs, BVHs, meshes and light-map storage, with only ``lights`` uploaded. Being a new object, it misses
+    every cache keyed on the upload (the light map is recomputed into the shared storage). None when more changed."""
+    old = ds.scene
+    if len(old.lights) != len(scene.lights) or any(
+            getattr(old, f.name) is not getattr(scene, f.name) for f in fields(scene) if f.name != "lights"):
+        return None
+    return replace(ds, scene=scene, lights=light_structs(scene, ds.device))
+
+
 def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_levels: bool = False) -> DeviceScene:
     """Pack and copy ``scene`` to ``device``; light grids get ``light_grid`` voxels on their longest axis. With
     ``mip_levels`` every level of each volume's mip pyramid is packed too (for LOD marching)."""
@@ -291,29 +325,12 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     meshes = [wp.Mesh(points=wp.array(o.vertices, dtype=wp.vec3, device=device),
                       indices=wp.array(o.faces.reshape(-1), dtype=wp.int32, device=device))
               for o in scene.opaque if isinstance(o, TriangleMesh)]
-    lights = []
-    for light in scene.lights:
-        s = LightGPU()
-        s.axis, s.cos_inner, s.cos_outer = wp.vec3(0.0, -1.0, 0.0), 1.0, 0.0
-        s.edge_u, s.edge_v = wp.vec3(0.0), wp.vec3(0.0)
-        if isinstance(light, DirectionalLight):
-            s.kind, s.vector, s.power = LIGHT_DIRECTIONAL, wp.vec3(*light.direction), wp.vec3(*light.irradiance)
-        elif isinstance(light, RectLight):
-            s.kind, s.vector, s.power = LIGHT_RECT, wp.vec3(*light.position), wp.vec3(*light.radiance)
-            s.edge_u, s.edge_v = wp.vec3(*light.edge_u), wp.vec3(*light.edge_v)
-        elif isinstance(light, SpotLight):
-            s.kind, s.vector, s.power = LIGHT_SPOT, wp.vec3(*light.position), wp.vec3(*light.intensity)
-            s.axis = wp.vec3(*light.direction)
-            s.cos_inner, s.cos_outer = (float(np.cos(np.radians(a))) for a in (light.inner_angle, light.outer_angle))
-        else:
-            s.kind, s.vector, s.power = LIGHT_POINT, wp.vec3(*light.position), wp.vec3(*light.intensity)
-        lights.append(s)
     return DeviceScene(
         scene=scene,
         device=device,
         density=density,
         volumes=wp.array(structs, dtype=VolumeGPU, device=device),
-        lights=wp.array(lights, dtype=LightGPU, device=device),
+        lights=light_structs(scene, device),
         light_res=light_res,
         lightmap=lightmap,
         ambient=wp.vec3(*scene.environment.mean_radiance()),
