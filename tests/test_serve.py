@@ -121,6 +121,7 @@ def test_camera_in_tagged_jpeg_out_and_light_map_cached():
         await ws.send_json(cam_msg(9, x=0.5))
         header, image = await frame_for(ws, 9)
         assert "light_map" in header["pass_ms"]
+        assert "upload_lights" in header["pass_ms"] and "upload" not in header["pass_ms"], "only the lights uploaded"
         lit = Scene(SCENE.volumes, (DirectionalLight(tuple(light), (3.0, 3.0, 3.0)),), SCENE.environment,
                     SCENE.background)
         assert db(offline(cam_msg(9, x=0.5), lit), image) > 40.0
@@ -559,3 +560,29 @@ def test_vpt_refines_a_still_view_then_idles():
         await ws.close()
 
     run(test, refine=budget, jpeg_quality=95)
+
+
+def test_a_light_change_uploads_only_the_lights():
+    """`upload_lights`: a scene that differs only in its lights keeps the uploaded densities, volume structs and BVH
+    (a new DeviceScene with the new lights, so the light map is recomputed) and renders exactly what a fresh upload
+    renders; a scene with other volumes, or another number of lights, is uploaded in full."""
+    from volren.serve.loop import with_light
+    from volren.upload import upload_lights
+
+    cam = Camera(position=(0.3, 0.2, 1.9), look_at=(0, 0, 0), width=W, height=H)
+    config = quality_config("dssrm", "interactive", **SMALL)
+    r = DSSRM(config, device="cpu")
+    r.render(SCENE, [cam])
+    ds = r._device_scene
+    lit = with_light(SCENE, (0.3, -0.2, 1.0))
+    frame = r.render(lit, [cam])
+    new = r._device_scene
+    assert new is not ds and new.scene is lit
+    assert all(getattr(new, f) is getattr(ds, f) for f in ("density", "volumes", "lightmap", "volume_bvh"))
+    assert {"upload_lights", "light_map"} <= set(frame.stats.times_ms) and "upload" not in frame.stats.times_ms
+    fresh = DSSRM(config, device="cpu").render(lit, [cam])
+    assert np.array_equal(frame.images[0], fresh.images[0])
+    assert np.abs(frame.images[0] - r.render(SCENE, [cam]).images[0]).max() > 0.05, "the lights differ"
+    other = Scene((Volume(SCENE.volumes[0].density, density_scale=5.0),), lit.lights, SCENE.environment)
+    two = Scene(SCENE.volumes, (*lit.lights, DirectionalLight()), SCENE.environment)
+    assert upload_lights(new, other) is None and upload_lights(new, two) is None

@@ -245,6 +245,10 @@ def volume_bvh(scene: Scene, device: str) -> wp.Bvh:
     return wp.Bvh(wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device))
 
 
+NOT_UPLOADED = ("lights", "background", "name")
+"""Scene fields `upload_lights` does not compare: the lights it uploads, and what no kernel reads"""
+
+
 def light_structs(scene: Scene, device: str) -> wp.array:
     """``scene``'s lights as a `LightGPU` array on ``device``."""
     lights = []
@@ -267,14 +271,19 @@ def light_structs(scene: Scene, device: str) -> wp.array:
     return wp.array(lights, dtype=LightGPU, device=device)
 
 
+def only_lights_differ(old: Scene, new: Scene) -> bool:
+    """Whether ``new`` can reuse ``old``'s upload but for the lights (`upload_lights`)."""
+    return len(old.lights) == len(new.lights) and all(
+        getattr(old, f.name) is getattr(new, f.name) for f in fields(new) if f.name not in NOT_UPLOADED)
+
+
 def upload_lights(ds: DeviceScene, scene: Scene) -> DeviceScene | None:
-    """``ds`` for ``scene`` when it differs from ``ds.scene`` only in its lights (as many; every other field the same
-    object, as ``dataclasses.replace(scene, lights=...)`` leaves them): a new DeviceScene sharing the densities,
-    volume structs, BVHs, meshes and light-map storage, with only ``lights`` uploaded. Being a new object, it misses
-    every cache keyed on the upload (the light map is recomputed into the shared storage). None when more changed."""
-    old = ds.scene
-    if len(old.lights) != len(scene.lights) or any(
-            getattr(old, f.name) is not getattr(scene, f.name) for f in fields(scene) if f.name != "lights"):
+    """``ds`` for ``scene`` when it differs from ``ds.scene`` only in its lights (as many; every field that is
+    uploaded the same object, as ``dataclasses.replace(scene, lights=...)`` leaves them; background and name are not
+    uploaded): a new DeviceScene sharing the densities, volume structs, BVHs, meshes and light-map storage, with only
+    ``lights`` uploaded. Being a new object, it misses every cache keyed on the upload (the light map is recomputed
+    into the shared storage). None when more changed."""
+    if not only_lights_differ(ds.scene, scene):
         return None
     return replace(ds, scene=scene, lights=light_structs(scene, ds.device))
 

@@ -26,7 +26,7 @@ from volren.render.frame import Frame, PassClock, Stats
 from volren.render.gi.ambient import AmbientGI, GIConfig
 from volren.render.lightmap import compute_light_map
 from volren.scene import Scene
-from volren.upload import DeviceScene, camera_struct, upload_scene
+from volren.upload import DeviceScene, camera_struct, only_lights_differ, upload_lights, upload_scene
 
 
 def frame_seed(seed: int, frame: int) -> int:
@@ -146,9 +146,14 @@ class Renderer:
     def _upload(
         self, scene: Scene, clock: PassClock, light_grid: int | None = None, mip_levels: bool = False
     ) -> DeviceScene:
-        """The scene on the device, uploaded once per scene object (the cache holds the scene, so ids stay valid)."""
+        """The scene on the device, uploaded once per scene object (the cache holds the scene, so ids stay valid); a
+        scene that differs from the last only in its lights (`volren serve`'s light drag) uploads only the lights."""
         ds = self._device_scene
         key = (light_grid, mip_levels)
+        if ds is not None and ds.scene is not scene and self._upload_key == key and only_lights_differ(ds.scene, scene):
+            with clock.measure("upload_lights"):
+                self._device_scene = upload_lights(ds, scene)
+            return self._device_scene
         if ds is None or ds.scene is not scene or self._upload_key != key:
             with clock.measure("upload"):
                 ds = upload_scene(scene, self.device, light_grid, mip_levels)
