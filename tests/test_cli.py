@@ -642,7 +642,7 @@ def _help(capfd, *argv: str) -> str:
     return " ".join(out.split())  # argparse wraps lines at the terminal width
 
 
-@pytest.mark.parametrize("command", ["demo", "render", "animate", "compare", "bench"])
+@pytest.mark.parametrize("command", ["demo", "render", "animate", "compare", "bench", "serve"])
 def test_help_gives_every_option_a_default(capfd, command: str) -> None:
     """Issue 13 item 11: each option's help says its default (flags that are simply off excepted)."""
     from volren.cli import build_parser
