@@ -12,6 +12,7 @@ import pytest
 from conftest import DEVICE
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
+from volren.render import Reference, ReferenceConfig
 from volren.render.frame import PassClock
 from volren.render.lightmap import compute_light_map
 from volren.render.marching.cacrm import CACRM, CACRMConfig
@@ -76,3 +77,18 @@ def test_cacrm_coupled_march_skipping_is_bit_identical_with_exact_counters(multi
     assert c_on["density_samples"] + c_on["skipped_steps"] == c_off["density_samples"]
     assert c_on["skipped_steps"] > 10 * c_on["density_samples"], (c_on, c_off)  # measured 12.9x (uniform), 13.1x
     assert c_on["lightmap_lookups"] == c_off["lightmap_lookups"]
+
+
+def test_reference_shadow_rays_skip_with_the_same_image(multi) -> None:
+    """The reference's dense shadow marches (L per lit sample, through every volume) skip empty cells: the same
+    image and depth with skipping on and off, and fetched + skipped = fetched without skipping."""
+    view = [Camera(position=(0.3, 0.5, 2.2), width=32, height=20)]
+    config = ReferenceConfig(samples=64, light_samples=64)
+    on = Reference(config, DEVICE).render(multi, view)
+    off = Reference(dataclasses.replace(config, skip_empty=False), DEVICE).render(multi, view)
+    np.testing.assert_array_equal(on.images[0], off.images[0])
+    np.testing.assert_array_equal(on.depths[0], off.depths[0])
+    c_on, c_off = on.stats.counters, off.stats.counters
+    assert c_off["light_skipped"] == 0
+    assert c_on["light_samples"] + c_on["light_skipped"] == c_off["light_samples"]
+    assert c_on["light_skipped"] > c_on["light_samples"], (c_on, c_off)

@@ -215,8 +215,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                    "density's axis)")
     r.add_argument("--no-lod", action="store_true", help="cmsrm: no adaptive LOD (level 0, N = --samples)")
     r.add_argument("--no-hybrid", action="store_true", help="cmsrm: always march the cube map, never directly")
-    r.add_argument("--no-skip", action="store_true", help="dssrm/cmsrm/cacrm: sample every step, no empty-space "
-                   "skipping (the same image, more density samples)")
+    r.add_argument("--no-skip", action="store_true", help="dssrm/cmsrm/cacrm/reference: sample every step, no "
+                   "empty-space skipping (the same image, more density samples)")
     r.add_argument("--no-cull", action="store_true", help="cmsrm/cacrm: march empty tiles too (no culling)")
     r.add_argument("--tile-lod", action="store_true", help="cmsrm/cacrm: per-tile LOD 0-2 (fewer samples for distant "
                    "faces, lower PSNR)")

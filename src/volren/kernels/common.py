@@ -399,6 +399,13 @@ def first_skip_check(vol: VolumeGPU, skip: int) -> float:
 
 
 @wp.func
+def chord_depth(vol: VolumeGPU, rho_sum: float, dt: float, n: int) -> wp.vec2:
+    """(tau, fetches) of a chord whose n fetched densities sum to rho_sum at step dt: sigma_t = density_scale *
+    density (paper 000 Eq. 2)."""
+    return wp.vec2(vol.density_scale * rho_sum * dt, float(n))
+
+
+@wp.func
 def optical_depth_skipping(
     vol: VolumeGPU,
     x: wp.vec3,
@@ -445,7 +452,8 @@ def optical_depth_skipping(
         rho_sum += sample_grid(density, vol.offset, vol.res, p)
         p = p + step
         i += 1
-    return wp.vec3(vol.density_scale * rho_sum * dt, float(n - skipped), float(skipped))
+    r = chord_depth(vol, rho_sum, dt, n - skipped)
+    return wp.vec3(r[0], r[1], float(skipped))
 
 
 @wp.func
@@ -467,15 +475,15 @@ def transmittance_toward_skipping(
     v_begin: int,
     v_end: int,
     density: wp.array(dtype=float),
-    max_density: wp.array(dtype=float),
-    skip: int,
     samples: int,
     counters: wp.array(dtype=wp.int64),
     counter_index: int,
+    max_density: wp.array(dtype=float),
+    skip: int,
     skipped_index: int,
 ) -> float:
-    """`transmittance_toward` with empty-space skipping (`optical_depth_skipping`): the same T bit for bit; counts
-    the fetches at ``counter_index`` and the steps left unsampled at ``skipped_index``."""
+    """`transmittance_toward` (its arguments first) with empty-space skipping (`optical_depth_skipping`): the same
+    T bit for bit; counts the fetches at ``counter_index`` and the steps left unsampled at ``skipped_index``."""
     tau = float(0.0)
     fetched = float(0.0)
     skipped = float(0.0)
@@ -505,8 +513,8 @@ def transmittance_toward(
     """Transmittance from world point ``x`` along unit ``toward`` up to ``t_limit`` through volumes
     [v_begin, v_end) (paper 000 Eq. 2). Optical depths add even where boxes overlap, so T is the product of each
     volume's own chord march (order-independent, as paper 000 §3.2 notes for its any-hit traversal)."""
-    return transmittance_toward_skipping(x, toward, t_limit, volumes, v_begin, v_end, density, density, 0, samples,
-                                         counters, counter_index, counter_index)
+    return transmittance_toward_skipping(x, toward, t_limit, volumes, v_begin, v_end, density, samples, counters,
+                                         counter_index, density, 0, counter_index)
 
 
 @wp.func
@@ -517,14 +525,15 @@ def transmittance_bvh_skipping(
     bvh: wp.uint64,
     volumes: wp.array(dtype=VolumeGPU),
     density: wp.array(dtype=float),
-    max_density: wp.array(dtype=float),
-    skip: int,
     samples: int,
     counters: wp.array(dtype=wp.int64),
     counter_index: int,
+    max_density: wp.array(dtype=float),
+    skip: int,
     skipped_index: int,
 ) -> float:
-    """`transmittance_bvh` with empty-space skipping (`optical_depth_skipping`): the same T bit for bit."""
+    """`transmittance_bvh` (its arguments first) with empty-space skipping (`optical_depth_skipping`): the same T
+    bit for bit."""
     tau = float(0.0)
     fetched = float(0.0)
     skipped = float(0.0)
@@ -554,8 +563,8 @@ def transmittance_bvh(
 ) -> float:
     """`transmittance_toward` through every volume whose world box the ray hits, found by a BVH over the boxes
     (paper 000 §3.2.3's any-hit traversal: the optical depths add in any order)."""
-    return transmittance_bvh_skipping(x, toward, t_limit, bvh, volumes, density, density, 0, samples, counters,
-                                      counter_index, counter_index)
+    return transmittance_bvh_skipping(x, toward, t_limit, bvh, volumes, density, samples, counters, counter_index,
+                                      density, 0, counter_index)
 
 
 @wp.func

@@ -71,11 +71,11 @@ def light_map_kernel(
         reach = light_distance(light, x)
         t = float(0.0)
         if cross_volume != 0:
-            t = transmittance_bvh_skipping(x, toward, reach, bvh, volumes, density, max_density, skip, light_samples,
-                                           counters, LIGHT_SAMPLES, LIGHT_SKIPPED)
+            t = transmittance_bvh_skipping(x, toward, reach, bvh, volumes, density, light_samples, counters,
+                                           LIGHT_SAMPLES, max_density, skip, LIGHT_SKIPPED)
         else:
-            t = transmittance_toward_skipping(x, toward, reach, volumes, v, v + 1, density, max_density, skip,
-                                              light_samples, counters, LIGHT_SAMPLES, LIGHT_SKIPPED)
+            t = transmittance_toward_skipping(x, toward, reach, volumes, v, v + 1, density, light_samples, counters,
+                                              LIGHT_SAMPLES, max_density, skip, LIGHT_SKIPPED)
         lightmap[vol.light_offset + li * count + (k * res[1] + j) * res[0] + i] = t
 
 

@@ -1,14 +1,15 @@
 """Reference renderer: the ground truth of paper 000 §4.1 (Fig. 7 "GT").
 
 Dense uniform view steps (default V = 1024 across the smallest diagonal of the boxes covering a stretch), restarted at
-every box boundary the ray crosses so that no step straddles one, and, at every lit sample, a dense march towards
-each light (default L = 1024, same rule) through every volume, instead of a light map. Where boxes overlap,
-extinction and in-scattering of all volumes add at each sample, so overlapping volumes and shadows cast by one volume
-on another are exact. The ambient term is the same unshadowed sigma_s * L_ambient as in DSSRM. Early termination
-below ``min_transmittance`` (default 1e-4) bounds the error by 1e-4 of the radiance behind that point. Slow, simple,
-obviously right. Opaque surfaces get brute-force shadow rays through the density and ambient occlusion from
-REFERENCE_AO_RAYS transmittance rays, both at L samples (`volren.render.compositing.surface_light`): the ground truth
-of the light-map methods' surface shading.
+every box boundary the ray crosses so that no step straddles one, and, at every lit sample, a dense march towards each
+light (default L = 1024, same rule) through every volume, instead of a light map. Where boxes overlap, extinction and
+in-scattering of all volumes add at each sample, so overlapping volumes and shadows cast by one volume on another are
+exact. The ambient term is the same unshadowed sigma_s * L_ambient as in DSSRM. Early termination below
+``min_transmittance`` (default 1e-4) bounds the error by 1e-4 of the radiance behind that point. The shadow marches skip
+steps in empty cells of each volume's skip grid (``skip_empty``; the same image bit for bit: a skipped step would have
+read density 0). Slow, simple, obviously right. Opaque surfaces get brute-force shadow rays through the density and
+ambient occlusion from REFERENCE_AO_RAYS transmittance rays, both at L samples
+(`volren.render.compositing.surface_light`): the ground truth of the light-map methods' surface shading.
 
 Translucent meshes (paper 000 §3.3) are exact too: the march also stops at every translucent layer the ray crosses
 (found by repeated BVH queries from just past the previous one, any number of them, `next_layer`) and blends it there
@@ -46,14 +47,14 @@ from volren.kernels.common import (
     next_box_boundary,
     pixel_ray,
     state_accumulator,
-    transmittance_toward,
+    transmittance_toward_skipping,
     with_accumulator,
     write_pixel,
 )
 from volren.render.base import Renderer, check_sample_count, check_transmittance_threshold
 from volren.render.compositing.mesh_layers import LayerScene, blend_layer, layer_scene, next_layer
 from volren.render.compositing.surface_light import REFERENCE_AO_RAYS, SURFACE_BRUTE_FORCE, SurfaceLight, surface_light
-from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, PassClock
+from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, LIGHT_SKIPPED, RAYS, PassClock
 from volren.upload import DeviceScene, camera_struct
 
 
@@ -64,6 +65,9 @@ class ReferenceConfig:
     light_samples: int = 1024
     """L: samples across the smallest box diagonal on each shadow ray"""
     min_transmittance: float = 1e-4
+    skip_empty: bool = True
+    """shadow rays leave out steps in empty cells of each volume's skip grid (`optical_depth_skipping`: the same
+    image bit for bit, ``light_skipped`` counts them)"""
 
     def __post_init__(self) -> None:
         check_sample_count("samples (V)", self.samples)
@@ -77,6 +81,8 @@ class ReferenceParams:
     light_samples: int
     min_transmittance: float
     ambient: wp.vec3
+    skip: int
+    """1: shadow rays skip empty space"""
 
 
 @wp.func
@@ -88,6 +94,7 @@ def reference_sample(
     dt: float,
     volumes: wp.array(dtype=VolumeGPU),
     density: wp.array(dtype=float),
+    max_density: wp.array(dtype=float),
     lights: wp.array(dtype=LightGPU),
     params: ReferenceParams,
     counters: wp.array(dtype=wp.int64),
@@ -110,9 +117,9 @@ def reference_sample(
         for li in range(lights.shape[0]):
             light = lights[li]
             to_light = -light_travel_dir(light, x)
-            tl = transmittance_toward(
+            tl = transmittance_toward_skipping(
                 x, to_light, light_distance(light, x), volumes, 0, n_vol, density, params.light_samples,
-                counters, LIGHT_SAMPLES,
+                counters, LIGHT_SAMPLES, max_density, params.skip, LIGHT_SKIPPED,
             )
             e = light_irradiance(light, x) * tl
             for v in range(n_vol):
@@ -132,6 +139,7 @@ def reference_kernel(
     cam: CameraGPU,
     volumes: wp.array(dtype=VolumeGPU),
     density: wp.array(dtype=float),
+    max_density: wp.array(dtype=float),
     lights: wp.array(dtype=LightGPU),
     params: ReferenceParams,
     sc: LayerScene,
@@ -170,7 +178,8 @@ def reference_kernel(
             dt = (t_next - t) / float(n)
             for i in range(n):
                 ts = t + (float(i) + 0.5) * dt
-                s = reference_sample(s, cam.origin + ts * d, d, ts, dt, volumes, density, lights, params, counters)
+                s = reference_sample(s, cam.origin + ts * d, d, ts, dt, volumes, density, max_density, lights,
+                                     params, counters)
                 if s.transmittance < params.min_transmittance:
                     break
         t = t_next
@@ -205,12 +214,13 @@ class Reference(Renderer):
         params.light_samples = c.light_samples
         params.min_transmittance = c.min_transmittance
         params.ambient = ds.ambient
+        params.skip = int(c.skip_empty)
         with clock.measure("march"):
             launch_rows(
                 reference_kernel,
                 cam.height,
                 cam.width,
-                [camera_struct(cam), ds.volumes, ds.density, ds.lights, params,
+                [camera_struct(cam), ds.volumes, ds.density, ds.max_density, ds.lights, params,
                  layer_scene(ds, self._surface_light(ds)), buffers],
                 self.device,
                 clock.counters,

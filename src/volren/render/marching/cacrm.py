@@ -259,7 +259,8 @@ def coupled_march_kernel(
         p1 = wp.vec3(0.0)
         f0 = wp.vec3(0.0)
         f1 = wp.vec3(0.0)
-        c0 = wp.vec3i(0)
+        # no cell (-2, -1: never equal): the eye is outside its segment or in an empty skip cell, and fetches nothing
+        c0 = wp.vec3i(-2)
         c1 = wp.vec3i(-1)
         if in0:
             s0 = lattice_step(seg0, pos, m, dt)
@@ -268,8 +269,9 @@ def coupled_march_kernel(
                 check0 = cell0[1]
                 empty0 = int(cell0[0] <= 0.0)
             p0 = o0 + s0[0] * dl0
-            f0 = grid_coords(vol.res, p0)
-            c0 = grid_cell(vol.res, f0)
+            if empty0 == 0:
+                f0 = grid_coords(vol.res, p0)
+                c0 = grid_cell(vol.res, f0)
         if in1:
             s1 = lattice_step(seg1, pos, m, dt)
             if s1[0] >= check1:
@@ -277,13 +279,14 @@ def coupled_march_kernel(
                 check1 = cell1[1]
                 empty1 = int(cell1[0] <= 0.0)
             p1 = o1 + s1[0] * dl1
-            f1 = grid_coords(vol.res, p1)
-            c1 = grid_cell(vol.res, f1)
+            if empty1 == 0:
+                f1 = grid_coords(vol.res, p1)
+                c1 = grid_cell(vol.res, f1)
         rho0 = float(0.0)
         rho1 = float(0.0)
         get0 = in0 and empty0 == 0
         get1 = in1 and empty1 == 0
-        if get0 and get1 and share != 0 and c0 == c1:
+        if in0 and in1 and share != 0 and c0 == c1:
             cell = gather_cell(medium.density, vol.offset, vol.res, c0)
             rho0 = interpolate_cell(cell, cell_fraction(f0, c0))
             rho1 = interpolate_cell(cell, cell_fraction(f1, c0))
