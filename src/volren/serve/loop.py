@@ -322,14 +322,13 @@ class RenderLoop:
             return
         advance = self.playing and self.animated
         step = self._step + advance
-        jobs = [(v, v.camera_id, v.views(self.ipd)) for v in order]
         version, index = self.version, self.tick
-        # the previous still views, and each viewer's key after this tick's animation step
-        stills = [(self._still.get(v.id), (v.camera, version, step)) for v in order]
+        # per viewer: its camera id and views, its still view so far and its key after this tick's animation step
+        jobs = [(v, v.camera_id, v.views(self.ipd), self._still.get(v.id), (v.camera, version, step)) for v in order]
         try:
-            frames = await asyncio.to_thread(self._render_encode, jobs, stills, index, advance, len(self.viewers))
+            frames = await asyncio.to_thread(self._render_encode, jobs, index, advance, len(self.viewers))
         except VolrenError as exc:
-            for v, cam_id, _ in jobs:
+            for v, cam_id, *_ in jobs:
                 v.shown = (cam_id, version)
             self._still.clear()
             self.broadcast(error_message(str(exc)))
@@ -337,9 +336,9 @@ class RenderLoop:
         self._step = step
         self.tick += 1
         self._tick_times.append(time.perf_counter())
-        self._still = {v.id: still for (v, _, _), (_, still) in zip(jobs, frames, strict=True)}
+        self._still = {job[0].id: still for job, (_, still) in zip(jobs, frames, strict=True)}
         self._sent = {i: n for i, n in self._sent.items() if i in self._still}
-        for (v, cam_id, _), (payload, still) in zip(jobs, frames, strict=True):
+        for (v, cam_id, *_), (payload, still) in zip(jobs, frames, strict=True):
             if v.closed:
                 continue
             if v.busy:  # dropped: it still needs this state's frame once it is free (`_due`)
@@ -349,8 +348,8 @@ class RenderLoop:
             self._sent[v.id] = still.frames
             v.sending = asyncio.create_task(self._send(v, payload))
 
-    def _render_encode(self, jobs: list[tuple[Viewer, int, list[Camera]]], stills: list[tuple[Still | None, tuple]],
-                       index: int, advance: bool, viewers: int) -> list[tuple[bytes, Still]]:
+    def _render_encode(self, jobs: list[tuple[Viewer, int, list[Camera], Still | None, tuple]], index: int,
+                       advance: bool, viewers: int) -> list[tuple[bytes, Still]]:
         """In the worker thread: advance the animation, render, refine, encode; per job its packed frame and still
         view."""
         if advance:
@@ -359,13 +358,13 @@ class RenderLoop:
         scene, renderer, averages = self.scene, self.renderer, self._averages
         start = time.perf_counter()
         if self.shared:
-            frame = renderer.render(scene, [c for _, _, cams in jobs for c in cams], frame=index)
+            frame = renderer.render(scene, [c for _, _, cams, *_ in jobs for c in cams], frame=index)
             self.renders += 1
             images, passes = frame.images, dict(frame.stats.times_ms)
         else:
             images, passes = [], {}
-            self._own = {v.id: self._own.get(v.id) or self._make_renderer() for v, _, _ in jobs}
-            for v, _, cams in jobs:
+            self._own = {v.id: self._own.get(v.id) or self._make_renderer() for v, *_ in jobs}
+            for v, _, cams, *_ in jobs:
                 frame = self._own[v.id].render(scene, cams, frame=index)
                 self.renders += 1
                 images += frame.images
@@ -375,7 +374,7 @@ class RenderLoop:
         self.pass_ms, self.views_last = passes, len(images)
         start = time.perf_counter()
         out, k = [], 0
-        for (_, cam_id, cams), (old, key) in zip(jobs, stills, strict=True):
+        for _, cam_id, cams, old, key in jobs:
             own = images[k:k + len(cams)]
             k += len(cams)
             if old is not None and old.key == key:
