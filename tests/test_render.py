@@ -102,6 +102,7 @@ def test_counters_counted_by_hand():
     assert frame.stats.counters == {"density_samples": 58, "light_samples": 176, "lightmap_lookups": 58, "rays": 1,
                                     "shared_samples": 0, "interleaved_samples": 0,
                                     "shadow_rays": 0, "shadow_voxels": 0, "skipped_steps": 0,
+                                    "light_skipped": 0,  # a homogeneous cube: no empty cell to skip
                                     # the tiled OIT: one tile ray (one BVH query, one box test), one box per pixel
                                     "box_tests": 1, "tile_box_tests": 1, "bvh_queries": 1, "joint_rays": 0}
 
