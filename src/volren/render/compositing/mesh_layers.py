@@ -408,6 +408,15 @@ def layer_ray_t(mesh: MeshLayers, pix: wp.vec3i, j: int, seg: wp.vec4) -> float:
 
 
 @wp.func
+def next_layer_t(mesh: MeshLayers, pix: wp.vec3i, j: int, seg: wp.vec4) -> float:
+    """`layer_ray_t` of layer j, INF past the texel pixel's last layer: a march calls `segment_advance` only for a
+    sample beyond it (one comparison per sample where no layer is near)."""
+    if j < pix[2]:
+        return layer_ray_t(mesh, pix, j, seg)
+    return INF
+
+
+@wp.func
 def store_relative(target: CubeTarget, i: int, snap: wp.vec4, acc: wp.vec4, z: float):
     """Segment i of the cube k-buffer from two snapshots of a ray's accumulator (premultiplied rgb, T): what the ray
     gathered between them, relative to T = 1 at the first."""

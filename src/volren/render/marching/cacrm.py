@@ -57,7 +57,13 @@ from volren.kernels.common import (
     skip_cell_ray,
     skip_lookup,
 )
-from volren.render.compositing.mesh_layers import MeshLayers, segment_advance, segment_finish, texel_layers
+from volren.render.compositing.mesh_layers import (
+    MeshLayers,
+    next_layer_t,
+    segment_advance,
+    segment_finish,
+    texel_layers,
+)
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, SKIPPED_STEPS, PassClock
 from volren.render.marching.cmsrm import CMSRM, CMSRMConfig, TileGroup
 from volren.render.marching.cubemap import (
@@ -244,6 +250,8 @@ def coupled_march_kernel(
     j1 = int(0)
     snap0 = acc0
     snap1 = acc1
+    next0 = next_layer_t(mesh0, pix0, 0, seg0)
+    next1 = next_layer_t(mesh1, pix1, 0, seg1)
     pos = float(n)
     m = float(1.0)
     while pos > END:
@@ -300,8 +308,10 @@ def coupled_march_kernel(
         if in0:
             samples += int(get0)
             skipped += 1 - int(get0)
-            j0, snap0 = segment_advance(mesh0, pix0, target0, (target0.offset + texel) * target0.segments, seg0, j0,
-                                        snap0, acc0, s0[0])
+            if s0[0] > next0:
+                j0, snap0 = segment_advance(mesh0, pix0, target0, (target0.offset + texel) * target0.segments, seg0,
+                                            j0, snap0, acc0, s0[0])
+                next0 = next_layer_t(mesh0, pix0, j0, seg0)
             acc0, half0, prev0, prev_t0, lit, m0 = eye_update(
                 acc0, half0, prev0, prev_t0, rho0, vol, medium, p0, cam0.origin + s0[0] * d0, d0, s0, seg0,
                 vp, dt, absorb, params.ambient,
@@ -311,8 +321,10 @@ def coupled_march_kernel(
         if in1:
             samples += int(get1)
             skipped += 1 - int(get1)
-            j1, snap1 = segment_advance(mesh1, pix1, target1, (target1.offset + texel) * target1.segments, seg1, j1,
-                                        snap1, acc1, s1[0])
+            if s1[0] > next1:
+                j1, snap1 = segment_advance(mesh1, pix1, target1, (target1.offset + texel) * target1.segments, seg1,
+                                            j1, snap1, acc1, s1[0])
+                next1 = next_layer_t(mesh1, pix1, j1, seg1)
             acc1, half1, prev1, prev_t1, lit, m1 = eye_update(
                 acc1, half1, prev1, prev_t1, rho1, vol, medium, p1, cam1.origin + s1[0] * d1, d1, s1, seg1,
                 vp, dt, absorb, params.ambient,

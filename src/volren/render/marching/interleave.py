@@ -53,7 +53,13 @@ from volren.kernels.common import (
     interpolate_cell,
     vec8,
 )
-from volren.render.compositing.mesh_layers import MeshLayers, segment_advance, segment_finish, texel_layers
+from volren.render.compositing.mesh_layers import (
+    MeshLayers,
+    next_layer_t,
+    segment_advance,
+    segment_finish,
+    texel_layers,
+)
 from volren.render.frame import DENSITY_SAMPLES, INTERLEAVED_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES
 from volren.render.marching.cubemap import CubeTarget, eye_segment, store_texel, texel_index, texel_point, tile_texel
 from volren.render.marching.march import MarchParams, lit_step
@@ -124,6 +130,7 @@ def quad_march_kernel(
     dl = mat83()
     # Cube k-buffer cursor per lane: texel pixel (row, col, layers), segment base index and the open segment.
     cursor = mat84i()
+    next_t = vec8()
     o0 = wp.transform_point(vol.to_local, cam0.origin)
     o1 = wp.transform_point(vol.to_local, cam1.origin)
     for lane in range(LANES):
@@ -146,6 +153,15 @@ def quad_march_kernel(
             cursor[lane, 1] = pix[1]
             cursor[lane, 2] = pix[2]
             dl[lane] = wp.transform_vector(vol.to_local, dw[lane])
+    # Where a lane closes its next cube k-buffer segment (INF: no layer ahead, or no texel).
+    for lane in range(LANES):
+        next_t[lane] = INF
+        if lane < 4:
+            next_t[lane] = next_layer_t(mesh0, wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2]), 0,
+                                        seg[lane])
+        elif lane / 4 < eyes:
+            next_t[lane] = next_layer_t(mesh1, wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2]), 0,
+                                        seg[lane])
     dt = vol.diagonal / float(params.samples)
     # Per eye: the shared lattice anchor (farthest texel), the nearest segment start, and t_s, the distance up to
     # which the quad's rays stay within half a voxel of each other.
@@ -282,15 +298,20 @@ def quad_march_kernel(
                             extra += 1
                         if rho > 0.0:
                             shaded += 1
-                            pix = wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2])
-                            j = open_seg[lane]
-                            sn = snap[lane]
-                            if e == 0:
-                                j, sn = segment_advance(mesh0, pix, target0, cursor[lane, 3], seg[lane], j, sn, a, t)
-                            else:
-                                j, sn = segment_advance(mesh1, pix, target1, cursor[lane, 3], seg[lane], j, sn, a, t)
-                            open_seg[lane] = j
-                            snap[lane] = sn
+                            if t > next_t[lane]:
+                                pix = wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2])
+                                j = open_seg[lane]
+                                sn = snap[lane]
+                                if e == 0:
+                                    j, sn = segment_advance(mesh0, pix, target0, cursor[lane, 3], seg[lane], j, sn, a,
+                                                            t)
+                                    next_t[lane] = next_layer_t(mesh0, pix, j, seg[lane])
+                                else:
+                                    j, sn = segment_advance(mesh1, pix, target1, cursor[lane, 3], seg[lane], j, sn, a,
+                                                            t)
+                                    next_t[lane] = next_layer_t(mesh1, pix, j, seg[lane])
+                                open_seg[lane] = j
+                                snap[lane] = sn
                             b = a
                             a = lit_step(a, rho, vol, medium, p, x, dw[lane], sub_hi - sub_lo, params.ambient)
                             h = half_depth(h, b[3], a[3], t)
