@@ -586,3 +586,38 @@ def test_a_light_change_uploads_only_the_lights():
     other = Scene((Volume(SCENE.volumes[0].density, density_scale=5.0),), lit.lights, SCENE.environment)
     two = Scene(SCENE.volumes, (*lit.lights, DirectionalLight()), SCENE.environment)
     assert upload_lights(new, other) is None and upload_lights(new, two) is None
+
+
+def test_a_frame_dropped_while_busy_is_rendered_again_when_free():
+    """Viewer A's frame for its newest camera is dropped because A is still receiving an older one (another viewer's
+    camera made the tick); once A is free the loop renders that camera again, so A's last frame shows its newest
+    view, never a stale one."""
+    async def test(client, loop):
+        a, _ = await connect(client)
+        b, _ = await connect(client)
+        await a.send_json(cam_msg(1))
+        await b.send_json(cam_msg(2, 0.4))
+        await frame_for(a, 1)
+        await frame_for(b, 2)
+        viewer = loop.viewers.viewers[1]
+        gate, send = asyncio.Event(), viewer.send
+
+        async def held(payload):
+            await gate.wait()
+            await send(payload)
+
+        viewer.send = held
+        await a.send_json(cam_msg(3, 0.2))
+        await until(lambda: viewer.busy, "A's frame 3 on its way")
+        await a.send_json(cam_msg(4, -0.3))
+        await until(lambda: viewer.camera_id == 4, "A's camera 4")
+        await b.send_json(cam_msg(5, 0.5))
+        await frame_for(b, 5)
+        assert viewer.dropped >= 1 and viewer.busy, "A's frame for camera 4 was dropped"
+        gate.set()
+        _, image = await asyncio.wait_for(frame_for(a, 4), 10.0)
+        assert db(offline(cam_msg(4, -0.3)), image) > 40.0
+        for ws in (a, b):
+            await ws.close()
+
+    run(test)
