@@ -268,10 +268,10 @@ def piecewise_closed_form(cam: Camera, boxes, sheet_z: float, alpha: float, albe
 @pytest.mark.parametrize("name", ["dssrm", "cmsrm", "cacrm"])
 def test_sheet_inside_a_joint_run_is_blended_where_it_lies(name):
     """A sheet inside the overlap of two emissive boxes (marched jointly): the joint march is split at the layer
-    (`march_joint_between_layers`), so on the rays crossing both boxes (joint runs in every method) all three methods
-    match the piecewise closed form exactly (homogeneous steps are exact); blending the sheet after the run (the
-    earlier behaviour) is off by up to 0.05. DSSRM is exact on the other rays too (the cube methods read cube maps
-    there)."""
+    (`march_between_layers` over a joint run), so on the rays crossing both boxes (joint runs in every method) all
+    three methods match the piecewise closed form exactly (homogeneous steps are exact); blending the sheet after the
+    run (the earlier behaviour) is off by up to 0.05. DSSRM is exact on the other rays too (the cube methods read cube
+    maps there)."""
     cam = axis_camera((0.2, -0.1, 3.0), size=(25, 25))
     volumes = tuple(homogeneous_volume(s, emission=e, scale=k, translate=t) for s, e, k, t in OVERLAP)
     sheet = quad(-0.3, 0.4, albedo=(0.2, 0.8, 0.3))

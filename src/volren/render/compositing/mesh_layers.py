@@ -15,9 +15,9 @@ those pixels miss the dropped layers' colour and attenuation, and ``dropped`` co
 renderer can report how many it lost. The paper requires closed meshes and reads the layers in pairs (entry, exit);
 here every layer stands alone, so open sheets (a quad) and meshes that enclose a volume's samples work too.
 
-DSSRM (paper 000 Fig. 9's ground truth) marches each box with `march_between_layers`; a joint run of overlapping
-boxes (`volren.render.compositing.oit.march_joint`) is marched in pieces between the layers inside it
-(`march_joint_between_layers`), each layer blended where it lies.
+DSSRM (paper 000 Fig. 9's ground truth) marches each run of boxes with `march_between_layers`: one box, or
+overlapping boxes marched jointly (`volren.render.compositing.oit.march_joint`), in pieces between the layers inside
+the run, each layer blended where it lies.
 
 The cube methods write the paper's cube k-buffer: each texel ray is split at the layers of the pixel its texel
 projects to (nearest, as the opaque cut) and stores K + 1 segments, the volume between that pixel's layers j - 1 and
@@ -242,44 +242,28 @@ def layer_before(layers: MeshLayers, row: int, col: int, i: int, facing: float, 
 
 
 @wp.func
-def march_between_layers(
+def march_run_piece(
     s: MarchState,
-    first: int,
-    layers: MeshLayers,
-    row: int,
-    col: int,
-    facing: float,
-    vol: VolumeGPU,
+    layers: Layers,
+    i0: int,
+    i1: int,
+    volumes: wp.array(dtype=VolumeGPU),
     origin: wp.vec3,
     d: wp.vec3,
-    t0: float,
-    t1: float,
     offset: float,
     medium: Medium,
     params: MarchParams,
-):
-    """DSSRM with the mesh k-buffer (paper 000 §3.3, Fig. 5 (b)): blend the layers in front of t0, then march
-    [t0, t1] of one volume split at every layer inside it, blending each layer where the march reaches it. Returns
-    the state and the index of the first layer not yet blended (those behind t1, for the next volume or the end)."""
-    out, i = blend_layers_before(s, first, layers, row, col, facing, t0)
-    t = t0
-    n = layers.count[row, col]
-    while i < n and out.transmittance >= params.min_transmittance:
-        tl = layers.depth[row, col, i] / facing
-        if tl >= t1:
-            break
-        if tl > t:
-            out = march_volume_light_map(out, vol, origin, d, t, tl, offset, medium, params)
-            t = tl
-        out = blend_layer(out, layers.color[row, col, i], tl)
-        i += 1
-    if t < t1 and out.transmittance >= params.min_transmittance:
-        out = march_volume_light_map(out, vol, origin, d, t, t1, offset, medium, params)
-    return out, i
+    span: wp.vec2,
+) -> MarchState:
+    """March ray distances ``span`` of the run of boxes [i0, i1) of the pixel's box k-buffer: one box alone with the
+    light-map march, overlapping boxes jointly (`march_joint`)."""
+    if i1 - i0 > 1:
+        return march_joint(s, layers, i0, i1, volumes, origin, d, offset, medium, params, span)
+    return march_volume_light_map(s, volumes[layers.volume[i0]], origin, d, span[0], span[1], offset, medium, params)
 
 
 @wp.func
-def march_joint_between_layers(
+def march_between_layers(
     s: MarchState,
     first: int,
     mesh: MeshLayers,
@@ -296,9 +280,11 @@ def march_joint_between_layers(
     medium: Medium,
     params: MarchParams,
 ):
-    """`march_between_layers` for a joint run of overlapping boxes (layers [i0, i1) of the pixel's box k-buffer):
-    the run is marched by `march_joint` in pieces between the mesh layers inside it, each layer blended where it
-    lies. Returns the state and the index of the first mesh layer not yet blended."""
+    """DSSRM with the mesh k-buffer (paper 000 §3.3, Fig. 5 (b)): blend the mesh layers in front of the run of boxes
+    [i0, i1) of the pixel's box k-buffer (one box, or overlapping boxes marched jointly), then march the run from its
+    first entry to its last exit split at every mesh layer inside it, blending each layer where the march reaches it.
+    Returns the state and the index of the first mesh layer not yet blended (those behind the run, for the next run
+    or the end)."""
     t0 = layers.t_in[i0]
     t_stop = layers.t_out[i0]
     for j in range(i0 + 1, i1):
@@ -311,12 +297,12 @@ def march_joint_between_layers(
         if tl >= t_stop:
             break
         if tl > t:
-            out = march_joint(out, layers, i0, i1, volumes, origin, d, offset, medium, params, wp.vec2(t, tl))
+            out = march_run_piece(out, layers, i0, i1, volumes, origin, d, offset, medium, params, wp.vec2(t, tl))
             t = tl
         out = blend_layer(out, mesh.color[row, col, i], tl)
         i += 1
     if t < t_stop and out.transmittance >= params.min_transmittance:
-        out = march_joint(out, layers, i0, i1, volumes, origin, d, offset, medium, params, wp.vec2(t, t_stop))
+        out = march_run_piece(out, layers, i0, i1, volumes, origin, d, offset, medium, params, wp.vec2(t, t_stop))
     return out, i
 
 

@@ -77,7 +77,6 @@ from volren.render.compositing.mesh_layers import (
     layer_before,
     layer_stats,
     march_between_layers,
-    march_joint_between_layers,
     march_texel_segments,
     mesh_layers_pass,
 )
@@ -356,8 +355,8 @@ def cube_resample_kernel(
         if end - i > 1:
             direct = 1
             joint = 1
-            s, next_mesh = march_joint_between_layers(s, next_mesh, mesh, row, col, facing, layers, i, end, volumes,
-                                                      cam.origin, d, 0.5, medium, params)
+            s, next_mesh = march_between_layers(s, next_mesh, mesh, row, col, facing, layers, i, end, volumes,
+                                                cam.origin, d, 0.5, medium, params)
         else:
             # A cube-scheme box: its cube map, or with layers inside it the cube k-buffer's segments between them;
             # marched directly where neither applies (a direct-scheme box, a segment without Eq. 13 weight).
@@ -387,8 +386,8 @@ def cube_resample_kernel(
                         mesh.direct[row, col] = 1
             if done == 0:
                 direct = 1
-                s, next_mesh = march_between_layers(s, next_mesh, mesh, row, col, facing, volumes[v], cam.origin, d,
-                                                    layers.t_in[i], layers.t_out[i], 0.5, medium, params)
+                s, next_mesh = march_between_layers(s, next_mesh, mesh, row, col, facing, layers, i, end, volumes,
+                                                    cam.origin, d, 0.5, medium, params)
         if s.transmittance < params.min_transmittance:
             break
         i = end

@@ -37,7 +37,6 @@ from volren.render.compositing.mesh_layers import (
     blend_layers_before,
     layer_stats,
     march_between_layers,
-    march_joint_between_layers,
     mesh_layers_pass,
 )
 from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, pixel_layers
@@ -81,11 +80,8 @@ def dssrm_kernel(
             offset = ray_jitter(params.seed, params.view, row, col, cam.width, cam.height, i)
         if end - i > 1:
             joint = 1
-            s, next_mesh = march_joint_between_layers(s, next_mesh, mesh, row, col, facing, layers, i, end, volumes,
-                                                      cam.origin, d, offset, medium, params)
-        else:
-            s, next_mesh = march_between_layers(s, next_mesh, mesh, row, col, facing, volumes[layers.volume[i]],
-                                                cam.origin, d, layers.t_in[i], layers.t_out[i], offset, medium, params)
+        s, next_mesh = march_between_layers(s, next_mesh, mesh, row, col, facing, layers, i, end, volumes, cam.origin,
+                                            d, offset, medium, params)
         if s.transmittance < params.min_transmittance:
             break
         i = end
