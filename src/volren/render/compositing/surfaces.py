@@ -8,7 +8,7 @@ each light is attenuated by the volumes' transmittance (the light-map methods re
 ray enters each box, the reference marches the density) and the ambient by the volumes' ambient occlusion (the GI
 grid's SH, or a few transmittance rays); methods without a light map (VPT, fog) leave them unshadowed here. Surfaces
 do not shadow volumes: the light map and the reference's shadow rays see only the media. Translucent meshes
-(alpha < 1) are left out of this pass and cast no shadows; they are shaded with `shade_surface` as layers
+(alpha < 1) are left out of this pass and cast no shadows; they are shaded with `shade_lit_surface` as layers
 (`volren.render.compositing.mesh_layers`).
 """
 
@@ -88,22 +88,6 @@ def occluded(x: wp.vec3, to_light: wp.vec3, dist: float, opaque: wp.array(dtype=
         if wp.mesh_query_ray_anyhit(mesh_ids[k], x, to_light, wp.min(dist, MESH_RANGE)):
             return True
     return False
-
-
-@wp.func
-def shade_surface(
-    x: wp.vec3,
-    normal: wp.vec3,
-    d: wp.vec3,
-    albedo: wp.vec3,
-    lights: wp.array(dtype=LightGPU),
-    ambient: wp.vec3,
-    opaque: wp.array(dtype=OpaqueGPU),
-    mesh_ids: wp.array(dtype=wp.uint64),
-) -> wp.vec3:
-    """`shade_lit_surface` with the volumes neither shadowing nor occluding x (no counters: nothing to count)."""
-    return shade_lit_surface(x, normal, d, albedo, lights, ambient, opaque, mesh_ids, SurfaceLight(),
-                             wp.array(ptr=wp.uint64(0), shape=(0,), dtype=wp.int64))
 
 
 @wp.func

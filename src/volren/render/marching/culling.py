@@ -53,6 +53,17 @@ def view_point(cam: CameraGPU, x: wp.vec3) -> wp.vec3:
 
 
 @wp.func
+def frustum_corner_local(cam: CameraGPU, vol: VolumeGPU, tx: float, ty: float, i: int) -> wp.vec3:
+    """Corner i of the view frustum (near plane for i < 4, far plane after; x fastest) in the box's local space."""
+    z = cam.near
+    if i >= 4:
+        z = cam.far
+    sx = float(2 * (i % 2) - 1)
+    sy = float(2 * ((i / 2) % 2) - 1)
+    return wp.transform_point(vol.to_local, cam.origin + z * (cam.forward + sx * tx * cam.right + sy * ty * cam.up))
+
+
+@wp.func
 def corner_pixel(cam: CameraGPU, vol: VolumeGPU, i: int, focal: float) -> wp.vec2:
     """Corner i projected to pixels from the viewport centre (meaningful in front of the eye only)."""
     p = view_point(cam, box_corner(vol, i))
@@ -94,25 +105,14 @@ def frustum_visible_gpu(cam: CameraGPU, vol: VolumeGPU) -> int:
         return 0
     lscale = float(1.0)
     for i in range(8):
-        z = cam.near
-        if i >= 4:
-            z = cam.far
-        sx = float(2 * (i % 2) - 1)
-        sy = float(2 * ((i / 2) % 2) - 1)
-        q = wp.transform_point(vol.to_local, cam.origin + z * (cam.forward + sx * tx * cam.right + sy * ty * cam.up))
+        q = frustum_corner_local(cam, vol, tx, ty, i)
         lscale = wp.max(lscale, wp.max(wp.abs(q[0]), wp.max(wp.abs(q[1]), wp.abs(q[2]))))
     ltol = 1.0e-6 * lscale
     for a in range(3):
         above = int(0)
         below = int(0)
         for i in range(8):
-            z = cam.near
-            if i >= 4:
-                z = cam.far
-            sx = float(2 * (i % 2) - 1)
-            sy = float(2 * ((i / 2) % 2) - 1)
-            q = wp.transform_point(vol.to_local,
-                                   cam.origin + z * (cam.forward + sx * tx * cam.right + sy * ty * cam.up))
+            q = frustum_corner_local(cam, vol, tx, ty, i)
             if q[a] > 1.0 + ltol:
                 above += 1
             if q[a] < -1.0 - ltol:
