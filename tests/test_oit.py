@@ -8,12 +8,14 @@ paper's 240 x 135 a 48 x 32 image would have one pixel per tile and phase 1 woul
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import cache
 
 import numpy as np
 import pytest
 
 from conftest import DEVICE, chords
 from volren.camera import Camera
+from volren.data import builtin_scene
 from volren.errors import VolrenError
 from volren.render import CMSRM, DSSRM, CMSRMConfig, DSSRMConfig
 from volren.render.compositing import oit
@@ -82,6 +84,31 @@ def small_tiles(monkeypatch):
     monkeypatch.setattr(oit, "TILE_LAYOUT", SMALL_TILES)
 
 
+def pixel_hits(scene: Scene, cam: Camera) -> list[np.ndarray]:
+    """Per volume the (H, W) pixels whose ray meets its box in front of the eye (general slab test in local space)."""
+    d = cam.ray_directions()
+    o = np.asarray(cam.position)
+    hits = []
+    for vol in scene.volumes:
+        ol = vol.to_local[:3, :3] @ o + vol.to_local[:3, 3]
+        dl = d @ vol.to_local[:3, :3].T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta, tb = (-1 - ol) / dl, (1 - ol) / dl
+        hits.append(np.nanmin(np.maximum(ta, tb), -1) > np.maximum(np.nanmax(np.minimum(ta, tb), -1), 0))
+    return hits
+
+
+def missed_boxes(scene: Scene, cam: Camera, p: oit.OITParams) -> int:
+    """(pixel, box) pairs where the pixel's ray meets the box but its tile's list lacks the box."""
+    ids, counts = p.tile_ids.numpy(), p.tile_count.numpy()
+    missed = 0
+    for v, hit in enumerate(pixel_hits(scene, cam)):
+        rows, cols = np.nonzero(hit)
+        tiles = (rows // p.tile_h) * p.tiles_x + cols // p.tile_w
+        missed += sum(v not in ids[t, :counts[t]] for t in tiles)
+    return missed
+
+
 @pytest.mark.parametrize(("method", "scene"), [("dssrm", "crowd"), ("cmsrm", "crowd"), ("cacrm", "crowd"),
                                                ("dssrm", "slabs"), ("dssrm", "inside"), ("cmsrm", "inside")])
 def test_schemes_agree_bit_for_bit(method: str, scene: str, small_tiles) -> None:
@@ -100,22 +127,62 @@ def test_tile_kbuffer_holds_every_box_touching_the_tile(scene: str, layout, monk
     scene, cam = VIEWS[scene]
     ds = upload_scene(scene, DEVICE)
     p = oit.LayerFinder("tiled", 16, DEVICE).params(ds, cam, PassClock(DEVICE))
-    ids, counts = p.tile_ids.numpy(), p.tile_count.numpy()
-    missed = 0
-    d = cam.ray_directions()
-    o = np.asarray(cam.position)
-    for v, vol in enumerate(scene.volumes):
-        ol = vol.to_local[:3, :3] @ o + vol.to_local[:3, 3]  # the general (rotated) slab test in local space
-        dl = d @ vol.to_local[:3, :3].T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ta, tb = (-1 - ol) / dl, (1 - ol) / dl
-        hit = np.nanmin(np.maximum(ta, tb), -1) > np.maximum(np.nanmax(np.minimum(ta, tb), -1), 0)
-        rows, cols = np.nonzero(hit)
-        tiles = (rows // p.tile_h) * p.tiles_x + cols // p.tile_w
-        missed += sum(v not in ids[t, :counts[t]] for t in tiles)
     assert p.tile_w == W // layout[0] and p.tile_h == H // layout[1]
-    assert counts.max() < 16
-    assert missed == 0
+    assert p.tile_count.numpy().max() < 16
+    assert missed_boxes(scene, cam, p) == 0
+
+
+@cache
+def among() -> tuple[Scene, dict[str, Camera]]:
+    """`instances --count 36` (rows of boxes 0.33 m wide, 0.08 m gaps) and issue 19 item 5's eyes among them, fov
+    70: in the gap between two columns at a row's centre looking along the rows (the row's six boxes cross the near
+    plane, two of them in the frustum), inside a box, and at the last row's centre looking back along the rows."""
+    scene = builtin_scene("instances", 64, count=36)
+    c = sorted({round(float(v.center_world[0]), 9) for v in scene.volumes})
+    gap = 0.5 * (c[2] + c[3])
+    views = {"gap": ((gap, 0.0, c[3]), (gap, 0.0, -2.0)),
+             "inside": ((c[2] + 0.05, 0.05, c[3]), (c[2] - 0.3, 0.0, -2.0)),
+             "row-end": ((gap, 0.0, c[0]), (gap + 0.2, 0.0, 2.0))}
+    return scene, {name: Camera(position=eye, look_at=at, fov_y=70.0, width=W, height=H)
+                   for name, (eye, at) in views.items()}
+
+
+@pytest.mark.parametrize("eye", ["gap", "inside", "row-end"])
+def test_tiled_equals_pixel_rt_with_the_eye_among_instances(eye: str, small_tiles) -> None:
+    """Issue 19 item 5: at the default K the tiled k-buffer gives pixel-rt's image bit for bit with the eye among
+    the instances, and stays conservative. Measured before the fix (320x180, 2 x 2-pixel tiles, DSSRM:64:32 against
+    the reference, covered PSNR): tiled 13.2-25.2 dB where pixel-rt scored 37.0-39.9 dB, every near-plane-crossing
+    box being given every tile."""
+    scene, cams = among()
+    cam = cams[eye]
+    p = oit.LayerFinder("tiled", 16, DEVICE).params(upload_scene(scene, DEVICE), cam, PassClock(DEVICE))
+    assert p.tile_count.numpy().max() < 16
+    assert missed_boxes(scene, cam, p) == 0
+    images = {s: DSSRM(DSSRMConfig(samples=32, light_samples=8, light_grid=16, oit=s), device=DEVICE).render(
+        scene, [cam]).images[0] for s in ("pixel-rt", "tiled")}
+    assert (images["pixel-rt"][..., 3] > 1e-3).sum() > 200
+    np.testing.assert_array_equal(images["tiled"], images["pixel-rt"])
+
+
+def test_boxes_beside_the_eye_take_no_tile(small_tiles) -> None:
+    """The six boxes of the eye's row cross the near plane (depths on both sides of the eye); the four whose part in
+    front lies outside the frustum are in no tile's list, the two beside the gap only in tiles they cover (before
+    the fix every tile listed all six, filling 6 of K = 8 slots)."""
+    scene, cams = among()
+    cam = cams["gap"]
+    forward = cam.basis()[2]
+    depth = [(v.corners_world - np.asarray(cam.position)) @ forward for v in scene.volumes]
+    crossing = [v for v, z in enumerate(depth) if z.min() < cam.near < z.max()]
+    hits = pixel_hits(scene, cam)
+    seen = [v for v in crossing if hits[v].any()]
+    assert len(crossing) == 6 and len(seen) == 2
+    p = oit.LayerFinder("tiled", 16, DEVICE).params(upload_scene(scene, DEVICE), cam, PassClock(DEVICE))
+    ids, counts = p.tile_ids.numpy(), p.tile_count.numpy()
+    listed = [set(ids[t, :counts[t]].tolist()) for t in range(len(counts))]
+    assert not any((set(crossing) - set(seen)) & tile for tile in listed)
+    for v in seen:
+        tiles = sum(v in tile for tile in listed)
+        assert 0 < tiles < len(counts) // 2, v
 
 
 def test_the_paper_tile_layout() -> None:
@@ -166,6 +233,34 @@ def test_counters_are_exact(small_tiles) -> None:
     assert 0 < joint < hits
     for s in SCHEMES:
         assert c[s]["joint_rays"] == joint, s
+
+
+def test_tile_box_tests_count_the_boxes_the_bvh_reports(small_tiles) -> None:
+    """Phase 1's ``tile_box_tests`` is the number of boxes the tile rays' BVH queries report and test, not of the
+    boxes kept: here FRONT and a box beside the eye that crosses the near plane outside the frustum, whose long
+    view-space AABB many tile rays meet while its image-plane rectangle holds no tile centre. Warp's ray/AABB test
+    (reported when the slab exit is >= max(entry, 0)) replayed on the host in float64, every decision at least
+    1e-4 m from the tie."""
+    beside = blob((0.2, 2.0, 0.2), 0.3, (1.0, 0.0, 3.0))
+    scene = Scene((FRONT, beside), (), Environment((0.4, 0.4, 0.4)))
+    tiles = oit.tile_layout(W, H, SMALL_TILES)
+    lo, hi, _ = oit.conservative_view_boxes([v.corners_world for v in scene.volumes], AXIS_CAM, tiles)
+    tx, ty = np.meshgrid(np.arange(tiles.tiles_x), np.arange(tiles.tiles_y))
+    t = AXIS_CAM.tan_half_fov
+    d = np.stack([((tx + 0.5) * tiles.tile_w / W * 2 - 1) * t * W / H, (1 - (ty + 0.5) * tiles.tile_h / H * 2) * t,
+                  np.ones(tx.shape)], axis=-1).reshape(-1, 1, 3)
+    with np.errstate(divide="ignore"):
+        ta, tb = lo.astype(np.float64) / d, hi.astype(np.float64) / d
+    t0, t1 = np.minimum(ta, tb).max(-1), np.maximum(ta, tb).min(-1)
+    margin = t1 - np.maximum(t0, 0.0)
+    assert np.abs(margin).min() > 1e-4
+    reported = int((margin >= 0).sum())
+    p = oit.LayerFinder("tiled", 8, DEVICE).params(upload_scene(scene, DEVICE), AXIS_CAM, PassClock(DEVICE))
+    kept = int(p.tile_count.numpy().sum())
+    counters = make("dssrm", "tiled").render(scene, [AXIS_CAM]).stats.counters
+    assert counters["tile_box_tests"] == reported
+    assert kept < reported - 20  # the beside box: reported by many tiles, kept by none
+    assert counters["bvh_queries"] == tiles.tiles_x * tiles.tiles_y
 
 
 def test_oit_config_is_validated() -> None:

@@ -20,8 +20,10 @@ K-th on a ray are dropped (the k-buffer's behaviour; K = 8 by default, 16 at mos
   spans [a0, a1] x [b0, b1] on the image plane (x / z, y / z, from its corners) and depths [z0, z1] becomes the view
   -space AABB of {z in [z0, z1], x / z in [a0 - h_x, a1 + h_x], y / z in [b0 - h_y, b1 + h_y]} with (h_x, h_y) half a
   tile: any pixel ray of the tile that meets the box puts the tile-centre ray through that AABB at the same depth.
-  A box crossing the near plane covers every tile. The per-pixel result equals the other schemes' whenever at most
-  K boxes touch a tile; with more, the tile keeps the K nearest entries into the enlarged boxes at its centre.
+  A box crossing the near plane is first clipped to it (corners and edge crossings at depth >= near): pixel rays
+  keep only that part (their intervals start at the near plane), so a box beside the eye covers just the tiles its
+  part in front projects to, not every tile. The per-pixel result equals the other schemes' whenever at most K
+  boxes touch a tile; with more, the tile keeps the K nearest entries into the enlarged boxes at its centre.
 
 Compositing: a run of layers whose intervals overlap (a cluster) is marched jointly (`march_joint`): the run is cut
 at every box entry and exit, each piece takes the step count of the smallest diagonal among the boxes covering it
@@ -53,7 +55,6 @@ from volren.kernels.common import (
     counter_row,
     half_depth,
     march_step_count,
-    safe_inverse,
     sample_grid,
     state_accumulator,
     with_accumulator,
@@ -253,26 +254,13 @@ def march_joint(
     return s
 
 
-@wp.func
-def aabb_hit(lo: wp.vec3, hi: wp.vec3, d: wp.vec3) -> wp.vec2:
-    """Slab test of the ray from the origin along d against [lo, hi]: (t_enter, t_exit), empty when exit < entry."""
-    t0 = float(0.0)
-    t1 = float(INF)
-    for a in range(3):
-        inv = safe_inverse(d[a])
-        ta = lo[a] * inv
-        tb = hi[a] * inv
-        t0 = wp.max(t0, wp.min(ta, tb))
-        t1 = wp.min(t1, wp.max(ta, tb))
-    return wp.vec2(t0, t1)
-
-
 @wp.kernel
 def tile_layers_kernel(
     cam: CameraGPU,
     bvh: wp.uint64,
     lo: wp.array(dtype=wp.vec3),
     hi: wp.array(dtype=wp.vec3),
+    slopes: wp.array(dtype=wp.vec4),
     tile_w: int,
     tile_h: int,
     tiles_x: int,
@@ -283,7 +271,8 @@ def tile_layers_kernel(
     row0: int,
 ):
     """Phase 1 of the tiled k-buffer: one view-space ray through each tile's centre against the BVH over the
-    conservative boxes; the tile keeps the K nearest instance IDs (by entry into the enlarged box) in order."""
+    conservative boxes, each reported box tested exactly against its grown image-plane rectangle ``slopes``; the
+    tile keeps the K nearest instance IDs (by the nearest depth of the box's part beyond the near plane) in order."""
     r, tx = wp.tid()
     counters = counter_row(counter_rows, r, tx)
     ty = r + row0
@@ -297,9 +286,9 @@ def tile_layers_kernel(
     v = int(0)
     while wp.bvh_query_next(query, v):
         tested += 1
-        h = aabb_hit(lo[v], hi[v], d)
-        if h[1] >= h[0]:
-            layers = insert_layer(layers, v, h[0], h[1], k)
+        s = slopes[v]
+        if s[0] <= x and x <= s[1] and s[2] <= y and y <= s[3]:
+            layers = insert_layer(layers, v, lo[v][2], hi[v][2], k)
     tile = ty * tiles_x + tx
     for i in range(layers.count):
         tile_ids[tile, i] = layers.volume[i]
@@ -325,31 +314,50 @@ def tile_layout(width: int, height: int, layout: tuple[int, int]) -> TileLayout:
     return TileLayout(tw, th, math.ceil(width / tw), math.ceil(height / th))
 
 
+BOX_EDGES = np.array([(i, i ^ (1 << b)) for i in range(8) for b in range(3) if i < i ^ (1 << b)])
+"""the 12 edges of a box as pairs of corner indices (x fastest, the order of `Volume.corners_world`)"""
+
+
+def clip_to_near(c: np.ndarray, near: float) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices of boxes (n, 8, 3) in view space clipped to depth >= ``near``: (n, 20, 3) points (the 8 corners
+    and the 12 edges' crossings of the near plane) and (n, 20) which of them are vertices of the clipped box."""
+    a, b = c[:, BOX_EDGES[:, 0]], c[:, BOX_EDGES[:, 1]]
+    za, zb = a[..., 2] - near, b[..., 2] - near
+    crossing = za * zb < 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(crossing, za / (za - zb), 0.0)
+    points = np.concatenate([c, a + s[..., None] * (b - a)], axis=1)
+    points[:, 8:, 2] = np.where(crossing, near, points[:, 8:, 2])  # exactly on the plane, whatever the rounding
+    return points, np.concatenate([c[..., 2] >= near, crossing], axis=1)
+
+
 def conservative_view_boxes(scene_corners: list[np.ndarray], cam: Camera, tiles: TileLayout
-                            ) -> tuple[np.ndarray, np.ndarray]:
-    """Per instance the view-space (right, up, forward) AABB that the ray through a tile's centre meets whenever a
-    pixel ray of that tile meets the box (module docstring): its image-plane extent grown by half a tile. A box
-    crossing the near plane covers every tile; a box wholly behind it gets an empty box behind the eye."""
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per instance the image-plane rectangle (x / z from a0 to a1, y / z from b0 to b1) of the box's part at depth
+    >= near grown by half a tile, which holds the tile centre whenever a pixel ray of that tile meets the box
+    (module docstring), and the view-space (right, up, forward) AABB (lo, hi) of that rectangle's frustum between
+    the part's depths, which the tile-centre ray then meets (the phase-1 BVH's boxes). Returns (lo, hi, (a0, a1,
+    b0, b1)); a box wholly nearer than the near plane gets an empty box behind the eye and an empty rectangle."""
     right, up, forward = cam.basis()
     axes = np.stack([right, up, forward])
     pixel = 2.0 * cam.tan_half_fov / cam.height
     half = np.array([tiles.tile_w, tiles.tile_h]) * 0.5 * pixel * (1 + 1e-4)
-    far_tan = cam.tan_half_fov * max(1.0, cam.width / cam.height) * 4.0
     # all instances at once: a per-instance Python loop cost ~1 ms per view at 36 instances (CPU)
-    c = (np.stack(scene_corners) - np.asarray(cam.position)) @ axes.T
-    z0, z1 = c[..., 2].min(axis=1), c[..., 2].max(axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope = c[..., :2] / c[..., 2:3]
-    a0, a1 = slope.min(axis=1) - half, slope.max(axis=1) + half
-    lo = np.column_stack([np.minimum(z0[:, None] * a0, z1[:, None] * a0), z0])
-    hi = np.column_stack([np.maximum(z0[:, None] * a1, z1[:, None] * a1), z1])
-    reach = z1 * far_tan
-    crossing = (z1 > 0.0) & (z0 <= cam.near)
-    lo[crossing] = np.column_stack([-reach, -reach, np.minimum(z0, 0.0)])[crossing]
-    hi[crossing] = np.column_stack([reach, reach, z1])[crossing]
-    behind = z1 <= 0.0
+    points, kept = clip_to_near((np.stack(scene_corners) - np.asarray(cam.position)) @ axes.T, cam.near)
+    z = points[..., 2]
+    z0 = np.where(kept, z, np.inf).min(axis=1)
+    z1 = np.where(kept, z, -np.inf).max(axis=1)
+    slope = points[..., :2] / np.where(kept, z, 1.0)[..., None]
+    a0 = np.where(kept[..., None], slope, np.inf).min(axis=1) - half
+    a1 = np.where(kept[..., None], slope, -np.inf).max(axis=1) + half
+    with np.errstate(invalid="ignore"):
+        lo = np.column_stack([np.minimum(z0[:, None] * a0, z1[:, None] * a0), z0])
+        hi = np.column_stack([np.maximum(z0[:, None] * a1, z1[:, None] * a1), z1])
+    slopes = np.column_stack([a0[:, 0], a1[:, 0], a0[:, 1], a1[:, 1]])
+    behind = ~kept.any(axis=1)
     lo[behind] = hi[behind] = (0.0, 0.0, -1.0)
-    return lo.astype(np.float32), hi.astype(np.float32)
+    slopes[behind] = (1.0, -1.0, 1.0, -1.0)
+    return lo.astype(np.float32), hi.astype(np.float32), slopes.astype(np.float32)
 
 
 class LayerFinder:
@@ -371,14 +379,15 @@ class LayerFinder:
             p.tile_count = wp.zeros(1, dtype=int, device=self.device)
             return p
         with clock.measure("oit"):
-            lo, hi = conservative_view_boxes([v.corners_world for v in ds.scene.volumes], cam, tiles)
+            lo, hi, slopes = conservative_view_boxes([v.corners_world for v in ds.scene.volumes], cam, tiles)
             lo_d = wp.array(lo, dtype=wp.vec3, device=self.device)
             hi_d = wp.array(hi, dtype=wp.vec3, device=self.device)
+            slopes_d = wp.array(slopes, dtype=wp.vec4, device=self.device)
             bvh = wp.Bvh(lo_d, hi_d)
             p.tile_ids = wp.zeros((tiles.tiles_x * tiles.tiles_y, self.k), dtype=int, device=self.device)
             p.tile_count = wp.zeros(tiles.tiles_x * tiles.tiles_y, dtype=int, device=self.device)
             launch_rows(tile_layers_kernel, tiles.tiles_y, tiles.tiles_x,
-                        [camera_struct(cam), bvh.id, lo_d, hi_d, tiles.tile_w, tiles.tile_h, tiles.tiles_x, self.k,
-                         p.tile_ids, p.tile_count], self.device, clock.counters)
-        self._keep.append((bvh, lo_d, hi_d))
+                        [camera_struct(cam), bvh.id, lo_d, hi_d, slopes_d, tiles.tile_w, tiles.tile_h, tiles.tiles_x,
+                         self.k, p.tile_ids, p.tile_count], self.device, clock.counters)
+        self._keep.append((bvh, lo_d, hi_d, slopes_d))
         return p
