@@ -120,7 +120,8 @@ def test_single_scattering_matches_the_reference():
     the per-channel image means agree within 2% and the images within the path tracer's noise."""
     scene = builtin_scene("cloud", 64)
     ref = Reference(ReferenceConfig(samples=256, light_samples=256), device=DEVICE).render(scene, [CAM])
-    frame = VPT(VPTConfig(spp=256, max_bounces=1, environment_light=False), device=DEVICE).render(scene, [CAM])
+    config = VPTConfig(spp=256, max_bounces=1, environment_light=False, ambient=True)
+    frame = VPT(config, device=DEVICE).render(scene, [CAM])
     a, b = ref.images[0], frame.images[0]
     np.testing.assert_allclose(b.mean(axis=(0, 1)), a.mean(axis=(0, 1)), rtol=0.02)
 
@@ -461,7 +462,7 @@ def test_single_scattering_matches_the_closed_form(position):
     sigma, albedo, g, ambient = 1.5, 0.8, 0.6, 0.1
     cam = axis_camera(position, size=(41, 31))
     scene = scene_of(homogeneous_volume(sigma, albedo=albedo, g=g, n=16), lights=[DOWN], ambient=ambient)
-    r = VPT(VPTConfig(spp=32, max_bounces=1, environment_light=False), device=DEVICE)
+    r = VPT(VPTConfig(spp=32, max_bounces=1, environment_light=False, ambient=True), device=DEVICE)
     frames = np.stack([r.render(scene, [cam], f).images[0][..., 0] for f in range(8)])
     expected, chord = single_scattering_closed_form(cam, sigma, albedo, g, 2.0, ambient)
     mask = ndimage.minimum_filter(chord, 3) > 0.2

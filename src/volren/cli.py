@@ -245,10 +245,14 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--tf", help=f"vpt: transfer function, a preset ({', '.join(PRESETS)}) or a JSON "
                    "file {\"points\": [{\"position\": u, \"extinction\": mu_t, \"albedo\": [r, g, b], \"p_brdf\": p}, "
                    "...]}: u in [0, 1] (the scalar over the volume's largest) not decreasing, mu_t >= 0 [1/m], albedo "
-                   "(default 0.8 each) and p_brdf (surface-like share, default 0) in [0, 1], linear in between; "
+                   "(default 0.8 each) and p_brdf (surface-like share, default 0) in [0, 1], optional \"emission\": "
+                   "[r, g, b] >= 0 (radiance emitted per metre, default 0; needs mu_t > 0 there), linear in between; "
                    "optional \"hu_points\" (same fields, position in Hounsfield units) classify a CT (signed "
                    "integers, DICOM) by HU instead, as the ct-* presets do (default: extinction proportional to "
                    "density)")
+    r.add_argument("--vpt-ambient", action="store_true", help="vpt: also add the environment's mean radiance as a "
+                   "uniform, unshadowed ambient at every collision (paper 002 §6.1; the environment is already "
+                   "sampled as a light, so this counts it twice)")
     r.add_argument("--denoise", choices=("none", "ours", "svgf", "wrls"), help="vpt: the spatiotemporal denoiser of "
                    "paper 002 §5 (ours), or the baselines SVGF and WRLS; all keep history across --frames (default: "
                    "none)")
@@ -569,6 +573,7 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "max_bounces": (args.max_bounces, "--max-bounces"),
         "shading": (args.shading, "--shading"),
         "transfer": (args.tf, "--tf"),
+        "ambient": (args.vpt_ambient or None, "--vpt-ambient"),
         "clip": (args.clip, "--clip"),
         "denoise": (args.denoise, "--denoise"),
         "sharing": (args.fog_sharing, "--fog-sharing"),

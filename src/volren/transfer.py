@@ -1,13 +1,16 @@
 """1D transfer functions for direct volume rendering with path tracing (paper 002 §4.2, §6.1).
 
 A transfer function maps a voxel's scalar value to the medium's extinction mu_t [1/m], its albedo (RGB, the share of
-mu_t that scatters) and P_brdf, the share of scattering particles that reflect like a surface (Exposure Render's
-two-particle split; the rest scatter by the phase function). Control points sit at normalised scalar positions u in
+mu_t that scatters), P_brdf, the share of scattering particles that reflect like a surface (Exposure Render's
+two-particle split; the rest scatter by the phase function), and an optional emission: the radiance emitted per metre
+[W/(m^3 sr)] at that scalar (RGB, default 0; the units of `volren.scene.Volume`'s emission * density, not modulated by
+the albedo). Emission needs extinction > 0 at the same control point: the path tracer finds emitters only where its
+free flights collide. Control points sit at normalised scalar positions u in
 [0, 1], u = value / (the volume's largest value), and properties are linear in between (constant beyond the ends).
 A function may also hold ``hu_points`` at Hounsfield units: a volume whose ``value_range`` says which HU its
 densities stand for (a CT) is classified by those, whatever the series' own min and max; other volumes use the
 normalised points. Presets: CT classifications (bone, muscle and skin, vessels; both forms) and a smoke-like ramp.
-JSON holds "points" and, optionally, "hu_points".
+JSON holds "points" and, optionally, "hu_points"; a point's "emission" is optional (files without it stay valid).
 """
 
 from __future__ import annotations
@@ -34,6 +37,8 @@ class ControlPoint:
     """mu_t [1/m]"""
     albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
     p_brdf: float = 0.0
+    emission: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """[W/(m^3 sr)] radiance emitted per metre"""
 
 
 @dataclass(frozen=True)
@@ -58,6 +63,11 @@ class TransferFunction:
                 raise VolrenError(f"transfer function albedo must be 3 values in [0, 1], got {p.albedo}")
             if not 0 <= p.p_brdf <= 1:
                 raise VolrenError(f"transfer function P_brdf must lie in [0, 1], got {p.p_brdf}")
+            if len(p.emission) != 3 or not all(np.isfinite(e) and e >= 0 for e in p.emission):
+                raise VolrenError(f"transfer function emission must be 3 values >= 0, got {p.emission}")
+            if max(p.emission) > 0 and p.extinction == 0:
+                raise VolrenError(f"transfer function emission needs extinction > 0 at the same point (position "
+                                  f"{p.position}): the path tracer cannot find an emitter it never collides with")
         if not all(np.isfinite(p.position) for p in hu):
             raise VolrenError("transfer function Hounsfield positions must be finite")
         for ps in (pts, hu):
@@ -67,16 +77,17 @@ class TransferFunction:
         object.__setattr__(self, "hu_points", hu)
 
     def table(self, size: int = TABLE_SIZE, hu: tuple[float, float] | None = None) -> np.ndarray:
-        """(size, 5) float32: extinction, albedo r, g, b, P_brdf at u = i / (size - 1); with ``hu`` = (HU at u = 0,
-        HU at u = 1) and ``hu_points``, the Hounsfield classification at those HU instead."""
+        """(size, 8) float32: extinction, albedo r, g, b, P_brdf, emission r, g, b at u = i / (size - 1); with ``hu`` =
+        (HU at u = 0, HU at u = 1) and ``hu_points``, the Hounsfield classification at those HU instead."""
         u = np.linspace(0.0, 1.0, size)
         pos = np.array([p.position for p in self.points])
-        values = np.array([(p.extinction, *p.albedo, p.p_brdf) for p in self.points], dtype=np.float64)
+        points = self.points
         if hu is not None and self.hu_points:
             u = hu[0] + (hu[1] - hu[0]) * u
             pos = np.array([p.position for p in self.hu_points])
-            values = np.array([(p.extinction, *p.albedo, p.p_brdf) for p in self.hu_points], dtype=np.float64)
-        return np.stack([np.interp(u, pos, values[:, c]) for c in range(5)], axis=1).astype(np.float32)
+            points = self.hu_points
+        values = np.array([(p.extinction, *p.albedo, p.p_brdf, *p.emission) for p in points], dtype=np.float64)
+        return np.stack([np.interp(u, pos, values[:, c]) for c in range(8)], axis=1).astype(np.float32)
 
     def to_json(self) -> str:
         doc: dict = {"name": self.name, "points": [_point_json(p) for p in self.points]}
@@ -90,7 +101,9 @@ class TransferFunction:
             doc = json.loads(text)
             points, hu_points = (tuple(ControlPoint(float(p["position"]), float(p["extinction"]),
                                                     tuple(float(a) for a in p.get("albedo", (0.8, 0.8, 0.8))),
-                                                    float(p.get("p_brdf", 0.0))) for p in doc.get(key, ()))
+                                                    float(p.get("p_brdf", 0.0)),
+                                                    tuple(float(e) for e in p.get("emission", (0.0, 0.0, 0.0))))
+                                       for p in doc.get(key, ()))
                                  for key in ("points", "hu_points"))
             if "points" not in doc:
                 raise KeyError("points")
@@ -100,15 +113,19 @@ class TransferFunction:
 
 
 def _point_json(p: ControlPoint) -> dict:
-    return {"position": p.position, "extinction": p.extinction, "albedo": list(p.albedo), "p_brdf": p.p_brdf}
+    doc = {"position": p.position, "extinction": p.extinction, "albedo": list(p.albedo), "p_brdf": p.p_brdf}
+    if max(p.emission) > 0:
+        doc["emission"] = list(p.emission)
+    return doc
 
 
-def linear(max_extinction: float, albedo: Sequence[float], p_brdf: float = 0.0, name: str = "linear"
-           ) -> TransferFunction:
-    """mu_t proportional to the scalar (mu_t = max_extinction at the largest value): the density-scale model of the
-    ray marchers, so that a path tracer with this function renders what they render."""
+def linear(max_extinction: float, albedo: Sequence[float], p_brdf: float = 0.0, name: str = "linear",
+           max_emission: Sequence[float] = (0.0, 0.0, 0.0)) -> TransferFunction:
+    """mu_t and emission proportional to the scalar (max_extinction and max_emission at the largest value): the
+    density-scale model of the ray marchers, so that a path tracer with this function renders what they render."""
     a = tuple(float(v) for v in albedo)
-    return TransferFunction((ControlPoint(0.0, 0.0, a, p_brdf), ControlPoint(1.0, max_extinction, a, p_brdf)), name)
+    e = tuple(float(v) for v in max_emission)
+    return TransferFunction((ControlPoint(0.0, 0.0, a, p_brdf), ControlPoint(1.0, max_extinction, a, p_brdf, e)), name)
 
 
 _BONE, _CORTEX = (0.95, 0.92, 0.85), (0.97, 0.95, 0.9)

@@ -6,7 +6,8 @@ Surfaces are Lambertian, lit by every light (with ray-traced shadows from the ot
 ambient environment (albedo * L_ambient). The volumes shade the opaque surfaces (`surface_light`, issue 14 item 5):
 each light is attenuated by the volumes' transmittance (the light-map methods read their light maps where the shadow
 ray enters each box, the reference marches the density) and the ambient by the volumes' ambient occlusion (the GI
-grid's SH, or a few transmittance rays); methods without a light map (VPT, fog) leave them unshadowed here. Surfaces
+grid's SH, or a few transmittance rays); methods without a light map leave them unshadowed here (fog), or shadow them
+themselves (VPT re-shades each surface pixel with ratio-tracked shadows, `volren.render.vpt.tracer`). Surfaces
 do not shadow volumes: the light map and the reference's shadow rays see only the media. Translucent meshes
 (alpha < 1) are left out of this pass and cast no shadows; they are shaded with `shade_lit_surface` as layers
 (`volren.render.compositing.mesh_layers`).
@@ -122,6 +123,29 @@ def shade_lit_surface(
     return rgb
 
 
+@wp.func
+def nearest_surface(o: wp.vec3, d: wp.vec3, opaque: wp.array(dtype=OpaqueGPU), mesh_ids: wp.array(dtype=wp.uint64),
+                    mesh_albedo: wp.array(dtype=wp.vec3)):
+    """The nearest opaque object along o + t d: (t or INF, its normal at the hit, its albedo)."""
+    t = float(INF)
+    normal = wp.vec3(0.0)
+    albedo = wp.vec3(0.0)
+    for k in range(opaque.shape[0]):
+        obj = opaque[k]
+        tk = opaque_hit(obj, o, d)
+        if tk < t:
+            t = tk
+            normal = opaque_normal(obj, o + tk * d)
+            albedo = obj.albedo
+    for k in range(mesh_ids.shape[0]):
+        q = wp.mesh_query_ray(mesh_ids[k], o, d, wp.min(t, MESH_RANGE))
+        if q.result and q.t > SURFACE_EPSILON and q.t < t:
+            t = q.t
+            normal = q.normal
+            albedo = mesh_albedo[k]
+    return t, normal, albedo
+
+
 @wp.kernel
 def surface_kernel(
     cam: CameraGPU,
@@ -140,22 +164,7 @@ def surface_kernel(
     counters = counter_row(counter_rows, r, col)
     row = r + row0
     d = camera_ray(cam, row, col, 0.5, 0.5)
-    t = float(INF)
-    normal = wp.vec3(0.0)
-    albedo = wp.vec3(0.0)
-    for k in range(opaque.shape[0]):
-        obj = opaque[k]
-        tk = opaque_hit(obj, cam.origin, d)
-        if tk < t:
-            t = tk
-            normal = opaque_normal(obj, cam.origin + tk * d)
-            albedo = obj.albedo
-    for k in range(mesh_ids.shape[0]):
-        q = wp.mesh_query_ray(mesh_ids[k], cam.origin, d, wp.min(t, MESH_RANGE))
-        if q.result and q.t > SURFACE_EPSILON and q.t < t:
-            t = q.t
-            normal = q.normal
-            albedo = mesh_albedo[k]
+    t, normal, albedo = nearest_surface(cam.origin, d, opaque, mesh_ids, mesh_albedo)
     color = wp.vec4(0.0)
     z = float(INF)
     if t < INF:

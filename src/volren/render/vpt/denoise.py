@@ -1,10 +1,12 @@
 """The spatiotemporal DVR denoiser of paper 002 §5 (``--denoise ours``) and its baselines SVGF and WRLS.
 
-Input per pixel: the path tracer's samples, each decoupled into two parts (Eq. 8, `tracer.SampleRecords`),
+Input per pixel: the path tracer's samples, each decoupled into two or three parts (Eq. 8, `tracer.SampleRecords`),
 a high-detail-low-noise F_x times a low-detail-high-noise F_L each: part 0 the first collision's light samples
 (F_x = A h, the albedo times the phase/BRDF value; F_L = T L / p), part 1 the rest (F_x = A, F_L = F_m: the uniform
-ambient and every later scattering, denoised like F_L as the paper says), with the first collision's depth and
-scalar. The paper's second product, the specular part, is here part 0 too: one SDF h holds both lobes (Eq. 5).
+ambient and every later scattering and emission, denoised like F_L as the paper says), and where some volume emits
+part 2, the first collision's emission (F_x = its emitted radiance, material detail like A; F_L = 1: emission is not
+modulated by the albedo, which may be 0), with the first collision's depth and scalar. The paper's second product,
+the specular part, is here part 0 too: one SDF h holds both lobes (Eq. 5).
 1. Clustering (§5.1): the hit samples of a pixel split in two at the largest gap of their sorted part-0 F_x
    luminances (one class when max - min < 0.1); each class k keeps n_k and per part the means F_x(C_k), F_L(C_k).
    Reprojection depth (§5.2): the nearest first-collision depth whose scalar exceeds 1/4 of the volume's maximum,
@@ -74,7 +76,9 @@ SINGLE_CLASS = 0.1
 DENSE = 0.25
 """reprojection depth: first collisions above this share of the volume's largest scalar"""
 PARTS = 2
-"""products F_x F_L per sample: the first collision's light samples, and the albedo times the rest (F_m)"""
+"""products F_x F_L per sample: the first collision's light samples, and the albedo times the rest (F_m); a third,
+F_x = the first collision's emission, F_L = 1, where some volume emits (`EMISSION_PART`)"""
+EMISSION_PART = 2
 HOLE_NEIGHBOURS = 4
 """a pixel without hits is filled from its 8 neighbours when at least this many have hits"""
 
@@ -96,20 +100,20 @@ class Classes:
     """[row, col, class, part] Eq. 12's accumulated weight of the denoised F_x (1 for a new class)"""
 
 
-def new_classes(h: int, w: int, device: str) -> Classes:
+def new_classes(h: int, w: int, parts: int, device: str) -> Classes:
     c = Classes()
-    c.f_x = wp.zeros((h, w, 2, PARTS), dtype=wp.vec3, device=device)
-    c.f_l = wp.zeros((h, w, 2, PARTS), dtype=wp.vec3, device=device)
+    c.f_x = wp.zeros((h, w, 2, parts), dtype=wp.vec3, device=device)
+    c.f_l = wp.zeros((h, w, 2, parts), dtype=wp.vec3, device=device)
     c.n = wp.zeros((h, w, 2), dtype=float, device=device)
     c.alpha = wp.zeros((h, w), dtype=float, device=device)
     c.depth = wp.full((h, w), INF, dtype=float, device=device)
     c.fx_error = wp.zeros((h, w), dtype=float, device=device)
-    c.frames = wp.ones((h, w, 2, PARTS), dtype=float, device=device)
+    c.frames = wp.ones((h, w, 2, parts), dtype=float, device=device)
     return c
 
 
-def part_arrays(h: int, w: int, device: str) -> wp.array4d:
-    return wp.zeros((h, w, 2, PARTS), dtype=wp.vec3, device=device)
+def part_arrays(h: int, w: int, parts: int, device: str) -> wp.array4d:
+    return wp.zeros((h, w, 2, parts), dtype=wp.vec3, device=device)
 
 
 @wp.func
@@ -119,7 +123,7 @@ def luminance(c: wp.vec3) -> float:
 
 @wp.kernel
 def cluster_kernel(f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3), albedo: wp.array3d(dtype=wp.vec3),
-                   f_m: wp.array3d(dtype=wp.vec3), depth: wp.array3d(dtype=float),
+                   f_m: wp.array3d(dtype=wp.vec3), emission: wp.array3d(dtype=wp.vec3), depth: wp.array3d(dtype=float),
                    density: wp.array3d(dtype=float), opacity: wp.array3d(dtype=float), out: Classes):
     """Step 1: two classes per pixel by the largest gap of the sorted F_x luminances; alpha; reprojection depth."""
     row, col = wp.tid()
@@ -167,6 +171,9 @@ def cluster_kernel(f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3
             out.f_l[row, col, k, 0] = out.f_l[row, col, k, 0] + f_l[row, col, i]
             out.f_x[row, col, k, 1] = out.f_x[row, col, k, 1] + albedo[row, col, i]
             out.f_l[row, col, k, 1] = out.f_l[row, col, k, 1] + f_m[row, col, i]
+            if out.f_x.shape[3] > EMISSION_PART:
+                out.f_x[row, col, k, EMISSION_PART] = out.f_x[row, col, k, EMISSION_PART] + emission[row, col, i]
+                out.f_l[row, col, k, EMISSION_PART] = out.f_l[row, col, k, EMISSION_PART] + wp.vec3(1.0)
             out.n[row, col, k] = out.n[row, col, k] + 1.0
     s1 = float(0.0)
     s2 = float(0.0)
@@ -181,7 +188,7 @@ def cluster_kernel(f_x: wp.array3d(dtype=wp.vec3), f_l: wp.array3d(dtype=wp.vec3
     for k in range(2):
         m = out.n[row, col, k]
         if m > 0.0:
-            for p in range(PARTS):
+            for p in range(out.f_x.shape[3]):
                 out.f_x[row, col, k, p] = out.f_x[row, col, k, p] / m
                 out.f_l[row, col, k, p] = out.f_l[row, col, k, p] / m
     # Reprojection depth: the nearest dense first collision, else the median first-collision depth (by rank).
@@ -213,7 +220,7 @@ def fill_holes_kernel(cur: Classes, out: Classes):
     out.fx_error[row, col] = cur.fx_error[row, col]
     for k in range(2):
         out.n[row, col, k] = cur.n[row, col, k]
-        for p in range(PARTS):
+        for p in range(cur.f_x.shape[3]):
             out.f_x[row, col, k, p] = cur.f_x[row, col, k, p]
             out.f_l[row, col, k, p] = cur.f_l[row, col, k, p]
     if cur.n[row, col, 0] + cur.n[row, col, 1] > 0.0:
@@ -233,7 +240,7 @@ def fill_holes_kernel(cur: Classes, out: Classes):
                     total += m
     if neighbours < HOLE_NEIGHBOURS:
         return
-    for p in range(PARTS):
+    for p in range(cur.f_x.shape[3]):
         fx = wp.vec3(0.0)
         fl = wp.vec3(0.0)
         for dy in range(-1, 2):
@@ -278,7 +285,7 @@ def hdln_kernel(cur: Classes, cam: CameraGPU, prev_cam: CameraGPU, history: Clas
     if has_history != 0:
         src = reproject(cam, prev_cam, row, col, dj)
     for k in range(2):
-        for p in range(PARTS):
+        for p in range(cur.f_x.shape[3]):
             frames[row, col, k, p] = 1.0
             if cur.n[row, col, k] == 0.0:
                 out[row, col, k, p] = wp.vec3(0.0)
@@ -338,7 +345,7 @@ def atrous_kernel(cur: Classes, f_x: wp.array4d(dtype=wp.vec3), src: wp.array4d(
     w = cur.depth.shape[1]
     dj = cur.depth[row, col]
     for k in range(2):
-        for p in range(PARTS):
+        for p in range(f_x.shape[3]):
             if cur.n[row, col, k] == 0.0:
                 out[row, col, k, p] = wp.vec3(0.0)
                 continue
@@ -370,7 +377,7 @@ def ldhn_temporal_kernel(cur: Classes, f_l: wp.array4d(dtype=wp.vec3), cam: Came
     if has_history != 0:
         src = reproject(cam, prev_cam, row, col, cur.depth[row, col])
     for k in range(2):
-        for p in range(PARTS):
+        for p in range(f_l.shape[3]):
             value = f_l[row, col, k, p]
             if src[0] >= 0 and cur.n[row, col, k] > 0.0:
                 lu = luminance(value)
@@ -419,7 +426,7 @@ def class_radiance(f_x: wp.array4d(dtype=wp.vec3), f_l: wp.array4d(dtype=wp.vec3
                    k: int) -> wp.vec3:
     """sum over the parts of F_x F_L for class k (Eq. 8)."""
     r = wp.vec3(0.0)
-    for p in range(PARTS):
+    for p in range(f_x.shape[3]):
         r += wp.cw_mul(f_x[row, col, k, p], f_l[row, col, k, p])
     return r
 
@@ -479,11 +486,13 @@ class TemporalDenoiser:
         self.history: dict[int, object] = {}
 
     def classes(self, records, h: int, w: int) -> Classes:
-        cur = new_classes(h, w, self.device)
+        """Step 1; a third part holds the first collision's emission where the records have it (`SampleRecords`)."""
+        parts = PARTS + int(records.emission.shape == records.f_m.shape)
+        cur = new_classes(h, w, parts, self.device)
         wp.launch(cluster_kernel, dim=(h, w), inputs=[records.f_x, records.f_l, records.albedo, records.f_m,
-                                                       records.depth, records.density, records.opacity, cur],
-                  device=self.device)
-        filled = new_classes(h, w, self.device)
+                                                       records.emission, records.depth, records.density,
+                                                       records.opacity, cur], device=self.device)
+        filled = new_classes(h, w, parts, self.device)
         wp.launch(fill_holes_kernel, dim=(h, w), inputs=[cur, filled], device=self.device)
         return filled
 
@@ -496,17 +505,18 @@ class Denoiser(TemporalDenoiser):
         dev = self.device
         cur = self.classes(records, h, w)
         past = self.history.get(view)
-        valid = int(past is not None and past.classes.alpha.shape == (h, w))
+        parts = cur.f_x.shape[3]
+        valid = int(past is not None and past.classes.f_x.shape == cur.f_x.shape)
         prev_classes = past.classes if valid else cur
         prev_cam = past.camera if valid else cam
-        f_x = part_arrays(h, w, dev)
-        frames = wp.empty((h, w, 2, PARTS), dtype=float, device=dev)
+        f_x = part_arrays(h, w, parts, dev)
+        frames = wp.empty((h, w, 2, parts), dtype=float, device=dev)
         wp.launch(hdln_kernel, dim=(h, w), inputs=[cur, cam, prev_cam, prev_classes, valid, f_x, frames], device=dev)
-        first = part_arrays(h, w, dev)
-        second = part_arrays(h, w, dev)
+        first = part_arrays(h, w, parts, dev)
+        second = part_arrays(h, w, parts, dev)
         wp.launch(atrous_kernel, dim=(h, w), inputs=[cur, f_x, cur.f_l, 1, first], device=dev)
         wp.launch(atrous_kernel, dim=(h, w), inputs=[cur, f_x, first, 2, second], device=dev)
-        f_l = part_arrays(h, w, dev)
+        f_l = part_arrays(h, w, parts, dev)
         wp.launch(ldhn_temporal_kernel, dim=(h, w), inputs=[cur, second, cam, prev_cam, prev_classes, valid, f_l],
                   device=dev)
         alpha = wp.empty((h, w), dtype=float, device=dev)
@@ -532,10 +542,19 @@ SVGF_LEVELS = 5
 
 
 @wp.func
+def emitted(cur: Classes, row: int, col: int) -> wp.vec3:
+    """The pixel's mean first-collision emission (0 without the emission part): not modulated by the albedo."""
+    if cur.f_x.shape[3] > EMISSION_PART:
+        return class_mean(cur.f_x, cur.n, row, col, EMISSION_PART)
+    return wp.vec3(0.0)
+
+
+@wp.func
 def demodulated(cur: Classes, row: int, col: int) -> wp.vec3:
-    """The pixel's mean hit radiance divided by its mean first albedo, per channel (0 where the albedo is 0)."""
+    """The pixel's mean hit radiance without the first collision's emission, divided by its mean first albedo, per
+    channel (0 where the albedo is 0)."""
     a = class_mean(cur.f_x, cur.n, row, col, 1)
-    r = pixel_radiance(cur, row, col)
+    r = pixel_radiance(cur, row, col) - emitted(cur, row, col)
     return wp.vec3(wp.where(a[0] > 0.0, r[0] / a[0], 0.0), wp.where(a[1] > 0.0, r[1] / a[1], 0.0),
                    wp.where(a[2] > 0.0, r[2] / a[2], 0.0))
 
@@ -612,7 +631,7 @@ def svgf_atrous_kernel(depth: wp.array2d(dtype=float), illum: wp.array2d(dtype=w
 @wp.kernel
 def svgf_composite_kernel(cur: Classes, illum: wp.array2d(dtype=wp.vec3), buffers: ViewBuffers):
     row, col = wp.tid()
-    shade = wp.cw_mul(class_mean(cur.f_x, cur.n, row, col, 1), illum[row, col])
+    shade = wp.cw_mul(class_mean(cur.f_x, cur.n, row, col, 1), illum[row, col]) + emitted(cur, row, col)
     write_over_surface(buffers, row, col, shade, cur.alpha[row, col])
 
 

@@ -3,10 +3,27 @@
 Per pixel ``spp`` paths. Free flights by delta (null-collision) tracking against the local majorants of each
 volume's macrocell octree (`volren.render.vpt.majorants`); the first collision over all volumes is the nearest of the
 volumes' own first collisions, which is exact for overlapping volumes too (independent null-collision processes).
-At a real collision x: next-event estimation towards every light with ratio-tracked transmittance (opaque surfaces
-block it) and towards the environment (importance-sampled, `volren.render.environment`), plus the uniform ambient of
-the environment's mean radiance (§6.1), then a new direction; at most
-``max_bounces`` scattering events per path (1 = single scattering).
+At a real collision x: the emitted radiance, next-event estimation towards every light with ratio-tracked
+transmittance (opaque surfaces block it) and towards the environment (importance-sampled,
+`volren.render.environment`), optionally (``ambient``) the uniform ambient of the environment's mean radiance
+(§6.1), then a new direction; at most ``max_bounces`` scattering events per path (1 = single scattering).
+
+Emission. The medium adds E(x) [W/(m^3 sr)] of radiance per metre (a volume's emission * density, or a transfer
+function's emission column), not modulated by the albedo, as in the reference renderer: L = integral T(t) E(x_t) dt
+along each flight. Delta tracking collides with pdf T(t) mu_t(x_t) (summed over overlapping volumes, each volume's
+collision picked with its own mu_t), so the collision estimator adds E / mu_t of the colliding volume at every real
+collision, weighted by the path's throughput up to it (the albedos of the scatterings before, not its own). It needs
+mu_t > 0 wherever E > 0 (`volren.transfer`; a volume with emission and density_scale 0 is refused).
+
+The environment is a light only: with ``ambient`` off (the default) a constant environment of radiance 1 around an
+albedo-1 medium returns radiance 1 (the furnace). ``ambient`` adds paper 002 §6.1's uniform, unshadowed ambient of
+the environment's mean radiance at every collision on top (it keeps dark maps from darkening the volume; with an
+environment light on it counts the environment twice: 3.4x the furnace).
+
+Opaque surfaces are shadowed by the volumes: the surface pass shades them without the volumes (`surfaces`), and the
+path-tracing kernel re-shades each surface pixel with the mean of ``spp`` ratio-tracked transmittances towards each
+light (unbiased; the ambient term stays albedo * the environment's mean, as in the surface pass), before its paths
+composite over it.
 
 Shading (§4.2): the transfer function gives albedo A and P_brdf; particles reflect by a Lambertian BRDF about the
 (two-sided) gradient normal, f = max(n.w, 0) / pi, or scatter by Henyey-Greenstein p. Exposure Render (``er``, Eq. 4)
@@ -53,7 +70,7 @@ from volren.kernels.common import (
     sample_grid,
 )
 from volren.render.base import Renderer, frame_seed
-from volren.render.compositing.surfaces import occluded
+from volren.render.compositing.surfaces import SURFACE_EPSILON, mesh_group, nearest_surface, occluded
 from volren.render.environment import ENV_NONE, EnvironmentLight, environment_light, sample_environment
 from volren.render.frame import DENSITY_SAMPLES, LIGHT_SAMPLES, RAYS, SHADOW_RAYS, PassClock
 from volren.render.vpt.denoise import SVGF, WRLS, Denoiser, luminance
@@ -90,9 +107,9 @@ class VPTConfig:
     environment_light: bool = True
     """sample the environment as a light at every collision (a map by luminance, a constant uniformly; ratio-tracked
     through the volumes, blocked by opaque surfaces)"""
-    ambient: bool = True
+    ambient: bool = False
     """also add the environment's mean radiance as a uniform, unshadowed ambient at every collision (§6.1: keeps
-    dark maps from darkening the volume; not physical, off for a furnace test)"""
+    dark maps from darkening the volume; not physical: with ``environment_light`` it counts the environment twice)"""
     clip: tuple[float, float, float, float, float, float] = (-1.0, 1.0, -1.0, 1.0, -1.0, 1.0)
     """x0, x1, y0, y1, z0, z1 in each volume's local coordinates [-1, 1]"""
     denoise: str = "none"
@@ -122,7 +139,11 @@ class VPTParams:
     max_bounces: int
     shading: int
     seed: int
+    emits: int
+    """1: some volume emits (``SampleRecords.emission`` is recorded)"""
     ambient: wp.vec3
+    surface_ambient: wp.vec3
+    """the opaque surfaces' ambient radiance (the environment's mean, as in the surface pass)"""
     clip_lo: wp.vec3
     clip_hi: wp.vec3
 
@@ -139,7 +160,10 @@ class SampleRecords:
     an isotropic medium has F_x = A: the scale of the paper's sigma_c = 0.2 and clustering threshold 0.1. Without
     light samples F_x = A and F_L = 0.
     A, F_m: the first collision's albedo and the rest, demodulated by it: the uniform ambient there and every later
-    scattering (the paper's F_m, denoised like F_L; the bounce direction is drawn from h, so no h factor is left).
+    scattering and emission (the paper's F_m, denoised like F_L; the bounce direction is drawn from h, so no h factor
+    is left).
+    Emission: the first collision's emitted radiance E / mu_t, not modulated by A (which may be 0): the radiance is
+    F_x F_L + A F_m + emission. Shape (1, 1, 1) when no volume emits (the denoiser then keeps two parts).
     Opacity: 1 - the ratio-tracked transmittance of the path's camera ray (up to the opaque surface), from its own
     random stream so the paths are those of the raw frame. §5.3.3 recommends a lower-variance estimate than N_p / N
     at low spp (it names ray marching; ratio tracking is the unbiased one the tracker already has)."""
@@ -148,6 +172,7 @@ class SampleRecords:
     f_l: wp.array3d(dtype=wp.vec3)
     albedo: wp.array3d(dtype=wp.vec3)
     f_m: wp.array3d(dtype=wp.vec3)
+    emission: wp.array3d(dtype=wp.vec3)
     depth: wp.array3d(dtype=float)
     density: wp.array3d(dtype=float)
     opacity: wp.array3d(dtype=float)
@@ -163,10 +188,13 @@ class VPTScene:
     table: wp.array(dtype=wp.vec4)
     """per volume (``table_size`` entries each) and transfer-function entry: extinction, albedo rgb"""
     p_brdf: wp.array(dtype=float)
+    emission: wp.array(dtype=wp.vec3)
+    """per entry like ``table``: the emission E [W/(m^3 sr)]"""
     table_size: int
     lights: wp.array(dtype=LightGPU)
     opaque: wp.array(dtype=OpaqueGPU)
     mesh_ids: wp.array(dtype=wp.uint64)
+    mesh_albedo: wp.array(dtype=wp.vec3)
     environment: EnvironmentLight
 
 
@@ -230,8 +258,8 @@ def transmittance(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, dist:
 
 @wp.func
 def material(sc: VPTScene, v: int, x: wp.vec3):
-    """(albedo, P_brdf, world gradient, normalised scalar u) of volume v at world point x; the gradient by central
-    differences."""
+    """(albedo, P_brdf, world gradient, normalised scalar u, emitted radiance E / mu_t) of volume v at world point x;
+    the gradient by central differences."""
     vol = sc.volumes[v]
     p = wp.transform_point(vol.to_local, x)
     u = sample_grid(sc.density, vol.offset, vol.res, p) * sc.inv_scale[v]
@@ -241,6 +269,9 @@ def material(sc: VPTScene, v: int, x: wp.vec3):
     a = f - float(int(f))
     e = (1.0 - a) * sc.table[i] + a * sc.table[i + 1]
     p_brdf = (1.0 - a) * sc.p_brdf[i] + a * sc.p_brdf[i + 1]
+    emitted = wp.vec3(0.0)
+    if e[0] > 0.0:
+        emitted = ((1.0 - a) * sc.emission[i] + a * sc.emission[i + 1]) / e[0]
     grad = wp.vec3(0.0)
     for axis in range(3):
         h = wp.vec3(0.0)
@@ -250,7 +281,7 @@ def material(sc: VPTScene, v: int, x: wp.vec3):
     m = vol.to_local
     world = (grad[0] * wp.vec3(m[0, 0], m[0, 1], m[0, 2]) + grad[1] * wp.vec3(m[1, 0], m[1, 1], m[1, 2])
              + grad[2] * wp.vec3(m[2, 0], m[2, 1], m[2, 2]))
-    return wp.vec3(e[1], e[2], e[3]), p_brdf, world, u
+    return wp.vec3(e[1], e[2], e[3]), p_brdf, world, u, emitted
 
 
 @wp.func
@@ -295,6 +326,36 @@ def scatter_direction(d: wp.vec3, normal: wp.vec3, g: float, p_b: float, state: 
     return sample_hg(d, g, state)
 
 
+@wp.func
+def shadowed_surface(sc: VPTScene, params: VPTParams, x: wp.vec3, normal: wp.vec3, d: wp.vec3, albedo: wp.vec3,
+                     state: wp.uint32):
+    """The surface pass's Lambertian radiance of surface point x seen along d (`surfaces.shade_lit_surface`) with each
+    light's transmittance through the volumes: the mean of ``spp`` ratio-tracked estimates (one per path; 0 where an
+    opaque object blocks the light). (radiance, state, density lookups, shadow rays)."""
+    n = normal
+    if wp.dot(n, d) > 0.0:
+        n = -n
+    lifted = x + SURFACE_EPSILON * n
+    rgb = wp.cw_mul(albedo, params.surface_ambient)
+    lookups = int(0)
+    rays = int(0)
+    for li in range(sc.lights.shape[0]):
+        light = sc.lights[li]
+        to_light = -light_travel_dir(light, x)
+        cos = wp.dot(n, to_light)
+        dist = light_distance(light, x)
+        if cos > 0.0 and not occluded(lifted, to_light, dist, sc.opaque, sc.mesh_ids):
+            tr = float(0.0)
+            for _k in range(params.spp):
+                tk, _none, s2, nk = track_volumes(sc, params, lifted, to_light, dist, 1, state)
+                state = s2
+                tr += tk
+                lookups += nk
+            rays += params.spp
+            rgb += wp.cw_mul(albedo, light_irradiance(light, x)) * (tr / float(params.spp) * cos / wp.pi)
+    return rgb, state, lookups, rays
+
+
 @wp.kernel
 def vpt_kernel(
     cam: CameraGPU,
@@ -333,6 +394,7 @@ def vpt_kernel(
         albedo0 = wp.vec3(0.0)
         f_l = wp.vec3(0.0)
         f_m = wp.vec3(0.0)
+        emission0 = wp.vec3(0.0)
         sdf_weight = float(0.0)
         light_weight = float(0.0)
         first_depth = float(-1.0)
@@ -344,7 +406,7 @@ def vpt_kernel(
             if v < 0:
                 break
             x = x + t * d
-            albedo, p_brdf, grad, u = material(sc, v, x)
+            albedo, p_brdf, grad, u, emitted = material(sc, v, x)
             # Vertex weight: 1 at the first collision (its albedo is F_x), the albedo afterwards.
             weight = albedo
             if bounce == 0:
@@ -353,7 +415,11 @@ def vpt_kernel(
                 depth_sum += first_depth
                 first_u = u
                 albedo0 = albedo
+                emission0 = emitted
                 weight = wp.vec3(1.0)
+            else:
+                # emission is not scattered here: the throughput of the scatterings before this vertex only
+                f_m += wp.cw_mul(throughput, emitted)
             normal = wp.vec3(0.0)
             if wp.length(grad) > 1.0e-6:
                 normal = -wp.normalize(grad)
@@ -421,7 +487,7 @@ def vpt_kernel(
             d, state = scatter_direction(d, normal, g, surface, state)
             throughput = wp.cw_mul(throughput, weight)
             t_max = INF
-        radiance += wp.cw_mul(albedo0, f_l + f_m)
+        radiance += wp.cw_mul(albedo0, f_l + f_m) + emission0
         if record != 0:
             f_x = albedo0
             if sdf_weight > 0.0:
@@ -432,11 +498,22 @@ def vpt_kernel(
             samples.f_l[row, col, path] = f_l
             samples.albedo[row, col, path] = albedo0
             samples.f_m[row, col, path] = f_m
+            if params.emits != 0:
+                samples.emission[row, col, path] = emission0
             samples.depth[row, col, path] = first_depth
             samples.density[row, col, path] = first_u
     inv = 1.0 / float(params.spp)
     alpha = float(hits) * inv
     surface_color = buffers.occluder_color[row, col]
+    if surface_color[3] > 0.0:
+        # An opaque surface (not a user depth image): shadowed by the volumes here (the denoiser reads it too).
+        dc = camera_ray(cam, row, col, 0.5, 0.5)
+        ts, sn, surface_albedo = nearest_surface(cam.origin, dc, sc.opaque, sc.mesh_ids, sc.mesh_albedo)
+        rgb, state, n_s, rays = shadowed_surface(sc, params, cam.origin + ts * dc, sn, dc, surface_albedo, state)
+        light_lookups += n_s
+        shadow_rays += rays
+        surface_color = wp.vec4(rgb[0], rgb[1], rgb[2], 1.0)
+        buffers.occluder_color[row, col] = surface_color
     rgb = radiance * inv + (1.0 - alpha) * wp.vec3(surface_color[0], surface_color[1], surface_color[2])
     buffers.image[row, col] = wp.vec4(rgb[0], rgb[1], rgb[2], alpha + (1.0 - alpha) * surface_color[3])
     depth = buffers.occluder_depth[row, col]
@@ -452,9 +529,15 @@ def vpt_kernel(
 def transfer_tables(volumes, transfer: str | None) -> list[np.ndarray]:
     """Each volume's lookup table (`TransferFunction.table`), indexed by u = density / the majorants' scale: the
     configured transfer function (in Hounsfield units where it has that form and the volume a ``value_range``: entry
-    u holds HU lo + (hi - lo) * u * scale), or each volume's density-scale model."""
+    u holds HU lo + (hi - lo) * u * scale; it replaces the volumes' density_scale, albedo and emission), or each
+    volume's density-scale model (extinction and emission proportional to density)."""
     if transfer is None:
-        return [linear(v.density_scale * float(v.density.max()), v.albedo).table() for v in volumes]
+        for v in volumes:
+            if max(v.emission) > 0 and v.density_scale == 0:
+                raise VolrenError(f"vpt: volume '{v.name}' emits but has density_scale 0: the path tracer finds "
+                                  "emission only where its free flights collide (give it extinction)")
+        return [linear(v.density_scale * float(v.density.max()), v.albedo,
+                       max_emission=tuple(e * float(v.density.max()) for e in v.emission)).table() for v in volumes]
     tf = load_transfer_function(transfer)
     tables = []
     for v in volumes:
@@ -477,6 +560,8 @@ class VPT(Renderer):
         self._majorants: tuple | None = None
         """(key, host majorants, VPTScene fields that depend only on densities and the transfer function)"""
         self._environment: tuple | None = None
+        self._emits = False
+        """whether the current transfer tables hold any emission"""
         self._scene: VPTScene | None = None
         self._denoiser = {"ours": Denoiser, "svgf": SVGF, "wrls": WRLS}.get(self.config.denoise, Denoiser)(self.device)
 
@@ -492,13 +577,15 @@ class VPT(Renderer):
                                              self.config.global_majorant)
                              for vol, table in zip(scene.volumes, tables, strict=True)]
                 self._majorants = (key, majorants, self._majorant_arrays(tables, majorants))
+                self._emits = any(float(table[:, 5:8].max()) > 0 for table in tables)
         env = scene.environment if self.config.environment_light else None
         if self._environment is None or self._environment[0] is not env:
             self._environment = (env, environment_light(env, self.device))
         sc = VPTScene()
         sc.volumes, sc.density, sc.lights = ds.volumes, ds.density, ds.lights
-        sc.opaque, sc.mesh_ids, sc.environment = ds.opaque, ds.mesh_ids, self._environment[1]
-        sc.grids, sc.majorants, sc.inv_scale, sc.table, sc.p_brdf, sc.table_size = self._majorants[2]
+        sc.opaque, sc.environment = ds.opaque, self._environment[1]
+        sc.mesh_ids, sc.mesh_albedo, _ = mesh_group(ds, translucent=False)  # VPT draws no translucent meshes
+        sc.grids, sc.majorants, sc.inv_scale, sc.table, sc.p_brdf, sc.emission, sc.table_size = self._majorants[2]
         self._scene = sc
         majorants = self._majorants[1]
         self._frame_info["majorant_bytes"] = sum(m.nbytes for m in majorants)
@@ -518,7 +605,8 @@ class VPT(Renderer):
                 wp.array(np.concatenate(values), dtype=float, device=self.device),
                 wp.array([1.0 / m.scale for m in majorants], dtype=float, device=self.device),
                 wp.array(packed[:, :4], dtype=wp.vec4, device=self.device),
-                wp.array(packed[:, 4], dtype=float, device=self.device), len(tables[0]))
+                wp.array(packed[:, 4], dtype=float, device=self.device),
+                wp.array(packed[:, 5:8], dtype=wp.vec3, device=self.device), len(tables[0]))
 
     def _render_view(self, ds: DeviceScene, cam: Camera, view: int, frame: int, buffers: ViewBuffers,
                      clock: PassClock) -> None:
@@ -526,7 +614,9 @@ class VPT(Renderer):
         params = VPTParams()
         params.spp, params.max_bounces, params.shading = c.spp, c.max_bounces, SHADING.index(c.shading)
         params.seed = frame_seed(c.seed, frame)
-        params.ambient = wp.vec3(*ds.scene.environment.mean_radiance()) if c.ambient else wp.vec3(0.0)
+        params.ambient = ds.ambient if c.ambient else wp.vec3(0.0)
+        params.surface_ambient = ds.ambient
+        params.emits = int(self._emits)
         params.clip_lo, params.clip_hi = wp.vec3(*c.clip[0::2]), wp.vec3(*c.clip[1::2])
         record = c.denoise != "none"
         shape = (cam.height, cam.width, c.spp) if record else (1, 1, 1)
@@ -535,6 +625,7 @@ class VPT(Renderer):
         samples.f_l = wp.zeros(shape, dtype=wp.vec3, device=self.device)
         samples.albedo = wp.zeros(shape, dtype=wp.vec3, device=self.device)
         samples.f_m = wp.zeros(shape, dtype=wp.vec3, device=self.device)
+        samples.emission = wp.zeros(shape if self._emits else (1, 1, 1), dtype=wp.vec3, device=self.device)
         samples.depth = wp.zeros(shape, dtype=float, device=self.device)
         samples.density = wp.zeros(shape, dtype=float, device=self.device)
         samples.opacity = wp.zeros(shape, dtype=float, device=self.device)
