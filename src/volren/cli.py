@@ -290,8 +290,14 @@ def add_serve_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quality", default="interactive", choices=QUALITIES, help="starting preset (viewers may switch)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on; any but loopback needs --token")
     p.add_argument("--port", type=int, default=8000, help="TCP port, in [1, 65535]")
-    p.add_argument("--token", help="secret viewers pass as /?token=T (required with a non-loopback --host; "
-                   "default: none)")
+    p.add_argument("--token", help="secret every request must carry as ?token=T, 16-256 URL-safe characters "
+                   "(required with a non-loopback --host; default: none)")
+    p.add_argument("--allow-host", action="append", default=[], metavar="NAME", help="a further name the Host "
+                   "header may give (repeatable; default: the bound address, and localhost on loopback)")
+    p.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN", help="a further page origin, "
+                   "http://host:port, allowed to open /ws (repeatable; default: the server's own only)")
+    p.add_argument("--lock-settings", action="store_true", help="viewers may not change the shared method, "
+                   "quality, transfer function, light or playback")
     p.add_argument("--max-viewers", type=int, default=16, help="viewers connected at once, in [1, 1024]")
     p.add_argument("--max-width", type=int, default=1920, help="[px] largest viewer image (stereo: both eyes)")
     p.add_argument("--max-height", type=int, default=1080, help="[px] largest viewer image")
@@ -302,12 +308,14 @@ def run_serve(args: argparse.Namespace) -> int:
     from volren.serve.app import build_loop, check_bind, make_app, serve
     from volren.serve.viewers import Limits
 
-    check_bind(args.host, args.token)
+    check_bind(args.host, args.token, tuple(args.allow_origin))
     if not 1 <= args.port <= 65535:
         raise CliError(f"--port must lie in [1, 65535], got {args.port}")
     limits = Limits(args.max_viewers, args.max_width, args.max_height)
-    loop = build_loop(args.scene, args.method, args.quality, args.resolution, args.device, limits)
-    serve(make_app(loop, args.scene, args.token), args.host, args.port, args.token)
+    loop = build_loop(args.scene, args.method, args.quality, args.resolution, args.device, limits,
+                      args.lock_settings)
+    serve(make_app(loop, args.scene, args.token, hosts=(args.host, *args.allow_host), origins=tuple(args.allow_origin)),
+          args.host, args.port, args.token)
     return 0
 
 

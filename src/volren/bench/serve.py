@@ -125,6 +125,7 @@ async def run_client(session: Any, url: str, rec: ClientRecord, index: int, coun
                     break
                 now = time.perf_counter()
                 header, _ = unpack_frame(msg.data)
+                await ws.send_json({"type": "ack", "tick": header["tick"]})  # as the page does once it drew it
                 answered = header["camera_id"]
                 t = sent.get(answered)
                 for k in [k for k in sent if k <= answered]:

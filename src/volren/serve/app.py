@@ -2,6 +2,12 @@
 
 The page and its scripts are files of the package (static/); /ws speaks the protocol of docs/SERVE.md
 (`volren.serve.protocol`) with one `RenderLoop` behind every connection.
+
+Every request passes `guard` first (issue 20 items 1-2): its Host must name the server (the address the connection
+came in on, `localhost` on loopback, a --host or --allow-host name: a DNS-rebound name is refused), a WebSocket
+upgrade's Origin must be the server's own or an --allow-origin (a page of another site cannot drive the server), and
+with a token every route needs it. Refusals are answered 403, slowed down once they repeat, and logged one line at a
+time, rate-limited (`OneLineLog`), like malformed HTTP requests (`QuietServerLog`) instead of a traceback each.
 """
 
 from __future__ import annotations
@@ -11,18 +17,27 @@ import errno
 import hmac
 import ipaddress
 import json
+import logging
+import re
+import signal
 import socket
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from aiohttp import WSMsgType, web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from volren.camera import Camera
 from volren.device import resolve_device
 from volren.errors import VolrenError
-from volren.serve.loop import RenderLoop, animator, scene_methods
+from volren.serve.loop import RenderLoop, animator, log, scene_methods
 from volren.serve.protocol import (
     MAX_MESSAGE_BYTES,
+    Ack,
     CameraMessage,
     Hello,
     ProtocolError,
@@ -34,11 +49,44 @@ from volren.serve.protocol import (
 from volren.serve.viewers import Limits, Viewer
 
 STATIC = Path(__file__).parent / "static"
-LOOP_KEY = web.AppKey("loop", RenderLoop)
-SCENE_KEY = web.AppKey("scene", str)
-TOKEN_KEY = web.AppKey("token", str)
 CLOSE_TRY_AGAIN = 1013
 """WebSocket close code: the server is full, try again later"""
+CLOSE_POLICY = 1008
+"""WebSocket close code: policy violation (no hello in time)"""
+CLOSE_GOING_AWAY = 1001
+"""WebSocket close code: the server is shutting down"""
+HELLO_TIMEOUT_S = 5.0
+"""[s] an upgraded socket must say hello within this, else it is closed; it holds no viewer slot meanwhile (issue 20
+item 3: 16 sockets that never said hello locked every viewer out)"""
+KEEPALIVE_S = 10.0
+"""[s] an HTTP connection with no complete request for this long is closed: idle sockets, slow headers, 1-byte drips
+(aiohttp's keepalive timeout runs from the connection's start)"""
+TOKEN_CHARS = re.compile(r"[A-Za-z0-9._~-]{16,256}")
+"""URL-safe (RFC 3986 unreserved) and long enough not to be guessed at the refusal rate below"""
+FREE_REFUSALS, REFUSAL_WINDOW_S, REFUSAL_DELAY_S = 5, 60.0, 0.25
+"""past FREE_REFUSALS refusals within REFUSAL_WINDOW_S, each further one is answered after REFUSAL_DELAY_S, one at
+a time: at most 4 guesses a second however many connections guess (measured before: 1,176 a second)"""
+LOG_INTERVAL_S = 5.0
+"""[s] at most one log line per kind of refusal this often; the next one counts those left out"""
+SHUTDOWN_S = 2.0
+"""[s] from SIGINT or SIGTERM to exit"""
+
+
+@dataclass(frozen=True)
+class Access:
+    """Who may talk to the server: the ``token`` every route needs (None: none), the names a request's Host may give
+    besides the connection's own address (``hosts``) and the origins besides its own whose pages may open /ws."""
+
+    token: str | None = None
+    hosts: tuple[str, ...] = ()
+    origins: tuple[str, ...] = ()
+
+
+LOOP_KEY = web.AppKey("loop", RenderLoop)
+SCENE_KEY = web.AppKey("scene", str)
+ACCESS_KEY = web.AppKey("access", Access)
+SOCKETS_KEY = web.AppKey("sockets", set)
+REFUSALS_KEY = web.AppKey("refusals", object)
 SEND_BUFFER_BYTES = 128 * 1024
 """SO_SNDBUF of each viewer's socket (Linux doubles it): bounded, so a slow reader's frames wait in our send (and the
 next ones are dropped) instead of piling up seconds deep in an autotuned kernel buffer (measured: 41 frames of
@@ -54,10 +102,19 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def check_bind(host: str, token: str | None) -> None:
-    """A server reachable from other machines must ask for a token (issue 15 item 5)."""
-    if token is not None and not (token.isascii() and token.isprintable() and 8 <= len(token) <= 256):
-        raise VolrenError("--token must be 8-256 printable ASCII characters")
+ORIGIN = re.compile(r"https?://(\[[0-9a-f:.]+\]|[a-z0-9.-]+)(:\d{1,5})?")
+HOST = re.compile(r"(\[[0-9a-f:.]+\]|[a-z0-9.-]+)(:\d{1,5})?")
+
+
+def check_bind(host: str, token: str | None, origins: tuple[str, ...] = ()) -> None:
+    """A server reachable from other machines must ask for a token (issue 15 item 5); the token must survive a URL
+    unquoted and resist guessing; an allowed origin must be one (scheme://host[:port], as browsers send it)."""
+    if token is not None and not TOKEN_CHARS.fullmatch(token):
+        raise VolrenError(f"--token must be 16-256 URL-safe characters (letters, digits, - . _ ~), got {len(token)} "
+                          "characters" + ("" if len(token) < 16 else " with others among them"))
+    for origin in origins:
+        if not ORIGIN.fullmatch(origin.lower()):
+            raise VolrenError(f"--allow-origin must be an origin like http://host:port (no path), got {origin[:80]}")
     if token is None and not is_loopback(host):
         raise VolrenError(f"--host {host} is reachable from other machines: give --token T too (viewers then "
                           "open http://HOST:PORT/?token=T)")
@@ -75,62 +132,186 @@ def welcome(loop: RenderLoop, viewer: Viewer, scene: str) -> dict[str, Any]:
         "limits": {"max_width": limits.max_width, "max_height": limits.max_height,
                    "max_viewers": limits.max_viewers},
         "camera": camera_json(loop.camera), "width": viewer.width, "height": viewer.height, "stereo": viewer.stereo,
-        "animated": loop.animated, "walk": loop.scene.fog is not None, **loop.shared_settings(),
+        "animated": loop.animated, "walk": loop.scene.fog is not None, "locked": loop.lock_settings,
+        **loop.shared_settings(),
     }
 
 
-async def handle_text(loop: RenderLoop, viewer: Viewer, data: Any, scene: str) -> None:
-    """One client message; a `ProtocolError` goes back to this client only."""
+async def handle_text(loop: RenderLoop, viewer: Viewer, data: Any) -> None:
+    """One client message after the hello; a `ProtocolError` goes back to this client only."""
     msg = parse_message(data, loop.choices)
     if isinstance(msg, Hello):
-        if viewer.width:
-            raise ProtocolError("hello: already received (send resize or settings to change size or stereo)")
-        viewer.resize(msg.width, msg.height, msg.stereo, loop.limits)
-        await viewer.text(json.dumps(welcome(loop, viewer, scene)))
-        return
-    if not viewer.width:
-        raise ProtocolError(f"{type(msg).__name__.lower()}: send hello first")
-    if isinstance(msg, CameraMessage):
+        raise ProtocolError("hello: already received (send resize or settings to change size or stereo)")
+    if isinstance(msg, Ack):
+        viewer.ack(msg.tick)
+    elif isinstance(msg, CameraMessage):
         viewer.set_camera(msg)
     elif isinstance(msg, Resize):
         viewer.resize(msg.width, msg.height, viewer.stereo, loop.limits)
     elif isinstance(msg, Settings) and loop.apply(msg, viewer):
-        loop.broadcast(json.dumps({"type": "settings", **loop.shared_settings()}), skip=viewer)
+        loop.announce_settings(skip=viewer)
     loop.wake()
+
+
+async def greet(ws: web.WebSocketResponse, loop: RenderLoop, scene: str) -> Viewer | None:
+    """The viewer of a socket once it said a valid hello (within HELLO_TIMEOUT_S of the upgrade, anything before it
+    refused), welcomed; None when the socket is closed instead (no hello in time, the server full, gone)."""
+    deadline = time.monotonic() + HELLO_TIMEOUT_S
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            msg = await ws.receive(timeout=left)
+        except TimeoutError:
+            break
+        if msg.type not in (WSMsgType.TEXT, WSMsgType.BINARY):
+            return None
+        try:
+            hello = parse_message(msg.data, loop.choices)
+            if not isinstance(hello, Hello):
+                raise ProtocolError(f"{type(hello).__name__.lower()}: send hello first (within "
+                                    f"{HELLO_TIMEOUT_S:g} s of connecting)")
+        except ProtocolError as exc:
+            await ws.send_str(error_message(str(exc)))
+            continue
+        try:
+            viewer = loop.viewers.add(ws.send_bytes, ws.send_str)
+        except ProtocolError as exc:
+            await ws.send_str(error_message(str(exc)))
+            await ws.close(code=CLOSE_TRY_AGAIN, message=b"server full")
+            return None
+
+        async def close(code: int, reason: str) -> None:
+            await ws.close(code=code, message=reason.encode())
+
+        viewer.close = close
+        viewer.resize(hello.width, hello.height, hello.stereo, loop.limits)
+        await ws.send_str(json.dumps(welcome(loop, viewer, scene)))
+        return viewer
+    await ws.close(code=CLOSE_POLICY, message=f"no hello within {HELLO_TIMEOUT_S:g} s".encode())
+    return None
 
 
 async def websocket(request: web.Request) -> web.StreamResponse:
     app = request.app
-    token = app.get(TOKEN_KEY)
-    if token is not None and not hmac.compare_digest(request.query.get("token", "").encode(), token.encode()):
-        raise web.HTTPForbidden(text="missing or wrong token (open the page as /?token=T)")
     loop = app[LOOP_KEY]
-    # aiohttp closes the socket on messages over max_msg_size; those between our limit and it get an error message
-    ws = web.WebSocketResponse(max_msg_size=4 * MAX_MESSAGE_BYTES, heartbeat=30.0)
+    # aiohttp closes the socket (1009) on messages over max_msg_size; those between our limit and it get an error
+    # message. No permessage-deflate: JPEG frames do not shrink (see COMPRESS_NOTE in docs/SERVE.md).
+    ws = web.WebSocketResponse(max_msg_size=4 * MAX_MESSAGE_BYTES, heartbeat=30.0, compress=False)
     await ws.prepare(request)
     sock = request.transport.get_extra_info("socket") if request.transport is not None else None
     if sock is not None:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
+    app[SOCKETS_KEY].add(ws)
+    viewer = None
     try:
-        viewer = loop.viewers.add(ws.send_bytes, ws.send_str)
-    except ProtocolError as exc:
-        await ws.send_str(error_message(str(exc)))
-        await ws.close(code=CLOSE_TRY_AGAIN, message=b"server full")
-        return ws
-    try:
+        viewer = await greet(ws, loop, app[SCENE_KEY])
+        if viewer is None:
+            return ws
         async for msg in ws:
             if msg.type not in (WSMsgType.TEXT, WSMsgType.BINARY):
                 break
             try:
-                await handle_text(loop, viewer, msg.data, app[SCENE_KEY])
+                await handle_text(loop, viewer, msg.data)
             except ProtocolError as exc:
                 await ws.send_str(error_message(str(exc)))
     except (ConnectionError, RuntimeError):
         pass  # the client went away while we answered it
     finally:
-        loop.viewers.remove(viewer)
-        loop.wake()
+        app[SOCKETS_KEY].discard(ws)
+        if viewer is not None:
+            loop.viewers.remove(viewer)
+            loop.wake()
     return ws
+
+
+class OneLineLog:
+    """Warnings of one line, at most one per ``key`` every LOG_INTERVAL_S; the next line counts those left out."""
+
+    def __init__(self, logger: logging.Logger, interval: float = LOG_INTERVAL_S) -> None:
+        self.logger, self.interval = logger, interval
+        self._last: dict[str, float] = {}
+        self._left_out: dict[str, int] = {}
+
+    def warn(self, key: str, text: str) -> None:
+        now = time.monotonic()
+        if now - self._last.get(key, -float("inf")) < self.interval:
+            self._left_out[key] = self._left_out.get(key, 0) + 1
+            return
+        self._last[key] = now
+        n = self._left_out.pop(key, 0)
+        self.logger.warning(text + (f" (and {n} more since the last such line)" if n else ""))
+
+
+class QuietServerLog(logging.LoggerAdapter):
+    """aiohttp's server logger: a malformed request (an HTTP parse error) becomes one rate-limited line instead of a
+    traceback (issue 20 item 8: 513 bytes of traceback per bad request); anything else is logged as before."""
+
+    def __init__(self, lines: OneLineLog) -> None:
+        super().__init__(logging.getLogger("aiohttp.server"), {})
+        self.lines = lines
+
+    def exception(self, msg: object, *args: object, exc_info: Any = True, **kwargs: Any) -> None:
+        if isinstance(exc_info, HttpProcessingError):
+            text = str(exc_info).splitlines()[0][:120] if str(exc_info) else type(exc_info).__name__
+            self.lines.warn("malformed", f"volren serve: refused a malformed HTTP request ({str(msg) % args}: {text})")
+            return
+        super().exception(msg, *args, exc_info=exc_info, **kwargs)
+
+
+class Refusals:
+    """Refused requests: logged (`OneLineLog`) and, past FREE_REFUSALS within REFUSAL_WINDOW_S, answered after
+    REFUSAL_DELAY_S one at a time."""
+
+    def __init__(self, lines: OneLineLog) -> None:
+        self.lines = lines
+        self.times: deque[float] = deque(maxlen=4 * FREE_REFUSALS)
+        self._lock: asyncio.Lock | None = None
+
+    async def refuse(self, request: web.Request, key: str, why: str) -> None:
+        now = time.monotonic()
+        self.times.append(now)
+        self.lines.warn(key, f"volren serve: refused {request.method} {request.path[:60]} from {request.remote}: "
+                             f"{why}")
+        if sum(now - t < REFUSAL_WINDOW_S for t in self.times) > FREE_REFUSALS:
+            self._lock = self._lock or asyncio.Lock()
+            async with self._lock:
+                await asyncio.sleep(REFUSAL_DELAY_S)
+        raise web.HTTPForbidden(text=why)
+
+
+def host_allowed(request: web.Request, access: Access) -> bool:
+    """Is the request's Host a name of this server (against DNS rebinding)? The address the connection came in on,
+    on loopback also `localhost` and `*.localhost` (RFC 6761), and the names in ``access.hosts``."""
+    m = HOST.fullmatch(request.headers.get("Host", "").lower())
+    if m is None:
+        return False
+    name = m.group(1).strip("[]").rstrip(".")
+    sockname = request.transport.get_extra_info("sockname") if request.transport is not None else None
+    local = str(sockname[0]).split("%")[0].lower() if sockname else ""
+    if name == local or name in access.hosts:
+        return True
+    return bool(local) and is_loopback(local) and (name in ("localhost", "127.0.0.1", "::1")
+                                                    or name.endswith(".localhost"))
+
+
+@web.middleware
+async def guard(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]) \
+        -> web.StreamResponse:
+    """Host, then the token (every route), then a WebSocket upgrade's Origin; refusals through `Refusals`."""
+    access, refusals = request.app[ACCESS_KEY], request.app[REFUSALS_KEY]
+    if not host_allowed(request, access):
+        await refusals.refuse(request, "host", f"Host {request.headers.get('Host', '')[:60]!r} is not this server's "
+                                               "(add it with --allow-host)")
+    if access.token is not None:
+        given = request.query.getall("token", [])
+        if len(given) != 1 or not hmac.compare_digest(given[0].encode(), access.token.encode()):
+            await refusals.refuse(request, "token", "missing, repeated or wrong token (open the page as /?token=T)")
+    origin = request.headers.get("Origin")
+    if origin is not None and request.path == "/ws":  # browsers send one; other clients cannot be a hostile page
+        own = f"{request.scheme}://{request.host}".lower()
+        if origin.lower() not in (own, *access.origins):
+            await refusals.refuse(request, "origin", f"Origin {origin[:60]!r} is not this server's (add it with "
+                                                     "--allow-origin)")
+    return await handler(request)
 
 
 async def health(request: web.Request) -> web.Response:
@@ -146,15 +327,23 @@ async def health(request: web.Request) -> web.Response:
 
 
 async def index(request: web.Request) -> web.StreamResponse:
-    return web.FileResponse(STATIC / "index.html")
+    html = (STATIC / "index.html").read_text()
+    token = request.app[ACCESS_KEY].token
+    if token is not None:  # the page's own files need the token too (URL-safe: no quoting)
+        html = re.sub(r'"(/static/[\w.-]+)"', rf'"\1?token={token}"', html)
+    return web.Response(text=html, content_type="text/html")
 
 
-def make_app(loop: RenderLoop, scene: str, token: str | None = None) -> web.Application:
-    """The application; the render loop starts and stops with it."""
-    app = web.Application(client_max_size=MAX_MESSAGE_BYTES)
+def make_app(loop: RenderLoop, scene: str, token: str | None = None, *, hosts: tuple[str, ...] = (),
+             origins: tuple[str, ...] = ()) -> web.Application:
+    """The application; the render loop starts and stops with it. ``token``, ``hosts``, ``origins``: `Access`."""
+    lines = OneLineLog(log)
+    app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[guard],
+                          handler_args={"keepalive_timeout": KEEPALIVE_S, "logger": QuietServerLog(lines)})
     app[LOOP_KEY], app[SCENE_KEY] = loop, scene
-    if token is not None:
-        app[TOKEN_KEY] = token
+    app[ACCESS_KEY] = Access(token, tuple(h.lower().strip("[]") for h in hosts),
+                             tuple(o.lower().rstrip("/") for o in origins))
+    app[SOCKETS_KEY], app[REFUSALS_KEY] = set(), Refusals(lines)
     app.router.add_get("/", index)
     app.router.add_get("/health", health)
     app.router.add_get("/ws", websocket)
@@ -164,6 +353,11 @@ def make_app(loop: RenderLoop, scene: str, token: str | None = None) -> web.Appl
         loop.start()
 
     async def stop(_: web.Application) -> None:
+        """Close every socket with 1001 (going away), then stop the loop (its tick abandoned at the next pass)."""
+        loop.abandon()
+        sockets = list(app[SOCKETS_KEY])
+        await asyncio.gather(*(ws.close(code=CLOSE_GOING_AWAY, message=b"server shutting down") for ws in sockets),
+                             return_exceptions=True)
         await loop.stop()
 
     app.on_startup.append(start)
@@ -171,8 +365,9 @@ def make_app(loop: RenderLoop, scene: str, token: str | None = None) -> web.Appl
     return app
 
 
-async def _serve(app: web.Application, host: str, port: int, ready: str) -> None:
-    runner = web.AppRunner(app)
+async def _serve(app: web.Application, host: str, port: int, ready: str) -> str | None:
+    """Serve until SIGINT or SIGTERM; the signal's name."""
+    runner = web.AppRunner(app, shutdown_timeout=0.5, handle_signals=False)
     await runner.setup()
     try:
         await web.TCPSite(runner, host, port).start()
@@ -184,14 +379,22 @@ async def _serve(app: web.Application, host: str, port: int, ready: str) -> None
             raise VolrenError(f"--host {host} --port {port}: cannot listen there ({exc.strerror})") from None
         raise
     print(ready, flush=True)
+    stopped: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        asyncio.get_running_loop().add_signal_handler(
+            sig, lambda name=sig.name: stopped.done() or stopped.set_result(name))
     try:
-        await asyncio.Event().wait()
+        name = await stopped
+        print(f"volren serve: {name}: closing {len(app[LOOP_KEY].viewers)} viewer(s) and stopping", flush=True)
+        return name
     finally:
-        await runner.cleanup()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            asyncio.get_running_loop().remove_signal_handler(sig)
+        await asyncio.wait_for(runner.cleanup(), SHUTDOWN_S)
 
 
 def build_loop(scene_name: str, method: str | None, quality: str, resolution: int, device: str,
-               limits: Limits) -> RenderLoop:
+               limits: Limits, lock_settings: bool = False) -> RenderLoop:
     """The render loop of a built-in scene: a volume scene at ``resolution`` seen from the CLI's default camera, or
     a fog scene from its own viewpoint; ``method`` None = the first live method that can render it."""
     from volren.data import BUILTIN_SCENES, builtin_scene
@@ -209,11 +412,11 @@ def build_loop(scene_name: str, method: str | None, quality: str, resolution: in
                           f"{', '.join([*BUILTIN_SCENES, *FOG_SCENES])}")
     device = resolve_device(device)
     return RenderLoop(scene, method or scene_methods(scene)[0], quality, limits=limits, camera=camera,
-                      device=device, animate=animator(scene, scene_name, device))
+                      device=device, animate=animator(scene, scene_name, device), lock_settings=lock_settings)
 
 
 def serve(app: web.Application, host: str, port: int, token: str | None) -> None:
-    """Run until interrupted (KeyboardInterrupt propagates to the CLI)."""
+    """Run until SIGINT or SIGTERM, then close every viewer (1001) and return within SHUTDOWN_S."""
     shown = f"[{host}]" if ":" in host else host
     url = f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
     asyncio.run(_serve(app, host, port, f"volren serve: open {url} (Ctrl-C stops)"))

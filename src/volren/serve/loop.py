@@ -3,8 +3,10 @@
 Each tick takes every connected viewer's newest camera, renders all their views in ONE multi-view ``render`` call (a
 stereo viewer's two eyes adjacent, so CACRM couples them; the light map, GI update, fog shadow grid and majorants are
 computed once for everyone), splits the images, JPEG-encodes them, and hands each viewer its frame unless the
-previous one is still being sent (then the frame is dropped: latest-camera-wins, no queue). The render and the
-encoding run in a worker thread (`asyncio.to_thread`), so the event loop keeps reading messages meanwhile.
+previous one is still being sent or not yet acknowledged by the page (then the frame is dropped: latest-camera-wins,
+no queue). The render and the encoding run in a worker thread (`asyncio.to_thread`), so the event loop keeps reading
+messages meanwhile. A viewer that acknowledges no frame for PARK_AFTER_S is parked (left out of the render) and closed
+after ACK_TIMEOUT_S.
 
 A tick runs only when some viewer that is free to receive needs a frame: its camera or size changed, the shared
 settings changed, the scene is playing, or its still view is refining. No viewers, no rendering.
@@ -21,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import json
 import logging
 import math
 import time
@@ -39,7 +42,7 @@ from volren.render.fog.renderer import FogConfig, FogRenderer
 from volren.render.vpt.tracer import VPTConfig
 from volren.scene import DirectionalLight, Scene
 from volren.serve.jpeg import JPEG_QUALITY, display_image, encode_jpeg
-from volren.serve.protocol import Choices, Settings, error_message, pack_frame
+from volren.serve.protocol import Choices, ProtocolError, Settings, error_message, pack_frame
 from volren.serve.viewers import Limits, Viewer, ViewerSet
 from volren.transfer import PRESETS
 
@@ -55,8 +58,20 @@ FPS_WINDOW_S = 2.0
 REFINE_VPT_PATHS = 256
 """[paths per pixel] a still VPT view gathers before the loop idles: 256 frames at the interactive preset (1 path a
 frame), 32 at default (8), 8 at high (32)"""
+PARK_AFTER_S = 2.0
+"""[s] without an acknowledgement of its frame a viewer is parked: not rendered (a page in a background tab, a stalled
+reader) until the acknowledgement comes"""
+ACK_TIMEOUT_S = 30.0
+"""[s] without an acknowledgement the viewer's socket is closed (code CLOSE_NO_ACK)"""
+CLOSE_NO_ACK = 1008
+"""WebSocket close code: policy violation (no frame acknowledged)"""
+WATCH_INTERVAL_S = 0.25
 REFINE_TOLERANCE = 0.01
 """fog refines until the first frame's weight in its exponential history is below this: 44 frames at weight 0.1"""
+
+
+class RenderAbandoned(VolrenError):
+    """The render loop stopped a render between passes (`RenderLoop.abandon`)."""
 
 
 def refine_frames(config: Any, volumes: int = 1) -> int:
@@ -140,7 +155,8 @@ class RenderLoop:
     def __init__(self, scene: Scene, method: str, quality: str = "interactive", *, limits: Limits | None = None,
                  camera: Camera | None = None, device: str = "cpu", shared: bool = True, ipd: float = 0.063,
                  jpeg_quality: int = JPEG_QUALITY, animate: Callable[[], Scene] | None = None,
-                 overrides: dict[str, Any] | None = None, refine: int | None = None) -> None:
+                 overrides: dict[str, Any] | None = None, refine: int | None = None,
+                 lock_settings: bool = False) -> None:
         self.methods = scene_methods(scene)
         if method not in self.methods:
             raise VolrenError(f"--method: '{method}' cannot serve scene '{scene.name}': choose from "
@@ -151,7 +167,8 @@ class RenderLoop:
             raise VolrenError(f"JPEG quality must lie in [1, 100], got {jpeg_quality}")
         if refine is not None and refine < 1:
             raise VolrenError(f"refine must be at least 1 frame, got {refine}")
-        self.refine = refine
+        self.refine, self.lock_settings = refine, lock_settings
+        self._abandoned = False
         self._still: dict[int, Still] = {}
         """viewer id -> its still view (refinement state), as of the last tick"""
         self._sent: dict[int, int] = {}
@@ -190,6 +207,7 @@ class RenderLoop:
         self._tick_times: deque[float] = deque(maxlen=256)
         self._wake = asyncio.Event()
         self._task: asyncio.Task | None = None
+        self._watch: asyncio.Task | None = None
 
     @property
     def animated(self) -> bool:
@@ -221,7 +239,18 @@ class RenderLoop:
     def _make_renderer(self) -> Any:
         """(also from the worker thread, for a new viewer of the naive server: settings may change meanwhile, so
         the class and config are those `_build_renderer` fixed for this tick)"""
-        return self._renderer_cls(self._config, device=self.device)
+        renderer = self._renderer_cls(self._config, device=self.device)
+        renderer.on_rows = self._check_abandoned  # called once a view's image pass is through
+        return renderer
+
+    def abandon(self) -> None:
+        """Shutting down: the render in flight stops after its current image pass (`RenderAbandoned`), so the worker
+        thread is free within a pass instead of a whole tick (issue 20 item 10: Ctrl-C took 50 s)."""
+        self._abandoned = True
+
+    def _check_abandoned(self, rows: int) -> None:
+        if self._abandoned:
+            raise RenderAbandoned("render abandoned: the server is shutting down")
 
     def shared_settings(self) -> dict[str, Any]:
         return {"method": self.method, "quality": self.quality, "tf": self.tf,
@@ -232,11 +261,16 @@ class RenderLoop:
         return light.direction
 
     def apply(self, settings: Settings, viewer: Viewer) -> bool:
-        """Apply a settings message from ``viewer``; True when a shared setting changed (to tell the others)."""
+        """Apply a settings message from ``viewer``; True when a shared setting changed (to tell the others). With
+        ``lock_settings`` only the viewer's own stereo mode may change."""
+        shared = [name for name in ("method", "quality", "tf", "light_dir", "playing")
+                  if getattr(settings, name) is not None]
+        if self.lock_settings and shared:
+            raise ProtocolError(f"settings: {', '.join(shared)} locked by the operator (--lock-settings); only "
+                                "stereo may change")
         if settings.stereo is not None and settings.stereo != viewer.stereo:
             viewer.resize(viewer.width, viewer.height, settings.stereo, self.limits)
-        changed = {name for name in ("method", "quality", "tf", "light_dir", "playing")
-                   if getattr(settings, name) is not None and getattr(settings, name) != getattr(self, name)}
+        changed = {name for name in shared if getattr(settings, name) != getattr(self, name)}
         for name in changed:
             setattr(self, name, getattr(settings, name))
         if "light_dir" in changed:
@@ -253,8 +287,28 @@ class RenderLoop:
 
     def start(self) -> None:
         self._task = asyncio.create_task(self.run(), name="volren render loop")
+        self._watch = asyncio.create_task(self.watch(), name="volren acknowledgement watch")
+
+    async def watch(self) -> None:
+        """Park the viewers whose frame waits for its acknowledgement over PARK_AFTER_S, close those over
+        ACK_TIMEOUT_S."""
+        while True:
+            await asyncio.sleep(WATCH_INTERVAL_S)
+            now = time.monotonic()
+            for v in list(self.viewers.viewers.values()):
+                if v.unacked is None or v.closed:
+                    continue
+                age = now - v.unacked_since
+                if age > ACK_TIMEOUT_S and v.close is not None:
+                    self.viewers.remove(v)
+                    v.texting = asyncio.create_task(v.close(CLOSE_NO_ACK, f"no frame acknowledged for "
+                                                                          f"{ACK_TIMEOUT_S:g} s"))
+                elif age > PARK_AFTER_S:
+                    v.parked = True
 
     async def stop(self) -> None:
+        if self._watch is not None:
+            self._watch.cancel()
         if self._task is not None:
             self._task.cancel()
             try:
@@ -346,6 +400,7 @@ class RenderLoop:
                 continue
             v.shown = (cam_id, version)
             self._sent[v.id] = still.frames
+            v.unacked, v.unacked_since = index, time.monotonic()
             v.sending = asyncio.create_task(self._send(v, payload))
 
     def _render_encode(self, jobs: list[tuple[Viewer, int, list[Camera], Still | None, tuple]], index: int,
@@ -403,15 +458,33 @@ class RenderLoop:
 
     def broadcast(self, text: str, skip: Viewer | None = None) -> None:
         """A text message to every viewer but ``skip``, never awaited: a viewer whose previous text message is still
-        on its way misses this one (like frames: a stalled client stalls nobody; the messages are snapshots)."""
+        on its way misses this one (like frames: a stalled client stalls nobody)."""
         for v in list(self.viewers.viewers.values()):
             if v is not skip and v.text is not None and (v.texting is None or v.texting.done()):
                 v.texting = asyncio.create_task(self._send_text(v, text))
 
-    @staticmethod
-    async def _send_text(viewer: Viewer, text: str) -> None:
+    def announce_settings(self, skip: Viewer | None = None) -> None:
+        """The shared settings to every viewer but ``skip``. A viewer whose previous text message is still on its way
+        gets the settings as they are once it is through, so the last state always reaches every viewer (issue 20
+        item 7: after a burst of 500 light changes a viewer's last message missed the final state)."""
+        for v in list(self.viewers.viewers.values()):
+            if v is skip or v.text is None:
+                continue
+            v.settings_due = True
+            if v.texting is None or v.texting.done():
+                v.texting = asyncio.create_task(self._send_text(v, None))
+
+    def settings_message(self) -> str:
+        return json.dumps({"type": "settings", **self.shared_settings()})
+
+    async def _send_text(self, viewer: Viewer, text: str | None) -> None:
+        """``text``, then the newest settings while they are due."""
         with contextlib.suppress(ConnectionError, RuntimeError):  # gone: its handler drops it
-            await viewer.text(text)
+            if text is not None:
+                await viewer.text(text)
+            while viewer.settings_due and not viewer.closed:
+                viewer.settings_due = False
+                await viewer.text(self.settings_message())
 
     # ---- reporting ------------------------------------------------------------------------------------------
 

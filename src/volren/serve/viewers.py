@@ -1,4 +1,5 @@
-"""Per-viewer state of `volren serve`: image size, stereo, the newest camera, whether a frame is on its way."""
+"""Per-viewer state of `volren serve`: image size, stereo, the newest camera, whether a frame is on its way or waits
+for the page's acknowledgement."""
 
 from __future__ import annotations
 
@@ -32,7 +33,9 @@ class Limits:
 @dataclass(eq=False)
 class Viewer:
     """One connected page. ``send`` delivers a packed frame (the WebSocket's send_bytes); ``sending`` is the task of
-    the frame still on its way, if any: while it runs the viewer gets no new frame (dropped, never queued)."""
+    the frame still on its way, if any, and ``unacked`` the tick of the frame sent that the page has not acknowledged
+    drawing: while either holds, the viewer gets no new frame (dropped, never queued), so no frame waits in a socket
+    buffer behind another (issue 20 item 5)."""
 
     id: int
     send: Any
@@ -47,26 +50,42 @@ class Viewer:
     shown: tuple[int, int] = (-1, -1)
     """(camera id, scene version) of the last frame rendered for this viewer"""
     sending: asyncio.Task | None = None
+    unacked: int | None = None
+    """tick of the frame handed to the socket and not yet acknowledged"""
+    unacked_since: float = 0.0
+    """[s, time.monotonic] when that frame was handed over"""
+    parked: bool = False
+    """no acknowledgement for PARK_AFTER_S: not rendered until one comes"""
     texting: asyncio.Task | None = None
     """the text message (settings, error) still on its way, if any"""
+    settings_due: bool = False
+    """the shared settings changed while a text message was on its way: send the newest once it is through"""
+    close: Any = None
+    """coroutine function closing the socket: (code, reason)"""
     frames: int = 0
     dropped: int = 0
     closed: bool = False
 
     @property
     def ready(self) -> bool:
-        return self.width > 0 and self.camera is not None and not self.closed
+        return self.width > 0 and self.camera is not None and not self.closed and not self.parked
 
     @property
     def busy(self) -> bool:
-        return self.sending is not None and not self.sending.done()
+        return self.unacked is not None or (self.sending is not None and not self.sending.done())
+
+    def ack(self, tick: int) -> None:
+        if tick != self.unacked:
+            shown = "none" if self.unacked is None else f"tick {self.unacked}"
+            raise ProtocolError(f"ack.tick {tick} is not the frame awaiting acknowledgement ({shown})")
+        self.unacked, self.parked = None, False
 
     def eye_size(self) -> tuple[int, int]:
         return (self.width // 2, self.height) if self.stereo else (self.width, self.height)
 
     def set_camera(self, msg: CameraMessage) -> None:
-        if msg.id <= self.camera_id:
-            return  # an older camera overtaken by a newer one: latest camera wins
+        if msg.id <= self.camera_id:  # one socket keeps the order: a repeated id is a client's bug, say so
+            raise ProtocolError(f"camera.id must increase: got {msg.id} after {self.camera_id}")
         w, h = self.eye_size()
         try:
             self.camera = Camera(position=msg.position, look_at=msg.look_at, up=msg.up, fov_y=msg.fov, width=w,

@@ -1,6 +1,7 @@
 // volren viewer page: one WebSocket per page (docs/SERVE.md). The page owns its camera (orbit, or walk in fog
 // scenes), sends it with an increasing id, and draws each JPEG frame the server answers with; the frame's camera_id
-// gives the round-trip latency. No build step, no dependencies.
+// gives the round-trip latency. Each frame drawn is acknowledged ({type: "ack", tick}): the server sends the next
+// one only then, so no frame waits in a socket buffer. No build step, no dependencies.
 "use strict";
 
 const $ = (id) => document.getElementById(id);
@@ -114,6 +115,10 @@ function onText(msg) {
     if (typeof msg.playing === "boolean") setPlaying(msg.playing);
     $("play").disabled = msg.animated === false;
     if (typeof msg.stereo === "boolean") $("stereo").checked = state.stereo = msg.stereo;
+    if (msg.locked) { // the operator locked the shared settings (--lock-settings)
+      for (const id of ["method", "quality", "tf", "play"]) $(id).disabled = true;
+      pad.style.pointerEvents = "none";
+    }
     sendCamera();
   } else if (msg.type === "settings") { // another viewer switched a shared setting
     if (msg.method) $("method").value = msg.method;
@@ -174,6 +179,7 @@ async function drawNext() {
     } catch (err) {
       showStatus(`could not decode a frame: ${err}`, 4000);
     }
+    send({ type: "ack", tick: header.tick }); // drawn (or undecodable): the server may send the next
   }
   drawing = false;
 }
