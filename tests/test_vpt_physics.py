@@ -141,3 +141,21 @@ def test_cli_vpt_emission_and_ambient(capfd, tmp_path):
     assert (ambient >= plain - 1e-6).all() and ambient.sum() > 1.05 * plain.sum()
     assert_error(capfd, ["render", "--method", "dssrm", "--scene", "cloud", "--vpt-ambient", "--device", "cpu",
                          "--out", tmp_path / "o"], "does not take --vpt-ambient")
+
+
+def test_emission_needs_extinction_and_bad_emission_is_refused(tmp_path):
+    """The tracker finds emitters only where it collides: emission at a control point without extinction, and a
+    volume that emits with density_scale 0, are refused (one-line errors); negative emission too."""
+    from volren.errors import VolrenError
+
+    with pytest.raises(VolrenError, match="emission needs extinction > 0"):
+        TransferFunction((ControlPoint(0.0, 0.0, emission=(1.0, 0.0, 0.0)), ControlPoint(1.0, 2.0)))
+    with pytest.raises(VolrenError, match="emission must be 3 values >= 0"):
+        TransferFunction((ControlPoint(0.0, 1.0, emission=(-1.0, 0.0, 0.0)),))
+    with pytest.raises(VolrenError, match="density_scale 0"):
+        VPT(VPTConfig(spp=1), device=DEVICE).render(scene_of(homogeneous_volume(0.0, emission=1.0)), [EMITTER])
+    # files without "emission" stay valid, and a function without emission writes none
+    doc = '{"points": [{"position": 0, "extinction": 0}, {"position": 1, "extinction": 3, "albedo": [1, 1, 1]}]}'
+    tf = TransferFunction.from_json(doc)
+    assert tf.points[1].emission == (0.0, 0.0, 0.0) and "emission" not in tf.to_json()
+    assert tf.table().shape == (1024, 8) and not tf.table()[:, 5:].any()

@@ -18,7 +18,7 @@ mu_t > 0 wherever E > 0 (`volren.transfer`; a volume with emission and density_s
 The environment is a light only: with ``ambient`` off (the default) a constant environment of radiance 1 around an
 albedo-1 medium returns radiance 1 (the furnace). ``ambient`` adds paper 002 §6.1's uniform, unshadowed ambient of
 the environment's mean radiance at every collision on top (it keeps dark maps from darkening the volume; with an
-environment light on it counts the environment twice: 3.4x the furnace).
+environment light on it counts the environment twice: 3.4-3.7x in the furnace).
 
 Opaque surfaces are shadowed by the volumes: the surface pass shades them without the volumes (`surfaces`), and the
 path-tracing kernel re-shades each surface pixel with the mean of ``spp`` ratio-tracked transmittances towards each
