@@ -197,6 +197,36 @@ def test_volumes_outside_the_frustum_cost_nothing(offset):
     np.testing.assert_array_equal(both.images[0], alone.images[0])
 
 
+def test_a_volume_past_the_far_plane_costs_nothing():
+    """A copy of the cloud turned corner-on to the eye just past the far plane: its face planes each leave some
+    frustum corner inside, so only the far plane separates it, and the culling kernel culls it: no cube map, no
+    tiles, no rays (a kernel that counts no corner past far keeps it: cube scheme, 3 tiles, 3,072 texels)."""
+    scene = builtin_scene("cloud", 64)
+    cam = Camera(position=(0.0, 0.4, 3.2), width=96, height=64, far=5.0)
+    forward = cam.basis()[2]
+    a, b = np.pi / 4, np.arctan(1 / np.sqrt(2))  # the diagonal (1, 1, 1) turned onto the view axis
+    ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    vol = scene.volumes[0]
+    m = np.eye(4)
+    m[:3, :3] = rx @ ry @ vol.to_world[:3, :3]
+    half = float(np.linalg.norm(vol.to_world[:3, 0]))
+    m[:3, 3] = np.asarray(cam.position) + (cam.far + np.sqrt(3) * half + 0.05) * forward
+    far_box = Volume(vol.density, m, vol.density_scale, vol.albedo, vol.g, vol.emission, "extra")
+    depth = (far_box.corners_world - np.asarray(cam.position)) @ forward
+    assert cam.far < depth.min() < cam.far + 0.1
+    assert not frustum_visible(far_box, cam)
+    extra = Scene((vol, far_box), scene.lights, scene.environment)
+    renderer = CMSRM(CMSRMConfig(hybrid=False, light_grid=32), device=DEVICE)
+    alone, both = renderer.render(scene, [cam]), renderer.render(extra, [cam])
+    plan = both.stats.info["volumes"][0][1]
+    assert (plan["scheme"], plan["tiles"], plan["visible_texels"], plan["projected_pixels"]) == ("culled", 0, 0, 0)
+    for key in ("rays", "density_samples", "lightmap_lookups"):
+        assert both.stats.counters[key] == alone.stats.counters[key], key
+    assert both.stats.info["cube_map_bytes"] == alone.stats.info["cube_map_bytes"]
+    np.testing.assert_array_equal(both.images[0], alone.images[0])
+
+
 @pytest.mark.parametrize("method", ["cmsrm", "cacrm"])
 def test_a_volume_partly_in_view_is_kept(method):
     """Half of the cloud past the viewport's right edge: marched (cube scheme, hybrid off) and within 40 dB of the
