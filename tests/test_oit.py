@@ -21,7 +21,7 @@ from volren.render import CMSRM, DSSRM, CMSRMConfig, DSSRMConfig
 from volren.render.compositing import oit
 from volren.render.frame import PassClock
 from volren.render.marching.cacrm import CACRM, CACRMConfig
-from volren.scene import Environment, Scene, Volume, scale_translate
+from volren.scene import Environment, Plane, Scene, Volume, scale_translate
 from volren.upload import upload_scene
 
 SCHEMES = ("pixel-sort", "pixel-rt", "tiled")
@@ -261,6 +261,21 @@ def test_tile_box_tests_count_the_boxes_the_bvh_reports(small_tiles) -> None:
     assert counters["tile_box_tests"] == reported
     assert kept < reported - 20  # the beside box: reported by many tiles, kept by none
     assert counters["bvh_queries"] == tiles.tiles_x * tiles.tiles_y
+
+
+def test_ao_queries_are_counted_apart_from_the_oit_queries(small_tiles) -> None:
+    """A floor under FRONT, lit by the environment: its AO rays (one BVH query each) go to ``ao_bvh_queries``, the
+    same number whatever the OIT scheme, and ``bvh_queries`` stays the OIT's alone (none for pixel-sort, one per
+    pixel for pixel-rt, one per tile for tiled)."""
+    scene = Scene((FRONT,), (), Environment((1.0, 1.0, 1.0)), opaque=(Plane((0.0, -0.45, 0.0), (0.0, 1.0, 0.0)),))
+    cam = Camera(position=(0.0, 1.0, 2.5), look_at=(0.0, -0.3, 0.0), width=W, height=H)
+    c = {s: make("dssrm", s).render(scene, [cam]).stats.counters for s in SCHEMES}
+    assert c["pixel-sort"]["ao_bvh_queries"] > W * H
+    for s in SCHEMES:
+        assert c[s]["ao_bvh_queries"] == c["pixel-sort"]["ao_bvh_queries"], s
+    assert c["pixel-sort"]["bvh_queries"] == 0
+    assert c["pixel-rt"]["bvh_queries"] == W * H
+    assert c["tiled"]["bvh_queries"] == SMALL_TILES[0] * SMALL_TILES[1]
 
 
 def test_oit_config_is_validated() -> None:

@@ -14,8 +14,8 @@ import warp as wp
 from volren.device import counter_rows_for, synchronize
 
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
-            "shadow_rays", "shadow_voxels", "box_tests", "tile_box_tests", "bvh_queries", "joint_rays",
-            "skipped_steps", "light_skipped")
+            "shadow_rays", "shadow_voxels", "box_tests", "tile_box_tests", "bvh_queries", "ao_bvh_queries",
+            "joint_rays", "skipped_steps", "light_skipped")
 """Work counters gathered by the kernels (wp.atomic_add into one int64 array, indexed by position here):
 density_samples: trilinear density fetches on view rays; light_samples: density fetches on rays towards lights
 (light-map pass or the reference's per-sample shadow rays); lightmap_lookups: light-map fetches while shading;
@@ -27,14 +27,15 @@ ray-traced light-visibility queries of the fog method (one per light and froxel,
 shadow_voxels: shadow-grid voxels re-traced this frame; box_tests: exact ray/box tests of pixel rays finding their
 layers (multi-volume OIT, `volren.render.compositing.oit`: instances per pixel for pixel-sort, boxes the BVH reported
 for pixel-rt, the tile's instances for tiled); tile_box_tests: the tiled k-buffer's phase-1 tests of tile rays against
-the boxes its BVH reported; bvh_queries: BVH ray queries (pixel-rt: one per pixel, tiled: one per tile, the
-surfaces' AO: one per ray; Warp's query does not report the nodes it visits); joint_rays: pixel rays that
-marched overlapping boxes jointly;
+the boxes its BVH reported; bvh_queries: the OIT's BVH ray queries (pixel-rt: one per pixel, tiled: one per tile;
+Warp's query does not report the nodes it visits); ao_bvh_queries: the surfaces' AO rays, one BVH query each
+(`volren.render.compositing.surface_light`); joint_rays: pixel rays that marched overlapping boxes jointly;
 skipped_steps: view-ray steps of the light-map march left unsampled by empty-space skipping (with it off they would
 be density_samples); light_skipped: steps of the light-map pass's rays towards lights left unsampled by empty-space
 skipping (with it off they would be light_samples)."""
 (DENSITY_SAMPLES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, INTERLEAVED_SAMPLES, SHADOW_RAYS,
- SHADOW_VOXELS, BOX_TESTS, TILE_BOX_TESTS, BVH_QUERIES, JOINT_RAYS, SKIPPED_STEPS, LIGHT_SKIPPED) = range(len(COUNTERS))
+ SHADOW_VOXELS, BOX_TESTS, TILE_BOX_TESTS, BVH_QUERIES, AO_BVH_QUERIES, JOINT_RAYS, SKIPPED_STEPS,
+ LIGHT_SKIPPED) = range(len(COUNTERS))
 
 
 @dataclass

@@ -50,7 +50,7 @@ from volren.kernels.common import (
     sample_grid,
     transmittance_bvh,
 )
-from volren.render.frame import BVH_QUERIES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS
+from volren.render.frame import AO_BVH_QUERIES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS
 from volren.sh import sh_basis16, vec16
 from volren.upload import DeviceScene
 
@@ -392,7 +392,7 @@ def ambient_occlusion(sl: SurfaceLight, x: wp.vec3, n: wp.vec3, counters: wp.arr
     total = float(0.0)
     if cone[3] == WIDE_CONE:
         # cosine-distributed directions over the hemisphere: pdf cos / pi, so AO is the mean transmittance
-        count(counters, BVH_QUERIES, sl.ao_rays)
+        count(counters, AO_BVH_QUERIES, sl.ao_rays)
         frame = tangent_frame(n)
         for k in range(sl.ao_rays):
             w = cosine_direction(frame, k, sl.ao_rays)
@@ -403,7 +403,7 @@ def ambient_occlusion(sl: SurfaceLight, x: wp.vec3, n: wp.vec3, counters: wp.arr
                 total += ao_transmittance(sl, x, w, counters)
         return total / float(sl.ao_rays)
     rays = wp.where(cone[3] < WIDEST_CONE, sl.ao_rays, sl.cone_rays)
-    count(counters, BVH_QUERIES, rays)
+    count(counters, AO_BVH_QUERIES, rays)
     # Uniform directions in the cone (pdf 1 / omega): 1 - T vanishes outside it, so AO = 1 - (omega / pi) E[(1 - T)
     # max(n.w, 0)]; directions below the horizon weigh 0 and are not marched.
     frame = tangent_frame(wp.vec3(cone[0], cone[1], cone[2]))
