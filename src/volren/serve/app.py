@@ -18,9 +18,11 @@ import hmac
 import ipaddress
 import json
 import logging
+import os
 import re
 import signal
 import socket
+import sys
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -251,8 +253,10 @@ class QuietServerLog(logging.LoggerAdapter):
 
     def exception(self, msg: object, *args: object, exc_info: Any = True, **kwargs: Any) -> None:
         if isinstance(exc_info, HttpProcessingError):
-            text = str(exc_info).splitlines()[0][:120] if str(exc_info) else type(exc_info).__name__
-            self.lines.warn("malformed", f"volren serve: refused a malformed HTTP request ({str(msg) % args}: {text})")
+            what = " ".join(str(exc_info.message).split())[:100] or type(exc_info).__name__
+            remote = args[0] if args else "?"
+            self.lines.warn("malformed", f"volren serve: refused a malformed HTTP request from {remote} "
+                                         f"({exc_info.code}: {what})")
             return
         super().exception(msg, *args, exc_info=exc_info, **kwargs)
 
@@ -416,7 +420,12 @@ def build_loop(scene_name: str, method: str | None, quality: str, resolution: in
 
 
 def serve(app: web.Application, host: str, port: int, token: str | None) -> None:
-    """Run until SIGINT or SIGTERM, then close every viewer (1001) and return within SHUTDOWN_S."""
+    """Run until SIGINT or SIGTERM, then close every viewer (1001) and end the process with status 0 within
+    SHUTDOWN_S: without the interpreter's teardown, which alone took 2.4 s with Warp loaded (2 busy cores)."""
     shown = f"[{host}]" if ":" in host else host
     url = f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
     asyncio.run(_serve(app, host, port, f"volren serve: open {url} (Ctrl-C stops)"))
+    sys.stdout.flush()
+    sys.stderr.flush()
+    logging.shutdown()
+    os._exit(0)
