@@ -89,10 +89,6 @@ SCENE_KEY = web.AppKey("scene", str)
 ACCESS_KEY = web.AppKey("access", Access)
 SOCKETS_KEY = web.AppKey("sockets", set)
 REFUSALS_KEY = web.AppKey("refusals", object)
-SEND_BUFFER_BYTES = 128 * 1024
-"""SO_SNDBUF of each viewer's socket (Linux doubles it): bounded, so a slow reader's frames wait in our send (and the
-next ones are dropped) instead of piling up seconds deep in an autotuned kernel buffer (measured: 41 frames of
-640x480 vanished into a non-reading client's unbounded buffers without one drop)"""
 
 
 def is_loopback(host: str) -> bool:
@@ -199,9 +195,6 @@ async def websocket(request: web.Request) -> web.StreamResponse:
     # message. No permessage-deflate: JPEG frames do not shrink (see COMPRESS_NOTE in docs/SERVE.md).
     ws = web.WebSocketResponse(max_msg_size=4 * MAX_MESSAGE_BYTES, heartbeat=30.0, compress=False)
     await ws.prepare(request)
-    sock = request.transport.get_extra_info("socket") if request.transport is not None else None
-    if sock is not None:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
     app[SOCKETS_KEY].add(ws)
     viewer = None
     try:
