@@ -225,10 +225,18 @@ class PointLight:
         object.__setattr__(self, "intensity", e)
 
 
+SPOT_FALLOFFS = ("smoothstep", "linear")
+"""`SpotLight.falloff` profiles, in the order of their kernel codes (`volren.kernels.common.light_irradiance`)"""
+
+
 @dataclass(frozen=True)
 class SpotLight:
-    """A point light limited to a cone: full intensity inside ``inner_angle`` of ``direction``, smoothly falling to
-    zero at ``outer_angle`` (half-angles [deg]), inverse-square falloff."""
+    """A point light limited to a cone: full intensity inside ``inner_angle`` of ``direction``, falling to zero at
+    ``outer_angle`` (half-angles [deg]), inverse-square falloff. Between the cones the intensity is scaled by
+    ``falloff``'s profile of the angle theta to the axis: ``smoothstep`` (the default, as before), the cubic
+    smoothstep(cos outer, cos inner, cos theta) in the cosine; ``linear``, (outer - theta) / (outer - inner) in the
+    angle, the profile of other renderers. They differ: a 5-25 degree spot at 15 degrees is 0.736 of its axial
+    intensity with smoothstep against 0.5 linear, and its whole cone emits 1.25 times the linear one's power."""
 
     position: tuple[float, float, float] = (0.0, 2.0, 0.0)
     direction: tuple[float, float, float] = (0.0, -1.0, 0.0)
@@ -236,6 +244,8 @@ class SpotLight:
     """[W/sr] on the axis"""
     inner_angle: float = 20.0
     outer_angle: float = 30.0
+    falloff: str = "smoothstep"
+    """the profile between the cones: ``smoothstep`` (in cos theta) or ``linear`` (in theta); `SPOT_FALLOFFS`"""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "position", tuple(float(v) for v in as_vec3(self.position, "spot light position")))
@@ -250,6 +260,8 @@ class SpotLight:
         if not 0 <= self.inner_angle < self.outer_angle <= 90:
             raise VolrenError(f"spot light angles need 0 <= inner < outer <= 90 degrees, got {self.inner_angle} and "
                               f"{self.outer_angle}")
+        if self.falloff not in SPOT_FALLOFFS:
+            raise VolrenError(f"spot light falloff must be one of {', '.join(SPOT_FALLOFFS)}, got '{self.falloff}'")
 
 
 @dataclass(frozen=True)

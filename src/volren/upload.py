@@ -27,7 +27,7 @@ from volren.kernels.common import (
     OpaqueGPU,
     VolumeGPU,
 )
-from volren.scene import DirectionalLight, RectLight, Scene, Sphere, SpotLight, TriangleMesh, Volume
+from volren.scene import SPOT_FALLOFFS, DirectionalLight, RectLight, Scene, Sphere, SpotLight, TriangleMesh, Volume
 
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
@@ -254,7 +254,7 @@ def light_structs(scene: Scene, device: str) -> wp.array:
     lights = []
     for light in scene.lights:
         s = LightGPU()
-        s.axis, s.cos_inner, s.cos_outer = wp.vec3(0.0, -1.0, 0.0), 1.0, 0.0
+        s.axis, s.cos_inner, s.cos_outer, s.falloff = wp.vec3(0.0, -1.0, 0.0), 1.0, 0.0, 0
         s.edge_u, s.edge_v = wp.vec3(0.0), wp.vec3(0.0)
         if isinstance(light, DirectionalLight):
             s.kind, s.vector, s.power = LIGHT_DIRECTIONAL, wp.vec3(*light.direction), wp.vec3(*light.irradiance)
@@ -265,6 +265,7 @@ def light_structs(scene: Scene, device: str) -> wp.array:
             s.kind, s.vector, s.power = LIGHT_SPOT, wp.vec3(*light.position), wp.vec3(*light.intensity)
             s.axis = wp.vec3(*light.direction)
             s.cos_inner, s.cos_outer = (float(np.cos(np.radians(a))) for a in (light.inner_angle, light.outer_angle))
+            s.falloff = SPOT_FALLOFFS.index(light.falloff)
         else:
             s.kind, s.vector, s.power = LIGHT_POINT, wp.vec3(*light.position), wp.vec3(*light.intensity)
         lights.append(s)

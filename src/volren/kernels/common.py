@@ -14,6 +14,8 @@ LIGHT_DIRECTIONAL = wp.constant(0)
 LIGHT_POINT = wp.constant(1)
 LIGHT_SPOT = wp.constant(2)
 LIGHT_RECT = wp.constant(3)
+SPOT_SMOOTHSTEP = wp.constant(0)
+SPOT_LINEAR = wp.constant(1)
 OPAQUE_SPHERE = wp.constant(0)
 OPAQUE_PLANE = wp.constant(1)
 
@@ -73,6 +75,8 @@ class LightGPU:
     """spot: cosine of the full-intensity half-angle"""
     cos_outer: float
     """spot: cosine of the cut-off half-angle"""
+    falloff: int
+    """spot: the profile between the cones, SPOT_SMOOTHSTEP or SPOT_LINEAR (`spot_profile`)"""
     edge_u: wp.vec3
     """rect: half-edge vectors (it emits towards edge_u x edge_v)"""
     edge_v: wp.vec3
@@ -299,15 +303,25 @@ def light_distance(light: LightGPU, x: wp.vec3) -> float:
 
 
 @wp.func
+def spot_profile(light: LightGPU, c: float) -> float:
+    """A spot's intensity at cos theta = c from its axis over the axial one (`volren.scene.SpotLight.falloff`):
+    smoothstep(cos outer, cos inner, c) in the cosine, or (outer - theta) / (outer - inner) in the angle."""
+    if light.falloff == SPOT_LINEAR:
+        outer = wp.acos(light.cos_outer)
+        return wp.clamp((outer - wp.acos(wp.clamp(c, -1.0, 1.0))) / (outer - wp.acos(light.cos_inner)), 0.0, 1.0)
+    return wp.smoothstep(light.cos_outer, light.cos_inner, c)
+
+
+@wp.func
 def light_irradiance(light: LightGPU, x: wp.vec3) -> wp.vec3:
     """Unshadowed irradiance at ``x`` on a plane facing the light (inverse-square for a point or spot light, times
-    the spot's smoothstep cone falloff; a rect light as a point at its centre)."""
+    the spot's cone profile `spot_profile`; a rect light as a point at its centre)."""
     if light.kind == LIGHT_DIRECTIONAL:
         return light.power
     r2 = wp.max(wp.length_sq(light.vector - x), 1.0e-8)
     if light.kind == LIGHT_SPOT:
         c = wp.dot(light.axis, (x - light.vector) / wp.sqrt(r2))
-        return light.power * wp.smoothstep(light.cos_outer, light.cos_inner, c) / r2
+        return light.power * spot_profile(light, c) / r2
     if light.kind == LIGHT_RECT:
         # A point at the centre with intensity radiance * area * cos (the path tracer samples the area instead).
         n = wp.cross(light.edge_u, light.edge_v)
