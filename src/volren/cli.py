@@ -230,7 +230,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                    "finds the boxes its ray meets, in ray order: tiled (paper 000 §3.4 tiled k-buffer, default), "
                    "pixel-rt (per-pixel BVH ray queries) or pixel-sort (every box tested per pixel)")
     r.add_argument("--oit-k", type=int, help="dssrm/cmsrm/cacrm: K, boxes kept per pixel (the nearest), in [1, 16] "
-                   "(default 8)")
+                   "(default 16)")
     r.add_argument("--gi", choices=GI_METHODS, help="dssrm/cmsrm/cacrm: ambient global illumination (paper 000 "
                    "§3.2): sresir (ours), restir (strict ReSTIR), prt, major (major direction), brute (ground truth), "
                    "none (default: constant ambient)")

@@ -3,7 +3,7 @@ the joint march where boxes overlap along the ray (paper 001 §3.4, paper 000 §
 
 Layer finding (`pixel_layers`) keeps, per pixel, the K = ``oit_k`` boxes with the nearest entry distances, sorted
 front to back (ties by volume index), each clipped to the near/far planes and the opaque surface; boxes beyond the
-K-th on a ray are dropped (the k-buffer's behaviour; K = 8 by default, 16 at most). Three schemes find them:
+K-th on a ray are dropped (the k-buffer's behaviour; K = 16 by default and at most). Three schemes find them:
 
 - ``pixel-sort``: every instance box tested per pixel and the K nearest kept in a sorted register k-buffer (paper 000
   Table 3's per-pixel k-buffer baseline); ``box_tests`` = instances per pixel.
