@@ -232,3 +232,43 @@ def drag_pad(page, u: float, v: float) -> None:
     page.mouse.down()
     page.mouse.move(x + u * r, y + v * r, steps=6)
     page.mouse.up()
+
+
+def test_a_page_of_another_origin_cannot_open_the_socket(server):
+    """Issue 20 item 1 (cross-site WebSocket hijacking): a page served from another loopback origin (a second HTTP
+    server on another port) opens the server's /ws, even with the right token, to switch the method; Chromium sends
+    that page's Origin and the upgrade is refused (the socket closes with 1006 and never opens)."""
+    import http.server
+
+    port = int(server.split(":")[2].split("/")[0])
+    page_html = f"""<!doctype html><script>
+      window.result = null;
+      const ws = new WebSocket("ws://127.0.0.1:{port}/ws?token={TOKEN}");
+      ws.onopen = () => {{ ws.send(JSON.stringify({{type: "settings", method: "cmsrm"}})); window.result = "open"; }};
+      ws.onclose = (e) => {{ window.result = window.result || "closed " + e.code; }};
+    </script>""".encode()
+
+    class Hostile(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.end_headers()
+            self.wfile.write(page_html)
+
+        def log_message(self, *args) -> None:
+            pass
+
+    hostile = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Hostile)
+    threading.Thread(target=hostile.serve_forever, daemon=True).start()
+    try:
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=FLAGS)
+            try:
+                page = browser.new_page()
+                page.goto(f"http://127.0.0.1:{hostile.server_address[1]}/")
+                page.wait_for_function("window.result !== null", timeout=TIMEOUT_MS / 3)
+                assert page.evaluate("window.result") == "closed 1006", "the other origin's page opened the socket"
+            finally:
+                browser.close()
+    finally:
+        hostile.shutdown()

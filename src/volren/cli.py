@@ -301,6 +301,8 @@ def add_serve_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-viewers", type=int, default=16, help="viewers connected at once, in [1, 1024]")
     p.add_argument("--max-width", type=int, default=1920, help="[px] largest viewer image (stereo: both eyes)")
     p.add_argument("--max-height", type=int, default=1080, help="[px] largest viewer image")
+    p.add_argument("--pixel-budget", type=int, default=1920 * 1080, help="[px] rendered per tick for all viewers, "
+                   "shared fairly (a viewer over its share gets a smaller frame)")
     add_device(p)
 
 
@@ -311,7 +313,7 @@ def run_serve(args: argparse.Namespace) -> int:
     check_bind(args.host, args.token, tuple(args.allow_origin))
     if not 1 <= args.port <= 65535:
         raise CliError(f"--port must lie in [1, 65535], got {args.port}")
-    limits = Limits(args.max_viewers, args.max_width, args.max_height)
+    limits = Limits(args.max_viewers, args.max_width, args.max_height, args.pixel_budget)
     loop = build_loop(args.scene, args.method, args.quality, args.resolution, args.device, limits,
                       args.lock_settings)
     serve(make_app(loop, args.scene, args.token, hosts=(args.host, *args.allow_host), origins=tuple(args.allow_origin)),

@@ -128,7 +128,7 @@ def welcome(loop: RenderLoop, viewer: Viewer, scene: str) -> dict[str, Any]:
         "type": "welcome", "viewer": viewer.id, "scene": scene, "methods": list(loop.methods),
         "qualities": list(loop.choices.qualities), "tfs": list(loop.choices.tfs),
         "limits": {"max_width": limits.max_width, "max_height": limits.max_height,
-                   "max_viewers": limits.max_viewers},
+                   "max_viewers": limits.max_viewers, "pixel_budget": limits.pixel_budget},
         "camera": camera_json(loop.camera), "width": viewer.width, "height": viewer.height, "stereo": viewer.stereo,
         "animated": loop.animated, "walk": loop.scene.fog is not None, "locked": loop.lock_settings,
         **loop.shared_settings(),

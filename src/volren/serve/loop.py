@@ -43,7 +43,7 @@ from volren.render.vpt.tracer import VPTConfig
 from volren.scene import DirectionalLight, Scene
 from volren.serve.jpeg import JPEG_QUALITY, display_image, encode_jpeg
 from volren.serve.protocol import Choices, ProtocolError, Settings, error_message, pack_frame
-from volren.serve.viewers import Limits, Viewer, ViewerSet
+from volren.serve.viewers import Limits, Viewer, ViewerSet, fair_shares
 from volren.transfer import PRESETS
 
 log = logging.getLogger("volren.serve")
@@ -377,8 +377,11 @@ class RenderLoop:
         advance = self.playing and self.animated
         step = self._step + advance
         version, index = self.version, self.tick
-        # per viewer: its camera id and views, its still view so far and its key after this tick's animation step
-        jobs = [(v, v.camera_id, v.views(self.ipd), self._still.get(v.id), (v.camera, version, step)) for v in order]
+        # per viewer: its camera id and views (within its fair share of the pixel budget), its still view so far and
+        # its key after this tick's animation step
+        shares = fair_shares([v.width * v.height for v in order], self.limits.pixel_budget)
+        jobs = [(v, v.camera_id, v.views(self.ipd, px), self._still.get(v.id), (v.camera, version, step))
+                for v, px in zip(order, shares, strict=True)]
         try:
             frames = await asyncio.to_thread(self._render_encode, jobs, index, advance, len(self.viewers))
         except VolrenError as exc:

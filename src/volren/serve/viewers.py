@@ -4,6 +4,7 @@ for the page's acknowledgement."""
 from __future__ import annotations
 
 import asyncio
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -18,10 +19,16 @@ class Limits:
     max_width: int = 1920
     """[px] of a viewer's image (both eyes together when stereo)"""
     max_height: int = 1080
+    pixel_budget: int = 1920 * 1080
+    """[px] rendered per tick for all viewers together, shared fairly (`fair_shares`): one viewer at the clamp alone
+    gets all of it; a viewer over its share gets a smaller frame (the page upscales it)"""
 
     def __post_init__(self) -> None:
         if not 1 <= self.max_viewers <= 1024:
             raise VolrenError(f"--max-viewers must lie in [1, 1024], got {self.max_viewers}")
+        if not MIN_SIDE * MIN_SIDE <= self.pixel_budget <= 1 << 26:
+            raise VolrenError(f"--pixel-budget must lie in [{MIN_SIDE * MIN_SIDE}, {1 << 26}] pixels, got "
+                              f"{self.pixel_budget}")
         for flag, side in (("--max-width", self.max_width), ("--max-height", self.max_height)):
             if not 2 * MIN_SIDE <= side <= 8192:
                 raise VolrenError(f"{flag} must lie in [{2 * MIN_SIDE}, 8192] pixels, got {side}")
@@ -102,10 +109,26 @@ class Viewer:
             self.camera = replace(self.camera, width=w, height=h)
             self.shown = (-1, -1)
 
-    def views(self, ipd: float) -> list[Camera]:
-        """This viewer's views: one camera, or a stereo viewer's two eyes (left first, a coupled CACRM pair)."""
+    def views(self, ipd: float, pixels: int | None = None) -> list[Camera]:
+        """This viewer's views: one camera, or a stereo viewer's two eyes (left first, a coupled CACRM pair); with
+        ``pixels`` below its size, scaled down (same aspect, at least MIN_SIDE a side) to fit them."""
         assert self.camera is not None
-        return StereoRig(self.camera, ipd).eyes() if self.stereo else [self.camera]
+        cam = self.camera
+        if pixels is not None and pixels < self.width * self.height:
+            s = math.sqrt(pixels / (self.width * self.height))
+            cam = replace(cam, width=max(MIN_SIDE, int(cam.width * s)), height=max(MIN_SIDE, int(cam.height * s)))
+        return StereoRig(cam, ipd).eyes() if self.stereo else [cam]
+
+
+def fair_shares(wants: list[int], budget: int) -> list[int]:
+    """Max-min fair split of ``budget`` pixels (water filling): smallest request first, each gets what it asks or an
+    equal part of what is left, whichever is less; what a small viewer leaves goes to the larger ones."""
+    out, left = [0] * len(wants), budget
+    order = sorted(range(len(wants)), key=wants.__getitem__)
+    for k, i in enumerate(order):
+        out[i] = min(wants[i], left // (len(wants) - k))
+        left -= out[i]
+    return out
 
 
 @dataclass
