@@ -20,14 +20,14 @@ import aiohttp
 import pytest
 from aiohttp.test_utils import TestClient, TestServer
 
-from test_serve import SCENE, SMALL, TIMEOUT, H, W, cam_msg, connect, frame_for, next_frame, until
+from test_serve import SCENE, SMALL, TIMEOUT, H, W, cam_msg, connect, db, frame_for, next_frame, offline, until
 from volren.errors import VolrenError
 from volren.serve import app as serve_app
 from volren.serve import loop as serve_loop
 from volren.serve.app import check_bind, make_app
 from volren.serve.loop import RenderLoop
 from volren.serve.protocol import unpack_frame
-from volren.serve.viewers import Limits
+from volren.serve.viewers import Limits, fair_shares
 
 TOKEN = "abuse-test-token-0123"
 
@@ -368,10 +368,6 @@ def test_the_pixel_budget_is_shared_fairly():
     """Item 4: the tick's pixel budget is split max-min fairly (water filling); a viewer over its share gets a smaller
     frame of the same view (told its real size in the header), the small viewer keeps its full size. Before, one
     1920x1080 viewer pushed a 64x48 viewer's latency from 41 ms to 4.9 s."""
-    from test_serve import db, offline
-
-    from volren.serve.viewers import fair_shares
-
     assert fair_shares([3072, 12288, 100], 6000) == [2950, 2950, 100]
     assert fair_shares([3072, 12288], 10**6) == [3072, 12288]
 
