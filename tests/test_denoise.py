@@ -48,6 +48,7 @@ def records(f_x, f_l=1.0, albedo=0.0, f_m=0.0, hits=None, depth=DEPTH, opacity=N
     hit = np.ones((H, W, N), bool) if hits is None else hits
     d = np.where(hit, np.broadcast_to(np.float32(depth), (H, W, N)), -1.0).astype(np.float32)
     return SimpleNamespace(f_x=vec(f_x), f_l=vec(f_l), albedo=vec(albedo), f_m=vec(f_m),
+                           emission=wp.zeros((1, 1, 1), dtype=wp.vec3, device=DEVICE),  # nothing emits
                            depth=wp.array(d, dtype=float, device=DEVICE),
                            density=wp.array(np.ones((H, W, N), np.float32), dtype=float, device=DEVICE),
                            opacity=wp.array(np.broadcast_to(np.asarray(hit if opacity is None else opacity, np.float32),
