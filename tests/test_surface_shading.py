@@ -108,6 +108,28 @@ def test_stacked_volumes_multiply(name, gi):
     np.testing.assert_allclose(img[mask][:, :3], expected, rtol=1e-4)
 
 
+@pytest.mark.parametrize("up", [1.0, -1.0])
+def test_gi_shadow_reads_the_first_box_along_the_ray(up):
+    """With GI on, the near box's map holds both boxes, so the shadow is read from the box the shadow ray enters
+    first, whatever order the BVH reports them in: a floor under two boxes 2 m apart lit from straight above, and
+    the same mirrored (a ceiling over them lit from below; the BVH reports the boxes in the same spatial order
+    both times), gets exp(-sigma (0.5 + 0.5)). The far box's map alone gives exp(-sigma 0.5), 2.1 times too
+    bright."""
+    boxes = [homogeneous_volume(SIGMA, scale=(0.5, 0.25, 0.5), translate=(0.0, up * y, 0.0)) for y in (0.75, 2.75)]
+    scene = scene_of(*boxes, lights=[DirectionalLight((0.0, -up, 0.0), E)])
+    scene = dataclasses.replace(scene, opaque=(Plane((0, 0, 0), (0, up, 0), ALBEDO),))
+    cam = Camera(position=(0.0, 0.3 * up, 2.5), look_at=(0.0, 0.0, 0.0), width=48, height=32)
+    img = dssrm(gi=GIConfig(method="major")).render(scene, [cam]).images[0]
+    d = cam.ray_directions()
+    o = np.asarray(cam.position)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -o[1] / d[..., 1]
+    x = o + t[..., None] * d
+    under = (t > 0) & (np.abs(x[..., [0, 2]]).max(-1) < 0.4)
+    assert under.sum() >= 20
+    np.testing.assert_allclose(img[under][:, :3], ALBEDO / np.pi * E * np.exp(-SIGMA), rtol=1e-4)
+
+
 def surface_radiance(renderer, scene, cam: Camera) -> np.ndarray:
     """The surface pass's radiance alone (no volume composited over it), after the renderer's lighting passes."""
     clock = PassClock(renderer.device)
