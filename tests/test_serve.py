@@ -631,3 +631,26 @@ def test_a_frame_dropped_while_busy_is_rendered_again_when_free():
             await ws.close()
 
     run(test)
+
+
+def test_bench_mixed_run_counts_and_goals():
+    """`volren bench serve`'s mixed run (issue 20): small clients and a slow reader with and without a big client;
+    the pixel budget (1.5x the small run's pixels) gives the big client a smaller frame than it asked for, the slow
+    reader gets about one frame per read interval, and the ratios and goals follow from the rows."""
+    from volren.bench.serve import GOAL_MIXED_AGE, GOAL_MIXED_P95, run_mixed
+
+    mixed = {"small": 2, "small_size": (48, 32), "big_size": (128, 96), "read_every": 0.3, "budget_factor": 1.5}
+    cfg = {"cases": [("fog", "dynamic"), ("dssrm", "smoke")], "resolution": 64, "size": (48, 32), "counts": [3],
+           "seconds": 1.0, "min_ticks": 3, "repeats": 1, "camera_hz": 30.0, "mixed": mixed,
+           "overrides": {"samples": 32, "light_samples": 8, "light_grid": 8}}
+    r = asyncio.run(run_mixed(cfg, "cpu"))
+    assert r["method"] == "dssrm" and r["pixel_budget"] == int(1.5 * 3 * 48 * 32)
+    without, with_big = r["rows"]
+    assert (without["clients"], with_big["clients"]) == (3, 4)
+    share = r["pixel_budget"] - 3 * 48 * 32
+    assert 0 < with_big["big_pixels"] <= share < 128 * 96, "the big client's frame fits its share"
+    assert with_big["big_frames"] > 0
+    assert r["p95_ratio"] == with_big["small_p95_ms"] / without["small_p95_ms"]
+    assert r["age_tick_times"] == with_big["max_age_ms"] / with_big["tick_ms"]
+    assert r["goals"] == ("pass" if r["p95_ratio"] <= GOAL_MIXED_P95 and r["age_tick_times"] <= GOAL_MIXED_AGE
+                          else "fail")

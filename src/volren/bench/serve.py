@@ -40,10 +40,12 @@ from volren.errors import VolrenError
 
 FULL = {"cases": [("fog", "dynamic"), ("cacrm", "smoke")], "resolution": 256, "size": (480, 270),
         "counts": [1, 2, 4, 8, 16], "seconds": 10.0, "min_ticks": 10, "repeats": 3, "camera_hz": 60.0,
-        "overrides": {}}
+        "overrides": {}, "mixed": {"small": 8, "small_size": (480, 270), "big_size": (1920, 1080), "read_every": 1.0,
+                                   "budget_factor": 1.5}}
 QUICK = {"cases": [("fog", "dynamic"), ("cacrm", "smoke")], "resolution": 64, "size": (160, 90),
          "counts": [1, 2, 4, 8, 16], "seconds": 3.0, "min_ticks": 4, "repeats": 2, "camera_hz": 30.0,
-         "overrides": {}}
+         "overrides": {}, "mixed": {"small": 8, "small_size": (320, 180), "big_size": (1920, 1080),
+                                    "read_every": 1.0, "budget_factor": 1.5}}
 MODES = ("shared", "naive")
 STEREO_EVERY = 4
 """client i is a stereo pair when i % STEREO_EVERY == STEREO_EVERY - 1 (2 of 8 clients, 4 of 16)"""
@@ -52,6 +54,9 @@ ORBIT_RAD_S = 0.5
 LOOK_SWING = 0.6
 """[rad] half-angle of a fog client's look-around"""
 GOAL_CLIENTS, GOAL_SPEEDUP, GOAL_LATENCY_FRAMES = 8, 1.5, 3.0
+GOAL_MIXED_P95, GOAL_MIXED_AGE = 1.5, 2.0
+"""issue 20's mixed run: the small clients' p95 latency with the big client at most 1.5x of without it; no frame
+older than 2 tick times when it arrives"""
 WARMUP_FRAMES = 2
 """frames every client receives before the window opens (kernel compilation, the naive renderers' first upload)"""
 WARMUP_TIMEOUT_S = 600.0
@@ -85,12 +90,15 @@ class ClientRecord:
     latencies_ms: list[float] = field(default_factory=list)
     render_ms: dict[int, float] = field(default_factory=dict)
     """tick -> render time of that tick (frame headers)"""
+    pixels: int = 0
+    """the largest frame's width x height (smaller than asked when over its share of the pixel budget)"""
     warm: asyncio.Event = field(default_factory=asyncio.Event)
 
 
 async def run_client(session: Any, url: str, rec: ClientRecord, index: int, count: int, size: tuple[int, int],
-                     base: Camera, walk: bool, hz: float, measuring: asyncio.Event) -> None:
-    """Connect, send hello, then cameras at ``hz`` while receiving frames until cancelled."""
+                     base: Camera, walk: bool, hz: float, measuring: asyncio.Event, read_every: float = 0.0) -> None:
+    """Connect, send hello, then cameras at ``hz`` while receiving frames until cancelled; a slow reader
+    (``read_every`` > 0 s) takes one frame that often (it waits, then acknowledges the one it holds)."""
     from aiohttp import WSMsgType
 
     from volren.serve.protocol import unpack_frame
@@ -125,6 +133,8 @@ async def run_client(session: Any, url: str, rec: ClientRecord, index: int, coun
                     break
                 now = time.perf_counter()
                 header, _ = unpack_frame(msg.data)
+                if read_every > 0:
+                    await asyncio.sleep(read_every)
                 await ws.send_json({"type": "ack", "tick": header["tick"]})  # as the page does once it drew it
                 answered = header["camera_id"]
                 t = sent.get(answered)
@@ -137,6 +147,7 @@ async def run_client(session: Any, url: str, rec: ClientRecord, index: int, coun
                     rec.frames += 1
                     rec.bytes += len(msg.data)
                     rec.render_ms[header["tick"]] = header["render_ms"]
+                    rec.pixels = max(rec.pixels, header["width"] * header["height"])
                     if t is not None:
                         rec.latencies_ms.append((now - t) * 1e3)
         finally:
@@ -182,18 +193,23 @@ async def served(loop: Any) -> AsyncIterator[Served]:
         await runner.cleanup()
 
 
-async def measure_window(srv: Served, count: int, cfg: dict[str, Any], base: Camera, walk: bool) -> dict[str, Any]:
-    """Connect ``count`` clients to ``srv``, wait until each has its first frames, measure one window, disconnect
-    and let the loop finish its tick."""
+async def measure_window(srv: Served, count: int, cfg: dict[str, Any], base: Camera, walk: bool,
+                         clients: list[tuple[tuple[int, int], float]] | None = None) -> dict[str, Any]:
+    """Connect ``count`` clients to ``srv`` (or ``clients``: per client its size and read interval, all mono),
+    wait until each has its first frames, measure one window, disconnect and let the loop finish its tick."""
     import aiohttp
 
     loop = srv.loop
     measuring = asyncio.Event()
-    recs = [ClientRecord(stereo=i % STEREO_EVERY == STEREO_EVERY - 1) for i in range(count)]
+    if clients is None:
+        recs = [ClientRecord(stereo=i % STEREO_EVERY == STEREO_EVERY - 1) for i in range(count)]
+        clients = [(cfg["size"], 0.0)] * count
+    else:
+        recs, count = [ClientRecord(stereo=False) for _ in clients], len(clients)
     async with aiohttp.ClientSession() as session:
-        tasks = [asyncio.create_task(run_client(session, srv.url, rec, i, count, cfg["size"], base, walk,
-                                                cfg["camera_hz"], measuring))
-                 for i, rec in enumerate(recs)]
+        tasks = [asyncio.create_task(run_client(session, srv.url, rec, i, count, size, base, walk,
+                                                cfg["camera_hz"], measuring, read_every))
+                 for i, (rec, (size, read_every)) in enumerate(zip(recs, clients, strict=True))]
         try:
             warm = asyncio.ensure_future(asyncio.gather(*(r.warm.wait() for r in recs)))
             done, _ = await asyncio.wait([*tasks, warm], timeout=WARMUP_TIMEOUT_S,
@@ -229,6 +245,10 @@ async def measure_window(srv: Served, count: int, cfg: dict[str, Any], base: Cam
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
     row = summarize(recs, elapsed, ticks, renders)
+    row["clients_detail"] = [{"size": list(size), "read_every_s": every, "frames": r.frames, "pixels": r.pixels,
+                              "latency_p95_ms": float(np.percentile(r.latencies_ms, 95)) if r.latencies_ms else None,
+                              "latency_max_ms": max(r.latencies_ms, default=None)}
+                             for r, (size, every) in zip(recs, clients, strict=True)]
     while len(loop.viewers) or srv.busy:  # the last tick still running: the next window waits for it
         await asyncio.sleep(0.01)
     return row
@@ -251,8 +271,8 @@ def summarize(recs: list[ClientRecord], elapsed: float, ticks: int, renders: int
     }
 
 
-def make_loop(method: str, scene_name: str, cfg: dict[str, Any], shared: bool, device: str) -> tuple[Any, Camera,
-                                                                                                       bool]:
+def make_loop(method: str, scene_name: str, cfg: dict[str, Any], shared: bool, device: str,
+              limits: Any = None) -> tuple[Any, Camera, bool]:
     """A playing render loop of a built-in scene at the interactive quality, its start camera and whether its
     clients walk (fog) rather than orbit."""
     from volren.data import builtin_scene
@@ -268,11 +288,49 @@ def make_loop(method: str, scene_name: str, cfg: dict[str, Any], shared: bool, d
         scene = builtin_scene(scene_name, cfg["resolution"])
         base = Camera(position=(0.0, 0.4, 3.2))
     w, h = cfg["size"]
-    limits = Limits(max_viewers=max(cfg["counts"]), max_width=2 * w, max_height=h)
+    limits = limits or Limits(max_viewers=max(cfg["counts"]), max_width=2 * w, max_height=h)
     loop = RenderLoop(scene, method, "interactive", limits=limits, camera=base, device=device, shared=shared,
                       animate=animator(scene, scene_name, device), overrides=cfg["overrides"])
     loop.playing = loop.animated
     return loop, base, scene.fog is not None
+
+
+async def run_mixed(cfg: dict[str, Any], device: str) -> dict[str, Any]:
+    """Issue 20's mixed run on the first volume case: ``small`` clients at ``small_size``, one slow reader (a frame
+    every ``read_every`` s) of that size, with and without one client at ``big_size``; the pixel budget is
+    ``budget_factor`` x the pixels of the run without the big client (the operator's --pixel-budget). The best of
+    ``repeats`` windows each. Goals: the small clients' p95 latency with the big client within GOAL_MIXED_P95 x of
+    the run without it, and no frame older than GOAL_MIXED_AGE tick times when it arrives (the slow reader's
+    included: with acknowledgements nothing waits in a socket buffer)."""
+    from volren.serve.viewers import Limits
+
+    mixed = cfg["mixed"]
+    method, scene_name = next((m, s) for m, s in cfg["cases"] if m != "fog")
+    small = [(tuple(mixed["small_size"]), 0.0)] * mixed["small"] + [(tuple(mixed["small_size"]), mixed["read_every"])]
+    budget = int(mixed["budget_factor"] * sum(w * h for (w, h), _ in small))
+    big_w, big_h = mixed["big_size"]
+    limits = Limits(max_viewers=len(small) + 1, max_width=big_w, max_height=big_h, pixel_budget=budget)
+    loop, base, walk = make_loop(method, scene_name, cfg, True, device, limits)
+    out: dict[str, dict[str, Any]] = {}
+    async with served(loop) as srv:
+        for name, clients in (("without big", small), ("with big", [*small, ((big_w, big_h), 0.0)])):
+            windows = [await measure_window(srv, 0, cfg, base, walk, clients) for _ in range(cfg["repeats"])]
+            out[name] = max(windows, key=lambda w: w["fps_total"])
+    rows = []
+    for name, row in out.items():
+        fast = row["clients_detail"][:mixed["small"]]
+        rows.append({"run": name, "tick_ms": row["tick_ms"], "clients": row["clients"],
+                     "small_p95_ms": max(c["latency_p95_ms"] for c in fast),
+                     "slow_reader_max_ms": row["clients_detail"][mixed["small"]]["latency_max_ms"],
+                     "max_age_ms": max(c["latency_max_ms"] for c in row["clients_detail"]),
+                     "big_frames": row["clients_detail"][-1]["frames"] if name == "with big" else 0,
+                     "big_pixels": row["clients_detail"][-1]["pixels"] if name == "with big" else 0})
+    without, with_big = rows
+    ratio = with_big["small_p95_ms"] / without["small_p95_ms"]
+    age = with_big["max_age_ms"] / with_big["tick_ms"]
+    return {"scene": scene_name, "method": method, "pixel_budget": budget, "rows": rows, "p95_ratio": ratio,
+            "p95_goal": GOAL_MIXED_P95, "age_tick_times": age, "age_goal": GOAL_MIXED_AGE,
+            "goals": "pass" if ratio <= GOAL_MIXED_P95 and age <= GOAL_MIXED_AGE else "fail"}
 
 
 async def run_async(cfg: dict[str, Any], device: str) -> dict[str, Any]:
@@ -314,8 +372,15 @@ async def run_async(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("scene", "scene", "s"), ("method", "method", "s"), ("clients", "clients", "d"),
         ("speedup", "shared/naive fps", ".2f"), ("speedup_goal", "goal >=", ".1f"),
         ("latency_frames", "worst p95 latency [tick times]", ".2f"), ("latency_goal", "goal <=", ".0f"),
+        ("p95_ratio", f"mixed: small p95 with/without big (goal <= {GOAL_MIXED_P95:g})", ".2f"),
+        ("age_tick_times", f"mixed: oldest frame [tick times] (goal <= {GOAL_MIXED_AGE:g})", ".2f"),
         ("goals", "goals", "s"),
     ]
+    if cfg.get("mixed"):
+        mixed = await run_mixed(cfg, device)
+        summary.append({"scene": f"{mixed['scene']} (mixed)", "method": mixed["method"],
+                        "clients": mixed["rows"][1]["clients"], "p95_ratio": mixed["p95_ratio"],
+                        "age_tick_times": mixed["age_tick_times"], "goals": mixed["goals"], "mixed": mixed})
     settings = {k: v for k, v in cfg.items() if k != "overrides"} | {
         "quality": "interactive", "stereo_every": STEREO_EVERY, "orbit_rad_s": ORBIT_RAD_S,
         "timing": "CPU, 2 cores, shared with other jobs" if device == "cpu" else device}
