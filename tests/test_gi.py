@@ -251,17 +251,17 @@ def test_cross_volume_shadowing_darkens_a_volume_behind_another():
     a_shadow = ambient(shadowed, "brute", rays=64)
     assert a_shadow.mean() < 0.75 * a_alone.mean()
     r, ds = run_gi(shadowed, "brute", rays=16)
-    lit = ds.lightmap.numpy()[: ds.light_voxels[0]]
+    lit = np.exp(-ds.lightmap.numpy()[: ds.light_voxels[0]])  # the light map holds optical depths
     assert lit.max() < 0.01
     r = DSSRM(DSSRMConfig(light_grid=8), device=DEVICE)
     r.render(shadowed, [axis_camera(size=(8, 8))])
-    assert r._device_scene.lightmap.numpy()[: ds.light_voxels[0]].min() > 0.3
+    assert np.exp(-r._device_scene.lightmap.numpy()[: ds.light_voxels[0]]).min() > 0.3
 
 
 def test_light_map_crosses_every_volume_on_the_way_to_the_light():
     """GI's light map marches through every box the shadow ray meets (the BVH's any-hit traversal, paper 000
     §3.2.3): a homogeneous box under two slabs of optical depth 2 each, sun overhead, gets
-    T = exp(-(sigma d + 2 + 2)) at every light voxel, d its distance to the box's top (exact for homogeneous media;
+    T = exp(-(sigma d + 2 + 2)) at every light-map node, d its distance to the box's top (exact for homogeneous media;
     one slab or none would give e^2 or e^4 times more)."""
     n, sigma = 8, 0.5
     below = homogeneous_volume(sigma, n=n, scale=0.5, translate=(0.0, -0.6, 0.0))
@@ -269,8 +269,8 @@ def test_light_map_crosses_every_volume_on_the_way_to_the_light():
                     density_scale=10.0) for y in (0.2, 0.6)]
     sun = (DirectionalLight(direction=(0.0, -1.0, 0.0), irradiance=(2.0, 2.0, 2.0)),)
     _, ds = run_gi(Scene((below, *slabs), sun, SKY), "brute", rays=16, light_grid=n)
-    lit = ds.lightmap.numpy()[: ds.light_voxels[0]].reshape(n, n, n)
-    y = -0.6 + 0.5 * (-1 + (np.arange(n) + 0.5) * 2 / n)
+    lit = np.exp(-ds.lightmap.numpy()[: ds.light_voxels[0]].reshape(n, n, n))
+    y = -0.6 + 0.5 * np.linspace(-1.0, 1.0, n)
     expected = np.exp(-(sigma * (-0.1 - y) + 4.0))
     np.testing.assert_allclose(lit, np.broadcast_to(expected[None, :, None], lit.shape), rtol=1e-3)
 

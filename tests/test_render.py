@@ -93,13 +93,13 @@ def test_counters_counted_by_hand():
     """One pixel through the centre of a homogeneous cube, light straight down, V = 100, L = 8, 4^3 light grid.
 
     View: chord 2 of diagonal 2 sqrt 3 -> ceil(100 / sqrt 3) = 58 samples, each lit once from the light map.
-    Light map: voxel centres at y = -0.75, -0.25, 0.25, 0.75 lie 1.75, 1.25, 0.75, 0.25 below the top; steps of
-    2 sqrt 3 / 8 = 0.433 give 5 + 3 + 2 + 1 = 11 samples per column, times 16 columns = 176.
+    Light map: nodes at y = -1, -1/3, 1/3, 1 lie 2, 4/3, 2/3, 0 below the top (the top ones marched from just inside
+    it); steps of 2 sqrt 3 / 8 = 0.433 give 5 + 4 + 2 + 1 = 12 samples per column, times 16 columns = 192.
     """
     scene = scene_of(homogeneous_volume(0.5, albedo=0.5), lights=[DOWN])
     frame = render("dssrm", scene, [axis_camera(size=(1, 1))], samples=100, light_samples=8, light_grid=4,
                    min_transmittance=0)
-    assert frame.stats.counters == {"density_samples": 58, "light_samples": 176, "lightmap_lookups": 58, "rays": 1,
+    assert frame.stats.counters == {"density_samples": 58, "light_samples": 192, "lightmap_lookups": 58, "rays": 1,
                                     "shared_samples": 0, "interleaved_samples": 0,
                                     "shadow_rays": 0, "shadow_voxels": 0, "skipped_steps": 0,
                                     "light_skipped": 0,  # a homogeneous cube: no empty cell to skip

@@ -52,8 +52,9 @@ def opaque_structs(scene: Scene) -> list[OpaqueGPU]:
 
 
 def light_grid_resolution(res: tuple[int, int, int], light_grid: int | None) -> tuple[int, int, int]:
-    """Light-map resolution per axis (x, y, z): ``light_grid`` on the longest axis (aspect kept), or half the
-    density resolution when None (the papers' 128^3 light grid for 256^3 density), at least 2 voxels per axis."""
+    """Light-map nodes per axis (x, y, z; `volren.render.lightmap`): ``light_grid`` on the longest axis (aspect
+    kept), or half the density resolution when None (the papers' 128^3 light grid for 256^3 density), at least 2 per
+    axis (the two faces)."""
     if light_grid is None:
         return tuple(max(2, (n + 1) // 2) for n in res)
     if not 2 <= light_grid <= MAX_LIGHT_GRID:
@@ -328,7 +329,7 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
             max_offset += cells.size
     try:
         density = wp.array(np.concatenate(grids) if grids else np.zeros(1), dtype=float, device=device)
-        lightmap = wp.ones(max(light_offset, 1), dtype=float, device=device)
+        lightmap = wp.zeros(max(light_offset, 1), dtype=float, device=device)  # optical depths: T = 1
     except (RuntimeError, MemoryError) as exc:
         raise VolrenError(f"cannot allocate the scene on {device}: {exc}") from exc
     analytic = opaque_structs(scene)

@@ -1,13 +1,11 @@
 """Surfaces shaded by the volumes (issue 14 item 5): shadows from the light map and ambient occlusion, paper 000
 Fig. 12's opacity-AO idea generalised from hair to any opaque surface.
 
-Shadows. The light map (paper 001 §3, first pass; `volren.render.lightmap`) stores at each light-grid voxel centre
-the transmittance from there to the light through the whole box (and, with GI on, through every other volume as
-well: `cross_volume`). A surface point x outside a box reads it where its shadow ray enters the box, inside a box at
-x itself. Voxel centres stop half a light voxel short of the faces, and trilinear sampling clamps there, so a lookup
-at the face would skip the optical depth of that outer shell (exp(sigma_t h / 2), 3% on a 32-voxel grid at
-sigma_t = 2): the ray's short chord through the shell is marched with density samples (`optical_depth`) and the
-map is read where the ray reaches the box of the outermost centres. Without GI each volume's map holds only its own
+Shadows. The light map (paper 001 §3, first pass; `volren.render.lightmap`) stores at each light-grid node the
+optical depth from there to the light through the whole box (and, with GI on, through every other volume as well:
+`cross_volume`). A surface point x outside a box reads it where its shadow ray enters the box, inside a box at x
+itself; the outermost nodes lie on the faces, so the lookup at the entry covers the whole chord (issue 19 item 3:
+no shell between the face and the nodes to march). Without GI each volume's map holds only its own
 density, so the transmittances of every box the shadow ray meets (found by the BVH over the boxes) multiply; with
 GI on the map of the first box along the ray already holds every volume behind it, so only that one is read (the
 product would count the far volumes twice: two stacked slabs would give exp(-3 tau) instead of exp(-2 tau)).
@@ -47,10 +45,10 @@ from volren.kernels.common import (
     grid_cell,
     grid_coords,
     optical_depth,
-    sample_grid,
     transmittance_bvh,
 )
 from volren.render.frame import AO_BVH_QUERIES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS
+from volren.render.lightmap import sample_light_map_across
 from volren.sh import sh_basis16, vec16
 from volren.upload import DeviceScene
 
@@ -167,28 +165,14 @@ def unlit(ds: DeviceScene) -> SurfaceLight:
 
 @wp.func
 def light_map_transmittance(sl: SurfaceLight, vol: VolumeGPU, li: int, x: wp.vec3, to_light: wp.vec3, t0: float,
-                            t1: float, counters: wp.array(dtype=wp.int64)) -> float:
-    """T from x + t0 to_light (the box entry, or x inside the box) to light li: the light map of ``vol`` read where
-    the ray reaches the box of the outermost voxel centres, times the transmittance of the shell before it."""
+                            counters: wp.array(dtype=wp.int64)) -> float:
+    """T from x + t0 to_light (the box entry, or x inside the box) to light li: the light map of ``vol`` read there."""
     o_l = wp.transform_point(vol.to_local, x)
     d_l = wp.transform_vector(vol.to_local, to_light)
     res = vol.light_res
-    inner = wp.vec3(1.0 - 1.0 / float(res[0]), 1.0 - 1.0 / float(res[1]), 1.0 - 1.0 / float(res[2]))
-    h = box_hit(wp.cw_div(o_l, inner), wp.cw_div(d_l, inner))
-    ta = wp.max(h[0], t0)
-    if h[1] <= ta or ta >= t1:
-        # The ray only grazes the shell: its whole chord is this volume's optical depth.
-        shell = optical_depth(vol, x, to_light, t1, sl.density, sl.samples)
-        count(counters, LIGHT_SAMPLES, int(shell[1]))
-        return wp.exp(-shell[0])
-    tau = float(0.0)
-    if ta > t0:
-        shell = optical_depth(vol, x, to_light, ta, sl.density, sl.samples)
-        count(counters, LIGHT_SAMPLES, int(shell[1]))
-        tau = shell[0]
     count(counters, LIGHTMAP_LOOKUPS, 1)
     n = res[0] * res[1] * res[2]
-    return wp.exp(-tau) * sample_grid(sl.lightmap, vol.light_offset + li * n, res, o_l + ta * d_l)
+    return sample_light_map_across(sl.lightmap, vol.light_offset + li * n, res, o_l + t0 * d_l)
 
 
 @wp.func
@@ -211,7 +195,7 @@ def volume_shadow(sl: SurfaceLight, li: int, light: LightGPU, x: wp.vec3, to_lig
         t0 = wp.max(h[0], 0.0)
         t1 = wp.min(h[1], dist)
         if t1 > t0:
-            tv = light_map_transmittance(sl, vol, li, x, to_light, t0, t1, counters)
+            tv = light_map_transmittance(sl, vol, li, x, to_light, t0, counters)
             product *= tv
             if t0 < first_t:
                 first_t = t0

@@ -29,6 +29,7 @@ from volren.kernels.common import (
     state_accumulator,
     with_accumulator,
 )
+from volren.render.lightmap import sample_light_map
 
 
 @wp.struct
@@ -59,7 +60,7 @@ def shade_light_map(
     count = res[0] * res[1] * res[2]
     for li in range(medium.lights.shape[0]):
         light = medium.lights[li]
-        t = sample_grid(medium.lightmap, vol.light_offset + li * count, res, p)
+        t = sample_light_map(medium.lightmap, vol.light_offset + li * count, res, p)
         phase = hg_phase(wp.dot(light_travel_dir(light, x), -d), vol.g)
         radiance += phase * t * light_irradiance(light, x)
     return radiance
