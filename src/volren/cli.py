@@ -660,7 +660,9 @@ def estimate_memory(args: argparse.Namespace, scene, views, method: str) -> int:
     pixels = sum(v.width * v.height for v in views)
     total = pixels * (40 + HOST_BYTES_PER_PIXEL * args.frames)
     if method in ("cmsrm", "cacrm"):
-        sizes = [args.cube_size or max(vol.density.shape) for vol in scene.volumes]
+        from volren.render.marching.cubemap import face_size_cap
+
+        sizes = [args.cube_size or face_size_cap(max(vol.density.shape)) for vol in scene.volumes]
         total += len(views) * sum(6 * size**2 for size in sizes) * CUBE_TEXEL_BYTES
     if method == "fog":
         tile, slices = args.froxel_size or 8, args.slices or 128

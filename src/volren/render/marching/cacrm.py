@@ -348,9 +348,10 @@ def coupled_march_kernel(
 
 
 def merge_lods(a: CubeLOD, b: CubeLOD) -> CubeLOD:
-    """One LOD for a coupled pair: the finer level and the larger sample count of the two eyes."""
+    """One LOD for a coupled pair: the finer level, and the larger face size and sample count of the two eyes."""
     finer = a if a.level <= b.level else b
-    return replace(finer, samples=max(a.samples, b.samples), edge_pixels=max(a.edge_pixels, b.edge_pixels))
+    return replace(finer, size=max(a.size, b.size), samples=max(a.samples, b.samples),
+                   edge_pixels=max(a.edge_pixels, b.edge_pixels))
 
 
 class CACRM(CMSRM):

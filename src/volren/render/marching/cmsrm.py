@@ -8,7 +8,11 @@ The march is DSSRM's (`march_volume_light_map`), lit by the same light map. Cost
 viewport: S x S texels per visible face.
 
 Adaptive LOD (§3.3) picks per volume and view the cube-map/density mip level and the sample count N from the box's
-projected size; the hybrid choice (§3.4, first paragraph) marches a volume directly in screen space when its
+projected size, and (without a given S0) raises the face size to what the screen needs where the box is near,
+elongated, coarse-gridded or around the eye (`cubemap.screen_texels`, at most `cubemap.face_size_cap` = max(S0, 64):
+bounded and, past the cap, independent of the viewport); pixels whose lookup falls within half a texel of a face
+edge (the box's silhouettes and path-length kinks, sharper than any texel) are marched directly (``rim_direct``);
+the hybrid choice (§3.4, first paragraph) marches a volume directly in screen space when its
 projected pixels are fewer than its visible texels. ``cube_faces="exterior"`` casts rays to the exterior faces the eye
 sees instead (paper 001 Fig. 2 (a)); it exists to show the texel aliasing that the interior scheme avoids.
 
@@ -89,10 +93,13 @@ from volren.render.marching.cubemap import (
     CubeLOD,
     CubeTarget,
     coarse_tiles,
+    cube_face_point,
     cube_lod,
     cube_sample,
+    face_size_cap,
     face_tiles,
     max_tile_level,
+    on_face_rim,
     point_face,
     store_texel,
     texel_index,
@@ -171,7 +178,9 @@ class TileGroup:
 @dataclass(frozen=True)
 class CMSRMConfig(LightMapMarchConfig):
     cube_size: int | None = None
-    """S0: level-0 face size [texels]; None = the density grid's longest axis"""
+    """S0: level-0 face size [texels], fixed (the LOD only lowers it); None = S0 the density grid's longest axis,
+    and with the adaptive LOD each face raised to what the screen needs (`cubemap.cube_lod`'s screen sizing, at most
+    `cubemap.face_size_cap`)"""
     cube_faces: str = "interior"
     """interior (the method) or exterior (only to show its texel aliasing)"""
     adaptive_lod: bool = True
@@ -190,6 +199,8 @@ class CMSRMConfig(LightMapMarchConfig):
     """[1/m] Eq. 13's edge-stopping coefficient across the cube k-buffer's segment depths (translucent meshes, paper
     000 §3.3); steeper than k_z: at 33 x 33 with a sheet inside a slab and 8^2 texels per face, 42.1 / 49.5 / 43.4 dB
     against DSSRM at 0.5 / 2 / 4 (16^2 texels: 44.1 / 61.6 / 57.2 dB), 36.6 dB with the filter off"""
+    rim_direct: bool = True
+    """march directly the pixels whose cube-map lookup falls within half a texel of a face edge (`on_face_rim`)"""
     tile_lod: bool = False
     """per-tile LOD l in {0, 1, 2} (paper 000 §3.1.3); off by default: it halves the samples of a distant volume
     but costs 5-10 dB there (see the module docstring)"""
@@ -314,6 +325,7 @@ def cube_resample_kernel(
     cube_offset: wp.array(dtype=int),
     cube_size: wp.array(dtype=int),
     exterior: int,
+    rim_direct: int,
     k_z: float,
     k_z_layers: float,
     cube: wp.array(dtype=wp.vec4),
@@ -361,15 +373,8 @@ def cube_resample_kernel(
             # A cube-scheme box: its cube map, or with layers inside it the cube k-buffer's segments between them;
             # marched directly where neither applies (a direct-scheme box, a segment without Eq. 13 weight).
             done = int(0)
-            if scheme[v] == SCHEME_CUBE:
-                vol = volumes[v]
-                o_l = wp.transform_point(vol.to_local, cam.origin)
-                d_l = wp.transform_vector(vol.to_local, d)
-                h = box_hit(o_l, d_l)
-                t_face = h[1]
-                if exterior != 0:
-                    t_face = h[0]
-                p = o_l + t_face * d_l
+            p = cube_face_point(volumes[v], cam.origin, d, exterior)
+            if scheme[v] == SCHEME_CUBE and (rim_direct == 0 or on_face_rim(p, cube_size[v]) == 0):
                 if not layer_before(mesh, row, col, next_mesh, facing, layers.t_out[i]):
                     c = cube_sample(cube, cube_z, cube_offset[v], cube_size[v], p, layers.t_out[i] * facing, k_z)
                     after = s.transmittance * c[3]
@@ -428,7 +433,8 @@ def host_plan(vol: Volume, cam: Camera, c: CMSRMConfig) -> dict:
     visible = frustum_visible(vol, cam)
     eye = (vol.to_local @ np.r_[cam.position, 1.0])[:3]
     faces = visible_faces(eye, c.cube_faces) if visible else []
-    lod = cube_lod(vol, cam, c.cube_size or max(vol.resolution), c.samples, c.k_u, c.k_c, c.adaptive_lod)
+    lod = cube_lod(vol, cam, c.cube_size or max(vol.resolution), c.samples, c.k_u, c.k_c, c.adaptive_lod,
+                   screen_sizing=c.cube_size is None)
     texels = len(faces) * lod.size**2
     pixels = projected_pixels(vol.corners_world, cam) if visible else 0.0
     if not visible:
@@ -495,6 +501,8 @@ class CMSRM(LightMapRenderer):
         params.samples, params.k_u, params.k_c = c.samples, c.k_u, c.k_c
         params.adaptive, params.hybrid = int(c.adaptive_lod), int(c.hybrid)
         params.exterior = int(c.cube_faces == "exterior")
+        # Screen sizing of the faces (`cube_lod`) unless S0 is given, up to `face_size_cap` (the kernel adds the base).
+        params.max_size = 0 if c.cube_size else face_size_cap(0)
         bases = [c.cube_size or max(v.resolution) for v in ds.scene.volumes]
         descriptors, footprints = cull_instances(ds, cam, bases, params)
         plans = []
@@ -680,7 +688,8 @@ class CMSRM(LightMapRenderer):
                     cube_resample_kernel,
                     cam.height,
                     cam.width,
-                    [camera_struct(cam), ds.volumes, oit, *per_volume, exterior, self.config.k_z,
+                    [camera_struct(cam), ds.volumes, oit, *per_volume, exterior, int(self.config.rim_direct),
+                     self.config.k_z,
                      self.config.k_z_layers, c.color,
                      c.t_half, c.z_end, c.seg, c.seg_z, c.segments, ds.medium(),
                      self._params(ds, view, self.config.samples), mesh, targets[view]],

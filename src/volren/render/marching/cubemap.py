@@ -174,6 +174,30 @@ def cube_quad(offset: int, size: int, p: wp.vec3):
 
 
 @wp.func
+def cube_face_point(vol: VolumeGPU, origin: wp.vec3, d: wp.vec3, exterior: int) -> wp.vec3:
+    """Where the cube map is read for the world ray origin + t d: the local point where it leaves the box (enters,
+    for exterior faces)."""
+    o_l = wp.transform_point(vol.to_local, origin)
+    d_l = wp.transform_vector(vol.to_local, d)
+    h = box_hit(o_l, d_l)
+    t_face = h[1]
+    if exterior != 0:
+        t_face = h[0]
+    return o_l + t_face * d_l
+
+
+@wp.func
+def on_face_rim(p: wp.vec3, size: int) -> int:
+    """1 where the 2x2 quad of `cube_quad` at the box-surface point p straddles a face edge (p within half a texel of
+    it). A box's silhouette and the kinks of its path lengths lie on its edges, sharper than any texel, and the quad
+    blends across them; such a pixel is marched directly."""
+    a = point_face(p) / 2
+    x = (p[(a + 1) % 3] + 1.0) * 0.5 * float(size) - 0.5
+    y = (p[(a + 2) % 3] + 1.0) * 0.5 * float(size) - 0.5
+    return int(x < 0.0 or y < 0.0 or x >= float(size - 1) or y >= float(size - 1))
+
+
+@wp.func
 def cube_sample(
     cube: wp.array(dtype=wp.vec4),
     cube_z: wp.array(dtype=float),
@@ -278,15 +302,107 @@ class CubeLOD:
     """longest projected box edge [pixels]"""
 
 
+MAX_FACE_SIZE = 64
+"""[texels] the largest face the screen sizing picks for a grid coarser than this (`face_size_cap`). A cap that
+follows the screen would make every near box's faces hold more texels than its pixels, so the hybrid would march it
+directly and CMSRM's viewport independence (bench resolution) would be lost; 64 lifts 16^3 grids 4x (6 x 64^2
+texels, 0.6 MB a volume and view) and leaves grids of 64 and more at S0. The edges a capped face still blurs are
+the face rims, marched directly (`on_face_rim`)."""
+FACE_SIZE_STEP = 4
+"""screen-sized faces are rounded up to a multiple of this, so that tile levels up to 2 halve them exactly"""
+
+
+def face_size_cap(base: int) -> int:
+    """S_max of the screen sizing: max(S0, MAX_FACE_SIZE), whatever the viewport."""
+    return max(base, MAX_FACE_SIZE)
+
+
+EDGES = [(i, i ^ bit) for i in range(8) for bit in (1, 2, 4) if i < i ^ bit]
+"""the 12 box edges as corner pairs (corners x fastest, `Volume.corners_world`)"""
+
+
+def screen_texels(vol: Volume, cam: Camera) -> float:
+    """S_screen: texels per face so that no texel the view reads covers more than a pixel along any face axis, where
+    that is hardest: the box's silhouettes and the kinks of its faces' path lengths lie on its edges, sharper than
+    any voxel, and the faces an eye inside or close to the box sees are magnified. The paper's S_ideal (§3.3 step 3,
+    the longest projected edge) is taken where the view is densest, over candidate points of the interior faces in
+    view: the nearest visible point of each edge clipped to the view frustum (near plane and the four side planes;
+    corners may lie behind the eye), and where the view axis and the four frustum corner rays leave the box. At a
+    point p (view coordinates, depth z) the pixel Jacobian J w = f / z (w_xy - p_xy w_z / z) of the box's full
+    extent w_k along axis k gives the pixels per face width along k; the square face takes the largest (an
+    elongated box needs its long axis' texels on every face). Along a line |dP/ds| = f |c| / z^2 with c constant,
+    so an edge is densest at its nearest visible point; over a face the candidates are the vertices of its part in
+    view, near enough its densest point for the 1 / z^2 that dominates. 0 when the box is not in view. Float64
+    reference of `culling.screen_texels_gpu`."""
+    right, up, forward = cam.basis()
+    basis = np.stack([right, up, forward])
+    origin = np.asarray(cam.position)
+    view = (vol.corners_world - origin) @ basis.T
+    extents = (2.0 * vol.to_world[:3, :3]).T @ basis.T
+    focal = cam.height / (2 * cam.tan_half_fov)
+    tx, ty = cam.tan_half_fov * cam.width / cam.height, cam.tan_half_fov
+    points = []
+    # Frustum half-spaces g . p + h >= 0 in view coordinates (right, up, depth).
+    planes = [((0.0, 0.0, 1.0), -cam.near), ((-1.0, 0.0, tx), 0.0), ((1.0, 0.0, tx), 0.0), ((0.0, -1.0, ty), 0.0),
+              ((0.0, 1.0, ty), 0.0)]
+    for i, j in EDGES:
+        a, d = view[i], view[j] - view[i]
+        s0, s1 = 0.0, 1.0
+        for g, h in planes:
+            fa, fd = float(np.dot(g, a)) + h, float(np.dot(g, d))
+            if fd == 0.0:
+                s1 = s1 if fa >= 0.0 else -1.0
+            elif fd > 0.0:
+                s0 = max(s0, -fa / fd)
+            else:
+                s1 = min(s1, -fa / fd)
+        if s0 <= s1:
+            points.append(a + (s0 if d[2] >= 0.0 else s1) * d)
+    eye = (vol.to_local @ np.r_[origin, 1.0])[:3]
+    for sx, sy in ((0.0, 0.0), (-tx, -ty), (tx, -ty), (-tx, ty), (tx, ty)):
+        ray = np.array([sx, sy, 1.0])
+        t_exit = box_exit(eye, vol.to_local[:3, :3] @ (ray @ basis))
+        if t_exit >= cam.near:
+            points.append(t_exit * ray)
+    best = 0.0
+    for p in points:
+        for w in extents:
+            best = max(best, float(np.hypot(*(w[:2] - p[:2] * w[2] / p[2]))) * focal / p[2])
+    return best
+
+
+def box_exit(o: np.ndarray, d: np.ndarray) -> float:
+    """Ray parameter where o + t d leaves [-1, 1]^3 (-inf when the line misses the box or leaves it behind o)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (-1.0 - o) / d, (1.0 - o) / d
+    lo = np.where(d == 0.0, np.where(np.abs(o) <= 1.0, -np.inf, np.inf), np.minimum(ta, tb))
+    hi = np.where(d == 0.0, np.where(np.abs(o) <= 1.0, np.inf, -np.inf), np.maximum(ta, tb))
+    t0, t1 = float(lo.max()), float(hi.min())
+    return t1 if t1 >= max(t0, 0.0) else -math.inf
+
+
+def screen_face_size(s_screen: float, k_u: float, size: int, cap: int) -> int:
+    """The face size with screen sizing: the LOD's size S raised to S_screen / k_u (rounded up to FACE_SIZE_STEP),
+    at most ``cap`` (`face_size_cap`); never below the LOD's S, so a distant volume keeps the viewport-independent
+    size of §3.3."""
+    need = FACE_SIZE_STEP * math.ceil(s_screen / k_u / FACE_SIZE_STEP)
+    return max(size, min(need, cap))
+
+
 def cube_lod(vol: Volume, cam: Camera, base_size: int, max_samples: int, k_u: float, k_c: float,
-             adaptive: bool) -> CubeLOD:
-    """Steps 1-5 of paper 001 §3.3.
+             adaptive: bool, screen_sizing: bool = False) -> CubeLOD:
+    """Steps 1-5 of paper 001 §3.3, with the face size optionally raised to what the screen needs.
 
     S_ideal = max projected edge / k_u, N_ideal = k_c S_ideal / sqrt 3, N = min(ceil(N_ideal), N_max),
     S = sqrt 3 min(N_ideal, N) / k_c, and the level l = max(floor(log2(S0 / S)), 0). The paper prints
     log2(S / S0), which would give a finer level for a smaller S; the reading used here makes a volume that shrinks
     on screen march a coarser cube map and density level. A corner behind the eye (the eye close to or inside the
     box) counts as an unbounded edge: level 0 and N_max. ``adaptive=False`` keeps level 0 and N = N_max.
+
+    ``screen_sizing`` (adaptive only; the default when no S0 is given): the level and N stay the paper's (they
+    follow the density's detail), but the face is at least `screen_texels` / k_u texels wide, up to
+    `face_size_cap`: with S0 the grid's resolution, a near, elongated or coarse-grid box (or one around the eye)
+    had texels of several pixels, and bilinear resampling blurred its silhouettes and face edges.
     """
     levels = len(vol.mip_pyramid)
     if not adaptive:
@@ -294,18 +410,20 @@ def cube_lod(vol: Volume, cam: Camera, base_size: int, max_samples: int, k_u: fl
     view = cam.view_matrix()
     corners = np.c_[vol.corners_world, np.ones(8)] @ view.T
     depth = -corners[:, 2]
-    if np.any(depth <= cam.near):
-        return CubeLOD(0, base_size, max_samples, math.inf)
-    focal = cam.height / (2 * cam.tan_half_fov)
-    px = corners[:, :2] / depth[:, None] * focal
-    edges = [(i, i ^ bit) for i in range(8) for bit in (1, 2, 4) if i < i ^ bit]
-    edge = max(float(np.linalg.norm(px[i] - px[j])) for i, j in edges)
-    s_ideal = edge / k_u
-    n_ideal = k_c * s_ideal / math.sqrt(3)
-    n = max(1, min(math.ceil(n_ideal), max_samples))
-    s = math.sqrt(3) * min(n_ideal, n) / k_c
-    level = 0 if s >= base_size else min(int(math.floor(math.log2(base_size / max(s, 1e-9)))), levels - 1)
-    return CubeLOD(level, max(base_size >> level, 2), n, edge)
+    level, n, edge = 0, max_samples, math.inf
+    if not np.any(depth <= cam.near):
+        focal = cam.height / (2 * cam.tan_half_fov)
+        px = corners[:, :2] / depth[:, None] * focal
+        edge = max(float(np.linalg.norm(px[i] - px[j])) for i, j in EDGES)
+        s_ideal = edge / k_u
+        n_ideal = k_c * s_ideal / math.sqrt(3)
+        n = max(1, min(math.ceil(n_ideal), max_samples))
+        s = math.sqrt(3) * min(n_ideal, n) / k_c
+        level = 0 if s >= base_size else min(int(math.floor(math.log2(base_size / max(s, 1e-9)))), levels - 1)
+    size = max(base_size >> level, 2)
+    if screen_sizing:
+        size = screen_face_size(screen_texels(vol, cam), k_u, size, face_size_cap(base_size))
+    return CubeLOD(level, size, n, edge)
 
 
 TILE = 32

@@ -15,8 +15,8 @@ import numpy as np
 import warp as wp
 
 from volren.camera import Camera
-from volren.kernels.common import INF, CameraGPU, VolumeGPU
-from volren.render.marching.cubemap import FACE_COUNT
+from volren.kernels.common import INF, CameraGPU, VolumeGPU, box_hit
+from volren.render.marching.cubemap import FACE_COUNT, FACE_SIZE_STEP, axis_unit
 from volren.upload import DeviceScene, camera_struct
 
 SQRT3 = 1.7320508075688772
@@ -36,6 +36,8 @@ class CullParams:
     adaptive: int
     hybrid: int
     exterior: int
+    max_size: int
+    """the screen sizing's cap (`cubemap.face_size_cap`: the kernel raises it to the base); 0: no screen sizing"""
 
 
 @wp.func
@@ -122,6 +124,68 @@ def frustum_visible_gpu(cam: CameraGPU, vol: VolumeGPU) -> int:
     return 1
 
 
+@wp.func
+def frustum_clip(fa: float, fd: float, s: wp.vec2) -> wp.vec2:
+    """The parameter range [s0, s1] of a segment a + s d left inside the half-space f >= 0 (f(a) = fa, f's change
+    along d = fd); s0 > s1 once empty."""
+    if fd == 0.0:
+        if fa < 0.0:
+            return wp.vec2(s[0], -1.0)
+        return s
+    if fd > 0.0:
+        return wp.vec2(wp.max(s[0], -fa / fd), s[1])
+    return wp.vec2(s[0], wp.min(s[1], -fa / fd))
+
+
+@wp.func
+def view_density(cam: CameraGPU, vol: VolumeGPU, p: wp.vec3, focal: float) -> float:
+    """Pixels per face width along the box axis that is densest on screen at the view point p (`screen_texels`)."""
+    best = float(0.0)
+    for k in range(3):
+        # the box's full extent along axis k, in view coordinates
+        w = view_point(cam, cam.origin + 2.0 * wp.transform_vector(vol.to_world, axis_unit(k)))
+        best = wp.max(best, wp.length(wp.vec2(w[0] - p[0] * w[2] / p[2], w[1] - p[1] * w[2] / p[2])) * focal / p[2])
+    return best
+
+
+@wp.func
+def screen_texels_gpu(cam: CameraGPU, vol: VolumeGPU, focal: float) -> float:
+    """`cubemap.screen_texels`: the largest `view_density` over each box edge's nearest point in the view frustum
+    and the points where the view axis and the frustum's corner rays leave the box (0 when the box is not in view)."""
+    tx = cam.tan_half_fov * cam.aspect
+    ty = cam.tan_half_fov
+    best = float(0.0)
+    for i in range(8):
+        for bit in range(3):
+            j = i ^ (1 << bit)
+            if i < j:
+                a = view_point(cam, box_corner(vol, i))
+                d = view_point(cam, box_corner(vol, j)) - a
+                s = wp.vec2(0.0, 1.0)
+                s = frustum_clip(a[2] - cam.near, d[2], s)
+                s = frustum_clip(tx * a[2] - a[0], tx * d[2] - d[0], s)
+                s = frustum_clip(tx * a[2] + a[0], tx * d[2] + d[0], s)
+                s = frustum_clip(ty * a[2] - a[1], ty * d[2] - d[1], s)
+                s = frustum_clip(ty * a[2] + a[1], ty * d[2] + d[1], s)
+                if s[0] <= s[1]:
+                    t = s[1]
+                    if d[2] >= 0.0:
+                        t = s[0]
+                    best = wp.max(best, view_density(cam, vol, a + t * d, focal))
+    eye = wp.transform_point(vol.to_local, cam.origin)
+    for r in range(5):
+        sx = float(0.0)
+        sy = float(0.0)
+        if r > 0:
+            sx = tx * float(2 * ((r - 1) % 2) - 1)
+            sy = ty * float(2 * ((r - 1) / 2) - 1)
+        ray = cam.forward + sx * cam.right + sy * cam.up
+        h = box_hit(eye, wp.transform_vector(vol.to_local, ray))
+        if h[1] >= wp.max(h[0], 0.0) and h[1] >= cam.near:
+            best = wp.max(best, view_density(cam, vol, h[1] * wp.vec3(sx, sy, 1.0), focal))
+    return best
+
+
 @wp.kernel
 def culling_kernel(
     cam: CameraGPU,
@@ -171,6 +235,10 @@ def culling_kernel(
         if s < float(base):
             level = wp.min(int(wp.floor(wp.log2(float(base) / wp.max(s, 1.0e-9)))), levels[v] - 1)
     size = wp.max(base >> level, 2)
+    if params.max_size != 0 and params.adaptive != 0:
+        # `cubemap.screen_face_size`: raised to what the screen needs, up to the cap.
+        need = FACE_SIZE_STEP * int(wp.ceil(screen_texels_gpu(cam, vol, focal) / params.k_u / float(FACE_SIZE_STEP)))
+        size = wp.max(size, wp.min(need, wp.max(base, params.max_size)))
     # Eq. 1: the visible-face mask from the eye in local space.
     eye = wp.transform_point(vol.to_local, cam.origin)
     mask = int(0)
