@@ -236,10 +236,19 @@ def test_a_viewer_that_never_acknowledges_is_parked_then_closed(monkeypatch):
 
 def test_settings_converge_after_a_burst():
     """Item 7: after a burst of 500 light changes from one viewer, the other viewer's last settings message is the
-    server's final state (before: 3 of 3 runs ended on a stale one)."""
+    server's final state (before: 3 of 3 runs ended on a stale one). B's link is slow (each text message takes 5 ms
+    to go out), so changes keep arriving while one is on its way."""
     async def test(client, loop):
         a, _ = await connect(client)
         b, _ = await connect(client)
+        viewer_b = loop.viewers.viewers[2]
+        send = viewer_b.text
+
+        async def slow(text: str) -> None:
+            await asyncio.sleep(0.005)
+            await send(text)
+
+        viewer_b.text = slow
         last = None
         for i in range(500):
             await a.send_str(json.dumps({"type": "settings", "light_dir": [0.001 * i - 0.3, -1.0, 0.2]}))
@@ -385,3 +394,21 @@ def test_the_pixel_budget_is_shared_fairly():
             await w.close()
 
     run(test, limits=Limits(4, 128, 96, pixel_budget=2 * W * H))
+
+
+def test_abandon_stops_a_render_after_its_image_pass():
+    """Item 10: once the loop is abandoned (shutdown), its renderer stops after the image pass under way with
+    `RenderAbandoned` instead of finishing the tick; a renderer built later (a method switch) does too."""
+    from volren.camera import Camera
+    from volren.serve.loop import RenderAbandoned
+
+    cam = Camera(position=(0.0, 0.2, 1.9), width=W, height=H)
+    loop = RenderLoop(SCENE, "dssrm", "interactive", device="cpu", overrides=SMALL)
+    assert loop.renderer.render(SCENE, [cam]).images[0].shape == (H, W, 4)
+    loop.abandon()
+    with pytest.raises(RenderAbandoned):
+        loop.renderer.render(SCENE, [cam, cam])
+    loop.method = "cmsrm"
+    loop._build_renderer()
+    with pytest.raises(RenderAbandoned):
+        loop.renderer.render(SCENE, [cam])

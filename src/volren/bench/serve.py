@@ -92,6 +92,9 @@ class ClientRecord:
     """tick -> render time of that tick (frame headers)"""
     pixels: int = 0
     """the largest frame's width x height (smaller than asked when over its share of the pixel budget)"""
+    opened: float = math.inf
+    """[s, perf_counter] when the window opened: a frame answering a camera sent before it is warm-up left over (a
+    first tick that compiled kernels for minutes answers the cameras it was started with), not latency"""
     warm: asyncio.Event = field(default_factory=asyncio.Event)
 
 
@@ -148,7 +151,7 @@ async def run_client(session: Any, url: str, rec: ClientRecord, index: int, coun
                     rec.bytes += len(msg.data)
                     rec.render_ms[header["tick"]] = header["render_ms"]
                     rec.pixels = max(rec.pixels, header["width"] * header["height"])
-                    if t is not None:
+                    if t is not None and t >= rec.opened:
                         rec.latencies_ms.append((now - t) * 1e3)
         finally:
             if sender is not None:
@@ -233,6 +236,8 @@ async def measure_window(srv: Served, count: int, cfg: dict[str, Any], base: Cam
             # the window opens and closes as ticks end: a whole number of ticks, not a time cut mid-tick
             t0 = await next_tick()
             tick0 = loop.tick
+            for r in recs:
+                r.opened = time.perf_counter()
             measuring.set()
             t1 = t0
             while t1 - t0 < cfg["seconds"] or loop.tick - tick0 < cfg["min_ticks"]:
