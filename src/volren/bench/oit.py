@@ -4,9 +4,10 @@ The three ways a pixel finds the boxes its ray meets (`volren.render.compositing
 (``pixel-sort``: every instance tested), per-pixel ray tracing (``pixel-rt``: a BVH query) and the tiled k-buffer
 (``tiled``: one BVH ray per tile of the fixed 240 x 135 layout, then only the tile's instances per pixel), all with
 the same renderer and settings (DSSRM:V:L), so that they differ in the layer finding alone. K = 16, the most a
-pixel keeps: from the default eye, rays through ``instances-overlap`` at N = 36 cross up to 12 boxes (252 of the
-14,400 pixels at 160x90 cross more than 8), and with K = 8 the farthest are dropped (quick run: PSNR 11.6 dB
-(pixel-sort, pixel-rt) and 19.2 dB (tiled) under the single-volume PSNR; with K = 16 all three score 41.50 dB).
+pixel keeps and, since issue 19, the renderers' default: from the default eye, rays through ``instances-overlap``
+at N = 36 cross up to 12 boxes (252 of the 14,400 pixels at 160x90 cross more than 8), and with K = 8 the farthest
+are dropped (quick run: PSNR 11.6 dB (pixel-sort, pixel-rt) and 19.2 dB (tiled) under the single-volume PSNR; with
+K = 16 all three score 41.50 dB).
 
 Speed (Table 3): scene ``instances`` (N = 4, 16, 36 smoke and cloud instances in rows receding in depth, disjoint
 boxes, `volren.data.procedural.instances_layout`) from the default camera, stereo at three viewport sizes: time per

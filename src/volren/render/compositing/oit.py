@@ -20,10 +20,13 @@ K-th on a ray are dropped (the k-buffer's behaviour; K = 16 by default and at mo
   spans [a0, a1] x [b0, b1] on the image plane (x / z, y / z, from its corners) and depths [z0, z1] becomes the view
   -space AABB of {z in [z0, z1], x / z in [a0 - h_x, a1 + h_x], y / z in [b0 - h_y, b1 + h_y]} with (h_x, h_y) half a
   tile: any pixel ray of the tile that meets the box puts the tile-centre ray through that AABB at the same depth.
-  A box crossing the near plane is first clipped to it (corners and edge crossings at depth >= near): pixel rays
-  keep only that part (their intervals start at the near plane), so a box beside the eye covers just the tiles its
-  part in front projects to, not every tile. The per-pixel result equals the other schemes' whenever at most K
-  boxes touch a tile; with more, the tile keeps the K nearest entries into the enlarged boxes at its centre.
+  That AABB only feeds the BVH; each box it reports is then tested exactly, the tile centre's (x / z, y / z) against
+  the grown rectangle (the AABB is loose where z0 is small: its x range at depth z0 is that of depth z1). A box
+  crossing the near plane is first clipped to it (corners and edge crossings at depth >= near): pixel rays keep
+  only that part (their intervals start at the near plane), so a box beside the eye covers just the tiles its part
+  in front projects to, not every tile (issue 19 item 5: with the eye among 36 instances every tile listed the six
+  boxes of the eye's row). The per-pixel result equals the other schemes' whenever at most K boxes touch a tile;
+  with more, the tile keeps the K whose parts in front begin nearest (by z0).
 
 Compositing: a run of layers whose intervals overlap (a cluster) is marched jointly (`march_joint`): the run is cut
 at every box entry and exit, each piece takes the step count of the smallest diagonal among the boxes covering it
