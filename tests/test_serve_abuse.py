@@ -276,7 +276,8 @@ def test_locked_settings_and_camera_ids():
         await ws.send_json({"type": "hello", "width": W, "height": H})
         assert (await ws.receive_json(timeout=TIMEOUT))["locked"]
         await ws.send_json({"type": "settings", "method": "cmsrm"})
-        assert "locked by the operator (--lock-settings)" in (await ws.receive_json(timeout=TIMEOUT))["message"]
+        assert "locked by the operator (--lock-settings)" in (await ws.receive_json(timeout=10.0))["message"]
+        assert loop.method == "dssrm"
         await ws.send_json({"type": "settings", "stereo": True})
         await ws.send_json(cam_msg(5))
         header, _ = await frame_for(ws, 5)
