@@ -283,7 +283,8 @@ def test_locked_settings_and_camera_ids():
         header, _ = await frame_for(ws, 5)
         assert header["stereo"] and loop.method == "dssrm"
         await ws.send_json(cam_msg(5))
-        assert "camera.id must increase" in (await ws.receive_json(timeout=TIMEOUT))["message"]
+        # 10 s, under the server's 30 s heartbeat: each ping restarts a client's receive timeout
+        assert "camera.id must increase" in (await ws.receive_json(timeout=10.0))["message"]
         await ws.close()
 
     run(test, lock_settings=True)
