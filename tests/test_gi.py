@@ -162,7 +162,7 @@ def test_prt_matches_brute_force_up_to_sh_truncation():
     smooth sky (the paper's PRT: 55.86 dB)."""
     vol = Volume(np.pad(np.ones((6, 6, 6), np.float32), 5), density_scale=4.0)
     scene = Scene((vol,), (), SKY)
-    brute = ambient(scene, "brute", rays=256)
+    brute = ambient(scene, "brute", rays=256, projection=False)
     prt = ambient(scene, "prt", rays=256)
     assert psnr(brute.reshape(-1, 16, 3), prt.reshape(-1, 16, 3), data_range=float(brute.max())) > 35.0
 
@@ -175,7 +175,7 @@ def test_temporal_accumulation_converges_to_brute_force():
     rho = np.zeros((12, 12, 12), np.float32)
     rho[:, :6] = 1.0
     scene = Scene((Volume(rho, density_scale=3.0),), (), SKY)
-    truth = ambient(scene, "brute", rays=1024)
+    truth = ambient(scene, "brute", rays=1024, projection=False)
     ours = ambient(scene, "sresir", frames=48)
     rel = np.sqrt(np.mean((ours - truth) ** 2)) / truth.mean()
     assert rel < 0.2

@@ -15,7 +15,9 @@ visibility (`volren.render.gi.passes`):
 - ``prt``: precomputed radiance transfer, ``rays`` stratified fine marches per voxel projected to SH, recomputed only
   when the scene's density changes;
 - ``major``: paper 001's major-direction approximation (one march along the negative density gradient);
-- ``brute``: the ground truth, ``rays`` fine marches per voxel integrated against the environment directly (no SH);
+- ``brute``: the ground truth, ``rays`` fine marches per voxel integrated against the environment directly (no SH),
+  from the points of a quadrature over the voxel's trilinear basis function, projected so the marchers' lookup
+  reads the field's L2 projection (``projection``; isotropic scattering: the phase function's g is not applied);
 - ``none``: the constant, unshadowed ambient (the environment's mean radiance).
 
 The lighting update is amortised over volumes: ``volumes_per_frame`` volumes per frame in turn (§3.2.3), every volume
@@ -85,6 +87,11 @@ class GIConfig:
     """keep Eq. 10's inputs (SH_dst, SH_clamped, mu~) of each update for fitting its weights (`scripts/fit_gi.py`)"""
     rays: int = 256
     """brute force and PRT: rays per voxel (the paper: 393,216 and 24,576 on a GPU)"""
+    projection: bool = True
+    """brute force: the grid holds the ambient field's L2 projection onto the trilinear basis the marchers' lookup
+    interpolates with (`project_to_basis`: images within 0.3% of the exact single scattering at 16 light voxels,
+    issue 19 item 7); False: the field at the voxel centres, what PRT and the per-frame methods estimate (for
+    comparing their grids with it)"""
     volumes_per_frame: int = 1
     reservoir_cap: float = 20.0
     """strict ReSTIR: temporal reservoir's M at most this times the spatial M"""
@@ -134,6 +141,30 @@ def relative_luminance(sh: np.ndarray) -> np.ndarray:
         lum = np.zeros(MAX_ORDER**2, np.float32)
         lum[0], mean = math.sqrt(4 * math.pi), 1.0
     return (lum / mean).astype(np.float32)
+
+
+def basis_gram(n: int) -> np.ndarray:
+    """G_ij = integral of phi_i phi_j / integral of phi_i for the n clamped linear basis functions of a lookup that
+    interpolates between voxel centres (interior hats: 1/6, 2/3, 1/6; the end functions, constant out to the face:
+    5/6 on the diagonal; one voxel: 1). Rows sum to 1, so a constant field keeps its value."""
+    if n == 1:
+        return np.ones((1, 1))
+    g = np.diag(np.full(n, 2.0 / 3.0)) + np.diag(np.full(n - 1, 1.0 / 6.0), 1) + np.diag(np.full(n - 1, 1.0 / 6.0), -1)
+    g[0, 0] = g[-1, -1] = 5.0 / 6.0
+    return g
+
+
+def project_to_basis(means: np.ndarray) -> np.ndarray:
+    """Grid values (z, y, x, C) whose clamped trilinear interpolation is the L2 projection of a field, from its
+    basis-weighted means b_i = integral f phi_i / integral phi_i (`volren.render.gi.passes.sphere_kernel`): per axis
+    v = G^-1 b (`basis_gram`), so the integral of the lookup against any trilinear weight is the field's. The
+    field's values at the voxel centres (the lookup's nodes) instead miss its steep fall from a lit face to the
+    first centre, where the lookup clamps (issue 19 item 7; tests/test_ambient_truth.py)."""
+    out = means
+    for axis in range(3):
+        inv = np.linalg.inv(basis_gram(means.shape[axis]))
+        out = np.moveaxis(np.tensordot(inv, np.moveaxis(out, axis, 0), axes=1), 0, axis)
+    return out
 
 
 class AmbientGI:
@@ -223,9 +254,14 @@ class AmbientGI:
             if self._static_scene is not ds.scene:
                 env = environment_light(ds.scene.environment, ds.device)
                 updated = list(range(ds.volume_count))
+                projected = c.method == "brute" and c.projection
                 for v in updated:
                     launch("gi_precompute", v, sphere_kernel, light_samples,
-                           [b, env, c.rays, n2, self._seed(0)])
+                           [b, env, c.rays, n2, self._seed(0), int(projected)])
+                if projected:
+                    with clock.measure("gi_projection"):
+                        b.sh = self._projected(b.sh, ds)
+                        b.ambient = self._projected(b.ambient, ds, clamp=True)
                 self._static_scene = ds.scene
         else:
             updated = self._volumes_this_frame(ds.volume_count)
@@ -244,6 +280,20 @@ class AmbientGI:
         self.tick += 1
         ds.ambient_grid, ds.gi = b.ambient, True
         return {"method": c.method, "updated_volumes": updated}
+
+    def _projected(self, array: wp.array, ds: DeviceScene, clamp: bool = False) -> wp.array:
+        """``array`` with each volume's basis-weighted means replaced by the grid values of their L2 projection
+        (`project_to_basis`), clamped at 0 for radiance."""
+        host = array.numpy()
+        flat = host.reshape(max(sum(self.light_voxels), 1), -1).astype(np.float64)
+        start = 0
+        for (nx, ny, nz), count in zip(self.light_res, self.light_voxels, strict=True):
+            grid = flat[start: start + count].reshape(nz, ny, nx, -1)
+            flat[start: start + count] = project_to_basis(grid).reshape(count, -1)
+            start += count
+        if clamp:
+            flat = np.maximum(flat, 0.0)
+        return wp.array(flat.astype(np.float32).reshape(host.shape), dtype=array.dtype, device=ds.device)
 
     def _launcher(self, ds: DeviceScene, clock: PassClock):
         def launch(name: str, v: int, kernel, samples: int, inputs: list) -> None:

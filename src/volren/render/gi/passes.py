@@ -287,33 +287,88 @@ def integrate_kernel(
     buf.ambient[idx] = wp.vec3(wp.max(out[0], 0.0), wp.max(out[1], 0.0), wp.max(out[2], 0.0))
 
 
+@wp.func
+def basis_rule_size(i: int, n: int, projected: int) -> int:
+    """Nodes of `basis_rule` for voxel i of n on an axis: 3 for the end functions, 2 otherwise; 1 (the centre)
+    without ``projected``."""
+    if projected == 0:
+        return 1
+    if n > 1 and (i == 0 or i == n - 1):
+        return 3
+    return 2
+
+
+@wp.func
+def basis_rule(i: int, n: int, j: int, projected: int) -> wp.vec2:
+    """(local coordinate, weight) of node j of the Gauss rule whose weight function is the clamped linear basis
+    function of voxel i of n on an axis (the weight trilinear lookups give that voxel): interior voxels a hat of
+    half-width h = 2 / n about the centre (nodes +-h / sqrt(6)); the end voxels the constant 1 from the face to the
+    centre, then the ramp to the next centre (3 nodes, for the field's steep fall from the face); one voxel the
+    constant on [-1, 1]. Nodes and weights from the weight's moments; weights sum to 1. Without ``projected``: the
+    voxel centre, weight 1."""
+    h = 2.0 / float(n)
+    if projected == 0:
+        return wp.vec2(-1.0 + (float(i) + 0.5) * h, 1.0)
+    if n == 1:
+        return wp.vec2(wp.where(j == 0, -0.57735027, 0.57735027), 0.5)
+    if i == 0 or i == n - 1:
+        t = wp.where(j == 0, 0.14536447, wp.where(j == 1, 0.63032498, 1.18636298))
+        w = wp.where(j == 0, 0.35738143, wp.where(j == 1, 0.49036715, 0.15225141))
+        return wp.vec2(wp.where(i == 0, -1.0 + t * h, 1.0 - t * h), w)
+    return wp.vec2(-1.0 + (float(i) + 0.5) * h + wp.where(j == 0, -0.40824829, 0.40824829) * h, 0.5)
+
+
 @wp.kernel
 def sphere_kernel(
-    sc: GIScene, buf: GIBuffers, env: EnvironmentLight, rays: int, order2: int, seed: int,
+    sc: GIScene, buf: GIBuffers, env: EnvironmentLight, rays: int, order2: int, seed: int, projected: int,
     counter_rows: wp.array2d(dtype=wp.int64), row0: int,
 ):
-    """Brute force and PRT baselines: ``rays`` stratified directions per voxel (z in equal bands, golden-angle
-    azimuths, randomly rotated about +y per voxel). Writes the brute-force ambient (1 / rays) sum T L(w) (the
-    ground truth, no SH) and the PRT coefficients (4 pi / rays) sum T y_j."""
+    """Brute force and PRT baselines: per voxel the basis-weighted means b = integral f phi / integral phi of the
+    ambient field f (brute force: T L(w) averaged over directions, the ground truth, no SH; PRT: 4 pi T y_j), phi the
+    voxel's trilinear basis function, by the product of `basis_rule` over the axes (8 to 27 points), ray n from
+    point n mod P in direction n / P of the point's share of ``rays`` (z in equal bands, golden-angle azimuths,
+    rotated randomly per point). `volren.render.gi.ambient.project_to_basis` turns b into the grid values whose
+    trilinear interpolation is the field's L2 projection. Without ``projected`` (PRT, and brute force for comparing
+    grids with the per-frame methods): the field at the voxel centre from all ``rays``."""
     r, i = wp.tid()
     counters = counter_row(counter_rows, r, i)
-    idx = voxel_index(sc, r + row0, i)
-    x = voxel_position(sc, r + row0, i)
-    state = wp.rand_init(seed, idx)
-    offset = wp.randf(state)
-    turn = 2.0 * wp.pi * wp.randf(state)
+    row = r + row0
+    idx = voxel_index(sc, row, i)
+    vol = sc.volumes[sc.v]
+    res = vol.light_res
+    k = row / res[1]
+    j = row - k * res[1]
+    kx = basis_rule_size(i, res[0], projected)
+    ky = basis_rule_size(j, res[1], projected)
+    points = kx * ky * basis_rule_size(k, res[2], projected)
     coefficients = vec16()
     radiance = wp.vec3(0.0)
     for n in range(rays):
-        d = uniform_sphere((float(n) + offset) / float(rays), float(n) * 0.38196601 + turn / (2.0 * wp.pi))
+        p = n % points
+        m = n / points
+        share = (rays - p + points - 1) / points
+        ax = basis_rule(i, res[0], p % kx, projected)
+        ay = basis_rule(j, res[1], (p / kx) % ky, projected)
+        az = basis_rule(k, res[2], p / (kx * ky), projected)
+        x = wp.transform_point(vol.to_world, wp.vec3(ax[0], ay[0], az[0]))
+        state = wp.rand_init(seed, idx * 27 + p)
+        offset = wp.randf(state)
+        turn = wp.randf(state)
+        d = uniform_sphere((float(m) + offset) / float(share), float(m) * 0.38196601 + turn)
+        weight = ax[1] * ay[1] * az[1] / float(share)
         t = visibility(sc, x, d, sc.samples, counters)
-        coefficients += sh_basis16(d) * t
-        radiance += t * environment_radiance(env, d)
+        coefficients += sh_basis16(d) * (t * weight)
+        radiance += (t * weight) * environment_radiance(env, d)
+    # points without a ray (rays < points): the others' weights renormalised
+    covered = float(0.0)
+    for p in range(wp.min(rays, points)):
+        covered += (basis_rule(i, res[0], p % kx, projected)[1] * basis_rule(j, res[1], (p / kx) % ky, projected)[1]
+                    * basis_rule(k, res[2], p / (kx * ky), projected)[1])
     count(counters, RAYS, rays)
     for c in range(16):
         if c < order2:
-            buf.sh[idx * order2 + c] = coefficients[c] * FOUR_PI / float(rays)
-    buf.ambient[idx] = radiance / float(rays)
+            buf.sh[idx * order2 + c] = coefficients[c] * FOUR_PI / covered
+    buf.ambient[idx] = radiance / covered
 
 
 @wp.kernel
