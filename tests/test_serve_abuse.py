@@ -9,6 +9,7 @@ import asyncio
 import json
 import logging
 import os
+import select
 import signal
 import socket
 import statistics
@@ -342,7 +343,8 @@ def test_signal_closes_viewers_with_1001_and_exits_within_2_s(sig):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
-        line = proc.stdout.readline()
+        ready, _, _ = select.select([proc.stdout], [], [], 120.0)  # bounded: a server that never comes up fails
+        line = proc.stdout.readline() if ready else ""
         assert "open http://127.0.0.1" in line, (line, proc.stderr.read() if proc.poll() is not None else "")
 
         async def client() -> tuple[int, float, int]:
@@ -365,7 +367,7 @@ def test_signal_closes_viewers_with_1001_and_exits_within_2_s(sig):
                 code = await asyncio.to_thread(proc.wait, 10.0)
                 return msg.data, time.perf_counter() - start, code
 
-        close, elapsed, code = asyncio.run(client())
+        close, elapsed, code = asyncio.run(asyncio.wait_for(client(), 60.0))
         assert close == 1001 and code == 0 and elapsed < 2.0, (close, code, elapsed)
         out = proc.stdout.read()
         assert out.count("\n") == 1 and f"volren serve: {sig.name}: closing 1 viewer(s)" in out, out
