@@ -99,8 +99,8 @@ from volren.render.marching.cubemap import (
     face_size_cap,
     face_tiles,
     max_tile_level,
-    on_face_rim,
     point_face,
+    rim_needs_march,
     store_texel,
     texel_index,
     texel_point,
@@ -200,7 +200,8 @@ class CMSRMConfig(LightMapMarchConfig):
     000 §3.3); steeper than k_z: at 33 x 33 with a sheet inside a slab and 8^2 texels per face, 42.1 / 49.5 / 43.4 dB
     against DSSRM at 0.5 / 2 / 4 (16^2 texels: 44.1 / 61.6 / 57.2 dB), 36.6 dB with the filter off"""
     rim_direct: bool = True
-    """march directly the pixels whose cube-map lookup falls within half a texel of a face edge (`on_face_rim`)"""
+    """march directly the pixels whose cube-map lookup falls within half a texel of a face edge across texels that
+    differ (`rim_needs_march`: a silhouette or steep edge of the box)"""
     tile_lod: bool = False
     """per-tile LOD l in {0, 1, 2} (paper 000 §3.1.3); off by default: it halves the samples of a distant volume
     but costs 5-10 dB there (see the module docstring)"""
@@ -374,7 +375,8 @@ def cube_resample_kernel(
             # marched directly where neither applies (a direct-scheme box, a segment without Eq. 13 weight).
             done = int(0)
             p = cube_face_point(volumes[v], cam.origin, d, exterior)
-            if scheme[v] == SCHEME_CUBE and (rim_direct == 0 or on_face_rim(p, cube_size[v]) == 0):
+            rim = rim_direct != 0 and rim_needs_march(cube, cube_offset[v], cube_size[v], p) != 0
+            if scheme[v] == SCHEME_CUBE and not rim:
                 if not layer_before(mesh, row, col, next_mesh, facing, layers.t_out[i]):
                     c = cube_sample(cube, cube_z, cube_offset[v], cube_size[v], p, layers.t_out[i] * facing, k_z)
                     after = s.transmittance * c[3]

@@ -197,6 +197,23 @@ def on_face_rim(p: wp.vec3, size: int) -> int:
     return int(x < 0.0 or y < 0.0 or x >= float(size - 1) or y >= float(size - 1))
 
 
+RIM_CONTRAST = 0.01
+"""the transmittance spread over a rim pixel's 2x2 texels above which it is marched directly (`rim_needs_march`)"""
+
+
+@wp.func
+def rim_needs_march(cube: wp.array(dtype=wp.vec4), offset: int, size: int, p: wp.vec3) -> int:
+    """1 where the lookup at p lies on a face rim (`on_face_rim`) and its 2x2 texels' transmittances spread by more
+    than RIM_CONTRAST: a silhouette or a steep edge of the box. A rim of transparent (or uniform) texels, the empty
+    border of most data sets, keeps its cube lookup, which is exact there."""
+    if on_face_rim(p, size) == 0:
+        return 0
+    idx, _b = cube_quad(offset, size, p)
+    lo = wp.min(wp.min(cube[idx[0]][3], cube[idx[1]][3]), wp.min(cube[idx[2]][3], cube[idx[3]][3]))
+    hi = wp.max(wp.max(cube[idx[0]][3], cube[idx[1]][3]), wp.max(cube[idx[2]][3], cube[idx[3]][3]))
+    return int(hi - lo > RIM_CONTRAST)
+
+
 @wp.func
 def cube_sample(
     cube: wp.array(dtype=wp.vec4),
@@ -307,7 +324,7 @@ MAX_FACE_SIZE = 64
 follows the screen would make every near box's faces hold more texels than its pixels, so the hybrid would march it
 directly and CMSRM's viewport independence (bench resolution) would be lost; 64 lifts 16^3 grids 4x (6 x 64^2
 texels, 0.6 MB a volume and view) and leaves grids of 64 and more at S0. The edges a capped face still blurs are
-the face rims, marched directly (`on_face_rim`)."""
+the face rims, marched directly (`rim_needs_march`)."""
 FACE_SIZE_STEP = 4
 """screen-sized faces are rounded up to a multiple of this, so that tile levels up to 2 halve them exactly"""
 
