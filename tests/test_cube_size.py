@@ -4,8 +4,8 @@ With S0 the grid's longest axis (the LOD only lowered it) a 16 x 2 x 1 m slab, a
 close to the eye were read from texels of many pixels, and bilinear resampling blurred the boxes' silhouettes and
 face edges. The faces are now raised to what the screen needs (`cubemap.screen_texels`, up to
 `cubemap.face_size_cap`) and the pixels whose lookup straddles a face edge across differing texels are marched
-directly (`cubemap.rim_needs_march`). Each scene is held to the reference at the default settings and with the hybrid off (the
-cube maps themselves); ``OLD`` (S0 = the grid, no rim) is the sizing before the fix, measured below the floors.
+directly (`cubemap.rim_needs_march`). Each scene is held to the reference at the default settings and with the
+hybrid off (the cube maps themselves); the old sizing (S0 = the grid, no rim) is shown below the floors.
 """
 
 from __future__ import annotations
