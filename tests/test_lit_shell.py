@@ -5,8 +5,8 @@ A uniform medium lit straight down, at the default light grid (half the density 
 clamped there, DSSRM's mean radiance was 0.958 of the reference on the box (top lit rows 0.62-0.69, bottom rows up
 to 1.60) and 0.945 on the slab (rows 0.74-1.21), CMSRM and CACRM alike. With the nodes on the faces and the optical
 depth interpolated (`volren.render.lightmap`) all three measure 1.000 on both, every lit row within 0.1%. CMSRM and
-CACRM on the box at their default cube faces (8 texels: the face sizing of issue 19 item 4) keep the mean within 1%
-(0.996), not the rows; with 256-texel faces their rows are the light map's alone.
+CACRM on the box with the 8-texel cube faces of the face sizing before issue 19 item 4 kept the mean within 1%
+(0.996) but not the rows (0.92-1.23), so the row test runs them at 256-texel faces: the light map's rows alone.
 """
 
 from __future__ import annotations
