@@ -211,8 +211,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--jitter", action="store_true", help="seeded random ray start offsets")
     r.add_argument("--cube-faces", choices=("interior", "exterior"), help="cmsrm/cacrm: march to interior (default) or "
                    "exterior cube faces (exterior only to show its aliasing)")
-    r.add_argument("--cube-size", type=int, help="cmsrm: level-0 cube face size S0, in [2, 4096] (default: the "
-                   "density's axis)")
+    r.add_argument("--cube-size", type=int, help="cmsrm: level-0 cube face size S0, fixed, in [2, 4096] (default: "
+                   "the density's axis, raised with the LOD to what the screen needs, up to max(axis, 64))")
     r.add_argument("--no-lod", action="store_true", help="cmsrm: no adaptive LOD (level 0, N = --samples)")
     r.add_argument("--no-hybrid", action="store_true", help="cmsrm: always march the cube map, never directly")
     r.add_argument("--no-skip", action="store_true", help="dssrm/cmsrm/cacrm/reference: sample every step, no "
