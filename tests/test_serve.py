@@ -618,7 +618,8 @@ def test_a_frame_dropped_while_busy_is_rendered_again_when_free():
 
         viewer.send = held
         await a.send_json(cam_msg(3, 0.2))
-        await until(lambda: viewer.busy, "A's frame 3 on its way")
+        # (not just busy: A's acknowledgement of frame 1 may still be on its way)
+        await until(lambda: viewer.shown[0] == 3 and not viewer.sending.done(), "A's frame 3 on its way")
         await a.send_json(cam_msg(4, -0.3))
         await until(lambda: viewer.camera_id == 4, "A's camera 4")
         await b.send_json(cam_msg(5, 0.5))
