@@ -92,8 +92,10 @@ def score(run: list[dict[str, Any]], truth: dict[int, dict[str, Any]]) -> dict[s
 
 def ground_truth(scenes: list[Scene], frames: list[int], cfg: dict[str, Any], device: str,
                  camera: Camera) -> dict[int, dict[str, Any]]:
-    """Brute-force grids and images of the given frames (each computed afresh: one precomputation per scene)."""
-    gi = GIConfig(method="brute", rays=cfg["gt_rays"])
+    """Brute-force grids and images of the given frames (each computed afresh: one precomputation per scene). The
+    grids hold the field at the voxel centres (``projection`` off), what the compared estimators estimate, so the
+    scores measure the estimators, not the trilinear lookup's bias that the projection removes from brute force."""
+    gi = GIConfig(method="brute", rays=cfg["gt_rays"], projection=False)
     return {i: run_sequence([scenes[i]], gi, cfg, device, camera)[0] for i in frames}
 
 
