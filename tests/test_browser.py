@@ -5,7 +5,8 @@ page's view a different way. Each canvas must show what the server rendered for 
 same camera rendered offline), differ from its image before the drag, and differ from the other page's; then one
 page switches to side-by-side stereo and must show its camera's two eyes while the other stays mono. A second test
 drags one page's light pad and switches its method menu: both pages must show the new light and method, and the other
-page's pad and menu follow. Skipped
+page's pad and menu follow. A third serves a page from another loopback origin whose WebSocket to the server must be
+refused (issue 20 item 1). Skipped
 only when /usr/bin/chromium is missing, and then never in CI (CI=true): there it fails (.ci/run installs it).
 """
 
