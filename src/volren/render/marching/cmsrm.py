@@ -375,8 +375,11 @@ def cube_resample_kernel(
             # marched directly where neither applies (a direct-scheme box, a segment without Eq. 13 weight).
             done = int(0)
             p = cube_face_point(volumes[v], cam.origin, d, exterior)
-            rim = rim_direct != 0 and rim_needs_march(cube, cube_offset[v], cube_size[v], p) != 0
-            if scheme[v] == SCHEME_CUBE and not rim:
+            # only a cube-scheme box has texels to read (a direct or culled box's cube size may be 0)
+            rim = int(0)
+            if scheme[v] == SCHEME_CUBE and rim_direct != 0:
+                rim = rim_needs_march(cube, cube_offset[v], cube_size[v], p)
+            if scheme[v] == SCHEME_CUBE and rim == 0:
                 if not layer_before(mesh, row, col, next_mesh, facing, layers.t_out[i]):
                     c = cube_sample(cube, cube_z, cube_offset[v], cube_size[v], p, layers.t_out[i] * facing, k_z)
                     after = s.transmittance * c[3]
