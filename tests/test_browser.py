@@ -216,10 +216,10 @@ def test_method_menu_and_light_pad_change_every_page(server):
             pages[0].select_option("#method", "cacrm")
             switched = [quiet(page, n) for page, n in zip(pages, frames, strict=True)]
             assert pages[1].evaluate("document.getElementById('method').value") == "cacrm", "the menu follows"
-            for page, img, old, ref in zip(pages, switched, lit, offline_all(pages, "cacrm", light), strict=True):
+            for page, img, ref in zip(pages, switched, offline_all(pages, "cacrm", light), strict=True):
                 assert "cube_march" in page.evaluate("window.volren.lastHeader.pass_ms"), "rendered by CACRM"
-                # not "img != old": at 96x72 CACRM's hybrid marches the smoke directly (fewer projected pixels than
-                # face texels), which is DSSRM's image byte for byte; the pass times and the offline render tell
+                # not "the image changed": at 96x72 CACRM's hybrid marches the smoke directly (fewer projected
+                # pixels than face texels), DSSRM's image byte for byte; the pass times and the offline render tell
                 assert db(ref, img) > MATCH_DB, "the new method on every page"
         finally:
             browser.close()

@@ -141,6 +141,11 @@ def test_cli_vpt_emission_and_ambient(capfd, tmp_path):
     assert (ambient >= plain - 1e-6).all() and ambient.sum() > 1.05 * plain.sum()
     assert_error(capfd, ["render", "--method", "dssrm", "--scene", "cloud", "--vpt-ambient", "--device", "cpu",
                          "--out", tmp_path / "o"], "does not take --vpt-ambient")
+    # a transfer function replaces the material: the material flags would do nothing beside it
+    for flag, value in (("--emission", "5"), ("--albedo", "0.5"), ("--density-scale", "3")):
+        assert_error(capfd, [*base, "--tf", "smoke", flag, value, "--out", tmp_path / "o"],
+                     f"--tf gives the extinction, albedo and emission: {flag} would do nothing")
+    assert not (tmp_path / "o").exists()
 
 
 def test_emission_needs_extinction_and_bad_emission_is_refused(tmp_path):

@@ -607,6 +607,11 @@ def renderer_from_args(args: argparse.Namespace, method: str):
     ignored = [flag for k, (v, flag) in given.items() if v is not None and k not in fields]
     if ignored:
         raise CliError(f"method '{method}' does not take {', '.join(ignored)}")
+    if args.tf is not None:
+        replaced = [flag for k, flag in (("density_scale", "--density-scale"), ("albedo", "--albedo"),
+                                         ("emission", "--emission")) if getattr(args, k, None) is not None]
+        if replaced:
+            raise CliError(f"--tf gives the extinction, albedo and emission: {', '.join(replaced)} would do nothing")
     if "seed" in fields:
         options["seed"] = args.seed
     return cls(config_cls(**options), device=args.device)
