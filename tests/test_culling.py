@@ -181,12 +181,9 @@ def shifted(vol: Volume, offset) -> Volume:
     return Volume(vol.density, m, vol.density_scale, vol.albedo, vol.g, vol.emission, "extra")
 
 
-@pytest.mark.parametrize("offset", [(30.0, 0.0, 0.0), (0.0, 0.0, 8.0)])
-def test_volumes_outside_the_frustum_cost_nothing(offset):
-    """30 m to the side, and behind the eye: no cube map, no tiles, no rays, not one sample; the image is unchanged."""
-    scene = builtin_scene("cloud", 64)
-    extra = Scene((scene.volumes[0], shifted(scene.volumes[0], offset)), scene.lights, scene.environment)
-    cam = Camera(position=(0.0, 0.4, 3.2), width=96, height=64)
+def assert_second_volume_costs_nothing(scene: Scene, extra: Scene, cam: Camera) -> None:
+    """``extra`` is ``scene`` plus a second volume that CMSRM must cull: no cube map, tiles, rays or samples for it,
+    and the image unchanged."""
     renderer = CMSRM(CMSRMConfig(hybrid=False, light_grid=32), device=DEVICE)
     alone, both = renderer.render(scene, [cam]), renderer.render(extra, [cam])
     plan = both.stats.info["volumes"][0][1]
@@ -195,6 +192,15 @@ def test_volumes_outside_the_frustum_cost_nothing(offset):
         assert both.stats.counters[key] == alone.stats.counters[key], key
     assert both.stats.info["cube_map_bytes"] == alone.stats.info["cube_map_bytes"]
     np.testing.assert_array_equal(both.images[0], alone.images[0])
+
+
+@pytest.mark.parametrize("offset", [(30.0, 0.0, 0.0), (0.0, 0.0, 8.0)])
+def test_volumes_outside_the_frustum_cost_nothing(offset):
+    """30 m to the side, and behind the eye: no cube map, no tiles, no rays, not one sample; the image is unchanged."""
+    scene = builtin_scene("cloud", 64)
+    extra = Scene((scene.volumes[0], shifted(scene.volumes[0], offset)), scene.lights, scene.environment)
+    cam = Camera(position=(0.0, 0.4, 3.2), width=96, height=64)
+    assert_second_volume_costs_nothing(scene, extra, cam)
 
 
 def test_a_volume_past_the_far_plane_costs_nothing():
@@ -217,14 +223,7 @@ def test_a_volume_past_the_far_plane_costs_nothing():
     assert cam.far < depth.min() < cam.far + 0.1
     assert not frustum_visible(far_box, cam)
     extra = Scene((vol, far_box), scene.lights, scene.environment)
-    renderer = CMSRM(CMSRMConfig(hybrid=False, light_grid=32), device=DEVICE)
-    alone, both = renderer.render(scene, [cam]), renderer.render(extra, [cam])
-    plan = both.stats.info["volumes"][0][1]
-    assert (plan["scheme"], plan["tiles"], plan["visible_texels"], plan["projected_pixels"]) == ("culled", 0, 0, 0)
-    for key in ("rays", "density_samples", "lightmap_lookups"):
-        assert both.stats.counters[key] == alone.stats.counters[key], key
-    assert both.stats.info["cube_map_bytes"] == alone.stats.info["cube_map_bytes"]
-    np.testing.assert_array_equal(both.images[0], alone.images[0])
+    assert_second_volume_costs_nothing(scene, extra, cam)
 
 
 @pytest.mark.parametrize("method", ["cmsrm", "cacrm"])

@@ -11,7 +11,7 @@ from test_cli import assert_error, ok
 from test_surface_shading import ALBEDO, COS, SIGMA, UNDER, E, floor_scene, shadowed_floor, slab
 from volren.camera import Camera
 from volren.render import VPT, Reference, ReferenceConfig, VPTConfig
-from volren.scene import Environment, Scene
+from volren.scene import Environment, Scene, Volume
 from volren.transfer import ControlPoint, TransferFunction
 
 EMITTER = axis_camera(position=(0.0, 0.0, 4.0), size=(9, 9), fov_y=20.0)
@@ -66,18 +66,24 @@ def test_emission_with_scattering_matches_the_reference():
     assert ref[..., 0].mean() > 1.3 * dark[..., 0].mean()
 
 
+def furnace_ratio(vol: Volume) -> float:
+    """Colour / alpha over the pixels that see ``vol`` in a constant environment of radiance 1 (no lights), default
+    VPT settings with 64 spp and 64 bounces, 24x16."""
+    scene = Scene((vol,), lights=(), environment=Environment((1.0, 1.0, 1.0)))
+    cam = Camera(position=(0.0, 0.3, 3.2), width=24, height=16)
+    image = VPT(VPTConfig(spp=64, max_bounces=64), device=DEVICE).render(scene, [cam]).images[0]
+    seen = image[..., 3] > 0.5
+    assert seen.sum() > 40
+    return float(image[..., 0][seen].sum() / image[..., 3][seen].sum())
+
+
 def test_emitting_furnace():
     """Albedo 0.5, sigma_t 2, emission 1 in a constant environment of radiance L = E / (sigma_t (1 - albedo)) = 1:
     the equilibrium of the transport equation (E + sigma_s L = sigma_t L), so every pixel's colour / alpha is 1 with
     enough bounces (0.5^64 left). Emission at later vertices must carry the throughput of the scatterings before it
     but not its own albedo (either slip: 0.75-0.83)."""
     vol = homogeneous_volume(SIGMA_E, n=16, albedo=0.5, g=0.3, emission=EMISSION)
-    scene = Scene((vol,), lights=(), environment=Environment((1.0, 1.0, 1.0)))
-    cam = Camera(position=(0.0, 0.3, 3.2), width=24, height=16)
-    image = VPT(VPTConfig(spp=64, max_bounces=64), device=DEVICE).render(scene, [cam]).images[0]
-    seen = image[..., 3] > 0.5
-    assert seen.sum() > 40
-    assert image[..., 0][seen].sum() / image[..., 3][seen].sum() == pytest.approx(1.0, abs=0.02)
+    assert furnace_ratio(vol) == pytest.approx(1.0, abs=0.02)
 
 
 @pytest.mark.parametrize("denoise", ["ours", "svgf", "wrls"])
@@ -100,12 +106,7 @@ def test_furnace_at_the_default_settings():
     leave < 1e-4 of the energy in this optically thin cube (optical radius 1.5: each scattering escapes with
     probability > 0.2); noise at 64 spp on 24x16 pixels: ~0.3%."""
     vol = homogeneous_volume(1.5, n=16, albedo=1.0, g=0.3)
-    scene = Scene((vol,), lights=(), environment=Environment((1.0, 1.0, 1.0)))
-    cam = Camera(position=(0.0, 0.3, 3.2), width=24, height=16)
-    image = VPT(VPTConfig(spp=64, max_bounces=64), device=DEVICE).render(scene, [cam]).images[0]
-    seen = image[..., 3] > 0.5
-    assert seen.sum() > 40
-    assert image[..., 0][seen].sum() / image[..., 3][seen].sum() == pytest.approx(1.0, abs=0.02)
+    assert furnace_ratio(vol) == pytest.approx(1.0, abs=0.02)
 
 
 def test_floor_under_a_slab_is_shadowed_by_the_volume():
