@@ -128,17 +128,20 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     if not demo:
         src.add_argument("--scene", default=None, help=f"built-in scene (default {DEFAULT_SCENE}; see `volren scenes`)")
         src.add_argument("--volume", type=Path, help="density file (default: none, a --scene): .npy .npz .nrrd .nhdr "
-                         ".nii(.gz) .tif(f) .nvdb or raw, a folder of DICOM slices or one of its .dcm files (the "
+                         ".nii(.gz) .tif(f) .nvdb .vdb or raw, a folder of DICOM slices or one of its .dcm files (the "
                          "series is read); placed where the file says (mm unless it states metres)")
         src.add_argument("--shape", type=ints3, help="raw files: voxels X,Y,Z, each >= 2 (x varies fastest in the "
                          "file; default: none, required for raw)")
         src.add_argument("--dtype", help="raw files: uint8, uint16, int16, float32, ... (default: none, required for "
                          "raw)")
         src.add_argument("--spacing", type=vec3, help="voxel size x,y,z in --units for .npy .npz raw files, or to "
-                         "replace a .tif's or .nvdb's own (default: what the file stores, else cubic voxels, longest "
-                         "side 2 m)")
+                         "replace a .tif's, .nvdb's or .vdb's own (default: what the file stores, else cubic voxels, "
+                         "longest side 2 m)")
         src.add_argument("--units", choices=("m", "cm", "mm", "um"), help="unit of the file's coordinates and "
-                         "--spacing (default: what the file states, e.g. a TIFF's microns, else mm)")
+                         "--spacing (default: what the file states, e.g. a TIFF's microns, else mm; .vdb: m, "
+                         "OpenVDB states no unit)")
+        src.add_argument("--grid", help=".vdb files: the density grid's name (default: 'density', else the file's "
+                         "only float grid)")
     # None unless given, so --volume and the fog scenes (which take no voxel count) can refuse it
     src.add_argument("--resolution", type=int, default=128 if demo else None, help="built-in volume scenes: voxels "
                      f"per axis, 64-512{'' if demo else f' (default: {DEFAULT_RESOLUTION})'}")
@@ -358,12 +361,14 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     from volren.data.fog_scenes import FOG_SCENES, fog_scene
     from volren.scene import DirectionalLight, Environment, Plane, Scene, Sphere, Volume
 
+    if getattr(args, "grid", None) is not None and getattr(args, "volume", None) is None:
+        raise CliError("--grid names a grid of a .vdb --volume; there is no --volume")
     if getattr(args, "volume", None) is not None:
         if args.scene is not None:
             raise CliError("give either --scene or --volume, not both")
         if args.resolution is not None:
             raise CliError("--resolution applies to built-in volume scenes only; --volume's file sets its own voxels")
-        loaded = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units)
+        loaded = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units, args.grid)
         # CT presets classify by HU; a constant file (lo = hi) has no HU scale
         hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
         value_range = loaded.value_range if hu else None
@@ -446,7 +451,7 @@ def rect_light(x: float, y: float, z: float, width: float, height: float, radian
     return RectLight(tuple(position), tuple(0.5 * width * u), tuple(0.5 * height * v), (radiance,) * 3)
 
 
-def _load_volume(path: Path, shape, dtype, spacing, units):
+def _load_volume(path: Path, shape, dtype, spacing, units, grid=None):
     """``--volume`` read once: the scene and the default camera framing both need it (keyed on the file's mtime too,
     so a rewritten file is read again). One ``.dcm`` file stands for its series: the files of its folder with its
     SeriesInstanceUID (other series beside it are skipped)."""
@@ -454,7 +459,7 @@ def _load_volume(path: Path, shape, dtype, spacing, units):
     source = path.parent if dicom_file else path
     stamp = source.stat().st_mtime_ns if source.exists() else None
     try:
-        return _load_volume_cached(path, stamp, shape, dtype, spacing, units)
+        return _load_volume_cached(path, stamp, shape, dtype, spacing, units, grid)
     except VolrenError as exc:
         if not dicom_file:
             raise
@@ -463,10 +468,10 @@ def _load_volume(path: Path, shape, dtype, spacing, units):
 
 
 @functools.lru_cache(maxsize=1)
-def _load_volume_cached(path: Path, _stamp, shape, dtype, spacing, units):
+def _load_volume_cached(path: Path, _stamp, shape, dtype, spacing, units, grid):
     from volren.data.loaders import load_volume
 
-    return load_volume(path, shape=shape, dtype=dtype, spacing=spacing, units=units)
+    return load_volume(path, shape=shape, dtype=dtype, spacing=spacing, units=units, grid=grid)
 
 
 def framing_distance(corners, look_at, direction, up, fov_y: float, aspect: float, eye_offset: float = 0.0) -> float:
@@ -506,7 +511,7 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
     elif getattr(args, "volume", None) is not None and args.camera_pos is None:
         import numpy as np
 
-        corners = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units).corners_world
+        corners = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units, args.grid).corners_world
         look_at = tuple(args.look_at or (corners.min(axis=0) + corners.max(axis=0)) / 2)
         direction = np.array(position) / np.linalg.norm(position)
         distance = framing_distance(corners, look_at, direction, args.up, args.fov, args.width / max(args.height, 1),

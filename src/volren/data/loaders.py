@@ -56,6 +56,8 @@ class _Grid:
     """min-max normalise floats too (DICOM Hounsfield units are floats that go below zero)."""
     spacing_replaces: bool = False
     """``spacing`` replaces the stored placement (ImageJ TIFF, NanoVDB) instead of being refused."""
+    emission: np.ndarray | None = None
+    """a second grid of an OpenVDB file (``emission_grid``), raw float32 values, the shape of ``data``."""
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,9 @@ class LoadedVolume:
     hounsfield: bool = False
     """``value_range`` is in Hounsfield units: signed integers (CT files store HU so) or a rescaled DICOM series;
     unsigned integers (0..dtype max) are not."""
+    emission_source: np.ndarray | None = None
+    """``load_volume(emission_grid=...)``: that grid's raw values (e.g. temperature) as float32 ``[z, y, x]``, voxel
+    for voxel with ``density``; None otherwise."""
 
     @property
     def corners_world(self) -> np.ndarray:
@@ -300,7 +305,17 @@ def _read_nvdb(path: Path) -> _Grid:
     return _Grid(out.numpy(), m, spacing_replaces=True)
 
 
-_READERS: dict[str, Callable[[Path], np.ndarray | _Grid]] = {
+def _read_vdb(path: Path, grid: str | None = None, emission_grid: str | None = None) -> _Grid:
+    """An OpenVDB file through tinyvdb (``volren.data.vdb``): the density grid over its active box, placed by its
+    index-to-world map in metres (OpenVDB states no unit; ``units`` overrides), which ``spacing`` replaces as for
+    NanoVDB; ``emission_grid`` densified over the same box."""
+    from volren.data.vdb import read_vdb  # lazy: tinyvdb only for .vdb users
+
+    vdb, emission = read_vdb(path, grid, emission_grid)
+    return _Grid(vdb.data, vdb.index_to_world, metres_per_unit=1.0, spacing_replaces=True, emission=emission)
+
+
+_READERS: dict[str, Callable[..., np.ndarray | _Grid]] = {
     ".npy": _read_npy,
     ".npz": _read_npz,
     ".nrrd": _read_nrrd,
@@ -308,6 +323,7 @@ _READERS: dict[str, Callable[[Path], np.ndarray | _Grid]] = {
     ".nii": _read_nifti,
     ".nii.gz": _read_nifti,
     ".nvdb": _read_nvdb,
+    ".vdb": _read_vdb,
     ".tif": _read_tiff,
     ".tiff": _read_tiff,
 }
@@ -331,6 +347,8 @@ def load_volume(
     dtype: str | None = None,
     spacing: Sequence[float] | None = None,
     units: str | None = None,
+    grid: str | None = None,
+    emission_grid: str | None = None,
 ) -> LoadedVolume:
     """Read a density grid (see ``load_volume_file`` for the formats and value mapping) or a folder holding a DICOM
     series, and place it in the world.
@@ -346,6 +364,10 @@ def load_volume(
     voxels with the longest side 2 m, centred. ``spacing`` is refused for NRRD, NIfTI and DICOM.
     """
     path = Path(path)
+    vdb_options = {k: v for k, v in (("grid", grid), ("emission_grid", emission_grid)) if v is not None}
+    if vdb_options and path.suffix.lower() != ".vdb":  # Warp reads a .nvdb's first grid only
+        raise VolrenError(f"{path}: grid and emission_grid name grids of an OpenVDB file: they apply to .vdb only "
+                          "(CLI: --grid, --emission-grid)")
     if units is not None and units not in UNITS:
         raise VolrenError(f"units must be one of {', '.join(UNITS)}, got {units!r} (CLI: --units)")
     if spacing is not None:
@@ -365,7 +387,7 @@ def load_volume(
             raise VolrenError(f"{path}: shape/dtype apply to raw binary files only; a DICOM series stores its own")
         grid = read_dicom_series(path.parent, member=path)
     else:
-        grid = _read_file(path, shape, dtype)
+        grid = _read_file(path, shape, dtype, **vdb_options)
     if grid.index_to_file is not None and spacing is not None and not grid.spacing_replaces:
         raise VolrenError(f"{path}: this volume stores its own voxel spacing; --spacing applies to .npy, .npz, raw, "
                           ".tif and .nvdb")
@@ -382,10 +404,12 @@ def load_volume(
     if abs(np.linalg.det(index_to_world[:3, :3])) < 1e-30:
         raise VolrenError(f"{path}: the stored voxel axes are degenerate (zero spacing or parallel directions)")
     hounsfield = value_range is not None and (grid.rescale or np.issubdtype(grid.data.dtype, np.signedinteger))
-    return LoadedVolume(density, index_to_world @ _local_to_index(density.shape), value_range, hounsfield)
+    return LoadedVolume(density, index_to_world @ _local_to_index(density.shape), value_range, hounsfield,
+                        emission_source=grid.emission)
 
 
-def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None) -> _Grid:
+def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None, **options: str) -> _Grid:
+    """``options``: the OpenVDB grid names (``grid``, ``emission_grid``), passed to the .vdb reader."""
     if not path.exists():
         raise VolrenError(f"{path}: file not found")
     if not path.is_file():
@@ -402,7 +426,7 @@ def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None
             "or give shape=(X, Y, Z) and dtype to read raw binary (CLI: --shape X,Y,Z --dtype uint8)"
         )
     try:
-        grid = reader(path) if reader is not None else _read_raw(path, shape, dtype)
+        grid = reader(path, **options) if reader is not None else _read_raw(path, shape, dtype)
     except VolrenError:
         raise
     except Exception as exc:  # any parser failure on user data means an unreadable or corrupt file
