@@ -1,0 +1,63 @@
+"""volren: multi-view volumetric density rendering with NVIDIA Warp (CPU or CUDA).
+
+The public API (model: a thin ``__all__`` over private modules, as Newton and pygfx have)::
+
+    import volren as vr
+
+    scene = vr.Scene([vr.load("ct.nrrd")])
+    frame = vr.render(scene, vr.Camera(position=(0, 0.4, 3.2)), method="dssrm")
+    frame.save("out")  # what `volren render` writes: view0.png, stats.json
+
+Every name is imported on first use (PEP 562), so ``import volren`` and ``volren --help`` load neither Warp nor
+numpy. ``volren.render`` is the renderer package and, called, the ``render`` function (`volren.render.__call__`):
+the subpackage's name is the API's verb.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS: dict[str, str] = {
+    "__version__": "volren._version",
+    "load": "volren._api",
+    "builtin_scene": "volren._api",
+    "views": "volren._api",
+    "render": "volren.render",  # the package itself, callable (see the module docstring)
+    "Renderer": "volren._api",
+    "Scene": "volren.scene",
+    "Volume": "volren.scene",
+    "DirectionalLight": "volren.scene",
+    "PointLight": "volren.scene",
+    "SpotLight": "volren.scene",
+    "RectLight": "volren.scene",
+    "Environment": "volren.scene",
+    "Camera": "volren.camera",
+    "Frame": "volren.render.frame",
+    "DSSRMConfig": "volren.render.marching.dssrm",
+    "CMSRMConfig": "volren.render.marching.cmsrm",
+    "CACRMConfig": "volren.render.marching.cacrm",
+    "ReferenceConfig": "volren.render.reference",
+    "VPTConfig": "volren.render.vpt.tracer",
+    "FogConfig": "volren.render.fog.renderer",
+    "GIConfig": "volren.render.gi.ambient",
+    "Viewer": "volren.notebook",
+    "VolrenError": "volren.errors",
+}
+"""public name -> the module that defines it (a module of the name's own name: that module)"""
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'volren' has no attribute '{name}'")
+    home = importlib.import_module(module)
+    value = home if module == f"volren.{name}" else getattr(home, name)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

@@ -19,7 +19,20 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from volren.errors import VolrenError
-from volren.imageio import TONEMAPS
+
+# Building the parser imports no renderer, Warp or numpy (`volren --help` and refusals answer at once), so the names
+# its choices and help list are spelled out here; tests/test_api.py checks they equal their sources'.
+METHOD_NAMES = ("dssrm", "cmsrm", "cacrm", "reference", "fog", "vpt")
+"""`volren.render.METHODS`"""
+GI_METHOD_NAMES = ("none", "major", "prt", "restir", "sresir", "brute")
+"""`volren.render.gi.ambient.GI_METHODS`"""
+TF_PRESET_NAMES = ("ct-bone", "ct-muscle", "ct-vessels", "smoke")
+"""`volren.transfer.PRESETS`"""
+TONEMAPS = ("none", "reinhard", "aces")
+"""`volren.imageio.TONEMAPS`"""
+SCENE_NAMES = ("smoke", "cloud", "phantom", "multi", "instances", "instances-overlap", "smoke-floor", "hall",
+               "courtyard", "dynamic")
+"""`volren.data.BUILTIN_SCENES`, then `volren.data.fog_scenes.FOG_SCENES`"""
 
 MAX_EXPOSURE = 64.0
 """[stops] beyond this every pixel is black or white, and 2**exposure overflows soon after."""
@@ -58,6 +71,19 @@ class HelpFormatter(argparse.HelpFormatter):
             return text
         shown = ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else str(value)
         return f"{text} (default: {shown.replace('%', '%%')})"
+
+
+class VersionAction(argparse.Action):
+    """``--version``: looks the version up only when asked (importlib.metadata alone takes 0.1 s to import)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, **kwargs) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace, values, option_string=None) -> None:
+        from volren import __version__
+
+        print(f"volren {__version__}")
+        parser.exit()
 
 
 class Parser(argparse.ArgumentParser):
@@ -120,9 +146,6 @@ def add_device(p: argparse.ArgumentParser) -> None:
 def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     animate = p.prog.endswith("animate")
     from volren.presets import QUALITIES
-    from volren.render import METHODS
-    from volren.render.gi.ambient import GI_METHODS
-    from volren.transfer import PRESETS
 
     src = p.add_argument_group("data")
     if not demo:
@@ -202,7 +225,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     cam.add_argument("--ipd", type=float, default=0.063, help="stereo eye distance [m], in [0, 10)")
     r = p.add_argument_group("method")
     if not demo:
-        r.add_argument("--method", default="dssrm", help=f"one of: {', '.join(METHODS)}")
+        r.add_argument("--method", default="dssrm", help=f"one of: {', '.join(METHOD_NAMES)}")
     r.add_argument("--quality", default="default", choices=QUALITIES, help="preset of V, L, light grid, early "
                    "termination (light-map methods), froxels (fog), paths (vpt); the flags below override it")
     r.add_argument("--samples", type=int, help="V: view samples across the box diagonal, in [1, 65536] "
@@ -234,7 +257,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                    "pixel-rt (per-pixel BVH ray queries) or pixel-sort (every box tested per pixel)")
     r.add_argument("--oit-k", type=int, help="dssrm/cmsrm/cacrm: K, boxes kept per pixel (the nearest), in [1, 16] "
                    "(default 16)")
-    r.add_argument("--gi", choices=GI_METHODS, help="dssrm/cmsrm/cacrm: ambient global illumination (paper 000 "
+    r.add_argument("--gi", choices=GI_METHOD_NAMES, help="dssrm/cmsrm/cacrm: ambient global illumination (paper 000 "
                    "§3.2): sresir (ours), restir (strict ReSTIR), prt, major (major direction), brute (ground truth), "
                    "none (default: constant ambient)")
     r.add_argument("--gi-order", type=int, help="SH order n of the GI (n^2 coefficients, 1-4, default 3)")
@@ -245,7 +268,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                    "single)")
     r.add_argument("--shading", choices=("coexist", "er"), help="vpt: surface-medium coexistence (default) or "
                    "Exposure Render's two particle types")
-    r.add_argument("--tf", help=f"vpt: transfer function, a preset ({', '.join(PRESETS)}) or a JSON "
+    r.add_argument("--tf", help=f"vpt: transfer function, a preset ({', '.join(TF_PRESET_NAMES)}) or a JSON "
                    "file {\"points\": [{\"position\": u, \"extinction\": mu_t, \"albedo\": [r, g, b], \"p_brdf\": p}, "
                    "...]}: u in [0, 1] (the scalar over the volume's largest) not decreasing, mu_t >= 0 [1/m], albedo "
                    "(default 0.8 each) and p_brdf (surface-like share, default 0) in [0, 1], optional \"emission\": "
@@ -326,6 +349,7 @@ def run_serve(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="volren", description="Multi-view volumetric density rendering (NVIDIA Warp, CPU or CUDA).")
+    p.add_argument("--version", action=VersionAction, help="print the version and exit")
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
     add_render_args(sub.add_parser("demo", help="render the default scene as a stereo pair into out/"), demo=True)
     add_render_args(sub.add_parser("render", help="render a built-in scene or a volume file"))
@@ -357,7 +381,7 @@ def build_parser() -> argparse.ArgumentParser:
 def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     """The scene the arguments ask for: a built-in (a fog scene at ``time`` [s]) or a volume file, with material and
     light overrides."""
-    from volren.data import BUILTIN_SCENES, COUNTED_SCENES, builtin_scene, load_mesh_file
+    from volren.data import COUNTED_SCENES, builtin_scene, load_mesh_file
     from volren.data.fog_scenes import FOG_SCENES, fog_scene
     from volren.scene import DirectionalLight, Environment, Plane, Scene, Sphere, Volume
 
@@ -380,8 +404,7 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
         scene = fog_scene(args.scene, time)
     else:
         name = getattr(args, "scene", None)
-        if name is not None and name not in BUILTIN_SCENES:
-            raise CliError(f"--scene: unknown scene '{name}': choose from {', '.join([*BUILTIN_SCENES, *FOG_SCENES])}")
+        check_scene_name(name)
         name = DEFAULT_SCENE if name is None else name
         if args.count is not None and name not in COUNTED_SCENES:
             raise CliError(f"--count applies to --scene {', '.join(COUNTED_SCENES)} only, not to scene '{name}'")
@@ -560,8 +583,7 @@ def renderer_from_args(args: argparse.Namespace, method: str):
     from volren.render import METHODS
     from volren.render.gi.ambient import GIConfig
 
-    if method not in METHODS:
-        raise CliError(f"unknown method '{method}': choose from {', '.join(METHODS)}")
+    check_method(method)
     cls, config_cls = METHODS[method]
     fields = {f.name for f in dataclasses.fields(config_cls)}
     # config field -> (value given on the command line or None, the flag that gives it)
@@ -699,11 +721,20 @@ def check_run_time(args: argparse.Namespace, scene, views, method: str) -> None:
     print(f"{what}: about {est.seconds / 60:.1f} min estimated on {probe.device}", file=sys.stderr)
 
 
-def run_render(args: argparse.Namespace, method: str, command: str) -> int:
-    from volren.animate import frame_config, frame_scene, frame_views, write_mp4
-    from volren.imageio import composite, to_srgb8
-    from volren.output import contact_sheet, run_output, write_frame, write_stats
+def check_method(method: str) -> None:
+    if method not in METHOD_NAMES:
+        raise CliError(f"unknown method '{method}': choose from {', '.join(METHOD_NAMES)}")
 
+
+def check_scene_name(name: str | None) -> None:
+    if name is not None and name not in SCENE_NAMES:
+        raise CliError(f"--scene: unknown scene '{name}': choose from {', '.join(SCENE_NAMES)}")
+
+
+def run_render(args: argparse.Namespace, method: str, command: str) -> int:
+    # the checks that need no data first: the imports below take seconds
+    check_method(method)
+    check_scene_name(getattr(args, "scene", None))
     if args.frames < 1:
         raise CliError(f"--frames must be >= 1, got {args.frames}")
     for flag, side in (("--width", args.width), ("--height", args.height)):
@@ -711,7 +742,10 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
             raise CliError(f"{flag} must lie in [1, {MAX_IMAGE_SIDE}] pixels, got {side}")
     if not (math.isfinite(args.exposure) and abs(args.exposure) <= MAX_EXPOSURE):
         raise CliError(f"--exposure must be a number of stops in [-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
+    from volren.animate import frame_config, frame_scene, frame_views, write_mp4
     from volren.data.fog_scenes import ANIMATED_FOG_SCENES
+    from volren.imageio import composite, to_srgb8
+    from volren.output import contact_sheet, run_output, write_frame, write_stats
 
     scene = scene_from_args(args)
     animated = getattr(args, "scene", None) in ANIMATED_FOG_SCENES

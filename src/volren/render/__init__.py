@@ -1,4 +1,13 @@
-"""Renderers, one module per method; `METHODS` maps the CLI's --method names to their classes."""
+"""Renderers, one module per method; `METHODS` maps the CLI's --method names to their classes.
+
+Called, this package is the public API's ``volren.render(scene, views, method=..., quality=..., **settings)``
+(`volren._api.render`): the import system binds the subpackage to the name ``volren.render``, where it would hide a
+function.
+"""
+
+import sys
+import types
+from typing import Any
 
 from volren.render.base import Renderer
 from volren.render.fog.renderer import FogConfig, FogRenderer
@@ -17,6 +26,16 @@ METHODS: dict[str, tuple[type[Renderer], type]] = {
     "fog": (FogRenderer, FogConfig),
     "vpt": (VPT, VPTConfig),
 }
+
+
+class _CallablePackage(types.ModuleType):
+    def __call__(self, *args: Any, **kwargs: Any) -> Frame:
+        from volren._api import render
+
+        return render(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallablePackage
 
 __all__ = [
     "CACRM",

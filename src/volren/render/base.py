@@ -226,7 +226,7 @@ class Renderer:
             d[d >= 1e29] = np.inf
         settings = {"views": len(views), "resolution": [[c.width, c.height] for c in views], **self._settings()}
         stats = Stats(self.device, self.name, settings, clock.times_ms, clock.counter_values(), self._frame_info)
-        return Frame(images, depths, stats, frame)
+        return Frame(images, depths, stats, frame, background=scene.background, scene_name=scene.name)
 
 
 class LightMapRenderer(Renderer):

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -64,6 +66,52 @@ class Frame:
     depths: list[np.ndarray]
     stats: Stats
     index: int = 0
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """the scene's background (linear RGB), composited under the images when they are saved or shown"""
+    scene_name: str = "scene"
+
+    def save(self, out: str | Path, *, exposure: float = 0.0, tonemap: str = "none",
+             linear: bool = False) -> list[Path]:
+        """Write into folder ``out`` what ``volren render --out OUT`` writes for one frame (`volren.output`, the same
+        writers): ``view{v}.png`` (sRGB after ``exposure`` [stops] and ``tonemap``), ``stereo.png`` for a pair,
+        ``contact.png`` for more views, ``view{v}.npy`` linear images with ``linear``, and ``stats.json``; the
+        files' paths, stats.json last."""
+        from volren.output import run_output, write_frame, write_stats
+
+        out = Path(out)
+        with run_output(out) as staging:  # moved into ``out`` when complete, as the CLI does
+            files = write_frame(self, staging, self.background, exposure=exposure, tonemap=tonemap, linear=linear)
+            files.append(write_stats(staging, [self], {"scene": self.scene_name}))
+        return [out / f.name for f in files]
+
+    def srgb(self, *, exposure: float = 0.0, tonemap: str = "none") -> np.ndarray:
+        """The frame as one display image, uint8 sRGB (H, W, 3): the view, or the views on a contact sheet (a stereo
+        pair side by side, as stereo.png), as ``volren animate`` puts frames in its movie."""
+        from volren.imageio import composite, to_srgb8
+        from volren.output import contact_sheet
+
+        shown = self.images[0] if len(self.images) == 1 else contact_sheet(self.images)
+        return to_srgb8(composite(shown, self.background), exposure, tonemap)
+
+    def show(self, *, exposure: float = 0.0, tonemap: str = "none") -> None:
+        """Display `srgb`: inline in a Jupyter notebook, else in the system's image viewer (Pillow's ``show``:
+        Pillow is installed with imageio, matplotlib would cost a second to import)."""
+        from PIL import Image
+
+        image = Image.fromarray(self.srgb(exposure=exposure, tonemap=tonemap))
+        if _in_notebook():
+            from IPython.display import display
+
+            display(image)
+        else:
+            image.show()
+
+
+def _in_notebook() -> bool:
+    """Running in a Jupyter kernel (not a terminal IPython, whose shell has no kernel app)."""
+    ipython = sys.modules.get("IPython")
+    shell = ipython.get_ipython() if ipython is not None else None
+    return shell is not None and "IPKernelApp" in shell.config
 
 
 class PassClock:

@@ -1,0 +1,132 @@
+"""The public API's functions and its temporal renderer (re-exported by `volren`): load a file, build views, render.
+
+Heavy modules (Warp, the kernels) are imported inside the functions, so that ``import volren`` stays cheap.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from volren.errors import VolrenError
+
+if TYPE_CHECKING:
+    from volren.camera import Camera
+    from volren.data.loaders import LoadedVolume
+    from volren.render.frame import Frame
+    from volren.scene import Scene, Volume
+
+DEFAULT_METHOD = "dssrm"
+DEFAULT_QUALITY = "interactive"
+"""what `volren serve` starts with; `volren render`'s default is ``default`` (the papers' settings)"""
+
+
+def volume_from_file(loaded: LoadedVolume, name: str, **material: Any) -> Volume:
+    """A loaded file as a Volume: its placement, and its value range when that is Hounsfield units (CT transfer
+    functions classify by HU; a constant file, lo = hi, has no HU scale)."""
+    from volren.scene import Volume
+
+    hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
+    return Volume(loaded.density, loaded.to_world, name=name, value_range=loaded.value_range if hu else None,
+                  **material)
+
+
+MATERIAL = ("density_scale", "albedo", "g", "emission")
+"""`Volume` fields ``load`` takes besides the reader's options"""
+
+
+def load(path: str | Path, **options: Any) -> Volume:
+    """A density file placed in the world, as ``volren render --volume`` reads it. ``options``: the reader's
+    (`volren.data.loaders.load_volume`: ``spacing`` and ``units`` to place a file that stores no placement, ``shape``
+    and ``dtype`` for raw files, ...) and material fields of `Volume` (``density_scale``, ``albedo``, ``g``,
+    ``emission``) to replace its defaults."""
+    import inspect
+
+    from volren.data.loaders import load_volume
+
+    reader = [n for n, p in inspect.signature(load_volume).parameters.items() if p.kind is p.KEYWORD_ONLY]
+    unknown = [k for k in options if k not in reader and k not in MATERIAL]
+    if unknown:
+        raise VolrenError(f"load: unknown argument {unknown[0]}: choose from {', '.join([*reader, *MATERIAL])}")
+    loaded = load_volume(path, **{k: v for k, v in options.items() if k in reader})
+    if loaded.channels:
+        raise VolrenError(f"load: {path} holds {len(loaded.channels)} channels, and load returns one volume: render "
+                          "it with `volren render --volume`")
+    return volume_from_file(loaded, Path(path).name, **{k: v for k, v in options.items() if k in MATERIAL})
+
+
+def builtin_scene(name: str, resolution: int = 64, *, count: int = 4, seed: int = 0, time: float = 0.0) -> Scene:
+    """A scene of `volren scenes`: a built-in volume scene of ``resolution`` voxels per axis (``count`` instances
+    for multi, instances and instances-overlap), or a fog scene at ``time`` [s] (which takes no resolution)."""
+    from volren.data import builtin_scene as volume_scene
+    from volren.data.fog_scenes import FOG_SCENES, fog_scene
+
+    if name in FOG_SCENES:
+        return fog_scene(name, time)
+    return volume_scene(name, resolution, count=count, seed=seed)
+
+
+def views(camera: Camera, mode: str | int = "stereo", *, ipd: float = 0.063) -> list[Camera]:
+    """The views of ``camera``: ``mono`` (itself), ``stereo`` (two eyes ``ipd`` [m] apart, left first) or N (N
+    viewers on an arc), as ``--views`` gives them."""
+    from volren.camera import make_views
+
+    return make_views(_camera(camera, "views: camera"), mode, ipd)
+
+
+def _camera(value: Any, what: str) -> Camera:
+    from volren.camera import Camera
+
+    if not isinstance(value, Camera):
+        raise VolrenError(f"{what} must be a volren.Camera, got {type(value).__name__}")
+    return value
+
+
+def _view_list(value: Camera | Sequence[Camera]) -> list[Camera]:
+    """A Camera is one view; a list or tuple gives several."""
+    from volren.camera import Camera
+
+    if isinstance(value, Camera):
+        return [value]
+    if not isinstance(value, list | tuple):
+        raise VolrenError(f"views must be a volren.Camera or a list of them (volren.views), got {type(value).__name__}")
+    return [_camera(v, f"views[{i}]") for i, v in enumerate(value)]
+
+
+class Renderer:
+    """``method`` at ``quality`` (`volren.presets`) with ``settings`` (its config's fields) on top, as ``volren
+    render --method M --quality Q --samples ...`` builds it, kept across frames: temporal state (GI, denoiser and fog
+    history, the light map) carries from one ``render`` call to the next. Other attributes are the method's renderer's
+    (`volren.render`): ``config``, ``device``, ``gi_state``, ..."""
+
+    def __init__(self, method: str = DEFAULT_METHOD, quality: str = DEFAULT_QUALITY, *, device: str = "auto",
+                 **settings: Any) -> None:
+        from volren.presets import quality_config
+        from volren.render import METHODS
+
+        config = quality_config(method, quality, **settings)  # refuses an unknown method, quality or setting
+        self.method, self.quality = method, quality
+        self._renderer = METHODS[method][0](config, device=device)
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "_renderer":  # not set: __init__ failed
+            raise AttributeError(name)
+        return getattr(self._renderer, name)
+
+    def render(self, scene: Scene, views: Camera | Sequence[Camera], frame: int = 0) -> Frame:
+        """Frame ``frame`` of ``scene`` for each of ``views`` (one Camera or a list, e.g. from `volren.views`)."""
+        from volren.scene import Scene, Volume
+
+        if not isinstance(scene, Scene):
+            hint = ": wrap it as volren.Scene([volume])" if isinstance(scene, Volume) else ""
+            raise VolrenError(f"scene must be a volren.Scene, got {type(scene).__name__}{hint}")
+        return self._renderer.render(scene, _view_list(views), frame)
+
+
+def render(scene: Scene, views: Camera | Sequence[Camera], method: str = DEFAULT_METHOD,
+           quality: str = DEFAULT_QUALITY, device: str = "auto", **settings: Any) -> Frame:
+    """One frame of ``scene`` for ``views`` (a Camera or a list) by ``method`` at ``quality``, with ``settings``
+    (fields of the method's config, e.g. ``samples=720``) on top of the preset. For frames that build on each
+    other (GI, denoising, fog), keep a `Renderer`."""
+    return Renderer(method, quality, device=device, **settings).render(scene, views)

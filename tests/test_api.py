@@ -1,0 +1,204 @@
+"""The public API (`import volren as vr`, issue 22 items 1 and 6): lazy names, render/Renderer over the presets,
+Frame.save writing what `volren render` writes, Frame.show, one-line refusals, `--version`, a cheap start-up."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+import subprocess
+import sys
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from tests.conftest import DEVICE
+
+import volren as vr
+from volren.errors import VolrenError
+from volren.render.frame import Frame, Stats
+
+HEAVY = ("warp", "numpy", "skimage", "matplotlib", "imageio", "scipy", "trimesh", "volren.render")
+
+
+def loaded_after(code: str) -> list[str]:
+    """The heavy modules a fresh interpreter holds after running ``code``."""
+    probe = f"{code}\nimport sys\nprint('loaded:' + ','.join(m for m in {HEAVY!r} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    return [m for m in out.rsplit("loaded:", 1)[1].strip().split(",") if m]
+
+
+def test_import_volren_and_the_cli_parser_load_no_heavy_module():
+    """Start-up (issue 22 item 6): `import volren`, building the CLI's parser and a refusal of a bad value import
+    neither Warp nor numpy (machine-independent, unlike a timing)."""
+    assert loaded_after("import volren; dir(volren)") == []
+    refusals = """
+import contextlib, io, volren.cli as cli
+cli.build_parser()
+for bad in (["render", "--method", "nope"], ["render", "--scene", "nope"], ["render", "--frames", "0"],
+            ["render", "--width", "0"], ["render", "--exposure", "99"], ["render", "--gi", "x"], ["bogus"]):
+    with contextlib.redirect_stderr(io.StringIO()) as err:
+        assert cli.main(bad) == 2
+    assert err.getvalue().count("\\n") == 1, err.getvalue()
+"""
+    assert loaded_after(refusals) == []
+
+
+def test_cli_name_lists_equal_their_sources():
+    """The parser's static name lists (kept so that building it imports nothing heavy) agree with the modules."""
+    from volren import cli
+    from volren.data import BUILTIN_SCENES
+    from volren.data.fog_scenes import FOG_SCENES
+    from volren.imageio import TONEMAPS
+    from volren.render import METHODS
+    from volren.render.gi.ambient import GI_METHODS
+    from volren.transfer import PRESETS
+
+    assert tuple(METHODS) == cli.METHOD_NAMES
+    assert cli.GI_METHOD_NAMES == GI_METHODS
+    assert tuple(PRESETS) == cli.TF_PRESET_NAMES
+    assert cli.TONEMAPS == TONEMAPS
+    assert (*BUILTIN_SCENES, *FOG_SCENES) == cli.SCENE_NAMES
+
+
+def test_public_names_are_their_modules_objects():
+    import volren.camera
+    import volren.render
+    import volren.render.frame
+    import volren.render.gi.ambient
+    import volren.render.marching.cacrm
+    import volren.scene
+
+    assert dir(vr) == sorted(vr.__all__)
+    assert vr.Scene is volren.scene.Scene and vr.Volume is volren.scene.Volume
+    assert vr.Camera is volren.camera.Camera and vr.Frame is volren.render.frame.Frame
+    assert vr.CACRMConfig is volren.render.marching.cacrm.CACRMConfig
+    assert vr.GIConfig is volren.render.gi.ambient.GIConfig
+    assert vr.render is sys.modules["volren.render"] and callable(vr.render)  # the package, callable
+    assert vr.__version__ == importlib.metadata.version("volren")
+    for name in vr.__all__:
+        if name != "Viewer":  # volren.notebook (helper G's)
+            assert getattr(vr, name) is not None
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        vr.nope  # noqa: B018
+
+
+def test_version_flag_prints_the_installed_version(capsys):
+    from volren.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out == f"volren {importlib.metadata.version('volren')}\n"
+
+
+SIZE = {"width": 32, "height": 24}
+SETTINGS = {"samples": 16, "light_samples": 8, "light_grid": 16}
+
+
+def test_render_and_save_write_what_volren_render_writes(tmp_path, capsys):
+    """The Done-when line of issue 22: vr.render(...).save(out) gives `volren render`'s files, byte for byte (PNGs)
+    and setting for setting (stats.json), with the quality preset under the settings: `high`'s early termination
+    (1e-4) stays where the settings do not replace it."""
+    from volren.cli import main
+
+    args = ["render", "--scene", "smoke", "--resolution", "64", "--quality", "high", "--samples", "16",
+            "--light-samples", "8", "--light-grid", "16", "--width", "32", "--height", "24", "--device", DEVICE,
+            "--out", str(tmp_path / "cli")]
+    assert main(args) == 0
+    capsys.readouterr()
+    scene = vr.builtin_scene("smoke", 64)
+    eyes = vr.views(vr.Camera(position=(0, 0.4, 3.2), **SIZE), "stereo")
+    frame = vr.render(scene, eyes, method="dssrm", quality="high", device=DEVICE, **SETTINGS)
+    files = frame.save(tmp_path / "api")
+    assert [f.name for f in files] == ["view0.png", "view1.png", "stereo.png", "stats.json"]
+    assert sorted(p.name for p in (tmp_path / "cli").iterdir()) == sorted(f.name for f in files)
+    for name in ("view0.png", "view1.png", "stereo.png"):
+        assert np.array_equal(iio.imread(tmp_path / "cli" / name), iio.imread(tmp_path / "api" / name)), name
+    cli_stats, api_stats = (json.loads((tmp_path / d / "stats.json").read_text()) for d in ("cli", "api"))
+    assert api_stats["scene"] == cli_stats["scene"] == "smoke"
+    (cli_frame,), (api_frame,) = cli_stats["frames"], api_stats["frames"]
+    assert api_frame["settings"] == cli_frame["settings"] and api_frame["settings"]["min_transmittance"] == 1e-4
+    assert api_frame["counters"] == cli_frame["counters"]
+
+
+def test_one_camera_is_one_view_and_a_renderer_keeps_its_state():
+    """A Camera where a list is expected is one view; Renderer keeps its light map across frames (the interactive
+    preset reuses it while the scene stands still: no light samples in frame 1), a fresh render does not."""
+    scene = vr.builtin_scene("smoke", 64)
+    camera = vr.Camera(position=(0, 0.4, 3.2), **SIZE)
+    single = vr.render(scene, camera, device=DEVICE, **SETTINGS)
+    listed = vr.render(scene, [camera], device=DEVICE, **SETTINGS)
+    assert len(single.images) == 1 and np.array_equal(single.images[0], listed.images[0])
+    renderer = vr.Renderer("dssrm", "interactive", device=DEVICE, **SETTINGS)
+    first, second = (renderer.render(scene, camera, frame=i) for i in range(2))
+    assert first.stats.counters["light_samples"] > 0 and second.stats.counters["light_samples"] == 0
+    assert np.array_equal(first.images[0], second.images[0])
+    assert renderer.config.light_grid == 16 and renderer.device == single.stats.device
+
+
+def test_load_places_a_file_as_the_cli_does(tmp_path):
+    """vr.load: the reader's placement (spacing in units), the material arguments, a CT's Hounsfield range kept."""
+    import nrrd
+
+    ct = (np.arange(4 * 5 * 6).reshape(6, 5, 4) * 10 - 1000).astype(np.int16)  # [z, y, x], HU
+    nrrd.write(str(tmp_path / "ct.nrrd"), np.asfortranarray(ct.transpose(2, 1, 0)), {"spacings": [2.0, 2.0, 2.0]},
+               index_order="F")
+    volume = vr.load(tmp_path / "ct.nrrd", density_scale=3.0)
+    assert volume.density_scale == 3.0 and volume.name == "ct.nrrd"
+    assert volume.value_range == (-1000.0, float(ct.max()))
+    np.testing.assert_allclose(np.diag(volume.to_world)[:3], [0.004, 0.005, 0.006])  # half of 4, 5, 6 x 2 mm
+    np.save(tmp_path / "cube.npy", np.ones((4, 4, 4), np.float32))
+    cube = vr.load(tmp_path / "cube.npy", spacing=(1, 1, 1), units="cm")
+    np.testing.assert_allclose(np.diag(cube.to_world)[:3], [0.02] * 3)
+    assert cube.value_range is None and cube.density_scale == vr.Volume(np.ones((2, 2, 2))).density_scale
+
+
+@pytest.mark.parametrize(("call", "message"), [
+    (lambda s, c: vr.render(s, c, method="nope"), "unknown method 'nope'"),
+    (lambda s, c: vr.render(s, c, sample=3), "method 'dssrm' has no setting sample"),
+    (lambda s, c: vr.render(s, c, method="vpt", samples=3), "method 'vpt' has no setting samples"),
+    (lambda s, c: vr.render(s, c, quality="ultra"), "unknown quality 'ultra'"),
+    (lambda s, c: vr.render(s.volumes[0], c), "scene must be a volren.Scene, got Volume: wrap it"),
+    (lambda s, c: vr.render(s, "stereo"), "views must be a volren.Camera or a list of them"),
+    (lambda s, c: vr.render(s, [c, "x"]), r"views\[1\] must be a volren.Camera, got str"),
+    (lambda s, c: vr.views(c, "three"), "--views must be mono, stereo or a positive integer"),
+    (lambda s, c: vr.views(s, "mono"), "views: camera must be a volren.Camera, got Scene"),
+    (lambda s, c: vr.load("x.npy", spacng=(1, 1, 1)), "load: unknown argument spacng: choose from shape"),
+])
+def test_bad_arguments_get_one_line_naming_them(call, message):
+    scene = vr.Scene([vr.Volume(np.ones((2, 2, 2), np.float32))])  # a list is accepted
+    with pytest.raises(VolrenError, match=message) as err:
+        call(scene, vr.Camera(**SIZE))
+    assert "\n" not in str(err.value)
+
+
+def hand_frame(count: int) -> Frame:
+    """``count`` views of 4x6 pixels, each its own grey, half covered, over a blue background."""
+    images = [np.zeros((4, 6, 4), np.float32) for _ in range(count)]
+    for v, image in enumerate(images):
+        image[:, :3] = (0.2 + 0.2 * v, 0.2 + 0.2 * v, 0.2 + 0.2 * v, 1.0)
+    depths = [np.full((4, 6), np.inf, np.float32)] * count
+    return Frame(images, depths, Stats("cpu", "test", {}), background=(0.0, 0.0, 0.25), scene_name="hand")
+
+
+@pytest.mark.parametrize(("count", "written"), [(1, "view0.png"), (2, "stereo.png"), (3, "contact.png")])
+def test_show_displays_what_save_writes(count, written, tmp_path, monkeypatch):
+    """Frame.show: in a notebook an IPython display, elsewhere Pillow's viewer; the picture is the one saved (the
+    view, the stereo pair, the contact sheet) over the scene's background."""
+    import IPython.display
+    from PIL import Image
+
+    frame = hand_frame(count)
+    frame.save(tmp_path, exposure=1.0)
+    saved = iio.imread(tmp_path / written)
+    np.testing.assert_array_equal(frame.srgb(exposure=1.0), saved)
+    assert tuple(saved[0, -1]) == (0, 0, 188)  # an uncovered pixel: the background, 0.25 x 2 -> sRGB 188
+    shown = []
+    monkeypatch.setattr(Image.Image, "show", lambda image, *a, **k: shown.append(("viewer", np.asarray(image))))
+    monkeypatch.setattr(IPython.display, "display", lambda image: shown.append(("notebook", np.asarray(image))))
+    frame.show(exposure=1.0)
+    monkeypatch.setattr("volren.render.frame._in_notebook", lambda: True)
+    frame.show(exposure=1.0)
+    assert [where for where, _ in shown] == ["viewer", "notebook"]
+    for _, pixels in shown:
+        np.testing.assert_array_equal(pixels, saved)
