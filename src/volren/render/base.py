@@ -25,6 +25,7 @@ from volren.render.compositing.surfaces import check_user_depth, trace_surfaces,
 from volren.render.frame import Frame, PassClock, Stats
 from volren.render.gi.ambient import AmbientGI, GIConfig
 from volren.render.lightmap import compute_light_map
+from volren.render.marching.modes import check_mode, mode_index
 from volren.scene import Scene
 from volren.upload import DeviceScene, camera_struct, only_lights_differ, upload_lights, upload_scene
 
@@ -87,6 +88,12 @@ class LightMapMarchConfig:
     """surfaces' AO rays per point that samples the whole hemisphere (in or beside a volume's occupied box)"""
     ao_cone_rays: int = AO_CONE_RAYS
     """surfaces' AO rays per point that sees the volumes' occupied boxes in a cone (`surface_light.box_cone`)"""
+    mode: str = "dvr"
+    """dvr (volume rendering), mip (maximum intensity projection), mida (maximum intensity difference accumulation)
+    or iso (shaded isosurface at ``iso_value``): `volren.render.marching.modes`"""
+    iso_value: float = 0.5
+    """[density, the grid's units] V of mode iso: the first crossing of this density along the ray (a CT loaded
+    with a Hounsfield ``value_range`` (lo, hi) holds (HU - lo) / (hi - lo))"""
 
     def __post_init__(self) -> None:
         if (isinstance(self.mesh_layers, bool) or int(self.mesh_layers) != self.mesh_layers
@@ -104,6 +111,9 @@ class LightMapMarchConfig:
         check_transmittance_threshold(self.min_transmittance)
         check_sample_count("ao_rays", self.ao_rays)
         check_sample_count("ao_cone_rays", self.ao_cone_rays)
+        check_mode(self.mode, self.iso_value)
+        if self.mode in ("mip", "iso") and self.gi.on:
+            raise VolrenError(f"mode {self.mode} reads no ambient GI: --gi would do nothing")
 
 
 class Renderer:
@@ -239,9 +249,12 @@ class LightMapRenderer(Renderer):
         self._light_map_of: tuple[DeviceScene, int, bool] | None = None
         """(uploaded scene, L, cross-volume) the light map in that upload was computed with; a scene or light change
         is a new upload (`_upload`), whose light map starts unlit"""
+        self._peak_of: tuple[DeviceScene, float] | None = None
+        """(uploaded scene, 1 / its largest density) for MIP's and MIDA's intensity (`_mode_params`)"""
 
     def _lighting(self, ds: DeviceScene, clock: PassClock) -> None:
         ds.skip_empty = self.config.skip_empty  # read by this frame's marches (`DeviceScene.medium`)
+        self._check_mode(ds)
         gi = self.config.gi
         last = self._light_map_of
         if not (self.config.reuse_light_map and last is not None and last[0] is ds
@@ -253,6 +266,33 @@ class LightMapRenderer(Renderer):
         if self._gi is None or not self._gi.fits(ds, gi):
             self._gi = AmbientGI(gi, ds, self.config.seed)
         self._frame_info["gi"] = self._gi.update(ds, self.config.light_samples, clock)
+
+    def _check_mode(self, ds: DeviceScene) -> None:
+        """Refuse what the sci-vis modes do not composite: translucent mesh layers (blended by "over" between march
+        pieces) and boxes overlapping along a ray (marched jointly as DVR, `oit.march_joint`)."""
+        mode = self.config.mode
+        if mode == "dvr":
+            return
+        scene = ds.scene
+        if any(getattr(o, "alpha", 1.0) < 1.0 for o in scene.opaque):
+            raise VolrenError(f"mode {mode} draws no translucent meshes (mesh alpha < 1): use mode dvr")
+        boxes = [(v.corners_world.min(axis=0), v.corners_world.max(axis=0)) for v in scene.volumes]
+        for i, (lo_a, hi_a) in enumerate(boxes):
+            for lo_b, hi_b in boxes[i + 1:]:
+                if np.all(lo_a < hi_b) and np.all(lo_b < hi_a):
+                    raise VolrenError(f"mode {mode} marches one box at a time and two volumes' bounding boxes "
+                                      "overlap: use mode dvr")
+
+    def _mode_params(self, params: Any, ds: DeviceScene) -> Any:
+        """Fill the mode fields of a `MarchParams`: the mode, V and 1 / the scene's largest density (cached per
+        uploaded scene; 1 for an all-zero scene)."""
+        if self._peak_of is None or self._peak_of[0] is not ds:
+            peak = max(float(np.max(v.density)) for v in ds.scene.volumes)
+            self._peak_of = (ds, 1.0 / peak if peak > 0 else 1.0)
+        params.mode = mode_index(self.config.mode)
+        params.iso_value = self.config.iso_value
+        params.inv_max = self._peak_of[1]
+        return params
 
     def _surface_light(self, ds: DeviceScene) -> SurfaceLight:
         """Shadows from this frame's light map (cross-volume with GI on); AO from the GI grid's SH coefficients near

@@ -82,7 +82,8 @@ from volren.render.marching.cubemap import (
     tile_texel,
 )
 from volren.render.marching.interleave import interleave_tiles, quad_march_kernel
-from volren.render.marching.march import MarchParams, lit_step
+from volren.render.marching.march import MarchParams, mode_step
+from volren.render.marching.modes import MODE_MIP, skippable
 from volren.render.marching.vsa import END, VSA_FIT, VSAParams, vsa_amplification
 from volren.upload import DeviceScene, camera_struct
 
@@ -139,31 +140,30 @@ def lattice_step(seg: wp.vec4, pos: float, m: float, dt: float) -> wp.vec2:
 def eye_update(
     acc: wp.vec4,
     half: float,
+    peak: float,
     prev: float,
     prev_t: float,
     rho: float,
     vol: VolumeGPU,
     medium: Medium,
-    p: wp.vec3,
-    x: wp.vec3,
+    o_l: wp.vec3,
+    d_l: wp.vec3,
+    origin: wp.vec3,
     d: wp.vec3,
     step: wp.vec2,
     seg: wp.vec4,
     vp: VSAParams,
     dt: float,
     absorb: float,
-    ambient: wp.vec3,
+    params: MarchParams,
 ):
-    """One eye's step of the coupled march: composite the sample (density rho at local p / world x, step midpoint and
-    length ``step``) and propose the next step's amplification by VSA. Returns (acc, half-transmittance distance,
-    previous density, previous distance, 1 if the sample was lit, amplification)."""
-    out = acc
-    out_half = half
-    lit = int(0)
-    if rho > 0.0:
-        lit = 1
-        out = lit_step(acc, rho, vol, medium, p, x, d, step[1], ambient)
-        out_half = half_depth(half, acc[3], out[3], step[0])
+    """One eye's step of the coupled march: composite the sample (density rho on the local ray o_l + t d_l / world
+    ray origin + t d, step midpoint and length ``step``) in ``params.mode`` (`march.mode_step`; ``peak``: MIDA's
+    running max) and propose the next step's amplification by VSA. Returns (acc, half-transmittance distance, peak,
+    previous density, previous distance, 1 if the sample was lit, extra density fetches, amplification)."""
+    out, out_peak, lit, fetches, t_event = mode_step(acc, peak, rho, vol, medium, o_l, d_l, origin, d, step[0],
+                                                     step[1], wp.max(step[0] - dt, seg[0]), params)
+    out_half = half_depth(half, acc[3], out[3], t_event)
     m = float(1.0)
     out_prev = prev
     out_prev_t = prev_t
@@ -174,7 +174,7 @@ def eye_update(
         m = vsa_amplification(vp, step[0], seg[1], rho, drho, out[3], absorb)
         out_prev = rho
         out_prev_t = step[0]
-    return out, out_half, out_prev, out_prev_t, lit, m
+    return out, out_half, out_peak, out_prev, out_prev_t, lit, fetches, m
 
 
 @wp.kernel
@@ -237,6 +237,8 @@ def coupled_march_kernel(
     acc1 = wp.vec4(0.0, 0.0, 0.0, 1.0)
     half0 = float(INF)
     half1 = float(INF)
+    peak0 = float(0.0)
+    peak1 = float(0.0)
     samples = int(0)
     shared = int(0)
     shaded = int(0)
@@ -281,7 +283,7 @@ def coupled_march_kernel(
             if s0[0] >= check0:
                 cell0 = skip_lookup(vol, medium.max_density, oc0 + s0[0] * dc0, oc0, inv0)
                 check0 = cell0[1]
-                empty0 = int(cell0[0] <= 0.0)
+                empty0 = int(skippable(params.mode, cell0[0], acc0, params.inv_max, params.iso_value))
             p0 = o0 + s0[0] * dl0
             if empty0 == 0:
                 f0 = grid_coords(vol.res, p0)
@@ -291,17 +293,18 @@ def coupled_march_kernel(
             if s1[0] >= check1:
                 cell1 = skip_lookup(vol, medium.max_density, oc1 + s1[0] * dc1, oc1, inv1)
                 check1 = cell1[1]
-                empty1 = int(cell1[0] <= 0.0)
+                empty1 = int(skippable(params.mode, cell1[0], acc1, params.inv_max, params.iso_value))
             p1 = o1 + s1[0] * dl1
             if empty1 == 0:
                 f1 = grid_coords(vol.res, p1)
                 c1 = grid_cell(vol.res, f1)
         rho0 = float(0.0)
         rho1 = float(0.0)
-        if share != 0 and in0 and in1 and empty0 + empty1 == 1:
+        if share != 0 and in0 and in1 and empty0 + empty1 == 1 and params.mode != MODE_MIP:
             # One eye in an empty skip cell: every trilinear cell read there is zero in all 8 voxels
             # (`volren.upload.skip_grid`), so where the other eye's sample falls in the same cell it reads 0 too,
             # without a fetch (a coupled saving the eyes alone cannot make: the other eye's skip cell is not empty).
+            # Iso skips cells below V, where reading 0 decides the same; MIP skips cells below the eye's own max.
             if empty0 != 0:
                 c0 = grid_cell(vol.res, grid_coords(vol.res, p0))
             else:
@@ -327,11 +330,12 @@ def coupled_march_kernel(
                 j0, snap0 = segment_advance(mesh0, pix0, target0, (target0.offset + texel) * target0.segments, seg0,
                                             j0, snap0, acc0, s0[0])
                 next0 = next_layer_t(mesh0, pix0, j0, seg0)
-            acc0, half0, prev0, prev_t0, lit, m0 = eye_update(
-                acc0, half0, prev0, prev_t0, rho0, vol, medium, p0, cam0.origin + s0[0] * d0, d0, s0, seg0,
-                vp, dt, absorb, params.ambient,
+            acc0, half0, peak0, prev0, prev_t0, lit, fetches, m0 = eye_update(
+                acc0, half0, peak0, prev0, prev_t0, rho0, vol, medium, o0, dl0, cam0.origin, d0, s0,
+                seg0, vp, dt, absorb, params,
             )
             shaded += lit
+            samples += fetches
             next_m = wp.max(next_m, m0)
         if in1:
             samples += int(get1)
@@ -340,11 +344,12 @@ def coupled_march_kernel(
                 j1, snap1 = segment_advance(mesh1, pix1, target1, (target1.offset + texel) * target1.segments, seg1,
                                             j1, snap1, acc1, s1[0])
                 next1 = next_layer_t(mesh1, pix1, j1, seg1)
-            acc1, half1, prev1, prev_t1, lit, m1 = eye_update(
-                acc1, half1, prev1, prev_t1, rho1, vol, medium, p1, cam1.origin + s1[0] * d1, d1, s1, seg1,
-                vp, dt, absorb, params.ambient,
+            acc1, half1, peak1, prev1, prev_t1, lit, fetches, m1 = eye_update(
+                acc1, half1, peak1, prev1, prev_t1, rho1, vol, medium, o1, dl1, cam1.origin, d1, s1,
+                seg1, vp, dt, absorb, params,
             )
             shaded += lit
+            samples += fetches
             next_m = wp.max(next_m, m1)
         pos = pos - m
         m = next_m
@@ -377,12 +382,18 @@ class CACRM(CMSRM):
     def __init__(self, config: CACRMConfig | None = None, device: str = "auto") -> None:
         super().__init__(config or CACRMConfig(), device)
 
+    def _vsa_on(self) -> bool:
+        """VSA (and with it interleaving) in mode dvr only: Eq. 4-6's factors are fitted to DVR's transmittance and
+        accumulated opacity; the other modes march the uniform texel-anchored lattice."""
+        return self.config.vsa and self.config.mode == "dvr"
+
     def _vsa_params(self) -> VSAParams:
         c = self.config
         vp = VSAParams()
-        vp.enabled = int(c.vsa)
-        vp.k_a, vp.k_b, vp.f_lambda_max = (c.k_a, c.k_b, c.f_lambda_max) if c.vsa else (0.0, 1.0, 1.0)
-        vp.w_lambda, vp.w_t, vp.w_a = (c.w_lambda, c.w_t, c.w_a) if c.vsa else (0.0, 0.0, 0.0)
+        vsa = self._vsa_on()
+        vp.enabled = int(vsa)
+        vp.k_a, vp.k_b, vp.f_lambda_max = (c.k_a, c.k_b, c.f_lambda_max) if vsa else (0.0, 1.0, 1.0)
+        vp.w_lambda, vp.w_t, vp.w_a = (c.w_lambda, c.w_t, c.w_a) if vsa else (0.0, 0.0, 0.0)
         return vp
 
     def _plan_views(self, ds: DeviceScene, views: list[Camera]) -> list[list[dict]]:
@@ -412,7 +423,7 @@ class CACRM(CMSRM):
         first, last = group[0], group[-1]
         # InS: one work item per 2x2 quad in the tiles where some quad can interleave; one per texel elsewhere.
         routes = [(coupled_march_kernel, tiles.origins, tiles.rows)]
-        if self.config.interleave and self.config.vsa:
+        if self.config.interleave and self._vsa_on():
             vol = ds.scene.volumes[v]
             origins = tiles.origins.numpy()
             res = np.array([level.res[0], level.res[1], level.res[2]], dtype=float)

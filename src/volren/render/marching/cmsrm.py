@@ -70,6 +70,8 @@ from volren.kernels.common import (
     new_march_state,
     occluded_end,
     pixel_ray,
+    state_accumulator,
+    with_accumulator,
     write_pixel,
 )
 from volren.render.base import LightMapMarchConfig, LightMapRenderer
@@ -118,6 +120,7 @@ from volren.render.marching.culling import (
     unpack,
 )
 from volren.render.marching.march import MarchParams
+from volren.render.marching.modes import combine_segment
 from volren.scene import Volume
 from volren.upload import DeviceScene, camera_struct
 
@@ -382,11 +385,10 @@ def cube_resample_kernel(
             if scheme[v] == SCHEME_CUBE and rim == 0:
                 if not layer_before(mesh, row, col, next_mesh, facing, layers.t_out[i]):
                     c = cube_sample(cube, cube_z, cube_offset[v], cube_size[v], p, layers.t_out[i] * facing, k_z)
-                    after = s.transmittance * c[3]
-                    if s.transmittance > 0.5 and after <= 0.5:
+                    acc = combine_segment(params.mode, state_accumulator(s), c)
+                    if s.transmittance > 0.5 and acc[3] <= 0.5:
                         s.depth_t = cube_nearest_t(cube_t, cube_offset[v], cube_size[v], p)
-                    s.color = s.color + s.transmittance * wp.vec3(c[0], c[1], c[2])
-                    s.transmittance = after
+                    s = with_accumulator(s, acc)
                     done = 1
                 else:
                     s, next_mesh, done = blend_cube_segments(s, next_mesh, mesh, row, col, facing, seg, seg_z,
@@ -494,7 +496,7 @@ class CMSRM(LightMapRenderer):
         params.view = view
         params.min_transmittance = self.config.min_transmittance
         params.ambient = ds.ambient
-        return params
+        return self._mode_params(params, ds)
 
     def _plan(self, ds: DeviceScene, cam: Camera) -> list[dict]:
         """Per volume, the culling pass of §3.4 on the device (`culling.culling_kernel`, one thread per instance):

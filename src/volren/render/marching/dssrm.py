@@ -119,6 +119,7 @@ class DSSRM(LightMapRenderer):
         params.view = view
         params.min_transmittance = c.min_transmittance
         params.ambient = ds.ambient
+        self._mode_params(params, ds)
         oit = self._layers.params(ds, cam, clock)
         mesh = mesh_layers_pass(ds, cam, buffers, c.mesh_layers, clock, self._surface_light(ds))
         self._frame_info["mesh_layers"] = layer_stats(mesh, c.mesh_layers, self._frame_info.get("mesh_layers"))

@@ -16,6 +16,7 @@ from volren.kernels.common import (
     Medium,
     VolumeGPU,
     composite_step,
+    emitted_radiance,
     first_skip_check,
     half_depth,
     hg_phase,
@@ -30,6 +31,20 @@ from volren.kernels.common import (
     with_accumulator,
 )
 from volren.render.lightmap import sample_light_map
+from volren.render.marching.modes import (
+    ISO_FETCHES,
+    MODE_DVR,
+    MODE_ISO,
+    MODE_MIDA,
+    MODE_MIP,
+    intensity,
+    iso_crossing,
+    iso_normal,
+    iso_shade,
+    mida_weight,
+    mip_step,
+    skippable,
+)
 
 
 @wp.struct
@@ -40,6 +55,12 @@ class MarchParams:
     view: int
     min_transmittance: float
     ambient: wp.vec3
+    mode: int
+    """`volren.render.marching.modes`: MODE_DVR, MODE_MIP, MODE_MIDA or MODE_ISO"""
+    iso_value: float
+    """V of MODE_ISO [density]"""
+    inv_max: float
+    """1 / the scene's largest density: MIP's and MIDA's intensity P = rho inv_max"""
 
 
 @wp.func
@@ -82,8 +103,53 @@ def lit_step(
     and emission as the source, extinction density_scale * rho."""
     sigma_t = vol.density_scale * rho
     light = shade_light_map(vol, medium, p, x, d, ambient)
-    source = wp.cw_mul(vol.albedo, light) * sigma_t + vol.emission * rho
+    source = wp.cw_mul(vol.albedo, light) * sigma_t + emitted_radiance(vol, medium.density, p, rho)
     return composite_step(acc, source, sigma_t, dt)
+
+
+@wp.func
+def mode_step(
+    acc: wp.vec4,
+    peak: float,
+    rho: float,
+    vol: VolumeGPU,
+    medium: Medium,
+    o_l: wp.vec3,
+    d_l: wp.vec3,
+    origin: wp.vec3,
+    d: wp.vec3,
+    t: float,
+    dt: float,
+    lo: float,
+    params: MarchParams,
+):
+    """One step at ray distance t (length dt, density rho fetched) in ``params.mode`` (`volren.render.marching.modes`);
+    ``peak`` is MIDA's running max P, ``lo`` the last distance known below the iso value. Returns (acc, peak, 1 if a
+    light-map lookup per light was made, extra density fetches, ray distance of the event for the depth)."""
+    out = acc
+    lit = int(0)
+    fetches = int(0)
+    t_event = t
+    if params.mode == MODE_MIP:
+        out = mip_step(acc, rho, params.inv_max)
+    elif params.mode == MODE_ISO:
+        if rho >= params.iso_value:
+            t_event = iso_crossing(medium.density, vol, o_l, d_l, lo, t, params.iso_value)
+            p = o_l + t_event * d_l
+            x = origin + t_event * d
+            c = iso_shade(vol, medium, iso_normal(medium.density, vol, p), x, params.ambient)
+            out = wp.vec4(acc[0] + acc[3] * c[0], acc[1] + acc[3] * c[1], acc[2] + acc[3] * c[2], 0.0)
+            fetches = ISO_FETCHES
+    else:
+        p_i = float(0.0)
+        if params.mode == MODE_MIDA:
+            p_i = intensity(rho, params.inv_max)
+            out = mida_weight(acc, peak, p_i)
+        if rho > 0.0:
+            lit = 1
+            out = lit_step(out, rho, vol, medium, o_l + t * d_l, origin + t * d, d, dt, params.ambient)
+        return out, wp.max(peak, p_i), lit, fetches, t_event
+    return out, peak, lit, fetches, t_event
 
 
 @wp.func
@@ -117,13 +183,14 @@ def march_volume_light_map(
     taken = int(0)
     skipped = int(0)
     check_t = first_skip_check(vol, medium.skip)
+    peak = float(0.0)  # MIDA's running max P, from this box's entry (`volren.render.marching.modes`)
     i = int(0)
     while i < n:
         t = t0 + (float(i) + offset) * dt
         if t >= check_t:
             cell = skip_lookup(vol, medium.max_density, o_c + t * d_c, o_c, inv_d)
             check_t = cell[1]
-            if cell[0] <= 0.0:
+            if skippable(params.mode, cell[0], acc, params.inv_max, params.iso_value):
                 j = wp.min(wp.max(int(wp.ceil((check_t - t0) / dt - offset)), i + 1), n)
                 skipped += j - i
                 i = j
@@ -131,11 +198,21 @@ def march_volume_light_map(
         p = o_l + t * d_l
         rho = sample_grid(medium.density, vol.offset, vol.res, p)
         taken += 1
-        if rho > 0.0:
-            shaded += 1
+        if params.mode == MODE_DVR:
+            if rho > 0.0:
+                shaded += 1
+                before = acc[3]
+                acc = lit_step(acc, rho, vol, medium, p, origin + t * d, d, dt, params.ambient)
+                depth_t = half_depth(depth_t, before, acc[3], t)
+                if acc[3] < params.min_transmittance:
+                    break
+        else:
             before = acc[3]
-            acc = lit_step(acc, rho, vol, medium, p, origin + t * d, d, dt, params.ambient)
-            depth_t = half_depth(depth_t, before, acc[3], t)
+            acc, peak, lit, fetches, t_event = mode_step(acc, peak, rho, vol, medium, o_l, d_l, origin, d, t, dt,
+                                                         wp.max(t - dt, t0), params)
+            shaded += lit
+            taken += fetches
+            depth_t = half_depth(depth_t, before, acc[3], t_event)
             if acc[3] < params.min_transmittance:
                 break
         i += 1
