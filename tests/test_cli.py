@@ -42,7 +42,7 @@ TINY = (*BASE, "--light-grid", "16")
 """Tiny settings for dssrm and demo (reference takes no --light-grid)."""
 W, H = 24, 16
 SCENES = ("smoke", "cloud", "phantom", "multi")
-LISTED_SCENES = (*SCENES, "instances", "instances-overlap", "smoke-floor")
+LISTED_SCENES = (*SCENES, "instances", "instances-overlap", "smoke-floor", "fire")
 """every built-in volume scene in `volren scenes` order (SCENES: those rendered one by one here)"""
 FOG_SCENE_NAMES = ("hall", "courtyard", "dynamic")
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
@@ -748,7 +748,7 @@ BAD_RENDER_ARGS = {
     # issue 13 item 10: every message names the flag and what is wrong
     "unknown-scene-lists-all": (["--scene", "tornado"], ["--scene: unknown scene 'tornado': choose from smoke, cloud, "
                                                          "phantom, multi, instances, instances-overlap, smoke-floor, "
-                                                         "hall, courtyard, dynamic"]),
+                                                         "fire, hall, courtyard, dynamic"]),
     "mesh-scale-0": (["--mesh-scale", "0"], ["--mesh-scale must be a positive number, got 0"]),
     "mesh-scale-negative": (["--mesh-scale", "-2"], ["--mesh-scale must be a positive number, got -2"]),
     "rig-with-stereo": (["--rig", "wander", "--views", "stereo"], ["--rig wander places N viewers, not --views "

@@ -35,7 +35,7 @@ def _asymmetric(dtype: type = np.float32) -> np.ndarray:
 
 def test_registry_and_descriptions() -> None:
     assert list(BUILTIN_SCENES) == ["smoke", "cloud", "phantom", "multi", "instances", "instances-overlap",
-                                   "smoke-floor"]
+                                   "smoke-floor", "fire"]
     for name, entry in BUILTIN_SCENES.items():
         assert entry.name == name
         assert entry.description and "\n" not in entry.description

@@ -30,8 +30,8 @@ TF_PRESET_NAMES = ("ct-bone", "ct-muscle", "ct-vessels", "smoke")
 """`volren.transfer.PRESETS`"""
 TONEMAPS = ("none", "reinhard", "aces")
 """`volren.imageio.TONEMAPS`"""
-SCENE_NAMES = ("smoke", "cloud", "phantom", "multi", "instances", "instances-overlap", "smoke-floor", "hall",
-               "courtyard", "dynamic")
+SCENE_NAMES = ("smoke", "cloud", "phantom", "multi", "instances", "instances-overlap", "smoke-floor", "fire",
+               "hall", "courtyard", "dynamic")
 """`volren.data.BUILTIN_SCENES`, then `volren.data.fog_scenes.FOG_SCENES`"""
 
 MAX_EXPOSURE = 64.0
@@ -177,6 +177,13 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     mat.add_argument("--g", type=float, help="Henyey-Greenstein asymmetry in (-1, 1) (default: the scene's)")
     mat.add_argument("--emission", type=rgb, help="emitted radiance per unit density per metre: e or r,g,b, >= 0 "
                      "(default: the scene's)")
+    mat.add_argument("--emission-grid", help=".vdb files: a second grid (e.g. temperature, heat, flame) that emits "
+                     "blackbody radiance where the density is > 0 (default: none)")
+    mat.add_argument("--temperature-range", type=kelvin_range, help="K0,K1: kelvin of the emission grid's values "
+                     "0+ and max (linear between; values <= 0 emit nothing), 0 < K0 < K1 (default: the scene's, "
+                     "else 1000,3000)")
+    mat.add_argument("--emission-scale", type=float, help="luminance Y [W/(m^3 sr)] of the blackbody radiance "
+                     "emitted per metre at K1, >= 0 (default: the scene's, else 1)")
     mat.add_argument("--light-dir", type=vec3, help="direction the light travels: x,y,z, not zero (default: the "
                      "scene's)")
     mat.add_argument("--light-irradiance", type=rgb, help="directional light irradiance [W/m^2]: e or r,g,b, >= 0 "
@@ -410,8 +417,9 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
             raise CliError(f"--count applies to --scene {', '.join(COUNTED_SCENES)} only, not to scene '{name}'")
         resolution = DEFAULT_RESOLUTION if args.resolution is None else args.resolution
         scene = builtin_scene(name, resolution, count=16 if args.count is None else args.count, seed=args.seed)
-    names = ("density_scale", "albedo", "g", "emission")
+    names = ("density_scale", "albedo", "g", "emission", "temperature_range", "emission_scale")
     material = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
+    check_fire_flags(args, scene)
     volumes = tuple(dataclasses.replace(v, **material) for v in scene.volumes) if material else scene.volumes
     lights = list(scene.lights)
     if args.light_dir is not None or args.light_irradiance is not None:
@@ -472,6 +480,30 @@ def rect_light(x: float, y: float, z: float, width: float, height: float, radian
     v = np.cross(normal, u)
     # Emission faces edge_u x edge_v = normal.
     return RectLight(tuple(position), tuple(0.5 * width * u), tuple(0.5 * height * v), (radiance,) * 3)
+
+
+def kelvin_range(text: str) -> tuple[float, float]:
+    """``--temperature-range K0,K1``: two finite kelvin values 0 < K0 < K1."""
+    k = floats(text, 2)
+    if not (math.isfinite(k[0]) and math.isfinite(k[1]) and 0 < k[0] < k[1]):
+        raise argparse.ArgumentTypeError(f"needs two finite kelvin values 0 < K0 < K1, got {text!r}")
+    return (k[0], k[1])
+
+
+def check_fire_flags(args: argparse.Namespace, scene) -> None:
+    """--emission-grid names a grid of a .vdb --volume; --temperature-range and --emission-scale need a volume with
+    an emission grid (--emission-grid or the fire scene): elsewhere they would do nothing."""
+    if getattr(args, "emission_grid", None) is not None and getattr(args, "volume", None) is None:
+        raise CliError("--emission-grid names a second grid of a .vdb --volume; there is no --volume (the fire scene "
+                       "has its own)")
+    flags = [f for f, k in (("--temperature-range", "temperature_range"), ("--emission-scale", "emission_scale"))
+             if getattr(args, k, None) is not None]
+    if flags and not any(v.emission_grid is not None for v in scene.volumes):
+        raise CliError(f"{', '.join(flags)} set the blackbody emission of an emission grid: give --emission-grid "
+                       "NAME with a .vdb --volume, or --scene fire")
+    scale = getattr(args, "emission_scale", None)
+    if scale is not None and not (math.isfinite(scale) and scale >= 0):
+        raise CliError(f"--emission-scale must be a finite number >= 0, got {scale:g}")
 
 
 def _load_volume(path: Path, shape, dtype, spacing, units, grid=None):

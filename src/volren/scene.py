@@ -4,6 +4,13 @@ Conventions (DESIGN.md): world is right-handed, y up, metres. A volume's density
 ``[z, y, x]``; its ``to_world`` 4x4 matrix maps the local cube [-1, 1]^3 onto the world. Extinction is
 ``sigma_t = density_scale * density`` [1/m], scattering ``sigma_s = albedo * sigma_t``, emission adds
 ``emission * density`` [W/(m^3 sr)] of radiance per metre, and the phase function is Henyey-Greenstein with ``g``.
+
+Fire (``Volume.emission_grid``): a second grid (a simulation's temperature, heat or flame) adds blackbody radiance
+``table(u(x))`` per metre, u the grid normalised to [0, 1] and sampled trilinearly, then looked up in the volume's
+blackbody table (`volren.blackbody`): temperature is interpolated, not colour, as the colour is nonlinear in T. It is
+not multiplied by the density (a flame glows where its soot is thin), but it is emitted only where the density is
+> 0: the medium's own extent, so empty-space skipping, the marches' shading of non-empty samples and the path
+tracer's collision estimator E / mu_t (which needs mu_t > 0 wherever E > 0) all stay exact with no extra extinction.
 """
 
 from __future__ import annotations
@@ -14,6 +21,7 @@ from functools import cached_property
 
 import numpy as np
 
+from volren.blackbody import blackbody_table
 from volren.errors import VolrenError
 
 RGB = tuple[float, float, float]
@@ -113,9 +121,17 @@ class Volume:
     value_range: tuple[float, float] | None = None
     """the Hounsfield units that density 0 and 1 stand for (a CT, as the loader normalised it): transfer functions
     with a Hounsfield form classify by HU; None: not HU, transfer functions read density / its maximum."""
+    emission_grid: np.ndarray | None = None
+    """[z, y, x] source of blackbody emission, the density's shape (module docstring, "Fire"): a value v > 0 is at
+    K0 + (K1 - K0) v / max(v) kelvin (``temperature_range``); v <= 0 emits nothing. None: no fire."""
+    temperature_range: tuple[float, float] = (1000.0, 3000.0)
+    """[K] (K0, K1), 0 < K0 < K1: the temperatures of ``emission_grid``'s values 0+ and max"""
+    emission_scale: float = 1.0
+    """[W/(m^3 sr)] the luminance Y of the blackbody radiance emitted per metre at K1 (`volren.blackbody`)"""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "density", validate_density(self.density, f"volume '{self.name}' density"))
+        self._check_fire()
         if self.value_range is not None:
             vr = tuple(float(v) for v in self.value_range)
             if len(vr) != 2 or not all(np.isfinite(vr)) or not vr[0] < vr[1]:
@@ -125,7 +141,9 @@ class Volume:
         m = np.asarray(self.to_world, dtype=np.float64)
         if m.shape != (4, 4) or not np.all(np.isfinite(m)):
             raise VolrenError(f"volume '{self.name}': to_world must be a finite 4x4 matrix")
-        if abs(np.linalg.det(m[:3, :3])) < 1e-12 or not np.allclose(m[3], [0, 0, 0, 1]):
+        # scale-free: a micrometre box (det ~1e-15 m^3) is fine, parallel or zero axes are not
+        scale = float(np.prod(np.linalg.norm(m[:3, :3], axis=0)))
+        if not abs(np.linalg.det(m[:3, :3])) > 1e-9 * scale or not np.allclose(m[3], [0, 0, 0, 1]):
             raise VolrenError(f"volume '{self.name}': to_world must be an invertible affine matrix")
         object.__setattr__(self, "to_world", m)
         if not (np.isfinite(self.density_scale) and self.density_scale >= 0):
@@ -140,6 +158,42 @@ class Volume:
         if min(emission) < 0:
             raise VolrenError(f"volume '{self.name}': emission must be >= 0, got {emission}")
         object.__setattr__(self, "emission", emission)
+
+    def _check_fire(self) -> None:
+        if self.emission_grid is not None:
+            grid = np.asarray(self.emission_grid)
+            if grid.shape != self.density.shape:
+                raise VolrenError(f"volume '{self.name}': emission grid has shape {grid.shape}, the density "
+                                  f"{self.density.shape}: they must match")
+            if not np.issubdtype(grid.dtype, np.number) or not np.all(np.isfinite(grid)):
+                raise VolrenError(f"volume '{self.name}': emission grid must hold finite real numbers")
+            object.__setattr__(self, "emission_grid", np.ascontiguousarray(grid, dtype=np.float32))
+        k = tuple(float(v) for v in np.asarray(self.temperature_range, dtype=np.float64).reshape(-1))
+        if len(k) != 2 or not all(np.isfinite(k)) or not 0 < k[0] < k[1]:
+            raise VolrenError(f"volume '{self.name}': temperature range must be two finite kelvin values "
+                              f"0 < K0 < K1, got {self.temperature_range}")
+        object.__setattr__(self, "temperature_range", k)
+        if not (np.isfinite(self.emission_scale) and self.emission_scale >= 0):
+            raise VolrenError(f"volume '{self.name}': emission scale must be a finite number >= 0, got "
+                              f"{self.emission_scale}")
+
+    @cached_property
+    def emission_u(self) -> np.ndarray | None:
+        """``emission_grid`` normalised to u = v / max(v) in [0, 1], values <= 0 at 0 (no emission); None without."""
+        if self.emission_grid is None:
+            return None
+        peak = float(self.emission_grid.max())
+        if peak <= 0:
+            return np.zeros_like(self.emission_grid)
+        return np.clip(self.emission_grid / np.float32(peak), 0.0, 1.0).astype(np.float32)
+
+    @cached_property
+    def emission_table(self) -> np.ndarray | None:
+        """(`TABLE_SIZE`, 3) blackbody radiance per metre at u = i / (size - 1) (`volren.blackbody.blackbody_table`
+        over ``temperature_range``, scaled by ``emission_scale``); None without an emission grid."""
+        if self.emission_grid is None:
+            return None
+        return blackbody_table(*self.temperature_range, self.emission_scale)
 
     @property
     def resolution(self) -> tuple[int, int, int]:

@@ -1,7 +1,8 @@
 """Upload a `Scene` and `Camera`s to a Warp device: packed density grids, per-volume structs, lights.
 
 Several volumes of different resolutions share one flat density array (each ``VolumeGPU`` holds its offset), so a
-kernel can walk every volume of the scene in one launch.
+kernel can walk every volume of the scene in one launch. After every density level it holds each fire volume's
+emission grid and blackbody table (`pack_emission`): every kernel that reads densities can then read them too.
 """
 
 from __future__ import annotations
@@ -235,7 +236,23 @@ def volume_struct(
     s.g = vol.g
     s.emission = wp.vec3(*vol.emission)
     s.diagonal = vol.diagonal
+    s.emission_grid_offset, s.emission_grid_res = 0, wp.vec3i(*vol.resolution)
+    s.emission_table_offset, s.emission_table_size = 0, 0  # no emission grid until `pack_emission` sets one
     return s
+
+
+def pack_emission(vol: Volume, structs: list[VolumeGPU], offset: int, grids: list[np.ndarray]) -> int:
+    """Append ``vol``'s normalised emission grid and blackbody table (flattened) to ``grids`` at ``offset`` of the
+    packed density array and point every one of its mip levels' ``structs`` at them (a fire grid is sampled at full
+    resolution whatever the level); returns the offset after them. Nothing for a volume without an emission grid."""
+    if vol.emission_u is None:
+        return offset
+    table = vol.emission_table.reshape(-1)
+    for s in structs:
+        s.emission_grid_offset, s.emission_table_offset = offset, offset + vol.emission_u.size
+        s.emission_table_size = len(vol.emission_table)
+    grids += [vol.emission_u.reshape(-1), table]
+    return offset + vol.emission_u.size + table.size
 
 
 def volume_bvh(scene: Scene, device: str) -> wp.Bvh:
@@ -313,6 +330,8 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         light_res.append(lres)
         light_offset += n_lights * int(np.prod(lres))
         ambient_offset += int(np.prod(lres))
+    for vol, per_level in zip(scene.volumes, levels, strict=True):
+        offset = pack_emission(vol, per_level, offset, grids)
     if offset > MAX_PACKED or light_offset > MAX_PACKED:
         raise VolrenError(f"scene too large: {offset} voxels (at most {MAX_PACKED} in all volumes together)")
     check_allocation(4 * (offset + light_offset), device, f"scene '{scene.name}' (density and light maps)")

@@ -186,6 +186,43 @@ def _smoke_field(n: int, rng: np.random.Generator) -> np.ndarray:
     return out
 
 
+def fire_fields(resolution: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A flame: (soot density, temperature), both [z, y, x] in [0, 1].
+
+    The temperature is a hot core over a burner at y = -0.8 that narrows, cools and flickers (fBm) as it rises into
+    a tongue ending near y = 0.2; the soot is thin in the flame (0.12-0.2: it glows through it) and thickens into a
+    smoke column above it, to y = 0.8. The soot covers the flame everywhere, as blackbody emission needs
+    density > 0 (`volren.scene`, "Fire")."""
+    n = _check_resolution(resolution)
+    rng = np.random.default_rng([_check_seed(seed), 5])
+    noise = _Fbm(rng, n, base_freq=3.0, gain=0.6, stretch=(1.0, 0.5, 1.0))  # stretched along y: tongues rise
+    c = _centres(n)
+    y_base = -0.8
+    t = np.clip((c - y_base) / 1.6, 0.0, 1.0)  # height along the column, per y row
+    radius = (0.36 + 0.2 * t).astype(np.float32)
+    flame_len = np.float32(1.3)  # the tongue's height above the burner
+    win = _margin(n)
+    base = _smoothstep(y_base - 0.05, y_base + 0.08, c) * win  # (y,) the burner and the box margin
+    density = np.empty((n, n, n), dtype=np.float32)
+    temperature = np.empty((n, n, n), dtype=np.float32)
+    h = np.clip((c - y_base) / flame_len, 0.0, 1.0).astype(np.float32)[None, :, None]  # height in the tongue
+    for zs in _slabs(n):
+        f = noise.slab(zs)
+        q = np.sqrt(c[zs, None, None] ** 2 + c[None, None, :] ** 2) / radius[None, :, None] - 0.35 * f
+        envelope = _smoothstep(1.0, 0.4, q)
+        # hot core: widest at the burner, a tongue whose edge (q at 1 - h) closes in as it rises; flicker by f
+        edge = 1.0 - 0.75 * h  # the tongue narrows as it rises
+        core = _smoothstep(edge, 0.4 * edge, q - 0.3 * f) * (1.0 - h) ** 0.3 * np.clip(0.8 + 0.6 * f, 0.0, 1.0)
+        smoke = _smoothstep(0.2, 0.7, c)[None, :, None] * _smoothstep(0.95, 0.7, c)[None, :, None]
+        soot = envelope * (0.12 + 0.08 * (1.0 - core) + 0.3 * smoke * np.clip(0.7 + 0.8 * f, 0.0, 1.0))
+        window = base[None, :, None] * win[None, None, :] * win[zs, None, None]
+        density[zs] = soot * window
+        temperature[zs] = core * envelope * window
+    np.clip(density, 0.0, 1.0, out=density)
+    np.clip(temperature, 0.0, 1.0, out=temperature)
+    return density, temperature
+
+
 def _spheres_field(spheres: np.ndarray, c: np.ndarray, zs: slice) -> np.ndarray:
     """max_i (1 - |p - c_i| / r_i) on a z-slab: 1 at a centre, 0 on a surface, -1 far out (clamped there).
 
@@ -340,6 +377,19 @@ def _smoke_floor_scene(resolution: int, *, count: int = 4, seed: int = 0) -> Sce
     return dataclasses.replace(scene, name="smoke-floor", opaque=(Plane((0.0, -1.0, 0.0), (0.0, 1.0, 0.0), 0.35),))
 
 
+FIRE_TEMPERATURES = (1200.0, 2500.0)
+"""[K] the fire scene's temperature range: deep red at the tongue's tips to yellow-white in the core"""
+
+
+def _fire_scene(resolution: int, *, count: int = 4, seed: int = 0) -> Scene:
+    """`fire_fields` as dark soot (albedo 0.5) with blackbody emission, under a dim light so that the flame reads."""
+    soot, temperature = fire_fields(resolution, seed)
+    volume = Volume(soot, density_scale=8.0, albedo=(0.5, 0.5, 0.5), g=0.3, name="fire", emission_grid=temperature,
+                    temperature_range=FIRE_TEMPERATURES, emission_scale=10.0)
+    light = DirectionalLight(direction=(-0.5, -1.0, -0.35), irradiance=(0.3, 0.3, 0.3))
+    return Scene((volume,), (light,), Environment(radiance=(0.01, 0.012, 0.016)), _BACKGROUND, name="fire")
+
+
 def _cloud_scene(resolution: int, *, count: int = 4, seed: int = 0) -> Scene:
     volume = Volume(cloud_density(resolution, seed), density_scale=11.0, albedo=(0.97, 0.97, 0.97), g=0.5, name="cloud")
     return Scene((volume,), _LIGHTS, _SKY, _BACKGROUND, name="cloud")
@@ -454,6 +504,8 @@ BUILTIN_SCENES: dict[str, BuiltinScene] = {
                      "pitch", functools.partial(_instances_scene, overlap=True)),
         BuiltinScene("smoke-floor", "the smoke plume over a grey floor that it shadows and occludes",
                      _smoke_floor_scene),
+        BuiltinScene("fire", "a flame: a hot blackbody core (1200-2500 K) in thin soot under a smoke column, dimly lit",
+                     _fire_scene),
     )
 }
 

@@ -60,6 +60,14 @@ class VolumeGPU:
     """cells per axis (x, y, z) of that level"""
     skip_cell: int
     """voxels per cell edge of that level (a power of 2)"""
+    emission_grid_offset: int
+    """first voxel of this volume's normalised emission grid u (`volren.scene.Volume.emission_u`, full resolution at
+    every mip level) in the packed density array"""
+    emission_grid_res: wp.vec3i
+    emission_table_offset: int
+    """first float of its blackbody table (3 per entry) in the packed density array"""
+    emission_table_size: int
+    """entries of that table; 0: the volume has no emission grid"""
 
 
 @wp.struct
@@ -267,6 +275,31 @@ def sample_grid_rgb(data: wp.array(dtype=wp.vec3), offset: int, res: wp.vec3i, p
     for n in range(8):
         out += corner_weight(n, a) * data[i + (n / 4) * res[0] * res[1] + ((n / 2) % 2) * res[0] + n % 2]
     return out
+
+
+@wp.func
+def blackbody_emission(vol: VolumeGPU, data: wp.array(dtype=float), p: wp.vec3, rho: float) -> wp.vec3:
+    """Blackbody radiance per metre [W/(m^3 sr)] of the volume's emission grid at local ``p`` where the density rho
+    is > 0 (`volren.scene`, "Fire"): u sampled trilinearly, then the table interpolated linearly at u (size - 1);
+    u <= 0 emits nothing."""
+    n = vol.emission_table_size
+    if n == 0 or rho <= 0.0:
+        return wp.vec3(0.0)
+    u = sample_grid(data, vol.emission_grid_offset, vol.emission_grid_res, p)
+    if u <= 0.0:
+        return wp.vec3(0.0)
+    f = wp.min(u, 1.0) * float(n - 1)
+    i = wp.min(int(f), n - 2)
+    a = f - float(i)
+    k = vol.emission_table_offset + 3 * i
+    return (1.0 - a) * wp.vec3(data[k], data[k + 1], data[k + 2]) + a * wp.vec3(data[k + 3], data[k + 4], data[k + 5])
+
+
+@wp.func
+def emitted_radiance(vol: VolumeGPU, data: wp.array(dtype=float), p: wp.vec3, rho: float) -> wp.vec3:
+    """Radiance emitted per metre [W/(m^3 sr)] at local ``p`` of density rho: emission * rho plus the blackbody
+    emission of the volume's emission grid (`blackbody_emission`)."""
+    return vol.emission * rho + blackbody_emission(vol, data, p, rho)
 
 
 @wp.func

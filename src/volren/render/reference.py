@@ -37,6 +37,7 @@ from volren.kernels.common import (
     counter_row,
     covering_diagonal,
     density_inside,
+    emitted_radiance,
     half_depth,
     hg_phase,
     light_distance,
@@ -111,7 +112,8 @@ def reference_sample(
         if rho >= 0.0:
             s.samples += 1
             sigma_t += vol.density_scale * rho
-            source += wp.cw_mul(vol.albedo, params.ambient) * (vol.density_scale * rho) + vol.emission * rho
+            source += wp.cw_mul(vol.albedo, params.ambient) * (vol.density_scale * rho) + emitted_radiance(
+                vol, density, wp.transform_point(vol.to_local, x), rho)
     if sigma_t > 0.0:
         s.shaded += 1
         for li in range(lights.shape[0]):

@@ -56,6 +56,7 @@ from volren.kernels.common import (
     composite_step,
     count,
     counter_row,
+    emitted_radiance,
     half_depth,
     march_step_count,
     sample_grid,
@@ -241,7 +242,8 @@ def march_joint(
                             shaded += 1
                             sigma_v = vol.density_scale * rho
                             light = shade_light_map(vol, medium, p, x, d, params.ambient)
-                            source += wp.cw_mul(vol.albedo, light) * sigma_v + vol.emission * rho
+                            source += wp.cw_mul(vol.albedo, light) * sigma_v + emitted_radiance(
+                                vol, medium.density, p, rho)
                             sigma_t += sigma_v
                 if sigma_t > 0.0:
                     before = acc[3]

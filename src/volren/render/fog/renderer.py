@@ -499,6 +499,10 @@ class FogRenderer(Renderer):
     def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
         if scene.fog is None:
             raise VolrenError(f"method 'fog' needs a scene with fog; scene '{scene.name}' has none")
+        fire = [v.name for v in scene.volumes if v.emission_grid is not None]
+        if fire:
+            raise VolrenError(f"method 'fog' has no blackbody emission: the emission grid of volume '{fire[0]}' "
+                              "would do nothing (use dssrm, cmsrm, cacrm, reference or vpt)")
         if len(scene.lights) > MAX_FOG_LIGHTS:
             raise VolrenError(f"fog supports at most {MAX_FOG_LIGHTS} lights, scene '{scene.name}' has "
                               f"{len(scene.lights)}")

@@ -13,7 +13,9 @@ function's emission column), not modulated by the albedo, as in the reference re
 along each flight. Delta tracking collides with pdf T(t) mu_t(x_t) (summed over overlapping volumes, each volume's
 collision picked with its own mu_t), so the collision estimator adds E / mu_t of the colliding volume at every real
 collision, weighted by the path's throughput up to it (the albedos of the scatterings before, not its own). It needs
-mu_t > 0 wherever E > 0 (`volren.transfer`; a volume with emission and density_scale 0 is refused).
+mu_t > 0 wherever E > 0 (`volren.transfer`; a volume with emission and density_scale 0 is refused). A volume's
+emission grid (fire) emits only where its density is > 0 (`volren.scene`), so there mu_t = density_scale * density
+> 0 too; a transfer function does not model it (refused with one).
 
 The environment is a light only: with ``ambient`` off (the default) a constant environment of radiance 1 around an
 albedo-1 medium returns radiance 1 (the furnace). ``ambient`` adds paper 002 §6.1's uniform, unshadowed ambient of
@@ -58,6 +60,7 @@ from volren.kernels.common import (
     OpaqueGPU,
     ViewBuffers,
     VolumeGPU,
+    blackbody_emission,
     box_hit,
     camera_ray,
     count,
@@ -258,11 +261,12 @@ def transmittance(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, dist:
 
 @wp.func
 def material(sc: VPTScene, v: int, x: wp.vec3):
-    """(albedo, P_brdf, world gradient, normalised scalar u, emitted radiance E / mu_t) of volume v at world point x;
-    the gradient by central differences."""
+    """(albedo, P_brdf, world gradient, normalised scalar u, emitted radiance E / mu_t) of volume v at world point x,
+    E the table's emission plus the volume's blackbody emission; the gradient by central differences."""
     vol = sc.volumes[v]
     p = wp.transform_point(vol.to_local, x)
-    u = sample_grid(sc.density, vol.offset, vol.res, p) * sc.inv_scale[v]
+    rho = sample_grid(sc.density, vol.offset, vol.res, p)
+    u = rho * sc.inv_scale[v]
     n = sc.table_size
     f = wp.clamp(u, 0.0, 1.0) * float(n - 1)
     i = wp.min(int(f), n - 2) + v * n
@@ -271,7 +275,8 @@ def material(sc: VPTScene, v: int, x: wp.vec3):
     p_brdf = (1.0 - a) * sc.p_brdf[i] + a * sc.p_brdf[i + 1]
     emitted = wp.vec3(0.0)
     if e[0] > 0.0:
-        emitted = ((1.0 - a) * sc.emission[i] + a * sc.emission[i + 1]) / e[0]
+        table_e = (1.0 - a) * sc.emission[i] + a * sc.emission[i + 1]
+        emitted = (table_e + blackbody_emission(vol, sc.density, p, rho)) / e[0]
     grad = wp.vec3(0.0)
     for axis in range(3):
         h = wp.vec3(0.0)
@@ -531,9 +536,12 @@ def transfer_tables(volumes, transfer: str | None) -> list[np.ndarray]:
     configured transfer function (in Hounsfield units where it has that form and the volume a ``value_range``: entry
     u holds HU lo + (hi - lo) * u * scale; it replaces the volumes' density_scale, albedo and emission), or each
     volume's density-scale model (extinction and emission proportional to density)."""
+    if transfer is not None and any(v.emission_grid is not None for v in volumes):
+        raise VolrenError("vpt: a transfer function replaces the material, and its extinction need not be > 0 "
+                          "where an emission grid emits: render fire without --tf")
     if transfer is None:
         for v in volumes:
-            if max(v.emission) > 0 and v.density_scale == 0:
+            if (max(v.emission) > 0 or v.emission_grid is not None) and v.density_scale == 0:
                 raise VolrenError(f"vpt: volume '{v.name}' emits but has density_scale 0: the path tracer finds "
                                   "emission only where its free flights collide (give it extinction)")
         return [linear(v.density_scale * float(v.density.max()), v.albedo,
@@ -577,7 +585,8 @@ class VPT(Renderer):
                                              self.config.global_majorant)
                              for vol, table in zip(scene.volumes, tables, strict=True)]
                 self._majorants = (key, majorants, self._majorant_arrays(tables, majorants))
-                self._emits = any(float(table[:, 5:8].max()) > 0 for table in tables)
+                self._emits = any(float(table[:, 5:8].max()) > 0 or vol.emission_grid is not None
+                                  for vol, table in zip(scene.volumes, tables, strict=True))
         env = scene.environment if self.config.environment_light else None
         if self._environment is None or self._environment[0] is not env:
             self._environment = (env, environment_light(env, self.device))

@@ -1,0 +1,209 @@
+"""Fire (issue 21 item 2): the blackbody table against closed forms, the emission grid's radiance against the
+homogeneous closed form in every method with emission, the fire scene against the reference, and the CLI's
+refusals of flags that would do nothing."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from conftest import DEVICE, axis_camera, scene_of
+from test_cli import assert_error
+from volren.blackbody import SIGMA, XYZ_TO_SRGB, blackbody_rgb, blackbody_table, blackbody_xyz, planck
+from volren.camera import Camera
+from volren.data import builtin_scene
+from volren.data.fog_scenes import fog_scene
+from volren.errors import VolrenError
+from volren.metrics import psnr
+from volren.render import METHODS
+from volren.scene import Volume
+
+Y_OF_RGB = np.linalg.inv(XYZ_TO_SRGB)[1]
+"""luminance Y of a linear sRGB colour"""
+
+
+# ---------------------------------------------------------------- the blackbody table
+
+
+def test_6504_kelvin_is_the_white_of_srgb() -> None:
+    """The Planckian locus at 6504 K is (x, y) = (0.3135, 0.3237) (CIE 15:2004's tables): D65's CCT, sRGB's white
+    (0.3127, 0.3290) just off the locus, so its sRGB colour over its luminance is within a few percent of (1, 1, 1)."""
+    xyz = blackbody_xyz(6504.0)
+    np.testing.assert_allclose(xyz[:2] / xyz.sum(), (0.3135, 0.3237), atol=1e-3)
+    np.testing.assert_allclose(blackbody_rgb(6504.0) / xyz[1], 1.0, atol=0.05)
+
+
+@pytest.mark.parametrize("kelvin", [1000.0, 1500.0, 2000.0])
+def test_flame_temperatures_are_red_orange(kelvin: float) -> None:
+    """A 1000-2000 K blackbody is red to orange: R > G > B, G / R rising with T (0.03 at 1000 K, 0.27 at 2000 K); it
+    lies outside the sRGB gamut there and its negative blue is clipped to 0."""
+    r, g, b = blackbody_rgb(kelvin)
+    assert r > g > b >= 0
+    assert 0.02 < g / r < 0.3
+    if kelvin <= 1500:
+        assert b == 0 and (blackbody_xyz(kelvin) @ XYZ_TO_SRGB.T)[2] < 0
+
+
+def test_luminance_grows_with_temperature_and_integrates_to_stefan_boltzmann() -> None:
+    """Y(T) strictly increases; the unnormalised Planck integral over all wavelengths is sigma T^4 / pi, so doubling T
+    gives 16 times the radiance."""
+    y = blackbody_xyz(np.linspace(500.0, 12000.0, 200))[:, 1]
+    assert np.all(np.diff(y) > 0)
+    lam = np.geomspace(5e-8, 1e-2, 200_000)
+    total = [np.trapezoid(planck(lam, t), lam) for t in (1000.0, 2000.0)]
+    assert total[0] == pytest.approx(SIGMA * 1000.0**4 / np.pi, rel=1e-4)
+    assert total[1] / total[0] == pytest.approx(16.0, rel=1e-4)
+
+
+def test_table_is_normalised_to_the_emission_scale_at_k1() -> None:
+    """Entry i is at T_i = K0 + (K1 - K0) i / 255, scaled so that the K1 entry has luminance Y = scale."""
+    table = blackbody_table(1000.0, 6504.0, scale=2.5)
+    assert table.shape == (256, 3)
+    assert Y_OF_RGB @ table[-1] == pytest.approx(2.5, rel=1e-4)
+    t_100 = 1000.0 + 5504.0 * 100 / 255
+    np.testing.assert_allclose(table[100], 2.5 * blackbody_rgb(t_100) / blackbody_xyz(6504.0)[1], rtol=1e-5)
+    assert np.all(np.diff(table @ Y_OF_RGB) > 0)
+
+
+# ---------------------------------------------------------------- the emission grid in every method
+
+K0, K1, SCALE = 1500.0, 3000.0, 2.0
+EMITTER = axis_camera(position=(0.0, 0.0, 4.0), size=(9, 9), fov_y=20.0)
+"""the centre pixel's ray crosses the box [-1, 1]^3 along z: chord 2 m"""
+CONFIGS = {
+    "dssrm": {"samples": 64, "light_grid": 8},
+    "cmsrm": {"samples": 64, "light_grid": 8},
+    "cacrm": {"samples": 64, "light_grid": 8},
+    "reference": {"samples": 64},
+    "vpt": {"spp": 1024},
+}
+
+
+def fire_box(density: float, temperature: np.ndarray, sigma_per_density: float = 1.0) -> Volume:
+    """A uniform 8^3 box of ``density``, albedo 0, blackbody emission from ``temperature`` (normalised by its max)."""
+    return Volume(np.full((8, 8, 8), density, np.float32), density_scale=sigma_per_density, albedo=0.0,
+                  emission_grid=temperature, temperature_range=(K0, K1), emission_scale=SCALE)
+
+
+def render_centre(method: str, volume: Volume) -> np.ndarray:
+    cls, config = METHODS[method]
+    image = cls(config(**CONFIGS[method]), device=DEVICE).render(scene_of(volume), [EMITTER]).images[0]
+    return image[4, 4]
+
+
+def closed_form(e: np.ndarray, sigma_t: float, length: float = 2.0) -> np.ndarray:
+    """L = integral_0^L e^(-sigma_t t) E dt = E / sigma_t (1 - e^(-sigma_t L))"""
+    return e / sigma_t * (1.0 - np.exp(-sigma_t * length))
+
+
+@pytest.mark.parametrize("method", list(CONFIGS))
+def test_emission_grid_matches_the_closed_form(method: str) -> None:
+    """A uniform box at K1 (u = 1) and one at the middle temperature (u = 0.5: the table entry 127.5, between two
+    entries; a voxel at the far corner, off the centre ray, holds the max): the centre pixel is E / mu_t (1 - e^(-2
+    mu_t)), with E the blackbody radiance itself at that temperature, not multiplied by the density (densities 0.5
+    and 2 give mu_t 0.5 and 2 with the same E). VPT adds E / mu_t per collision: 5 standard errors of 1024 paths."""
+    hot = np.ones((8, 8, 8), np.float32)
+    half = np.full((8, 8, 8), 0.5, np.float32)
+    half[-1, -1, -1] = 1.0
+    e_k1 = SCALE * blackbody_rgb(K1) / blackbody_xyz(K1)[1]
+    e_mid = SCALE * blackbody_rgb(0.5 * (K0 + K1)) / blackbody_xyz(K1)[1]
+    for density, grid, e in ((0.5, hot, e_k1), (2.0, half, e_mid)):
+        got = render_centre(method, fire_box(density, grid))
+        expected = closed_form(e, density)
+        if method == "vpt":
+            a = 1.0 - np.exp(-2.0 * density)
+            err = e / density * np.sqrt(a * (1 - a) / CONFIGS["vpt"]["spp"])
+            assert np.all(np.abs(got[:3] - expected) < 5 * err + 1e-6), (density, got, expected)
+        else:
+            np.testing.assert_allclose(got[:3], expected, rtol=3e-3, err_msg=f"density {density}")
+        assert got[3] == pytest.approx(1.0 - np.exp(-2.0 * density), abs=0.05 if method == "vpt" else 1e-3)
+
+
+def test_emission_grid_emits_only_where_the_density_is_positive() -> None:
+    """Blackbody emission lives in the medium: a hot grid over zero density gives a black pixel (dssrm, reference)."""
+    for method in ("dssrm", "reference"):
+        got = render_centre(method, fire_box(0.0, np.ones((8, 8, 8), np.float32)))
+        assert np.all(got == 0), method
+
+
+def test_fog_refuses_an_emission_grid() -> None:
+    """The froxel fog has no blackbody emission: a volume with an emission grid in a fog scene is refused."""
+    scene = dataclasses.replace(fog_scene("hall"), volumes=(fire_box(1.0, np.ones((8, 8, 8), np.float32)),))
+    cls, config = METHODS["fog"]
+    with pytest.raises(VolrenError, match=r"emission grid .* would do nothing"):
+        cls(config(), device=DEVICE).render(scene, [EMITTER])
+
+
+def test_volume_checks_the_emission_grid() -> None:
+    density = np.ones((4, 4, 4), np.float32)
+    with pytest.raises(VolrenError, match="emission grid has shape"):
+        Volume(density, emission_grid=np.ones((4, 4, 5)))
+    with pytest.raises(VolrenError, match="finite"):
+        Volume(density, emission_grid=np.full((4, 4, 4), np.nan))
+    with pytest.raises(VolrenError, match="0 < K0 < K1"):
+        Volume(density, emission_grid=density, temperature_range=(3000.0, 1000.0))
+    with pytest.raises(VolrenError, match="emission scale"):
+        Volume(density, emission_grid=density, emission_scale=-1.0)
+    u = Volume(density, emission_grid=np.array([-1.0, 0.0, 2.0, 4.0] * 16).reshape(4, 4, 4)).emission_u
+    np.testing.assert_array_equal(u[0, 0], [0.0, 0.0, 0.5, 1.0])
+
+
+# ---------------------------------------------------------------- the fire scene against the reference
+
+
+@pytest.fixture(scope="module")
+def fire_scene():
+    return builtin_scene("fire", 64)
+
+
+FIRE_CAMERA = Camera(position=(0.0, -0.2, 3.2), look_at=(0.0, -0.2, 0.0), width=64, height=48, fov_y=45.0)
+
+
+@pytest.fixture(scope="module")
+def fire_reference(fire_scene) -> np.ndarray:
+    cls, config = METHODS["reference"]
+    return cls(config(samples=192, light_samples=48), device=DEVICE).render(fire_scene, [FIRE_CAMERA]).images[0]
+
+
+def test_fire_scene_is_a_flame_in_soot(fire_scene, fire_reference) -> None:
+    """The scene's soot covers its temperature grid (emission needs density > 0), and the flame dominates the image:
+    its brightest pixel is orange-yellow (R > G > B), far brighter than the dimly lit soot."""
+    vol = fire_scene.volumes[0]
+    assert vol.emission_grid is not None and np.all(vol.density[vol.emission_grid > 0] > 0)
+    rgb = fire_reference[..., :3]
+    r, g, b = rgb.reshape(-1, 3)[np.argmax(rgb.sum(axis=-1))]
+    assert r > g > b and g > 0.3 * r
+    glowless = dataclasses.replace(vol, emission_grid=None)
+    cls, config = METHODS["dssrm"]
+    dark = cls(config(samples=96, light_grid=32), device=DEVICE).render(
+        dataclasses.replace(fire_scene, volumes=(glowless,)), [FIRE_CAMERA]).images[0]
+    assert rgb.sum() > 5 * dark[..., :3].sum()
+
+
+@pytest.mark.parametrize(("method", "floor"), [("dssrm", 40.0), ("cmsrm", 40.0), ("cacrm", 40.0), ("vpt", 28.0)])
+def test_fire_scene_matches_the_reference(fire_scene, fire_reference, method: str, floor: float) -> None:
+    """Every method with emission shows the same flame as the reference (PSNR over the linear RGB, peak 1)."""
+    cls, config = METHODS[method]
+    options = {"spp": 16} if method == "vpt" else {"samples": 192, "light_grid": 32}
+    image = cls(config(**options), device=DEVICE).render(fire_scene, [FIRE_CAMERA]).images[0]
+    assert psnr(fire_reference[..., :3], image[..., :3]) > floor
+
+
+# ---------------------------------------------------------------- the CLI
+
+
+@pytest.mark.parametrize(("argv", "fragments"), [
+    (["--scene", "smoke", "--temperature-range", "1000,2000"], ["--temperature-range", "--emission-grid"]),
+    (["--scene", "cloud", "--emission-scale", "3"], ["--emission-scale", "--scene fire"]),
+    (["--scene", "fire", "--emission-grid", "temperature"], ["--emission-grid", "no --volume"]),
+    (["--scene", "fire", "--temperature-range", "2000,1000"], ["--temperature-range", "0 < K0 < K1"]),
+    (["--scene", "fire", "--temperature-range", "0,1000"], ["--temperature-range", "0 < K0 < K1"]),
+    (["--scene", "fire", "--temperature-range", "inf,1e9"], ["--temperature-range", "finite"]),
+    (["--scene", "fire", "--emission-scale", "-1"], ["--emission-scale", ">= 0"]),
+    (["--scene", "fire", "--method", "vpt", "--tf", "smoke"], ["without --tf"]),
+])
+def test_cli_refuses_fire_flags_that_would_do_nothing(capfd, tmp_path, argv, fragments) -> None:
+    assert_error(capfd, ["render", *argv, "--width", "8", "--height", "8", "--views", "mono", "--device", "cpu",
+                         "--out", tmp_path / "out"], *fragments)
