@@ -150,13 +150,15 @@ class RenderLoop:
     ``shared=False`` is the naive server of the benchmark: each viewer rendered by its own renderer (own light map,
     shadow grid, majorants and history), one call per viewer, as if every viewer had a server of its own.
     ``overrides`` are config fields on top of the quality preset (tests use small light grids). ``refine``: frames a
-    still view is refined for by a temporal method (None: `refine_frames` of the method's config; 1: off)."""
+    still view is refined for by a temporal method (None: `refine_frames` of the method's config; 1: off).
+    ``encode`` turns a viewer's uint8 sRGB image into its frame's bytes (None: JPEG at ``jpeg_quality``; the notebook
+    widget, `volren.notebook.Viewer`, takes the raw pixels)."""
 
     def __init__(self, scene: Scene, method: str, quality: str = "interactive", *, limits: Limits | None = None,
                  camera: Camera | None = None, device: str = "cpu", shared: bool = True, ipd: float = 0.063,
                  jpeg_quality: int = JPEG_QUALITY, animate: Callable[[], Scene] | None = None,
                  overrides: dict[str, Any] | None = None, refine: int | None = None,
-                 lock_settings: bool = False) -> None:
+                 lock_settings: bool = False, encode: Callable[[np.ndarray], bytes] | None = None) -> None:
         self.methods = scene_methods(scene)
         if method not in self.methods:
             raise VolrenError(f"--method: '{method}' cannot serve scene '{scene.name}': choose from "
@@ -180,6 +182,7 @@ class RenderLoop:
         self.viewers = ViewerSet(self.limits.max_viewers)
         self.camera = camera or Camera(position=(0.0, 0.4, 3.2))
         self.device, self.shared, self.ipd, self.jpeg_quality = device, shared, ipd, jpeg_quality
+        self.encode = encode
         self.overrides = dict(overrides or {})
         self.method, self.quality, self.tf = method, quality, DENSITY_TF
         self.light_dir: tuple[float, float, float] | None = None
@@ -446,7 +449,8 @@ class RenderLoop:
             header = {"camera_id": cam_id, "tick": index, "width": rgb.shape[1], "height": rgb.shape[0],
                       "stereo": len(cams) == 2, "refine": still.frames, "render_ms": round(self.render_ms, 3),
                       "pass_ms": {p: round(ms, 3) for p, ms in passes.items()}, "viewers": viewers}
-            out.append((pack_frame(header, encode_jpeg(rgb, self.jpeg_quality)), still))
+            data = encode_jpeg(rgb, self.jpeg_quality) if self.encode is None else self.encode(rgb)
+            out.append((pack_frame(header, data), still))
         self.encode_ms = (time.perf_counter() - start) * 1e3
         return out
 
