@@ -52,6 +52,17 @@ VELOCITY = RNG.normal(size=(*SHAPE, 3)).astype(np.float32)
 SPARSE = np.where(RNG.random((24, 20, 16)) < 0.1, RNG.uniform(0.2, 1.0, (24, 20, 16)), 0.0).astype(np.float32)
 SPARSE[:3], SPARSE[-2:], SPARSE[:, :4], SPARSE[:, :, -5:] = 0.0, 0.0, 0.0, 0.0  # the active box is a crop
 SPARSE[10, 9, 6] = 7.0  # the marker voxel
+MANY = RNG.uniform(0.1, 1.0, (40, 36, 64)).astype(np.float32)
+"""5 x 5 x 8 leaves and more at an offset that spans two lower internal nodes in x (128 voxels each): tinyvdb 0.9.0's
+own densify keeps at most 64 leaves per lower node"""
+
+
+CENTRED = -np.array(SCALE) * (np.array(IJK) + (np.array(SHAPE[::-1]) - 1) / 2)
+"""the translation that centres the grid as ``--spacing 0.5,0.25,2 --units m`` centres a .npy"""
+
+
+ROTATED = [[0.0, 0.5, 0.0, 0.0], [-0.25, 0.0, 0.0, 0.0], [0.0, 0.0, 2.0, 0.0], [1.0, 2.0, 3.0, 1.0]]
+"""an affine map (row vectors): index x -> world +y (0.5 m), index y -> world -x (0.25 m), index z -> world +z"""
 
 
 def _grid(name, array, **kw):
@@ -69,6 +80,9 @@ def vdb_dir(tmp_path_factory) -> Path:
         "half.vdb": [_grid("density", DENSITY, half=True)],
         "empty.vdb": [_grid("density", None)],
         "sparse.vdb": [{"name": "density", "array": SPARSE, "ijk": (-8, 4, 0), "matrix": _matrix((0.1,) * 3)}],
+        "centred.vdb": [{**_grid("density", DENSITY), "matrix": _matrix(translation=CENTRED)}],
+        "rotated.vdb": [{**_grid("density", DENSITY), "matrix": ROTATED}],
+        "many.vdb": [{"name": "density", "array": MANY, "ijk": (100, -20, 3), "matrix": _matrix()}],
         "moved.vdb": [_grid("density", DENSITY), {**_grid("temperature", TEMPERATURE), "matrix": _matrix((0.5,) * 3)}],
     }, folder)
     data = (folder / "two.vdb").read_bytes()
@@ -95,6 +109,13 @@ def test_density_and_placement_match_what_openvdb_wrote(vdb_dir):
     np.testing.assert_allclose(mm.to_world[:3], loaded.to_world[:3] * 1e-3, rtol=1e-12, atol=0)
 
 
+def test_affine_transform_rotates_the_grid(vdb_dir):
+    loaded = load_volume(vdb_dir / "rotated.vdb")
+    for zyx in [(0, 0, 0), (6, 4, 8)]:
+        expected = np.array([*(np.array(IJK) + zyx[::-1]), 1.0]) @ np.array(ROTATED)
+        np.testing.assert_allclose(_world(loaded, zyx), expected[:3], rtol=0, atol=1e-12)
+
+
 def test_spacing_replaces_the_vdb_placement_as_for_nvdb(vdb_dir):
     loaded = load_volume(vdb_dir / "two.vdb", spacing=(1.0, 1.0, 1.0), units="m")
     np.testing.assert_allclose(_world(loaded, (0, 0, 0)), -(np.array(SHAPE[::-1]) - 1) / 2, atol=1e-12)
@@ -112,6 +133,13 @@ def test_grid_choice(vdb_dir):
         load_volume(vdb_dir / "two.vdb", grid="velocity")
     with pytest.raises(VolrenError, match=r"apply to \.vdb only \(CLI: --grid"):
         load_volume(vdb_dir / "nothing.npy", grid="density")
+
+
+def test_a_grid_of_hundreds_of_leaves_reads_every_voxel(vdb_dir):
+    loaded = load_volume(vdb_dir / "many.vdb")
+    np.testing.assert_array_equal(loaded.density, MANY)
+    corner = np.array(SCALE) * np.array([100 + 63, -20 + 35, 3 + 39]) + TRANSLATION
+    np.testing.assert_allclose(_world(loaded, (39, 35, 63)), corner, atol=1e-12)
 
 
 def test_half_precision_reads_as_float32(vdb_dir):
@@ -175,3 +203,31 @@ def test_emission_grid_lines_up_with_the_density(vdb_dir):
         load_volume(vdb_dir / "two.vdb", emission_grid="heat")
     with pytest.raises(VolrenError, match=r"apply to \.vdb only"):
         load_volume(vdb_dir / "x.nvdb", emission_grid="temperature")
+
+
+def test_vdb_renders_like_the_npy_it_was_written_from(vdb_dir, tmp_path, capfd):
+    """``volren render --volume f.vdb`` (CPU, 24x16) equals the same density as .npy placed by --spacing."""
+    from test_cli import _linear_render
+
+    np.save(tmp_path / "density.npy", DENSITY)
+    reference = _linear_render(capfd, tmp_path / "npy", tmp_path / "density.npy", "--spacing", "0.5,0.25,2",
+                               "--units", "m")
+    assert reference[..., 3].max() > 0.05
+    image = _linear_render(capfd, tmp_path / "vdb", vdb_dir / "centred.vdb")
+    np.testing.assert_allclose(image, reference, rtol=0, atol=1e-6)
+    other = _linear_render(capfd, tmp_path / "temperature", vdb_dir / "two.vdb", "--grid", "temperature")
+    assert other[..., 3].max() > reference[..., 3].max()  # --grid reached the loader: a far denser grid
+
+
+@pytest.mark.parametrize("case", ["npy", "scene", "truncated", "unknown"])
+def test_cli_refuses_grid_misuse_and_bad_files_in_one_line(vdb_dir, tmp_path, capfd, case):
+    from test_cli import render_error
+
+    np.save(tmp_path / "d.npy", DENSITY)
+    extra, fragments = {
+        "npy": (["--volume", tmp_path / "d.npy", "--grid", "density"], ["d.npy", "--grid", ".vdb only"]),
+        "scene": (["--scene", "smoke", "--grid", "density"], ["--grid", "no --volume"]),
+        "truncated": (["--volume", vdb_dir / "truncated.vdb"], ["truncated.vdb", "truncated or corrupt"]),
+        "unknown": (["--volume", vdb_dir / "two.vdb", "--grid", "fuel"], ["two.vdb", "'fuel'", "density (float)"]),
+    }[case]
+    render_error(capfd, tmp_path, extra, *fragments)

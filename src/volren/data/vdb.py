@@ -9,6 +9,7 @@ length unit; volren reads it as metres (Blender and Houdini work in metres) unle
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,8 +19,18 @@ from volren.errors import VolrenError
 
 MAX_DENSE_VOXELS = 1 << 30
 """A dense copy of a sparse grid larger than this (4 GiB of float32) is refused before anything is allocated."""
-_FLOAT_TREES = ("Tree_float_", "Tree_double_", "Tree_half_")
-"""tinyvdb type names of the scalar grids volren reads (half is stored as float with ``is_saved_as_half_float``)."""
+_FLOAT_TREES = ("Tree_float_",)
+"""tinyvdb type names of the scalar grids volren reads: float (half precision is a float grid stored with
+``is_saved_as_half_float``, as OpenVDB 10 writes it)."""
+_MAGIC = 0x56444220
+_MIN_FILE_VERSION = 222
+"""OPENVDB_FILE_VERSION_NODE_MASK_COMPRESSION: per-grid compression, instancing and mask metadata are all present."""
+_COMPRESS_ZIP, _COMPRESS_ACTIVE_MASK, _COMPRESS_BLOSC = 0x1, 0x2, 0x4
+_MAP_BYTES = {"AffineMap": 128, "UnitaryMap": 128, "ScaleMap": 120, "UniformScaleMap": 120, "TranslationMap": 24,
+              "ScaleTranslateMap": 144, "UniformScaleTranslateMap": 144}
+"""bytes each linear map writes after its type name (Mat4d, or 5-6 Vec3d of scale, voxel size and their inverses)"""
+_LEAF_CHUNK = 4096
+"""leaves (8 MiB of values) joined per scatter into the dense grid"""
 _SCALE_TRANSLATE = ("scale", "translation", "scale_translate", "uniform_scale", "uniform_scale_translate")
 """tinyvdb map types whose ``scale`` and ``translation`` are the whole map (their ``matrix`` is the identity)."""
 
@@ -37,11 +48,18 @@ class VdbGrid:
     """4x4, column convention: dense index (x, y, z) to the file's world (OpenVDB units)."""
 
 
-def _open(path: Path):
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise VolrenError(f"{path}: cannot read the file ({exc.strerror})") from None
+
+
+def _open(path: Path, data: bytes):
     import tinyvdb  # lazy: only .vdb users pay for the import
 
     try:
-        vdb = tinyvdb.open(str(path))
+        vdb = tinyvdb.from_bytes(data)
         vdb.read_grids()  # tinyvdb decompresses all grids at once; there is no per-grid read
     except tinyvdb.VDBError as exc:
         raise VolrenError(f"{path}: not a readable OpenVDB file, truncated or corrupt ({exc})") from None
@@ -91,13 +109,122 @@ def _index_to_world(path: Path, grid) -> np.ndarray:
     return m
 
 
-def _active_box(path: Path, grid) -> tuple[np.ndarray, np.ndarray]:
-    """Inclusive index bounds of the active voxels: the stats OpenVDB writes, if they lie within the active leaves
-    (tinyvdb's ``active_bbox``, leaf-aligned, exclusive max), else the leaves' box."""
-    leaves = grid.active_bbox()
-    if leaves is None or grid.active_voxel_count() == 0:
-        raise VolrenError(f"{path}: grid {grid.name!r} has no active voxels")
-    leaf_lo, leaf_hi = np.array(leaves[0]), np.array(leaves[1]) - 1
+class _Reader:
+    """Little-endian reads from the file's bytes at a position."""
+
+    def __init__(self, data: bytes, pos: int = 0):
+        self.data, self.pos = data, pos
+
+    def take(self, fmt: str):
+        values = struct.unpack_from("<" + fmt, self.data, self.pos)
+        self.pos += struct.calcsize("<" + fmt)
+        return values if len(values) > 1 else values[0]
+
+    def raw(self, size: int) -> bytes:
+        if size < 0 or self.pos + size > len(self.data):
+            raise struct.error("read past the end of the file")
+        self.pos += size
+        return self.data[self.pos - size : self.pos]
+
+    def string(self) -> str:
+        return self.raw(self.take("I")).decode("utf-8", "replace")
+
+    def skip_metadata(self) -> None:
+        for _ in range(self.take("i")):  # MetaMap: name, type name, size-prefixed value
+            self.string(), self.string()
+            self.raw(self.take("I"))
+
+
+def _grid_offsets(data: bytes) -> list[tuple[str, int, int, bool]]:
+    """(name, grid position, buffers position, saved as half) of each grid, from the file header's descriptors."""
+    r = _Reader(data)
+    if r.take("q") != _MAGIC:
+        raise VolrenError("no OpenVDB magic number")
+    version = r.take("I")
+    if version < _MIN_FILE_VERSION:
+        raise VolrenError(f"OpenVDB file format version {version} is older than volren reads ({_MIN_FILE_VERSION}+, "
+                          "OpenVDB 3.2 and later)")
+    r.take("II")  # library major, minor
+    if not r.take("?"):
+        raise VolrenError("the file has no grid offsets (an old streamed file)")
+    r.raw(36)  # UUID
+    r.skip_metadata()
+    grids = []
+    for _ in range(r.take("i")):
+        name, type_name, _parent = r.string(), r.string(), r.string()
+        grid_pos, block_pos, end_pos = r.take("qqq")
+        grids.append((name.split("\x1e")[0], grid_pos, block_pos, type_name.endswith("_HalfFloat")))
+        r.pos = end_pos
+    return grids
+
+
+def _skip_compressed_values(r: _Reader, count: int, value_mask: np.ndarray, compression: int, half: bool) -> None:
+    """Step over ``io::readCompressedValues`` (an internal node's tile values): the mask-compression metadata byte,
+    inactive values and selection mask, then the data, size-prefixed when ZIP / Blosc compressed."""
+    metadata = r.take("b")
+    r.raw(4 * (metadata in (2, 4, 5)) + 4 * (metadata == 5))  # one or two float inactive values
+    r.raw(count // 8 * (metadata in (3, 4, 5)))  # selection mask between the two inactive values
+    stored = int(value_mask.sum()) if compression & _COMPRESS_ACTIVE_MASK and metadata != 6 else count
+    if half and stored == 0:  # io::HalfReader reads (and HalfWriter writes) nothing for no values
+        return
+    if compression & (_COMPRESS_BLOSC | _COMPRESS_ZIP):
+        r.raw(abs(r.take("q")))  # the compressed size; <= 0: stored uncompressed, -size bytes
+    else:
+        r.raw(stored * (2 if half else 4))
+
+
+def _leaf_origins(path: Path, data: bytes, index: int, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Origins (L, 3) (x, y, z) of the grid's leaves in file order and their active voxel counts, read from the tree
+    topology (root tiles and children, then per internal node its child and value masks and tile values), which
+    ends where the leaf buffers begin. tinyvdb 0.9.0 decodes every leaf's values but places at most 64 leaves per
+    lower internal node in its own index (so its ``materialize_dense`` / ``to_sparse`` drop the rest of any larger
+    grid); volren places the leaves itself."""
+    offsets = _grid_offsets(data)
+    if index >= len(offsets) or offsets[index][0] != name:
+        raise VolrenError(f"grid {name!r} is not where the file header puts it")
+    _, grid_pos, block_pos, half = offsets[index]
+    r = _Reader(data, grid_pos)
+    compression = r.take("I")
+    r.skip_metadata()
+    map_type = r.string()
+    if map_type not in _MAP_BYTES:
+        raise VolrenError(f"grid {name!r} has a {map_type} transform; volren reads linear (affine) maps")
+    r.raw(_MAP_BYTES[map_type])
+    r.take("i")  # buffer count (1)
+    r.take("f")  # background
+    tiles, children = r.take("II")
+    if any(r.take("iiif?")[4] for _ in range(tiles)):
+        raise VolrenError(f"grid {name!r} has active tiles (constant regions), which volren does not read yet")
+    origins, counts = [], []
+
+    def node(origin: np.ndarray, log2dim: int, child_extent: int) -> None:
+        size = 1 << (3 * log2dim)
+        child_mask = np.unpackbits(np.frombuffer(r.raw(size // 8), np.uint8), bitorder="little").astype(bool)
+        value_mask = np.unpackbits(np.frombuffer(r.raw(size // 8), np.uint8), bitorder="little").astype(bool)
+        if value_mask.any():
+            raise VolrenError(f"grid {name!r} has active tiles (constant regions), which volren does not read yet")
+        _skip_compressed_values(r, size, value_mask, compression, half)
+        for i in np.flatnonzero(child_mask):
+            local = np.array([i >> (2 * log2dim), (i >> log2dim) & ((1 << log2dim) - 1), i & ((1 << log2dim) - 1)])
+            child = origin + local * child_extent
+            if log2dim == 4:  # the lower internal node's children are leaves: their value masks
+                origins.append(child)
+                counts.append(int(np.unpackbits(np.frombuffer(r.raw(64), np.uint8)).sum()))
+            else:
+                node(child, 4, 8)
+
+    for _ in range(children):
+        node(np.array(r.take("iii"), dtype=np.int64), 5, 128)
+    if block_pos > grid_pos and r.pos != block_pos:  # tinyvdb's own writer leaves the buffer position unset
+        raise VolrenError(f"grid {name!r}: its tree topology does not end where the file says ({r.pos} != "
+                          f"{block_pos})")
+    return np.array(origins, dtype=np.int64).reshape(-1, 3), np.array(counts, dtype=np.int64)
+
+
+def _active_box(path: Path, grid, origins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inclusive index bounds of the active voxels: the stats OpenVDB writes (``file_bbox_min`` / ``max``), if they
+    lie within the leaves, else the leaves' box."""
+    leaf_lo, leaf_hi = origins.min(axis=0), origins.max(axis=0) + 7
     meta = grid.metadata
     lo, hi = np.array(meta.get("file_bbox_min", leaf_lo)), np.array(meta.get("file_bbox_max", leaf_hi))
     if lo.shape != (3,) or hi.shape != (3,) or np.any(lo < leaf_lo) or np.any(hi > leaf_hi) or np.any(hi < lo):
@@ -105,13 +232,41 @@ def _active_box(path: Path, grid) -> tuple[np.ndarray, np.ndarray]:
     return lo.astype(np.int64), hi.astype(np.int64)
 
 
-def _densify(path: Path, grid, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """float32 ``[z, y, x]`` over the inclusive box; tinyvdb's DenseGrid buffer is already x-fastest."""
+def _leaves(path: Path, data: bytes, vdb, index: int) -> tuple[list, np.ndarray]:
+    """tinyvdb's decoded leaves of grid ``index`` in file order and their origins; refused unless every leaf's
+    active count matches the topology's, so that a leaf is never put in another's place."""
+    grid = vdb.grid(index)
+    tree = grid.tree
+    leaves = [n for n in (tree.node(i) for i in range(tree.num_nodes)) if n.level == 3]
     try:
-        dense = grid.materialize_dense(tuple(int(v) for v in lo), tuple(int(v) + 1 for v in hi))
-    except Exception as exc:  # tinyvdb.VDBError: a grid whose nodes it cannot decode
-        raise VolrenError(f"{path}: cannot densify grid {grid.name!r} ({exc})") from None
-    return np.asarray(memoryview(dense), dtype=np.float32)  # zero-copy: the array keeps the DenseGrid alive
+        origins, counts = _leaf_origins(path, data, index, grid.name)
+    except struct.error:
+        raise VolrenError(f"{path}: not a readable OpenVDB file, truncated or corrupt (grid {grid.name!r})") from None
+    except VolrenError as exc:
+        raise VolrenError(f"{path}: {exc}") from None
+    if len(leaves) != len(origins) or any(n.active_voxel_count != c for n, c in zip(leaves, counts, strict=False)):
+        raise VolrenError(f"{path}: grid {grid.name!r}: tinyvdb decoded {len(leaves)} leaves, the file's topology "
+                          f"lists {len(origins)} (or their active voxels differ)")
+    if not leaves or not counts.any():
+        raise VolrenError(f"{path}: grid {grid.name!r} has no active voxels")
+    return leaves, origins
+
+
+def _densify(leaves: list, origins: np.ndarray, lo: np.ndarray, hi: np.ndarray, background: float) -> np.ndarray:
+    """float32 ``[z, y, x]`` over the inclusive box: each 8^3 leaf (tinyvdb's values, x slowest, z fastest) copied
+    into its place, the rest the background. Leaves are scattered in chunks, so only a chunk's values are joined."""
+    start, stop = (lo >> 3) << 3, ((hi >> 3) + 1) << 3  # the box widened to whole leaves
+    blocks = (stop - start) >> 3
+    out = np.full((blocks[2] * 8, blocks[1] * 8, blocks[0] * 8), background, dtype=np.float32)
+    tiles = out.reshape(blocks[2], 8, blocks[1], 8, blocks[0], 8)
+    inside = np.flatnonzero(np.all((origins >= start) & (origins < stop), axis=1))
+    for chunk in np.array_split(inside, max(1, len(inside) // _LEAF_CHUNK)):
+        values = np.frombuffer(b"".join(leaves[i].data for i in chunk), np.float32).reshape(-1, 8, 8, 8)
+        b = (origins[chunk] - start) >> 3
+        tiles[b[:, 2], :, b[:, 1], :, b[:, 0], :] = values.transpose(0, 3, 2, 1)
+    crop = out[lo[2] - start[2] : hi[2] + 1 - start[2], lo[1] - start[1] : hi[1] + 1 - start[1],
+               lo[0] - start[0] : hi[0] + 1 - start[0]]
+    return crop if crop.shape == out.shape else np.ascontiguousarray(crop)
 
 
 def _check_size(path: Path, lo: np.ndarray, hi: np.ndarray, grids: int) -> None:
@@ -127,28 +282,32 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
     ``temperature``, raw values) densified over the same index box, or None. The emission grid must share the
     density grid's transform, so that voxel (i, j, k) of both is the same place."""
     path = Path(path)
-    vdb = _open(path)
+    data = _read_bytes(path)
+    vdb = _open(path, data)
     try:
-        density_grid = vdb.grid(_find_grid(path, vdb, grid, "--grid"))
+        index = _find_grid(path, vdb, grid, "--grid")
+        density_grid = vdb.grid(index)
         to_world = _index_to_world(path, density_grid)
-        lo, hi = _active_box(path, density_grid)
+        leaves, origins = _leaves(path, data, vdb, index)
+        lo, hi = _active_box(path, density_grid, origins)
         emission = None
         if emission_grid is not None:
-            other = vdb.grid(_find_grid(path, vdb, emission_grid, "--emission-grid"))
+            other_index = _find_grid(path, vdb, emission_grid, "--emission-grid")
+            other = vdb.grid(other_index)
             if not np.allclose(_index_to_world(path, other), to_world, rtol=1e-9, atol=0.0):
                 raise VolrenError(f"{path}: grid {emission_grid!r} (--emission-grid) has another index-to-world "
                                   f"transform than the density grid {density_grid.name!r}")
         _check_size(path, lo, hi, 1 if emission_grid is None else 2)
-        data = _densify(path, density_grid, lo, hi)
+        values = _densify(leaves, origins, lo, hi, density_grid.float_background())
         if emission_grid is not None:
-            emission = _densify(path, other, lo, hi)
+            emission = _densify(*_leaves(path, data, vdb, other_index), lo, hi, other.float_background())
             if not np.all(np.isfinite(emission)):
                 raise VolrenError(f"{path}: grid {emission_grid!r} (--emission-grid) holds NaN/Inf values")
     finally:
         vdb.close()  # the sparse trees go before the caller validates (and copies) the dense grid
     placed = to_world.copy()
     placed[:3, 3] = to_world[:3, :3] @ lo + to_world[:3, 3]  # dense index 0 is file index lo
-    return VdbGrid(data, tuple(int(v) for v in lo), tuple(int(v) for v in hi), placed), emission
+    return VdbGrid(values, tuple(int(v) for v in lo), tuple(int(v) for v in hi), placed), emission
 
 
 def read_vdb_grid_like(path: str | Path, name: str, like: str | None = None) -> np.ndarray:
