@@ -196,7 +196,7 @@ def test_pydicom_bundled_ct_slice_refused_alone(tmp_path: Path) -> None:
         ("size", r"slices differ in size"),
         ("duplicate", r"slices im\d+\.dcm and zz\.dcm share a position along the slice normal"),
         ("empty", r"empty folder; a DICOM series needs its slice files"),
-        ("not-dicom", r"junk\.dcm is not a DICOM file"),
+        ("not-dicom", r"no DICOM image to read \(junk\.dcm: not DICOM\)$"),
         ("two-series", r"holds 2 DICOM series \(first files im\d+\.dcm, zz\.dcm\); put each series in its own folder"),
     ],
 )
@@ -232,7 +232,7 @@ def test_unplaced_formats_keep_their_aspect(tmp_path: Path) -> None:
     tifffile.imwrite(tmp_path / "a.tif", (a + 1).astype(np.uint16))
     loaded = load_volume(tmp_path / "a.tif", spacing=(0.2, 0.2, 1), units="m")
     np.testing.assert_allclose(loaded.to_world[:3, :3], np.diag([4.0, 2.0, 5.0]))
-    np.testing.assert_allclose(loaded.density, 1 / 65535, rtol=1e-6)
+    np.testing.assert_allclose(loaded.density, 1 / 255, rtol=1e-6)  # uint16 holding 1: an 8-bit depth
     import nrrd
 
     nrrd.write(str(tmp_path / "p.nrrd"), a, {"spacings": [1.0, 1.0, 3.0]}, index_order="C")
@@ -376,3 +376,108 @@ def test_nvdb_rotated_map_follows_warp(tmp_path: Path) -> None:
     loaded = load_volume(tmp_path / "r.nvdb", units="m")
     n = np.array(loaded.density.shape[::-1])
     np.testing.assert_allclose(loaded.to_world[:3, :3], matrix * n / 2)
+
+
+def _render_alpha(volume: Path, out: Path, *extra: str) -> np.ndarray:
+    """The default camera's mono view of ``volume`` (``volren render`` defaults but a 64x64 image and a light
+    march), its alpha."""
+    from volren.cli import main
+
+    assert main(["render", "--volume", str(volume), "--views", "mono", "--width", "64", "--height", "64",
+                 "--samples", "96", "--light-samples", "8", "--light-grid", "16", "--device", "cpu", "--save-linear",
+                 "--out", str(out), *extra]) == 0
+    return np.load(out / "view0.npy")[..., 3]
+
+
+def _marker_stack(pages: int = 16) -> np.ndarray:
+    """uint8 pages [page, row, column], 64x64: a 5x5 marker about row 5, column 54 (the page's top right) on every
+    page, and one brighter voxel at page 2, row 5, column 54."""
+    stack = np.zeros((pages, 64, 64), np.uint8)
+    stack[:, 3:8, 52:57] = 200
+    stack[2, 5, 54] = 255
+    return stack
+
+
+def test_tiff_page_row_zero_renders_at_the_top(tmp_path: Path) -> None:
+    """Issue 21.6: a marker at the top right of the page image (row 5, column 54) shows at the top right with the
+    default camera (it rendered at the bottom right). The stack turns upright by a half turn about x, so page 0 sits
+    in front (z > 0), as napari and Fiji show a stack."""
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "m.tif", _marker_stack())
+    alpha = _render_alpha(tmp_path / "m.tif", tmp_path / "out", "--density-scale", "400")
+    rows, cols = np.nonzero(alpha > 0.5)
+    assert len(rows) > 4
+    assert rows.max() < 20 and cols.min() > 44, (rows.min(), rows.max(), cols.min(), cols.max())
+    loaded = load_volume(tmp_path / "m.tif")  # unplaced: cubic voxels of 2 / 64 m, centred
+    step = 2 / 64
+    marker = np.array([[(54.5 - 32) * step, (32 - 5.5) * step, (8 - 2.5) * step]])  # page 2 of 16: in front
+    assert density_at(loaded, marker) == 1.0
+    for mirrored in ([1, -1, 1], [1, 1, -1]):  # the marker voxel is not where a flip of one axis would put it
+        assert density_at(loaded, marker * mirrored) < 1.0
+
+
+def test_imagej_tiff_spacing_and_page_order_place_the_marker(tmp_path: Path) -> None:
+    """ImageJ voxels of 0.5 x 0.25 x 2 um: the marker voxel (page 2, row 5, column 54 of 16 pages) lands at
+    ((54.5 - 32) * 0.5, (32 - 5.5) * 0.25, (8 - 2.5) * 2) um, page 0 in front, rows down; --spacing replaces the
+    voxel size the same way."""
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "s.tif", _marker_stack(), imagej=True, resolution=(1 / 0.5, 1 / 0.25),
+                     metadata={"spacing": 2.0, "unit": "um"})
+    loaded = load_volume(tmp_path / "s.tif")
+    marker = np.array([[(54.5 - 32) * 0.5e-6, (32 - 5.5) * 0.25e-6, (8 - 2.5) * 2e-6]])
+    assert density_at(loaded, marker) == 1.0
+    assert density_at(loaded, marker * [1, -1, 1]) == 0.0 and density_at(loaded, marker * [1, 1, -1]) < 1.0
+    replaced = load_volume(tmp_path / "s.tif", spacing=(1, 1, 3), units="mm")
+    assert density_at(replaced, np.array([[22.5e-3, 26.5e-3, 16.5e-3]])) == 1.0
+
+
+def test_twelve_bit_uint16_renders_as_its_float_twin(tmp_path: Path) -> None:
+    """Issue 21.6: 12-bit data in uint16 (0..4095) maps by its bit depth, density = v / 4095 (max 1.0), and renders
+    exactly as the same data as float v / 4095 does (it was divided by 65535: 16x thinner, nearly black); stats.json
+    says the mapping. 8-bit data keeps v / 255, 10-bit v / 1023; DICOM's BitsStored is used where stated."""
+    import json
+
+    from volren.data.loaders import _Grid, _normalise
+
+    z, y, x = np.mgrid[0:24, 0:24, 0:24] / 11.5 - 1
+    ct = np.clip(4400 * (1 - 1.5 * (x**2 + y**2 + z**2)), 0, 4095).round().astype(np.uint16)
+    assert ct.max() == 4095
+    np.save(tmp_path / "u16.npy", ct)
+    np.save(tmp_path / "f32.npy", ct.astype(np.float32) / 4095)
+    loaded = load_volume(tmp_path / "u16.npy")
+    assert loaded.density.max() == 1.0 and loaded.value_range == (0.0, 4095.0) and not loaded.hounsfield
+    assert loaded.value_mapping.to_dict() == {"source": "uint16", "range": [0.0, 4095.0], "units": "raw"}
+    alpha = _render_alpha(tmp_path / "u16.npy", tmp_path / "u16", "--density-scale", "2")
+    np.testing.assert_allclose(alpha, _render_alpha(tmp_path / "f32.npy", tmp_path / "f32", "--density-scale", "2"),
+                               rtol=0, atol=1e-6)
+    np.save(tmp_path / "old.npy", ct.astype(np.float32) / 65535)  # what the loader made of it before
+    old = _render_alpha(tmp_path / "old.npy", tmp_path / "old", "--density-scale", "2")
+    assert alpha.max() > 0.8 and alpha.mean() > 5 * old.mean(), (alpha.max(), alpha.mean(), old.mean())  # 9x
+    stats = json.loads((tmp_path / "u16" / "stats.json").read_text())
+    assert stats["value_mapping"] == {"source": "uint16", "range": [0.0, 4095.0], "units": "raw"}
+    assert json.loads((tmp_path / "f32" / "stats.json").read_text())["value_mapping"] == {
+        "source": "float32", "range": None, "units": "raw"}
+    for values, bits, top in (([0, 51], None, 255), ([3, 700], None, 1023), ([0, 700], 12, 4095),
+                              ([0, 70000], None, 131071)):
+        data = np.array(values, np.uint32 if max(values) > 65535 else np.uint16)
+        out, value_range = _normalise(_Grid(data, bits_stored=bits))
+        assert value_range == (0.0, top)
+        np.testing.assert_allclose(out, data / top, rtol=1e-6)
+
+
+def test_unsigned_nifti_ct_with_scl_inter_keeps_hounsfield_units(tmp_path: Path) -> None:
+    """A uint16 NIfTI CT storing HU + 1024 (scl_inter -1024): the loader applies the rescale, so value_range is in
+    HU (-1000..1000) and the ct presets classify it (as a signed CT)."""
+    import nibabel as nib
+
+    hu = np.full((6, 5, 4), -1000.0)
+    hu[2:4, 1:4, 1:3] = 1000.0
+    image = nib.Nifti1Image(np.ascontiguousarray((hu + 1024).astype(np.uint16).transpose(2, 1, 0)), np.eye(4))
+    image.header.set_slope_inter(1.0, -1024.0)
+    nib.save(image, tmp_path / "ct.nii.gz")
+    loaded = load_volume(tmp_path / "ct.nii.gz")
+    assert loaded.value_range == (-1000.0, 1000.0) and loaded.hounsfield
+    assert loaded.value_mapping.to_dict() == {"source": "uint16", "range": [-1000.0, 1000.0], "units": "HU"}
+    np.testing.assert_array_equal(loaded.density, (hu + 1000) / 2000)

@@ -506,6 +506,15 @@ def check_fire_flags(args: argparse.Namespace, scene) -> None:
         raise CliError(f"--emission-scale must be a finite number >= 0, got {scale:g}")
 
 
+def _value_mapping(args: argparse.Namespace) -> dict:
+    """stats.json's ``value_mapping``: how ``--volume``'s file values became densities; nothing for built-in
+    scenes."""
+    if getattr(args, "volume", None) is None:
+        return {}
+    mapping = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units, args.grid).value_mapping
+    return {} if mapping is None else {"value_mapping": mapping.to_dict()}
+
+
 def _load_volume(path: Path, shape, dtype, spacing, units, grid=None):
     """``--volume`` read once: the scene and the default camera framing both need it (keyed on the file's mtime too,
     so a rewritten file is read again). One ``.dcm`` file stands for its series: the files of its folder with its
@@ -780,6 +789,7 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     from volren.output import contact_sheet, run_output, write_frame, write_stats
 
     scene = scene_from_args(args)
+    value_mapping = _value_mapping(args)
     animated = getattr(args, "scene", None) in ANIMATED_FOG_SCENES
     walking = args.rig == "wander" and args.views not in ("mono", "stereo")
     views = views_from_args(args)
@@ -819,7 +829,7 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
         wall = time.perf_counter() - start
         if sequence is not None:
             files.append(write_mp4(out / "animation.mp4", movie, sequence.fps))
-        stats = write_stats(out, frames, {"scene": scene.name, "command": command})
+        stats = write_stats(out, frames, {"scene": scene.name, "command": command, **value_mapping})
     files, stats = [args.out / f.name for f in files], args.out / stats.name
     last = frames[-1].stats
     print(f"{method} on {last.device}: {len(views)} view(s) of '{scene.name}', {args.frames} frame(s) in {wall:.2f} s")

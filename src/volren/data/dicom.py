@@ -1,13 +1,21 @@
-"""A DICOM series (a folder of single-frame slices) as one grid placed in patient coordinates (LPS, mm), via pydicom.
+"""A DICOM series as one grid placed in patient coordinates (LPS, mm), via pydicom.
 
-Slices are sorted by their position along the slice normal (ImageOrientationPatient row x column direction); the
-series is refused, with one line naming the folder, when slices differ in size, orientation or pixel spacing, when
-two share a position, or when the steps between positions are uneven (a missing slice). Stored values become
-RescaleSlope * v + RescaleIntercept (Hounsfield units for CT) per slice.
+A series is a folder of single-frame slices, a multi-frame (enhanced) image whose frames are placed by the functional
+groups (PlanePositionSequence per frame; PlaneOrientationSequence, PixelMeasuresSequence and
+PixelValueTransformationSequence per frame or shared), or an RT dose grid (frames at ImagePositionPatient + offset *
+normal for each GridFrameOffsetVector offset, values * DoseGridScaling). Files of the folder that are no image of a
+series (not DICOM, a DICOMDIR index, no pixel data, unreadable pixel data) are skipped with one warning naming them;
+a folder with no image left is refused. Frames are sorted by their position along the slice normal
+(ImageOrientationPatient row x column direction); the series is refused, with one line naming the folder, when
+frames differ in size, orientation or pixel spacing, when two share a position, or when the steps between positions
+are uneven (a missing slice). Stored values become RescaleSlope * v + RescaleIntercept per frame: Hounsfield units
+for CT; other modalities without a rescale keep their stored integers (normalised by BitsStored).
 """
 
 from __future__ import annotations
 
+import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +24,25 @@ from volren.errors import VolrenError
 
 _STEP_TOLERANCE = 0.01
 """Relative spread allowed between slice steps (and between the steps' directions) before a series is refused."""
+_DICOMDIR = "1.2.840.10008.1.3.10"
+"""Media Storage Directory Storage: the SOP class of a DICOMDIR (an index of a file set, no image)."""
+_LISTED = 6
+"""skipped files named in the warning; more are counted."""
+log = logging.getLogger("volren.data")
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """One plane of the series: a single-frame file, or frame k of a multi-frame file (``name`` "file[k]")."""
+
+    name: str
+    pixels: np.ndarray
+    """stored values [row, column]"""
+    orientation: np.ndarray
+    position: np.ndarray
+    spacing: np.ndarray
+    slope: float
+    intercept: float
 
 
 def _series_files(folder: Path) -> list[Path]:
@@ -25,95 +52,187 @@ def _series_files(folder: Path) -> list[Path]:
     return dcm or files
 
 
-def _vector(ds, keyword: str, count: int, folder: Path, file: Path) -> np.ndarray:
-    value = getattr(ds, keyword, None)
+def _vector(item, keyword: str, count: int, folder: Path, name: str) -> np.ndarray:
+    value = None if item is None else item.get(keyword)
     if value is None or len(value) != count:
-        raise VolrenError(f"{folder}: DICOM slice {file.name} has no {keyword}; volren cannot place the series")
+        raise VolrenError(f"{folder}: DICOM image {name} has no {keyword}; volren cannot place the series")
     return np.asarray([float(v) for v in value], dtype=np.float64)
 
 
-def read_dicom_series(folder: Path, member: Path | None = None):
-    """Read the series in ``folder`` as a ``volren.data.loaders._Grid`` (values float32, rescaled; index -> LPS mm).
-    With ``member`` (one of its files), read that file's series (its SeriesInstanceUID) and skip the folder's other
-    series; without it, a folder of several series is refused."""
-    import pydicom  # lazy: only DICOM users pay for the import
+def _not_an_image(ds) -> str:
+    """Why a header (read without pixels) is no image of a series, or "" when it is one."""
+    if str(ds.file_meta.get("MediaStorageSOPClassUID", "")) == _DICOMDIR or "DirectoryRecordSequence" in ds:
+        return "a DICOMDIR index"
+    if "Rows" not in ds or "Columns" not in ds:
+        return f"no image: {ds.get('Modality', 'no modality')}"
+    if int(ds.get("SamplesPerPixel", 1) or 1) != 1:
+        return "a colour image"
+    return ""
+
+
+def _read_header(pydicom, file: Path):
+    """(header without pixels, "") or (None, why it is skipped)."""
     from pydicom.errors import InvalidDicomError
 
-    from volren.data.loaders import _Grid
+    try:
+        ds = pydicom.dcmread(file, stop_before_pixels=True)
+    except InvalidDicomError:
+        return None, "not DICOM"
+    except Exception as exc:  # pydicom raises many kinds on a truncated or corrupt header
+        return None, f"unreadable: {type(exc).__name__}"
+    reason = _not_an_image(ds)
+    return (None, reason) if reason else (ds, "")
+
+
+def _number(item, keyword: str, default: float) -> float:
+    value = None if item is None else item.get(keyword)
+    return default if value is None or value == "" else float(value)
+
+
+def _group(ds, frame: int, sequence: str):
+    """Frame ``frame``'s item of the functional group ``sequence`` (per-frame, else shared), or None."""
+    for groups, index in (("PerFrameFunctionalGroupsSequence", frame), ("SharedFunctionalGroupsSequence", 0)):
+        items = ds.get(groups)
+        if items is not None and len(items) > index and items[index].get(sequence):
+            return items[index].get(sequence)[0]
+    return None
+
+
+def _frames(ds, pixels: np.ndarray, file: Path, folder: Path) -> list[_Frame]:
+    """The planes of one file. A single frame is placed by its top-level attributes; an RT dose's frames by
+    GridFrameOffsetVector (PS3.3 C.8.8.3.2: offsets along the normal, frame 0 at ImagePositionPatient); other
+    multi-frame images by their functional groups (PS3.3 C.7.6.16)."""
+    count = int(ds.get("NumberOfFrames", 1) or 1)
+    if pixels.ndim != (3 if count > 1 else 2) or (count > 1 and len(pixels) != count):
+        raise VolrenError(f"{folder}: {file.name} holds pixel data of shape {pixels.shape} for {count} frame(s); "
+                          "volren reads grey images")
+    planes = pixels if count > 1 else pixels[None]
+    if count == 1 or "GridFrameOffsetVector" in ds:
+        orientation = _vector(ds, "ImageOrientationPatient", 6, folder, file.name)
+        origin = _vector(ds, "ImagePositionPatient", 3, folder, file.name)
+        spacing = _vector(ds, "PixelSpacing", 2, folder, file.name)
+        if ds.get("Modality") == "RTDOSE":
+            slope, intercept = _number(ds, "DoseGridScaling", 1.0), 0.0  # Gy = DoseGridScaling * v
+        else:
+            slope, intercept = _number(ds, "RescaleSlope", 1.0), _number(ds, "RescaleIntercept", 0.0)
+        if count == 1:
+            return [_Frame(file.name, planes[0], orientation, origin, spacing, slope, intercept)]
+        offsets = _vector(ds, "GridFrameOffsetVector", count, folder, file.name)
+        normal = np.cross(orientation[:3], orientation[3:])
+        # a first offset of 0 means offsets relative to frame 0; one equal to frame 0's z means absolute z (axial)
+        return [_Frame(f"{file.name}[{k}]", planes[k], orientation, origin + (offsets[k] - offsets[0]) * normal,
+                       spacing, slope, intercept) for k in range(count)]
+    frames = []
+    for k in range(count):
+        name = f"{file.name}[{k}]"
+        transform = _group(ds, k, "PixelValueTransformationSequence") or ds
+        frames.append(_Frame(
+            name, planes[k],
+            _vector(_group(ds, k, "PlaneOrientationSequence"), "ImageOrientationPatient", 6, folder, name),
+            _vector(_group(ds, k, "PlanePositionSequence"), "ImagePositionPatient", 3, folder, name),
+            _vector(_group(ds, k, "PixelMeasuresSequence"), "PixelSpacing", 2, folder, name),
+            _number(transform, "RescaleSlope", 1.0), _number(transform, "RescaleIntercept", 0.0)))
+    return frames
+
+
+def _units(ds) -> str:
+    """What the series' rescaled values are: "HU" (CT), "Gy" or "relative" (RT dose), "" (unknown)."""
+    if ds.get("Modality") == "RTDOSE":
+        return "Gy" if str(ds.get("DoseUnits", "GY")).upper() == "GY" else "relative"
+    return "HU" if ds.get("Modality") == "CT" or str(ds.get("RescaleType", "")).upper() == "HU" else ""
+
+
+def read_dicom_series(folder: Path, member: Path | None = None):
+    """Read the series in ``folder`` as a ``volren.data.loaders._Grid`` (index -> LPS mm; values rescaled to
+    float32, or the stored integers with their BitsStored where no rescale applies). With ``member`` (one of its
+    files), read that file's series (its SeriesInstanceUID) and skip the folder's other series; without it, a folder
+    of several series is refused."""
+    import pydicom  # lazy: only DICOM users pay for the import
+
+    from volren.data.loaders import _Grid, _one_line
 
     files = _series_files(folder)
     if not files:
         raise VolrenError(f"{folder}: empty folder; a DICOM series needs its slice files (.dcm)")
     wanted = None
     if member is not None:
-        try:
-            wanted = str(getattr(pydicom.dcmread(member, stop_before_pixels=True), "SeriesInstanceUID", ""))
-        except InvalidDicomError:
-            raise VolrenError(f"{member}: not a DICOM file") from None
-    slices = []
-    series: dict[str, Path] = {}  # SeriesInstanceUID -> its first file
+        header, reason = _read_header(pydicom, member)
+        if header is None:
+            raise VolrenError(f"{member}: {'not a DICOM file' if reason == 'not DICOM' else reason}; name an image "
+                              "of the series, or its folder")
+        wanted = str(header.get("SeriesInstanceUID", ""))
+    skipped: list[str] = []  # "name: why"
+    series: dict[str, list[Path]] = {}  # SeriesInstanceUID -> its image files
     for file in files:
-        try:
-            if wanted is not None and str(getattr(pydicom.dcmread(file, stop_before_pixels=True),
-                                                  "SeriesInstanceUID", "")) != wanted:
-                continue  # another series in the same folder
-            ds = pydicom.dcmread(file)
-            pixels = ds.pixel_array if "PixelData" in ds else None
-        except InvalidDicomError:
-            raise VolrenError(f"{folder}: {file.name} is not a DICOM file") from None
-        except Exception as exc:  # pydicom raises many kinds on corrupt or unsupported pixel data
-            raise VolrenError(f"{folder}: cannot read DICOM slice {file.name} ({type(exc).__name__}: {exc})") from None
-        if pixels is None:
-            raise VolrenError(f"{folder}: {file.name} holds no image (no PixelData)")
-        if pixels.ndim != 2:
-            raise VolrenError(f"{folder}: {file.name} holds pixel data of shape {pixels.shape}; volren reads "
-                              "single-frame grey slices")
-        orientation = _vector(ds, "ImageOrientationPatient", 6, folder, file)
-        position = _vector(ds, "ImagePositionPatient", 3, folder, file)
-        spacing = _vector(ds, "PixelSpacing", 2, folder, file)
-        slope = float(getattr(ds, "RescaleSlope", 1.0) or 1.0)
-        intercept = float(getattr(ds, "RescaleIntercept", 0.0) or 0.0)
-        rescaled = pixels.astype(np.float32) * np.float32(slope) + np.float32(intercept)  # float32: HU are exact
-        slices.append((file, rescaled, orientation, position, spacing))
-        series.setdefault(str(getattr(ds, "SeriesInstanceUID", "")), file)
+        header, reason = _read_header(pydicom, file)
+        if header is None:
+            skipped.append(f"{file.name}: {reason}")
+            continue
+        uid = str(header.get("SeriesInstanceUID", ""))
+        if wanted is None or uid == wanted:  # else another series in the same folder
+            series.setdefault(uid, []).append(file)
     if len(series) > 1:
-        names = ", ".join(f.name for f in series.values())
+        names = ", ".join(f[0].name for f in series.values())
         raise VolrenError(f"{folder}: holds {len(series)} DICOM series (first files {names}); put each series in its "
                           "own folder")
-    first_file, first_pixels, orientation, _, spacing = slices[0]
-    for file, pixels, o, _, s in slices[1:]:
-        if pixels.shape != first_pixels.shape:
-            raise VolrenError(f"{folder}: slices differ in size ({first_file.name} is {first_pixels.shape[1]}x"
-                              f"{first_pixels.shape[0]}, {file.name} is {pixels.shape[1]}x{pixels.shape[0]})")
-        if not np.allclose(o, orientation, atol=1e-4):
-            raise VolrenError(f"{folder}: slices have different orientations ({first_file.name} and {file.name}: "
+    frames: list[_Frame] = []
+    first = None
+    for file in next(iter(series.values()), []):
+        try:
+            ds = pydicom.dcmread(file)
+            pixels = ds.pixel_array
+        except Exception as exc:  # pydicom raises many kinds on corrupt or unsupported pixel data
+            skipped.append(f"{file.name}: unreadable pixel data ({_one_line(exc)})")
+            continue
+        frames += _frames(ds, pixels, file, folder)
+        first = ds if first is None else first
+    listed = "; ".join(skipped[:_LISTED]) + (f"; and {len(skipped) - _LISTED} more" if len(skipped) > _LISTED else "")
+    if not frames:
+        raise VolrenError(f"{folder}: no DICOM image to read ({listed})")
+    if skipped:
+        log.warning(f"volren: warning: {folder}: skipped {len(skipped)} file(s) that are no image of the series: "
+                    f"{listed}")
+    head = frames[0]
+    for f in frames[1:]:
+        if f.pixels.shape != head.pixels.shape:
+            raise VolrenError(f"{folder}: slices differ in size ({head.name} is {head.pixels.shape[1]}x"
+                              f"{head.pixels.shape[0]}, {f.name} is {f.pixels.shape[1]}x{f.pixels.shape[0]})")
+        if not np.allclose(f.orientation, head.orientation, atol=1e-4):
+            raise VolrenError(f"{folder}: slices have different orientations ({head.name} and {f.name}: "
                               "ImageOrientationPatient differs); one series at a time")
-        if not np.allclose(s, spacing, rtol=1e-4):
-            raise VolrenError(f"{folder}: slices have different PixelSpacing ({first_file.name} and {file.name})")
-    row, column = orientation[:3], orientation[3:]
+        if not np.allclose(f.spacing, head.spacing, rtol=1e-4):
+            raise VolrenError(f"{folder}: slices have different PixelSpacing ({head.name} and {f.name})")
+    row, column = head.orientation[:3], head.orientation[3:]
     normal = np.cross(row, column)
-    slices.sort(key=lambda sl: float(np.dot(sl[3], normal)))
-    positions = np.array([sl[3] for sl in slices])
-    if len(slices) < 2:
+    frames.sort(key=lambda f: float(np.dot(f.position, normal)))
+    positions = np.array([f.position for f in frames])
+    if len(frames) < 2:
         raise VolrenError(f"{folder}: one DICOM slice; a volume needs at least 2")
     steps = np.diff(positions, axis=0)
     along = steps @ normal
     if np.min(along) <= 1e-6 * max(1.0, float(np.max(np.abs(along)))):
         at = int(np.argmin(along))
-        raise VolrenError(f"{folder}: slices {slices[at][0].name} and {slices[at + 1][0].name} share a position "
+        raise VolrenError(f"{folder}: slices {frames[at].name} and {frames[at + 1].name} share a position "
                           "along the slice normal (duplicates, or two series in one folder)")
-    step = (positions[-1] - positions[0]) / (len(slices) - 1)
+    step = (positions[-1] - positions[0]) / (len(frames) - 1)
     deviation = np.linalg.norm(steps - step, axis=1)
     if np.max(deviation) > _STEP_TOLERANCE * np.linalg.norm(step):
         at = int(np.argmax(deviation))
         raise VolrenError(
             f"{folder}: uneven slice spacing: {np.linalg.norm(steps[at]):.4g} mm between "
-            f"{slices[at][0].name} and {slices[at + 1][0].name}, {np.linalg.norm(step):.4g} mm on average "
+            f"{frames[at].name} and {frames[at + 1].name}, {np.linalg.norm(step):.4g} mm on average "
             "(a missing slice?)")
     m = np.eye(4)
-    m[:3, 0] = row * spacing[1]  # PixelSpacing = (between rows, between columns); columns advance along x
-    m[:3, 1] = column * spacing[0]
+    m[:3, 0] = row * head.spacing[1]  # PixelSpacing = (between rows, between columns); columns advance along x
+    m[:3, 1] = column * head.spacing[0]
     m[:3, 2] = step
     m[:3, 3] = positions[0]
-    data = np.stack([sl[1] for sl in slices])  # [z, y, x]: pixel_array is [row, column] = [y, x]
-    return _Grid(data, m, "LPS", 1e-3, rescale=True)
+    units = _units(first)
+    stored = head.pixels.dtype
+    if not units and all(f.slope == 1.0 and f.intercept == 0.0 for f in frames):
+        # no rescale (MR, PET counts, ...): the stored integers, normalised by their BitsStored
+        data = np.stack([f.pixels for f in frames])  # [z, y, x]: pixel_array is [row, column] = [y, x]
+        return _Grid(data, m, "LPS", 1e-3, bits_stored=int(first.get("BitsStored", 0) or 0) or None)
+    # float32: HU are exact
+    data = np.stack([f.pixels.astype(np.float32) * np.float32(f.slope) + np.float32(f.intercept) for f in frames])
+    return _Grid(data, m, "LPS", 1e-3, rescale=True, units=units, source=stored.name)

@@ -54,10 +54,37 @@ class _Grid:
     """the unit the file states, None when it states none (then millimetres are assumed)."""
     rescale: bool = False
     """min-max normalise floats too (DICOM Hounsfield units are floats that go below zero)."""
+    units: str = ""
+    """what the file says its values are: "HU", "Gy", "relative" (dose), "" when it says nothing."""
+    bits_stored: int | None = None
+    """the bits of an unsigned integer the file says are used (DICOM BitsStored); None: the data's own depth."""
+    source: str = ""
+    """the stored values' dtype when ``data`` holds them rescaled (DICOM, NIfTI scl_slope / scl_inter)."""
     spacing_replaces: bool = False
     """``spacing`` replaces the stored placement (ImageJ TIFF, NanoVDB) instead of being refused."""
     emission: np.ndarray | None = None
     """a second grid of an OpenVDB file (``emission_grid``), raw float32 values, the shape of ``data``."""
+
+
+@dataclass(frozen=True)
+class ValueMapping:
+    """How a file's values became densities: density = (v - lo) / (hi - lo) over ``range`` = (lo, hi), or the values
+    themselves when ``range`` is None (floats)."""
+
+    source: str
+    """the stored values' type, a numpy name ("uint16", "int16", "float32"), before any rescale the file states"""
+    range: tuple[float, float] | None
+    """the values (in ``units``, after the file's rescale) that density 0 and 1 stand for"""
+    units: str
+    """"HU" (Hounsfield units), "Gy" (dose), "relative" (relative dose) or "raw" (the file states none)"""
+
+    def to_dict(self) -> dict:
+        """stats.json's ``value_mapping``."""
+        return {"source": self.source, "range": None if self.range is None else list(self.range), "units": self.units}
+
+
+_DOSE_UNITS = ("Gy", "relative")
+"""dose counts from zero (no dose) like unsigned integers do, whatever the series' smallest value."""
 
 
 @dataclass(frozen=True)
@@ -71,11 +98,13 @@ class LoadedVolume:
     value_range: tuple[float, float] | None
     """the file values (e.g. Hounsfield units) that density 0 and 1 stand for, when they were normalised."""
     hounsfield: bool = False
-    """``value_range`` is in Hounsfield units: signed integers (CT files store HU so) or a rescaled DICOM series;
-    unsigned integers (0..dtype max) are not."""
+    """``value_range`` is in Hounsfield units: signed integers (CT files store HU so), a DICOM CT series, or
+    integers a NIfTI rescale takes below zero; unsigned integers as stored are not."""
     emission_source: np.ndarray | None = None
     """``load_volume(emission_grid=...)``: that grid's raw values (e.g. temperature) as float32 ``[z, y, x]``, voxel
     for voxel with ``density``; None otherwise."""
+    value_mapping: ValueMapping | None = None
+    """how the file's values became ``density`` (stats.json's ``value_mapping``)."""
 
     @property
     def corners_world(self) -> np.ndarray:
@@ -107,19 +136,25 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _normalise(grid: _Grid) -> tuple[np.ndarray, tuple[float, float] | None]:
-    """Integers carry no physical density unit: map unsigned by the dtype's max, signed (CT Hounsfield) and rescaled
-    DICOM values by min-max. Returns the data and the file values that 0 and 1 stand for (None when unchanged)."""
+    """Map the file's values to densities in [0, 1]. Returns the data and the values that 0 and 1 stand for (None
+    when unchanged: floats are densities already).
+
+    Integers carry no density unit. Unsigned ones count from zero (detector counts, attenuation), so 0 stays 0 and
+    1 is the top of their bit depth: 2^BitsStored - 1 where the file states it (DICOM), else the smallest depth of at
+    least 8 bits that holds the data's maximum (12-bit CT or microscopy in uint16: 4095, where the dtype's 65535
+    rendered it nearly black; 8-bit data keeps 255). A depth rather than the maximum keeps files of one detector on
+    one scale; percentiles would clip the brightest voxels. Signed integers and rescaled values (Hounsfield units go
+    below zero) map min..max; dose maps 0..max."""
     data = grid.data
     if data.dtype == np.bool_:
         return data.astype(np.float32), None
     if not (np.issubdtype(data.dtype, np.integer) or grid.rescale):
         return data, None
+    hi = float(data.max()) if data.size else 0.0
     if np.issubdtype(data.dtype, np.unsignedinteger) and not grid.rescale:
-        out = data.astype(np.float32)
-        top = np.iinfo(data.dtype).max
-        out *= np.float32(1.0 / top)
-        return out, (0.0, float(top))
-    lo, hi = (float(v) for v in (data.min(), data.max())) if data.size else (0.0, 0.0)
+        lo, hi = 0.0, float(max(hi, 2 ** (grid.bits_stored or max(8, int(hi).bit_length())) - 1))
+    else:
+        lo = 0.0 if grid.units in _DOSE_UNITS else float(data.min()) if data.size else 0.0
     out = data.astype(np.float32)
     out -= np.float32(lo)
     if hi > lo:
@@ -201,15 +236,17 @@ def _read_nrrd(path: Path) -> _Grid:
 
 def _read_nifti(path: Path) -> _Grid:
     """NIfTI stores ``[x, y, z]``; its affine (sform, else qform, as nibabel chooses) maps voxel (i, j, k) to RAS+.
-    Integer voxels are read unscaled (the linear scl_slope/scl_inter does not change the normalised result of signed
-    data); float voxels are read with the scaling applied."""
+    Voxels are read with scl_slope / scl_inter applied (integers without them unscaled, to keep their bit depth):
+    stored unsigned CT values with scl_inter -1024 become Hounsfield units, which go below zero."""
     import nibabel as nib  # lazy: only NIfTI users pay for the import
 
     image = nib.load(str(path))
-    if np.issubdtype(image.get_data_dtype(), np.integer):
+    stored = image.get_data_dtype()
+    rescaled = np.issubdtype(stored, np.integer) and (image.dataobj.slope, image.dataobj.inter) != (1.0, 0.0)
+    if np.issubdtype(stored, np.integer) and not rescaled:
         data = np.asarray(image.dataobj.get_unscaled())
     else:
-        data = image.get_fdata(dtype=np.float32)
+        data = image.get_fdata(dtype=np.float32)  # scl_slope * v + scl_inter
     if data.ndim == 4 and data.shape[3] == 1:
         data = data[..., 0]
     elif data.ndim == 4:
@@ -217,12 +254,14 @@ def _read_nifti(path: Path) -> _Grid:
     if data.ndim != 3:
         raise VolrenError(f"{path}: NIfTI data has {data.ndim} dimension(s) {data.shape}; volren needs 3D")
     unit = image.header.get_xyzt_units()[0]
+    hu = "HU" if rescaled and data.size and float(data.min()) < 0 else ""  # like signed integers: CT
     return _Grid(np.ascontiguousarray(data.transpose(2, 1, 0)), np.asarray(image.affine, dtype=float), "RAS",
-                 _FILE_UNITS.get(unit))
+                 _FILE_UNITS.get(unit), rescale=rescaled, units=hu, source=stored.name if rescaled else "")
 
 
 def _read_tiff(path: Path) -> _Grid:
-    """A multi-page TIFF stack (microscopy): pages are z, each page [y, x]. Colour or multi-channel stacks are refused:
+    """A multi-page TIFF stack (microscopy): pages are z, each page [y, x], turned upright (``_pages_to_grid``: row
+    0 at the top, page 0 in front). Colour or multi-channel stacks are refused:
     volren renders one scalar channel. ImageJ stacks place the voxels: x/y size = 1 / XResolution, YResolution (pixels
     per unit), z size = the ImageJ ``spacing``, in the ImageJ ``unit``; the default ImageJ writes when nothing was set
     (1 x 1 x 1, no unit) counts as no placement."""
@@ -236,6 +275,7 @@ def _read_tiff(path: Path) -> _Grid:
     if data.ndim != 3:
         raise VolrenError(f"{path}: TIFF holds an array of shape {data.shape}; volren needs a stack of 2D grey pages "
                           "[z, y, x]")
+    data = _pages_to_grid(data)
     if not imagej:
         return _Grid(data)
     unit = str(imagej.get("unit", "")).strip().lower()
@@ -247,6 +287,14 @@ def _read_tiff(path: Path) -> _Grid:
                           "three positive numbers; give --spacing x,y,z to replace it")
     m = _spacing_placement(data.shape, step, 1.0)  # ImageJ stores no origin: centred, in the file's unit
     return _Grid(data, m, metres_per_unit=_FILE_UNITS.get(unit), spacing_replaces=True)
+
+
+def _pages_to_grid(pages: np.ndarray) -> np.ndarray:
+    """A stack of pages [..., page, row, column] as volren's [..., z, y, x] (y up). A page's row 0 is its top and
+    the stack is right-handed (column right, row down, page away from the viewer, as napari and Fiji show it), so a
+    half turn about x (not a mirror) puts it in the world: rows run down y, pages towards -z (page 0 nearest the
+    default camera)."""
+    return pages[..., ::-1, ::-1, :]
 
 
 @wp.kernel
@@ -403,9 +451,11 @@ def load_volume(
         index_to_world = file_to_world @ grid.index_to_file
     if abs(np.linalg.det(index_to_world[:3, :3])) < 1e-30:
         raise VolrenError(f"{path}: the stored voxel axes are degenerate (zero spacing or parallel directions)")
-    hounsfield = value_range is not None and (grid.rescale or np.issubdtype(grid.data.dtype, np.signedinteger))
+    units = grid.units or ("HU" if np.issubdtype(grid.data.dtype, np.signedinteger) else "raw")
+    hounsfield = value_range is not None and units == "HU"
+    mapping = ValueMapping(grid.source or grid.data.dtype.name, value_range, units)
     return LoadedVolume(density, index_to_world @ _local_to_index(density.shape), value_range, hounsfield,
-                        emission_source=grid.emission)
+                        emission_source=grid.emission, value_mapping=mapping)
 
 
 def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None, **options: str) -> _Grid:
@@ -449,8 +499,10 @@ def load_volume_file(
     ``dtype`` are refused for self-describing formats.
 
     Floating-point values are returned unchanged. Integer values have no density unit, so they are normalised to
-    [0, 1]: unsigned by the dtype's maximum (uint8 / 255, uint16 / 65535), signed (CT Hounsfield units) by
-    ``(v - min) / (max - min)`` over the file (all zeros when the file is constant); so are a DICOM series' values
-    after RescaleSlope / RescaleIntercept (Hounsfield units).
+    [0, 1] (``_normalise``; ``load_volume`` says how in ``LoadedVolume.value_mapping``): unsigned by the top of their
+    bit depth (DICOM BitsStored, else the smallest of at least 8 bits holding the maximum: uint8 / 255, 12-bit data
+    in uint16 / 4095), signed (CT Hounsfield units) by ``(v - min) / (max - min)`` over the file (all zeros when the
+    file is constant); so are the values after a DICOM RescaleSlope / RescaleIntercept or a NIfTI scl_slope /
+    scl_inter; RT dose (Gy) by its maximum.
     """
     return load_volume(path, shape=shape, dtype=dtype).density
