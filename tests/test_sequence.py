@@ -119,7 +119,7 @@ def test_the_next_frames_are_read_before_they_are_asked_for():
     reads = Reads(hold=3)
     seq = VolumeSequence(SequenceConfig(paths(6)), reads)
     assert seq.frame(0).density[0, 0, 0] == 0.0
-    assert reads.done[1].wait(30) and reads.done[2].wait(30), "frames 1 and 2 read ahead, unasked"
+    assert reads.done[1].wait(10) and reads.done[2].wait(10), "frames 1 and 2 read ahead, unasked"
     assert seq.frame(1).density[0, 0, 0] == 1.0  # returns while frame 3, read ahead, is held back
     assert not reads.done[3].is_set()
     reads.release.set()

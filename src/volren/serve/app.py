@@ -36,6 +36,7 @@ from aiohttp.http_exceptions import HttpProcessingError
 from volren.camera import Camera
 from volren.device import resolve_device
 from volren.errors import VolrenError
+from volren.scene import Scene
 from volren.serve.loop import RenderLoop, animator, log, scene_methods
 from volren.serve.protocol import (
     MAX_MESSAGE_BYTES,
@@ -391,25 +392,29 @@ async def _serve(app: web.Application, host: str, port: int, ready: str) -> str 
 
 
 def build_loop(scene_name: str, method: str | None, quality: str, resolution: int, device: str,
-               limits: Limits, lock_settings: bool = False) -> RenderLoop:
+               limits: Limits, lock_settings: bool = False, *, scene: Scene | None = None,
+               camera: Camera | None = None, animate: Callable[[], Scene] | None = None) -> RenderLoop:
     """The render loop of a built-in scene: a volume scene at ``resolution`` seen from the CLI's default camera, or
-    a fog scene from its own viewpoint; ``method`` None = the first live method that can render it."""
+    a fog scene from its own viewpoint; ``method`` None = the first live method that can render it. A ``scene``
+    given (a file's, named ``scene_name``) is seen from ``camera`` and played by ``animate`` (None: not animated)."""
     from volren.data import BUILTIN_SCENES, builtin_scene
     from volren.data.fog_scenes import FOG_SCENES, fog_scene, fog_scene_camera
 
-    if scene_name in FOG_SCENES:
-        scene = fog_scene(scene_name)
-        view = fog_scene_camera(scene_name)
-        camera = Camera(position=view["position"], look_at=view["look_at"])
-    elif scene_name in BUILTIN_SCENES:
-        scene = builtin_scene(scene_name, resolution)
-        camera = Camera(position=(0.0, 0.4, 3.2))
-    else:
-        raise VolrenError(f"--scene: unknown scene '{scene_name}': choose from "
-                          f"{', '.join([*BUILTIN_SCENES, *FOG_SCENES])}")
     device = resolve_device(device)
+    if scene is None:
+        if scene_name in FOG_SCENES:
+            scene = fog_scene(scene_name)
+            view = fog_scene_camera(scene_name)
+            camera = Camera(position=view["position"], look_at=view["look_at"])
+        elif scene_name in BUILTIN_SCENES:
+            scene = builtin_scene(scene_name, resolution)
+            camera = Camera(position=(0.0, 0.4, 3.2))
+        else:
+            raise VolrenError(f"--scene: unknown scene '{scene_name}': choose from "
+                              f"{', '.join([*BUILTIN_SCENES, *FOG_SCENES])}")
+        animate = animator(scene, scene_name, device)
     return RenderLoop(scene, method or scene_methods(scene)[0], quality, limits=limits, camera=camera,
-                      device=device, animate=animator(scene, scene_name, device), lock_settings=lock_settings)
+                      device=device, animate=animate, lock_settings=lock_settings)
 
 
 def serve(app: web.Application, host: str, port: int, token: str | None) -> None:

@@ -145,6 +145,13 @@ def animator(scene: Scene, name: str | None, device: str) -> Callable[[], Scene]
     return None
 
 
+def sequence_player(length: int, scene_at: Callable[[int], Scene]) -> Callable[[], Scene]:
+    """The next scene of a volume sequence of ``length`` frames at each call, ``scene_at(i)`` being frame i's (the
+    loop shows frame 0 first, so the first call gives frame 1), from the last frame on to frame 0 again."""
+    steps = iter(range(1, 2**62))
+    return lambda: scene_at(next(steps) % length)
+
+
 class RenderLoop:
     """The shared renderer and its viewers. ``animate`` gives the next scene of an animation (None: not animated).
     ``shared=False`` is the naive server of the benchmark: each viewer rendered by its own renderer (own light map,
