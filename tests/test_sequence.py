@@ -178,7 +178,7 @@ def test_integer_frames_share_the_first_frames_value_range(tmp_path: Path):
     for i, v in enumerate(values):
         vol = seq.frame(i)
         np.testing.assert_allclose(vol.density, np.maximum((v - lo) / (hi - lo), 0.0), atol=1e-6)
-        assert vol.value_range == (lo, hi)
+        assert vol.value_range == (lo, hi) and vol.value_mapping.range == (lo, hi)
 
 
 def test_render_frames_equal_each_file_rendered_alone(capfd, frames: Path, tmp_path: Path):

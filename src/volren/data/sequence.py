@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from volren.data.loaders import LoadedVolume
+from volren.data.loaders import LoadedVolume, ValueMapping
 from volren.errors import VolrenError
 
 KEEP = 3
@@ -151,6 +151,7 @@ class _Reference:
     value_range: tuple[float, float] | None
     hounsfield: bool
     channels: int
+    value_mapping: ValueMapping | None
 
 
 class VolumeSequence:
@@ -165,7 +166,7 @@ class VolumeSequence:
         self._held: dict[int, Future[LoadedVolume]] = {}
         first = load(config.files[0])
         self._first = _Reference(first.density.shape, first.to_world, first.value_range, first.hounsfield,
-                                 len(first.channels))
+                                 len(first.channels), first.value_mapping)
         """what every frame must match (not the first frame's voxels: they are dropped as any frame's)"""
         held: Future[LoadedVolume] = Future()
         held.set_result(first)
@@ -229,7 +230,8 @@ class VolumeSequence:
         # the frame's density d stands for lo + d (hi - lo); on the first frame's scale that is (v - lo0) / (hi0 - lo0)
         density = vol.density * np.float32((hi - lo) / (hi0 - lo0)) + np.float32((lo - lo0) / (hi0 - lo0))
         np.maximum(density, 0.0, out=density)
-        return dataclasses.replace(vol, density=density, value_range=first.value_range)
+        return dataclasses.replace(vol, density=density, value_range=first.value_range,
+                                   value_mapping=first.value_mapping)
 
 
 def _size(shape: tuple[int, ...], channels: int) -> str:
