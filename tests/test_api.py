@@ -74,6 +74,9 @@ def test_public_names_are_their_modules_objects():
     assert vr.CACRMConfig is volren.render.marching.cacrm.CACRMConfig
     assert vr.GIConfig is volren.render.gi.ambient.GIConfig
     assert vr.render is sys.modules["volren.render"] and callable(vr.render)  # the package, callable
+    # ... also where nothing imported the package yet: the first look-up does, loading Warp then
+    first = "import sys, volren as vr\nassert vr.render is sys.modules['volren.render'] and callable(vr.render)"
+    assert "warp" in loaded_after(first)
     assert vr.__version__ == importlib.metadata.version("volren")
     for name in vr.__all__:
         if name != "Viewer":  # volren.notebook (helper G's)
@@ -134,6 +137,10 @@ def test_one_camera_is_one_view_and_a_renderer_keeps_its_state():
     assert first.stats.counters["light_samples"] > 0 and second.stats.counters["light_samples"] == 0
     assert np.array_equal(first.images[0], second.images[0])
     assert renderer.config.light_grid == 16 and renderer.device == single.stats.device
+    # the frame keeps what saving and showing it need of the scene
+    mine = vr.Scene(scene.volumes, background=(0.1, 0.2, 0.3), name="mine")
+    frame = renderer.render(mine, camera, frame=2)
+    assert frame.background == (0.1, 0.2, 0.3) and frame.scene_name == "mine" and frame.index == 2
 
 
 def test_load_places_a_file_as_the_cli_does(tmp_path):
