@@ -35,7 +35,8 @@ def test_import_volren_and_the_cli_parser_load_no_heavy_module():
 import contextlib, io, volren.cli as cli
 cli.build_parser()
 for bad in (["render", "--method", "nope"], ["render", "--scene", "nope"], ["render", "--frames", "0"],
-            ["render", "--width", "0"], ["render", "--exposure", "99"], ["render", "--gi", "x"], ["bogus"]):
+            ["render", "--width", "0"], ["render", "--exposure", "99"], ["render", "--gi", "x"], ["bogus"],
+            ["serve", "--port", "0"], ["serve", "--scene", "nope"]):
     with contextlib.redirect_stderr(io.StringIO()) as err:
         assert cli.main(bad) == 2
     assert err.getvalue().count("\\n") == 1, err.getvalue()

@@ -340,12 +340,14 @@ def add_serve_args(p: argparse.ArgumentParser) -> None:
 
 
 def run_serve(args: argparse.Namespace) -> int:
+    # the checks that need no data first: the imports below take seconds
+    if not 1 <= args.port <= 65535:
+        raise CliError(f"--port must lie in [1, 65535], got {args.port}")
+    check_scene_name(args.scene)
     from volren.serve.app import build_loop, check_bind, make_app, serve
     from volren.serve.viewers import Limits
 
     check_bind(args.host, args.token, tuple(args.allow_origin))
-    if not 1 <= args.port <= 65535:
-        raise CliError(f"--port must lie in [1, 65535], got {args.port}")
     limits = Limits(args.max_viewers, args.max_width, args.max_height, args.pixel_budget)
     loop = build_loop(args.scene, args.method, args.quality, args.resolution, args.device, limits,
                       args.lock_settings)
