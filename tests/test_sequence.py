@@ -8,6 +8,7 @@ import asyncio
 import dataclasses
 import itertools
 import threading
+import time
 import weakref
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from aiohttp.test_utils import TestClient, TestServer
 
 from test_cli import assert_error, ok
 from test_serve import cam_msg, connect, next_frame
+from volren.bench.playback import play
 from volren.cli import build_parser, served_volume
 from volren.data.loaders import LoadedVolume, load_volume
 from volren.data.sequence import KEEP, SequenceConfig, VolumeSequence, frame_files
@@ -233,3 +235,15 @@ def test_serve_plays_the_sequence_in_a_loop(frames: Path):
         assert not any(np.array_equal(a, b) for a, b in itertools.pairwise(shown)), "every step another frame"
 
     asyncio.run(main())
+
+
+def test_playback_counts_the_frames_not_read_in_time():
+    """`volren.bench.playback.play`: frames read in 50 ms miss every 33 ms slot at 30 fps, and none of the 200 ms
+    slots at 5 fps (read ahead while the player waits)."""
+    def slow(path: Path) -> LoadedVolume:
+        time.sleep(0.05)
+        return LoadedVolume(np.zeros((2, 2, 2), np.float32), np.eye(4), None)
+
+    fast = play(paths(6), 30.0, slow)
+    assert (fast.frames, fast.missed) == (6, 5) and fast.read_s >= 0.05
+    assert play(paths(6), 5.0, slow).missed == 0

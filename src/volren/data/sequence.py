@@ -217,7 +217,8 @@ class VolumeSequence:
         tolerance = 1e-6 * float(np.abs(first.to_world[:3, :3]).max())
         if not np.allclose(vol.to_world, first.to_world, rtol=0.0, atol=tolerance):
             raise VolrenError(f"{what} is placed differently from the first frame ({self.config.files[0].name}): "
-                              "every frame needs the same voxel size, origin and orientation")
+                              "every frame needs the same voxel size, origin and orientation (an OpenVDB grid the "
+                              "same active box)")
         if (vol.value_range is None) != (first.value_range is None) or vol.hounsfield != first.hounsfield:
             raise VolrenError(f"{what} maps its values differently from the first frame "
                               f"({self.config.files[0].name}): every frame needs the same data type")
