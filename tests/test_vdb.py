@@ -4,13 +4,12 @@ under the system Python), compared with the numpy arrays they were written from.
 from __future__ import annotations
 
 import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from volren.bench.load import SYSTEM_PYTHON, write_with_openvdb
+from volren.bench.load import SYSTEM_PYTHON, openvdb_available, write_with_openvdb
 from volren.data.loaders import load_volume
 from volren.data.vdb import read_vdb_grid_like
 from volren.errors import VolrenError
@@ -24,14 +23,7 @@ SHAPE = (7, 5, 9)
 """[z, y, x]"""
 
 
-def _has_pyopenvdb() -> bool:
-    try:
-        return subprocess.run([SYSTEM_PYTHON, "-c", "import pyopenvdb"], capture_output=True).returncode == 0
-    except FileNotFoundError:
-        return False
-
-
-if not _has_pyopenvdb():
+if not openvdb_available():
     if os.environ.get("CI") == "true":
         pytest.fail(f"{SYSTEM_PYTHON} cannot import pyopenvdb in CI: .ci/run installs python3-openvdb", pytrace=False)
     pytest.skip(f"{SYSTEM_PYTHON} cannot import pyopenvdb (apt-get install python3-openvdb)", allow_module_level=True)

@@ -42,6 +42,7 @@ def all_suites() -> dict[str, Suite]:
     from volren.bench.gi import SUITE as GI_SUITE
     from volren.bench.integrated import SUITE as INTEGRATED_SUITE
     from volren.bench.interactive import SUITE as INTERACTIVE_SUITE
+    from volren.bench.load import SUITE as LOAD_SUITE
     from volren.bench.oit import SUITE as OIT_SUITE
     from volren.bench.resolution import SUITE as RESOLUTION_SUITE
     from volren.bench.serve import SUITE as SERVE_SUITE
@@ -49,7 +50,7 @@ def all_suites() -> dict[str, Suite]:
     from volren.bench.vpt import SUITE as VPT_SUITE
 
     return {s.name: s for s in (DSSRM_SUITE, RESOLUTION_SUITE, BINOCULAR_SUITE, VIEWERS_SUITE, VPT_SUITE, GI_SUITE,
-                                OIT_SUITE, INTEGRATED_SUITE, SERVE_SUITE, INTERACTIVE_SUITE)}
+                                OIT_SUITE, INTEGRATED_SUITE, SERVE_SUITE, INTERACTIVE_SUITE, LOAD_SUITE)}
 
 
 NOT_PASSES = ("upload", "readback", "fog_bake")

@@ -1,23 +1,31 @@
 """Suite ``load``: seconds and peak memory to open volume files, against the reader library's own read (issue 21).
 
-Each case is a ``LoadCase``: a name, a function writing its file(s) into a temporary folder, the volren load and the
-bare reader's load. The ``.vdb`` cases (256^3, dense and 10%-sparse; 128^3 with ``--quick``) are written by OpenVDB
-itself (Debian's ``python3-openvdb`` under the system ``/usr/bin/python3``) and timed as ``load_volume`` against
-tinyvdb's open + read_grids + materialize_dense. Every load runs in a fresh subprocess, so that peak memory is that
-process's ``ru_maxrss`` (resident set, KiB on Linux) with the interpreter and imports subtracted (a baseline process
-that only imports); seconds are the median of ``repeats`` runs, each timed inside its process. Goal: volren's time
-and peak memory at most 1.2x the reader's.
-"""
+Each case is a ``LoadCase`` in ``CASES``: a name, a function writing its file into a temporary folder, the volren
+load and the bare reader's load (other formats add theirs). The ``.vdb`` cases (256^3, dense and 10%-sparse; 128^3
+with ``--quick``) are written by OpenVDB itself (Debian's ``python3-openvdb`` under the system ``/usr/bin/python3``)
+and timed as ``load_volume`` (a validated float32 ``[z, y, x]`` grid) against tinyvdb's open + read_grids + its
+decoded leaf values joined into one array (tinyvdb's own ``materialize_dense`` drops leaves, see
+``volren.data.vdb``). Every load runs in a fresh subprocess that first imports both sides' modules; peak memory is
+the rise of that process's ``ru_maxrss`` (peak resident set) over its value after the imports, seconds the median of
+``repeats`` runs timed inside the processes. Goal: volren's time and peak memory at most 1.2x the reader's."""
 
 from __future__ import annotations
 
 import json
+import resource
+import statistics
 import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from volren.bench import Suite
 from volren.errors import VolrenError
 
 SYSTEM_PYTHON = "/usr/bin/python3"
@@ -49,6 +57,14 @@ for name, grids in spec.items():
 """
 
 
+def openvdb_available() -> bool:
+    """Whether the system Python can import pyopenvdb (Debian's python3-openvdb) to write test and benchmark files."""
+    try:
+        return subprocess.run([SYSTEM_PYTHON, "-c", "import pyopenvdb"], capture_output=True).returncode == 0
+    except FileNotFoundError:
+        return False
+
+
 def write_with_openvdb(files: dict[str, list[dict[str, Any]]], folder: Path) -> None:
     """Write ``.vdb`` files with OpenVDB itself: ``files`` maps a file name to its grids, each a dict with ``name``,
     ``array`` (float32 ``[z, y, x]``, or ``[z, y, x, 3]`` with ``vec3``; None: an empty grid), ``ijk`` (index of
@@ -73,3 +89,136 @@ def write_with_openvdb(files: dict[str, list[dict[str, Any]]], folder: Path) -> 
                           f"{done.stderr.strip().splitlines()[-1] if done.stderr.strip() else done.returncode}")
     for file in folder.glob(".array-*.npy"):
         file.unlink()
+
+
+def _smooth_field(n: int, span: float = 3.0 * np.pi) -> np.ndarray:
+    """float32 ``[z, y, x]`` in [0.05, 1.05]: a product of sines, positive everywhere (every voxel active)."""
+    t = np.linspace(0.0, span, n, dtype=np.float32)
+    return (0.55 + 0.5 * np.sin(t)[:, None, None] * np.sin(1.3 * t)[None, :, None] * np.sin(0.7 * t)[None, None, :])
+
+
+def write_dense_vdb(folder: Path, n: int) -> Path:
+    write_with_openvdb({"dense.vdb": [{"name": "density", "array": _smooth_field(n)}]}, folder)
+    return folder / "dense.vdb"
+
+
+def write_sparse_vdb(folder: Path, n: int) -> Path:
+    """10% of the n^3 voxels active, in blobs spread over the whole box (smoke-like): the active box nearly fills n^3
+    (120 x 125 x 123 at n = 128), most of it background between the blobs."""
+    field = _smooth_field(n, 6.0 * np.pi)
+    field[field < np.quantile(field, 0.9)] = 0.0  # zeros are inactive
+    write_with_openvdb({"sparse.vdb": [{"name": "density", "array": field}]}, folder)
+    return folder / "sparse.vdb"
+
+
+def volren_open(path: Path) -> np.ndarray:
+    from volren.data.loaders import load_volume
+
+    return load_volume(path).density
+
+
+def tinyvdb_open(path: Path) -> np.ndarray:
+    """tinyvdb's own read: open, decompress every grid, and its density grid's decoded leaf values as one array (the
+    least work that yields every voxel; tinyvdb 0.9.0's ``materialize_dense`` keeps only 64 leaves per lower node)."""
+    import tinyvdb
+
+    with tinyvdb.open(str(path)) as f:
+        f.read_grids()
+        tree = f.grid(0).tree
+        return np.frombuffer(b"".join(n.data for n in (tree.node(i) for i in range(tree.num_nodes)) if n.level == 3),
+                             np.float32)
+
+
+@dataclass(frozen=True)
+class LoadCase:
+    """One row: a file written into a temporary folder, opened by volren and by the bare reader library."""
+
+    name: str
+    write: Callable[[Path, int], Path]
+    """(folder, voxels per axis) -> the file to open"""
+    volren: Callable[[Path], np.ndarray]
+    reader: Callable[[Path], np.ndarray]
+    reader_name: str
+
+
+CASES = [
+    LoadCase("vdb dense", write_dense_vdb, volren_open, tinyvdb_open, "tinyvdb"),
+    LoadCase("vdb 10% sparse", write_sparse_vdb, volren_open, tinyvdb_open, "tinyvdb"),
+]
+"""The suite's rows; other formats (sequences, OME-Zarr) add a LoadCase here."""
+
+
+def child() -> None:
+    """In a fresh process (``python -c 'from volren.bench.load import child; child()' CASE SIDE PATH``): import both
+    sides' libraries, then time one open and print JSON with the seconds and the rise of the peak resident set [KiB]
+    over the imports' (``ru_maxrss``)."""
+    import tinyvdb  # noqa: F401  (both sides import the same modules, so the baseline is the same)
+
+    import volren.data.loaders  # noqa: F401
+
+    name, side, path = sys.argv[1:4]
+    case = next(c for c in CASES if c.name == name)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    start = time.perf_counter()
+    data = (case.volren if side == "volren" else case.reader)(Path(path))
+    seconds = time.perf_counter() - start
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+    print(json.dumps({"seconds": seconds, "peak_kib": peak, "shape": list(data.shape),
+                      "sum": float(data.sum(dtype=np.float64))}))
+
+
+def _measure(case: LoadCase, side: str, path: Path, repeats: int) -> dict[str, Any]:
+    runs = []
+    for _ in range(repeats):
+        done = subprocess.run([sys.executable, "-c", "from volren.bench.load import child; child()", case.name, side,
+                               str(path)], capture_output=True, text=True, timeout=600)
+        if done.returncode:
+            raise VolrenError(f"bench load: {case.name} ({side}) failed: {done.stderr.strip().splitlines()[-1:]}")
+        runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    return {"seconds": statistics.median(r["seconds"] for r in runs),
+            "peak_mib": statistics.median(r["peak_kib"] for r in runs) / 1024, "shape": runs[0]["shape"],
+            "sum": runs[0]["sum"]}
+
+
+def run_config(cfg: dict[str, Any], cases: list[LoadCase] | None = None) -> dict[str, Any]:
+    rows, summary = [], []
+    with tempfile.TemporaryDirectory(prefix="volren-bench-load-") as tmp:
+        for case in CASES if cases is None else cases:
+            folder = Path(tmp) / case.name.replace(" ", "_").replace("%", "pct")
+            folder.mkdir()
+            path = case.write(folder, cfg["size"])
+            ours, reader = (_measure(case, side, path, cfg["repeats"]) for side in ("volren", "reader"))
+            if not np.isclose(ours["sum"], reader["sum"], rtol=1e-5):  # inactive voxels are 0: the same total
+                raise VolrenError(f"bench load: {case.name}: volren read {ours['shape']} (sum {ours['sum']}), "
+                                  f"{case.reader_name} {reader['shape']} (sum {reader['sum']})")
+            dense = np.prod(ours["shape"])
+            rows.append({"case": case.name, "reader": case.reader_name, "file_mib": path.stat().st_size / 2**20,
+                         "shape": "x".join(str(v) for v in ours["shape"][::-1]), "voxels": int(dense),
+                         "volren_s": ours["seconds"], "reader_s": reader["seconds"],
+                         "volren_peak_mib": ours["peak_mib"], "reader_peak_mib": reader["peak_mib"],
+                         "dense_mib": dense * 4 / 2**20})
+            time_ratio = ours["seconds"] / reader["seconds"]
+            memory_ratio = ours["peak_mib"] / reader["peak_mib"] if reader["peak_mib"] > 0 else None  # tiny files
+            met = time_ratio <= GOAL and (memory_ratio is None or memory_ratio <= GOAL)
+            summary.append({"case": case.name, "time_ratio": time_ratio, "memory_ratio": memory_ratio,
+                            "goal": GOAL, "met": "yes" if met else "no"})
+    columns = [
+        ("case", "case", "s"), ("shape", "dense box (x, y, z)", "s"), ("file_mib", "file [MiB]", ".1f"),
+        ("reader", "reader", "s"), ("reader_s", "reader [s]", ".3f"), ("volren_s", "volren [s]", ".3f"),
+        ("reader_peak_mib", "reader peak RSS rise [MiB]", ".1f"),
+        ("volren_peak_mib", "volren peak RSS rise [MiB]", ".1f"), ("dense_mib", "dense float32 [MiB]", ".1f"),
+    ]
+    summary_columns = [("case", "case", "s"), ("time_ratio", "volren / reader time", ".3f"),
+                       ("memory_ratio", "volren / reader peak memory", ".3f"), ("goal", "goal (at most)", ".2f"),
+                       ("met", "met", "s")]
+    settings = {**cfg, "memory": "ru_maxrss rise of a fresh subprocess over its imports (resident set)",
+                "seconds": "median over repeats, each timed inside its subprocess"}
+    return {"settings": settings, "rows": rows, "columns": columns, "summary": (summary, summary_columns)}
+
+
+def run(quick: bool, device: str) -> dict[str, Any]:
+    return run_config(QUICK if quick else FULL)
+
+
+SUITE = Suite("load", "seconds and peak memory to open volume files against the reader library's own (issue 21)",
+              run)

@@ -9,6 +9,7 @@ length unit; volren reads it as metres (Blender and Houdini work in metres) unle
 
 from __future__ import annotations
 
+import mmap
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,8 +30,8 @@ _COMPRESS_ZIP, _COMPRESS_ACTIVE_MASK, _COMPRESS_BLOSC = 0x1, 0x2, 0x4
 _MAP_BYTES = {"AffineMap": 128, "UnitaryMap": 128, "ScaleMap": 120, "UniformScaleMap": 120, "TranslationMap": 24,
               "ScaleTranslateMap": 144, "UniformScaleTranslateMap": 144}
 """bytes each linear map writes after its type name (Mat4d, or 5-6 Vec3d of scale, voxel size and their inverses)"""
-_LEAF_CHUNK = 4096
-"""leaves (8 MiB of values) joined per scatter into the dense grid"""
+_LEAF_CHUNK = 512
+"""leaves (1 MiB of values) joined per scatter into the dense grid"""
 _SCALE_TRANSLATE = ("scale", "translation", "scale_translate", "uniform_scale", "uniform_scale_translate")
 """tinyvdb map types whose ``scale`` and ``translation`` are the whole map (their ``matrix`` is the identity)."""
 
@@ -48,18 +49,20 @@ class VdbGrid:
     """4x4, column convention: dense index (x, y, z) to the file's world (OpenVDB units)."""
 
 
-def _read_bytes(path: Path) -> bytes:
+def _map(path: Path) -> mmap.mmap:
+    """The file's bytes for the header and topology reads (mapped: only the pages read are loaded)."""
     try:
-        return path.read_bytes()
-    except OSError as exc:
-        raise VolrenError(f"{path}: cannot read the file ({exc.strerror})") from None
+        with open(path, "rb") as f:
+            return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError) as exc:  # ValueError: an empty file
+        raise VolrenError(f"{path}: cannot read the file ({exc})") from None
 
 
-def _open(path: Path, data: bytes):
+def _open(path: Path):
     import tinyvdb  # lazy: only .vdb users pay for the import
 
     try:
-        vdb = tinyvdb.from_bytes(data)
+        vdb = tinyvdb.open(str(path))
         vdb.read_grids()  # tinyvdb decompresses all grids at once; there is no per-grid read
     except tinyvdb.VDBError as exc:
         raise VolrenError(f"{path}: not a readable OpenVDB file, truncated or corrupt ({exc})") from None
@@ -112,7 +115,7 @@ def _index_to_world(path: Path, grid) -> np.ndarray:
 class _Reader:
     """Little-endian reads from the file's bytes at a position."""
 
-    def __init__(self, data: bytes, pos: int = 0):
+    def __init__(self, data: bytes | mmap.mmap, pos: int = 0):
         self.data, self.pos = data, pos
 
     def take(self, fmt: str):
@@ -135,7 +138,7 @@ class _Reader:
             self.raw(self.take("I"))
 
 
-def _grid_offsets(data: bytes) -> list[tuple[str, int, int, bool]]:
+def _grid_offsets(data: bytes | mmap.mmap) -> list[tuple[str, int, int, bool]]:
     """(name, grid position, buffers position, saved as half) of each grid, from the file header's descriptors."""
     r = _Reader(data)
     if r.take("q") != _MAGIC:
@@ -173,7 +176,7 @@ def _skip_compressed_values(r: _Reader, count: int, value_mask: np.ndarray, comp
         r.raw(stored * (2 if half else 4))
 
 
-def _leaf_origins(path: Path, data: bytes, index: int, name: str) -> tuple[np.ndarray, np.ndarray]:
+def _leaf_origins(path: Path, data: mmap.mmap, index: int, name: str) -> tuple[np.ndarray, np.ndarray]:
     """Origins (L, 3) (x, y, z) of the grid's leaves in file order and their active voxel counts, read from the tree
     topology (root tiles and children, then per internal node its child and value masks and tile values), which
     ends where the leaf buffers begin. tinyvdb 0.9.0 decodes every leaf's values but places at most 64 leaves per
@@ -204,13 +207,15 @@ def _leaf_origins(path: Path, data: bytes, index: int, name: str) -> tuple[np.nd
         if value_mask.any():
             raise VolrenError(f"grid {name!r} has active tiles (constant regions), which volren does not read yet")
         _skip_compressed_values(r, size, value_mask, compression, half)
-        for i in np.flatnonzero(child_mask):
-            local = np.array([i >> (2 * log2dim), (i >> log2dim) & ((1 << log2dim) - 1), i & ((1 << log2dim) - 1)])
-            child = origin + local * child_extent
-            if log2dim == 4:  # the lower internal node's children are leaves: their value masks
-                origins.append(child)
-                counts.append(int(np.unpackbits(np.frombuffer(r.raw(64), np.uint8)).sum()))
-            else:
+        index = np.flatnonzero(child_mask)
+        dim = (1 << log2dim) - 1
+        children = origin + np.stack([index >> (2 * log2dim), (index >> log2dim) & dim, index & dim], 1) * child_extent
+        if log2dim == 4:  # the lower internal node's children are leaves: their 512-bit value masks, one after another
+            origins.append(children)
+            masks = np.frombuffer(r.raw(64 * len(index)), np.uint8).reshape(-1, 64)
+            counts.append(np.unpackbits(masks, axis=1).sum(axis=1))
+        else:
+            for child in children:
                 node(child, 4, 8)
 
     for _ in range(children):
@@ -218,7 +223,9 @@ def _leaf_origins(path: Path, data: bytes, index: int, name: str) -> tuple[np.nd
     if block_pos > grid_pos and r.pos != block_pos:  # tinyvdb's own writer leaves the buffer position unset
         raise VolrenError(f"grid {name!r}: its tree topology does not end where the file says ({r.pos} != "
                           f"{block_pos})")
-    return np.array(origins, dtype=np.int64).reshape(-1, 3), np.array(counts, dtype=np.int64)
+    if not origins:
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    return np.concatenate(origins).astype(np.int64), np.concatenate(counts).astype(np.int64)
 
 
 def _active_box(path: Path, grid, origins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -232,7 +239,7 @@ def _active_box(path: Path, grid, origins: np.ndarray) -> tuple[np.ndarray, np.n
     return lo.astype(np.int64), hi.astype(np.int64)
 
 
-def _leaves(path: Path, data: bytes, vdb, index: int) -> tuple[list, np.ndarray]:
+def _leaves(path: Path, data: mmap.mmap, vdb, index: int) -> tuple[list, np.ndarray]:
     """tinyvdb's decoded leaves of grid ``index`` in file order and their origins; refused unless every leaf's
     active count matches the topology's, so that a leaf is never put in another's place."""
     grid = vdb.grid(index)
@@ -244,7 +251,7 @@ def _leaves(path: Path, data: bytes, vdb, index: int) -> tuple[list, np.ndarray]
         raise VolrenError(f"{path}: not a readable OpenVDB file, truncated or corrupt (grid {grid.name!r})") from None
     except VolrenError as exc:
         raise VolrenError(f"{path}: {exc}") from None
-    if len(leaves) != len(origins) or any(n.active_voxel_count != c for n, c in zip(leaves, counts, strict=False)):
+    if len(leaves) != len(origins) or not np.array_equal([n.active_voxel_count for n in leaves], counts):
         raise VolrenError(f"{path}: grid {grid.name!r}: tinyvdb decoded {len(leaves)} leaves, the file's topology "
                           f"lists {len(origins)} (or their active voxels differ)")
     if not leaves or not counts.any():
@@ -257,9 +264,11 @@ def _densify(leaves: list, origins: np.ndarray, lo: np.ndarray, hi: np.ndarray, 
     into its place, the rest the background. Leaves are scattered in chunks, so only a chunk's values are joined."""
     start, stop = (lo >> 3) << 3, ((hi >> 3) + 1) << 3  # the box widened to whole leaves
     blocks = (stop - start) >> 3
-    out = np.full((blocks[2] * 8, blocks[1] * 8, blocks[0] * 8), background, dtype=np.float32)
-    tiles = out.reshape(blocks[2], 8, blocks[1], 8, blocks[0], 8)
     inside = np.flatnonzero(np.all((origins >= start) & (origins < stop), axis=1))
+    shape = (blocks[2] * 8, blocks[1] * 8, blocks[0] * 8)
+    full = len(inside) == np.prod(blocks)  # leaves cover every block (a dense grid): no background to fill
+    out = np.empty(shape, np.float32) if full else np.full(shape, background, dtype=np.float32)
+    tiles = out.reshape(blocks[2], 8, blocks[1], 8, blocks[0], 8)
     for chunk in np.array_split(inside, max(1, len(inside) // _LEAF_CHUNK)):
         values = np.frombuffer(b"".join(leaves[i].data for i in chunk), np.float32).reshape(-1, 8, 8, 8)
         b = (origins[chunk] - start) >> 3
@@ -282,8 +291,8 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
     ``temperature``, raw values) densified over the same index box, or None. The emission grid must share the
     density grid's transform, so that voxel (i, j, k) of both is the same place."""
     path = Path(path)
-    data = _read_bytes(path)
-    vdb = _open(path, data)
+    vdb = _open(path)
+    data = _map(path)
     try:
         index = _find_grid(path, vdb, grid, "--grid")
         density_grid = vdb.grid(index)
@@ -305,6 +314,7 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
                 raise VolrenError(f"{path}: grid {emission_grid!r} (--emission-grid) holds NaN/Inf values")
     finally:
         vdb.close()  # the sparse trees go before the caller validates (and copies) the dense grid
+        data.close()
     placed = to_world.copy()
     placed[:3, 3] = to_world[:3, :3] @ lo + to_world[:3, 3]  # dense index 0 is file index lo
     return VdbGrid(values, tuple(int(v) for v in lo), tuple(int(v) for v in hi), placed), emission
