@@ -87,6 +87,8 @@ def test_gaps_no_match_and_dicom_folders(frames: Path, tmp_path: Path):
     for i in (1, 2):
         (dicom / f"slice{i}.ima").write_bytes(b"\0" * 128 + b"DICM" + b"\0" * 16)  # DICOM content, any name
     assert frame_files(dicom) is None
+    uids = touch(tmp_path / "d3", "1.2.840.113619.2.55.3.1", "1.2.840.113619.2.55.3.2", "1.2.840.113619.2.55.4.1")
+    assert frame_files(uids) is None  # DICOM files named by UID (no preamble): no extension, not frames
 
 
 class Reads:

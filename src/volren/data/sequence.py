@@ -34,6 +34,7 @@ _HASHES = re.compile(r"#+")
 _PRINTF = re.compile(r"%(?:0(\d+))?d")
 _GLOB = re.compile(r"[*?\[]")
 _DIGITS = re.compile(r"\d+")
+_EXTENSION = re.compile(r"\.[a-z]\w*(\.gz)?")
 _DICOM_MAGIC_AT = 128
 """a DICOM Part 10 file holds b"DICM" after its 128-byte preamble"""
 
@@ -80,11 +81,12 @@ def _numbered(text: str, entries: list[tuple[int | None, Path]]) -> tuple[Path, 
 
 def _folder_frames(folder: Path) -> tuple[Path, ...] | None:
     """A folder's numbered files of one extension, or None when it is not a sequence: a DICOM series (any .dcm file,
-    DICOMDIR or DICOM Part 10 content), or no numbered file with an extension."""
+    DICOMDIR or DICOM Part 10 content), or no numbered file with an extension (one that starts with a letter)."""
     files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
     if any(_is_dicom(p) for p in files):
         return None
-    frames = [(_number(p.name), p) for p in files if _suffix(p.name)]
+    # an extension starts with a letter: DICOM files named by UID (1.2.840.113619.2.55.1) are not frames ".1"
+    frames = [(_number(p.name), p) for p in files if _EXTENSION.fullmatch(_suffix(p.name))]
     frames = [(n, p) for n, p in frames if n is not None]
     return _numbered(str(folder), frames) if frames else None
 
