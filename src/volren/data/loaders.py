@@ -13,6 +13,7 @@ down -z): world +x = patient Left, +y = Superior, +z = Anterior, so LPS (x, y, z
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -28,6 +29,8 @@ from volren.scene import validate_density
 RAW_EXTENSIONS = (".raw", ".bin", ".dat")
 _MAX_NVDB_VOXELS = 1 << 30
 """A dense copy of a sparse grid larger than this (4 GiB of float32) is refused rather than exhausting memory."""
+MAX_CHANNELS = 16
+"""A 4D array is (C, Z, Y, X) with at most this many channels (more is likely a time series, which is refused)."""
 
 
 UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
@@ -62,6 +65,8 @@ class _Grid:
     """the stored values' dtype when ``data`` holds them rescaled (DICOM, NIfTI scl_slope / scl_inter)."""
     spacing_replaces: bool = False
     """``spacing`` replaces the stored placement (ImageJ TIFF, NanoVDB) instead of being refused."""
+    level: int | None = None
+    """the OME-Zarr pyramid level read (`volren.data.omezarr`)."""
     emission: np.ndarray | None = None
     """a second grid of an OpenVDB file (``emission_grid``), raw float32 values, the shape of ``data``."""
 
@@ -100,6 +105,12 @@ class LoadedVolume:
     hounsfield: bool = False
     """``value_range`` is in Hounsfield units: signed integers (CT files store HU so), a DICOM CT series, or
     integers a NIfTI rescale takes below zero; unsigned integers as stored are not."""
+    channels: tuple[np.ndarray, ...] = ()
+    """a multi-channel file's channels (C >= 2; a (C, Z, Y, X) array, a multi-channel TIFF or OME-Zarr), each float32
+    ``[z, y, x]`` min-max normalised by its own range (microscopy channels differ in gain); ``density`` is channel 0.
+    () for one channel."""
+    level: int | None = None
+    """the OME-Zarr pyramid level read (0 = finest); None for other formats."""
     emission_source: np.ndarray | None = None
     """``load_volume(emission_grid=...)``: that grid's raw values (e.g. temperature) as float32 ``[z, y, x]``, voxel
     for voxel with ``density``; None otherwise."""
@@ -268,13 +279,13 @@ def _read_tiff(path: Path) -> _Grid:
     import tifffile  # lazy: only TIFF users pay for the import
 
     with tifffile.TiffFile(str(path)) as tif:
-        data = tif.asarray()
+        data = _tiff_channels_first(tif.asarray(), tif.series[0].axes)
         imagej = tif.imagej_metadata
         tags = tif.pages[0].tags
         resolution = [tags[name].value if name in tags else (1, 1) for name in ("XResolution", "YResolution")]
-    if data.ndim != 3:
+    if data.ndim not in (3, 4):
         raise VolrenError(f"{path}: TIFF holds an array of shape {data.shape}; volren needs a stack of 2D grey pages "
-                          "[z, y, x]")
+                          "[z, y, x] (or [c, z, y, x] with a C axis, e.g. an ImageJ hyperstack ZCYX)")
     data = _pages_to_grid(data)
     if not imagej:
         return _Grid(data)
@@ -285,7 +296,7 @@ def _read_tiff(path: Path) -> _Grid:
     if not all(np.isfinite(v) and v > 0 for v in step):
         raise VolrenError(f"{path}: the ImageJ voxel size {step} (1 / XResolution, 1 / YResolution, spacing) is not "
                           "three positive numbers; give --spacing x,y,z to replace it")
-    m = _spacing_placement(data.shape, step, 1.0)  # ImageJ stores no origin: centred, in the file's unit
+    m = _spacing_placement(data.shape[-3:], step, 1.0)  # ImageJ stores no origin: centred, in the file's unit
     return _Grid(data, m, metres_per_unit=_FILE_UNITS.get(unit), spacing_replaces=True)
 
 
@@ -295,6 +306,29 @@ def _pages_to_grid(pages: np.ndarray) -> np.ndarray:
     half turn about x (not a mirror) puts it in the world: rows run down y, pages towards -z (page 0 nearest the
     default camera)."""
     return pages[..., ::-1, ::-1, :]
+
+
+def _tiff_channels_first(data: np.ndarray, axes: str) -> np.ndarray:
+    """A multi-channel stack (tifffile's series axes with a C: ImageJ hyperstacks 'ZCYX', OME-TIFF 'CZYX') as
+    ``[c, z, y, x]``; anything else unchanged (and refused by the caller unless 3D)."""
+    if data.ndim == 4 and len(axes) == 4 and "C" in axes and axes.endswith("YX"):
+        return np.moveaxis(data, axes.index("C"), 0)
+    return data
+
+
+def _split_channels(path: Path, grid: _Grid) -> tuple[_Grid, tuple[_Grid, ...]]:
+    """A (C, Z, Y, X) grid's channels, each min-max normalised by its own range (``rescale``), and channel 0 as the
+    grid; a 3D grid (or one channel) unchanged with no channels."""
+    if grid.data.ndim != 4:
+        return grid, ()
+    count = grid.data.shape[0]
+    if not 1 <= count <= MAX_CHANNELS:
+        raise VolrenError(f"{path}: a 4D array of shape {grid.data.shape}; volren reads (C, Z, Y, X) with 1 to "
+                          f"{MAX_CHANNELS} channels")
+    if count == 1:
+        return dataclasses.replace(grid, data=grid.data[0]), ()
+    channels = tuple(dataclasses.replace(grid, data=grid.data[c], rescale=True) for c in range(count))
+    return channels[0], channels
 
 
 @wp.kernel
@@ -395,6 +429,8 @@ def load_volume(
     dtype: str | None = None,
     spacing: Sequence[float] | None = None,
     units: str | None = None,
+    level: int | None = None,
+    memory_budget: float | None = None,
     grid: str | None = None,
     emission_grid: str | None = None,
 ) -> LoadedVolume:
@@ -410,6 +446,10 @@ def load_volume(
     (x, y, z) in ``units`` (default mm) places ``.npy``, ``.npz``, raw, ``.tif``/``.tiff`` and ``.nvdb`` (replacing
     what a TIFF or NanoVDB stores), centred on the origin; without it and without a stored placement they get cubic
     voxels with the longest side 2 m, centred. ``spacing`` is refused for NRRD, NIfTI and DICOM.
+
+    A ``.zarr`` is an OME-Zarr pyramid or a plain Zarr array (`volren.data.omezarr`): ``level`` (0 = finest) or the
+    finest level within ``memory_budget`` [bytes of float32] is read. A 4D array, a TIFF with a C axis or a Zarr
+    with a ``c`` axis holds channels (``LoadedVolume.channels``).
     """
     path = Path(path)
     vdb_options = {k: v for k, v in (("grid", grid), ("emission_grid", emission_grid)) if v is not None}
@@ -422,7 +462,17 @@ def load_volume(
         step = tuple(float(v) for v in spacing)
         if len(step) != 3 or not all(np.isfinite(v) and v > 0 for v in step):
             raise VolrenError(f"spacing must be three positive voxel sizes x,y,z, got {spacing!r} (CLI: --spacing)")
-    if path.is_dir() and path.suffix.lower() not in (*_READERS, *RAW_EXTENSIONS):  # "a.npy/" is a mistake, not DICOM
+    zarr = path.suffix.lower() == ".zarr"
+    if not zarr and (level is not None or memory_budget is not None):
+        raise VolrenError(f"{path}: level and memory_budget choose an OME-Zarr pyramid level: they apply to .zarr "
+                          "only (CLI: --level, --memory-budget)")
+    if zarr:
+        from volren.data.omezarr import read_zarr  # lazy: zarr only for Zarr users
+
+        if shape is not None or dtype is not None:
+            raise VolrenError(f"{path}: shape/dtype apply to raw binary files only; a Zarr array stores its own")
+        grid = read_zarr(path, level=level, memory_budget=memory_budget)
+    elif path.is_dir() and path.suffix.lower() not in (*_READERS, *RAW_EXTENSIONS):  # "a.npy/" is a mistake, not DICOM
         from volren.data.dicom import read_dicom_series  # lazy: pydicom only for DICOM users
 
         if shape is not None or dtype is not None:
@@ -439,7 +489,9 @@ def load_volume(
     if grid.index_to_file is not None and spacing is not None and not grid.spacing_replaces:
         raise VolrenError(f"{path}: this volume stores its own voxel spacing; --spacing applies to .npy, .npz, raw, "
                           ".tif and .nvdb")
-    data, value_range = _normalise(grid)
+    grid, parts = _split_channels(path, grid)
+    channels = tuple(validate_density(_normalise(g)[0], f"volume file {path} channel {c}") for c, g in enumerate(parts))
+    data, value_range = (channels[0], None) if channels else _normalise(grid)
     density = validate_density(data, f"volume file {path}")
     if grid.index_to_file is None or spacing is not None:
         index_to_world = _spacing_placement(density.shape, spacing, UNITS[units or "mm"])
@@ -453,9 +505,9 @@ def load_volume(
         raise VolrenError(f"{path}: the stored voxel axes are degenerate (zero spacing or parallel directions)")
     units = grid.units or ("HU" if np.issubdtype(grid.data.dtype, np.signedinteger) else "raw")
     hounsfield = value_range is not None and units == "HU"
-    mapping = ValueMapping(grid.source or grid.data.dtype.name, value_range, units)
-    return LoadedVolume(density, index_to_world @ _local_to_index(density.shape), value_range, hounsfield,
-                        emission_source=grid.emission, value_mapping=mapping)
+    mapping = None if channels else ValueMapping(grid.source or grid.data.dtype.name, value_range, units)
+    return LoadedVolume(density, index_to_world @ _local_to_index(density.shape), value_range, hounsfield, channels,
+                        grid.level, grid.emission, mapping)
 
 
 def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None, **options: str) -> _Grid:

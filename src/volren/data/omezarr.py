@@ -1,0 +1,164 @@
+"""Read an OME-Zarr multiscale image (NGFF 0.4 and 0.5) or a plain Zarr array as a ``_Grid`` for ``load_volume``.
+
+OME-Zarr (https://ngff.openmicroscopy.org/0.5/#multiscale-md): the group's ``multiscales[0]`` lists ``axes`` (name,
+type ``space`` / ``channel`` / ``time``, a unit such as ``micrometer``) and ``datasets`` finest first, each with
+``coordinateTransformations``: a ``scale`` and an optional ``translation`` per axis mapping a voxel index to its centre
+(coordinate = index * scale + translation), followed by the multiscale's own optional transformations. Only the one
+level chosen is read from disk (zarr reads the chunks of that array only), never the pyramid.
+
+Orientation: as microscopy viewers show an image (row 0 at the top, x to the right, z away from the viewer), the
+file's x, y, z axes map onto the world's +x, -y, -z (a rotation, nothing mirrored): the default camera, looking down
+-z, sees row 0 at the top of the picture, as TIFF pages.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from volren.data.loaders import _Grid, _one_line
+from volren.errors import VolrenError
+
+DEFAULT_MEMORY_BUDGET = 1 << 30
+"""[bytes] of float32 voxels (all channels) the automatically chosen level may take: 1 GiB."""
+NGFF_UNITS = {"angstrom": 1e-10, "nanometer": 1e-9, "micrometer": 1e-6, "millimeter": 1e-3, "centimeter": 1e-2,
+              "meter": 1.0, "kilometer": 1e3, "nm": 1e-9, "um": 1e-6, "µm": 1e-6, "mm": 1e-3, "cm": 1e-2, "m": 1.0}
+"""[m] per unit of the NGFF space units volren meets (UDUNITS-2 names; short forms some writers use)."""
+IMAGE_SPACE = "LIP"
+"""the file's x, y, z as anatomical letters (`volren.data.loaders`): Left = world +x, Inferior = -y, Posterior = -z."""
+
+
+def _attributes(group: Any) -> dict[str, Any]:
+    """NGFF 0.5 nests the metadata under ``ome``; 0.4 keeps it at the top of the group's attributes."""
+    attrs = dict(group.attrs)
+    return dict(attrs["ome"]) if "ome" in attrs else attrs
+
+
+def _axes(multiscale: dict[str, Any], ndim: int) -> list[tuple[str, str, str | None]]:
+    """(name, type, unit) per array axis; NGFF 0.3 gave names only, <= 0.2 none (then t, c, z, y, x)."""
+    axes = multiscale.get("axes", ["t", "c", "z", "y", "x"][-ndim:])
+    out = []
+    for a in axes:
+        name = str(a["name"] if isinstance(a, dict) else a).lower()
+        kind = str(a.get("type", "")) if isinstance(a, dict) else ""
+        kind = kind or {"c": "channel", "t": "time"}.get(name, "space")
+        out.append((name, kind, a.get("unit") if isinstance(a, dict) else None))
+    if len(out) != ndim:
+        raise ValueError(f"{len(out)} axes for an array of {ndim} dimensions")
+    return out
+
+
+def _scale_translation(transforms: list[dict[str, Any]], ndim: int) -> tuple[np.ndarray, np.ndarray]:
+    """Compose a list of NGFF ``scale`` / ``translation`` transformations into one per-axis scale and offset."""
+    scale, offset = np.ones(ndim), np.zeros(ndim)
+    for t in transforms:
+        kind = t["type"]
+        if kind == "identity":
+            continue
+        if kind not in ("scale", "translation"):
+            raise ValueError(f"coordinate transformation {kind!r} is not supported (scale and translation are)")
+        if kind not in t:
+            raise ValueError(f"a {kind} transformation without values (a 'path' to them is not supported)")
+        v = np.asarray(t[kind], dtype=np.float64)
+        if v.shape != (ndim,) or not np.all(np.isfinite(v)):
+            raise ValueError(f"{kind} {t[kind]!r} is not {ndim} finite numbers")
+        if kind == "scale":
+            scale, offset = scale * v, offset * v
+        else:
+            offset = offset + v
+    return scale, offset
+
+
+def _choose_level(path: Path, shapes: list[tuple[int, ...]], level: int | None, budget: float) -> int:
+    """``level`` if given, else the finest level whose float32 voxels fit in ``budget`` bytes."""
+    if level is not None:
+        if not 0 <= level < len(shapes):
+            raise VolrenError(f"{path}: --level {level} is out of range: the pyramid has levels 0 to {len(shapes) - 1}")
+        return level
+    sizes = [4 * int(np.prod(s, dtype=np.int64)) for s in shapes]
+    fitting = [i for i, n in enumerate(sizes) if n <= budget]
+    if not fitting:
+        raise VolrenError(f"{path}: even the coarsest level ({len(shapes) - 1}, {sizes[-1] / 2**30:.2f} GiB of "
+                          f"float32) exceeds the memory budget of {budget / 2**30:.2f} GiB; raise --memory-budget")
+    return min(fitting)
+
+
+def read_zarr(path: Path, *, level: int | None = None, memory_budget: float | None = None) -> _Grid:
+    """The voxels of one pyramid level of an OME-Zarr image as ``[c,] z, y, x`` (a ``t`` axis of length 1 is
+    dropped), placed by its coordinate transformations: index -> file coordinates in the axes' unit (or in metres
+    where the spatial axes' units differ). A plain Zarr array is read as a ``.npy`` would be (no placement)."""
+    import zarr  # lazy: only Zarr users pay for the import
+
+    budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else float(memory_budget)
+    if not (np.isfinite(budget) and budget > 0):
+        raise VolrenError(f"memory_budget must be a positive number of bytes, got {memory_budget!r} "
+                          "(CLI: --memory-budget GIB)")
+    if not path.exists():
+        raise VolrenError(f"{path}: file not found")
+    try:
+        node = zarr.open(str(path), mode="r")
+    except Exception as exc:  # zarr raises several types for a folder that is no Zarr
+        raise VolrenError(f"{path}: not a readable Zarr store ({_one_line(exc)})") from None
+    if isinstance(node, zarr.Array):
+        if level is not None:
+            raise VolrenError(f"{path}: a plain Zarr array has no pyramid levels; --level applies to OME-Zarr")
+        return _Grid(np.asarray(node[...]))
+    try:
+        return _read_multiscale(path, node, level, budget)
+    except VolrenError:
+        raise
+    except Exception as exc:  # KeyError, TypeError, ValueError, ...: metadata that is not NGFF
+        raise VolrenError(f"{path}: malformed OME-Zarr metadata ({_one_line(exc)})") from None
+
+
+def _read_multiscale(path: Path, group: Any, level: int | None, budget: float) -> _Grid:
+    attrs = _attributes(group)
+    if "multiscales" not in attrs:
+        raise VolrenError(f"{path}: a Zarr group without OME-Zarr 'multiscales' metadata (arrays: "
+                          f"{', '.join(sorted(group.array_keys())) or 'none'})")
+    multiscale = attrs["multiscales"][0]
+    datasets = multiscale["datasets"]
+    if not datasets:
+        raise ValueError("'datasets' is empty")
+    arrays = [group[str(d["path"])] for d in datasets]
+    axes = _axes(multiscale, arrays[0].ndim)
+    names = [a[0] for a in axes]
+    space = [i for i, a in enumerate(axes) if a[1] == "space"]
+    if [names[i] for i in space] != ["z", "y", "x"]:
+        raise VolrenError(f"{path}: axes {''.join(names)}: volren needs the space axes z, y, x in that order")
+    keep = [i for i, a in enumerate(axes) if a[1] == "channel"] + space
+    for i, (name, _, _) in enumerate(axes):
+        if i not in keep and arrays[0].shape[i] != 1:
+            raise VolrenError(f"{path}: axis '{name}' has {arrays[0].shape[i]} entries; volren reads one volume "
+                              "(a channel axis 'c' and z, y, x)")
+    if len(keep) > 4:
+        raise VolrenError(f"{path}: axes {''.join(names)} hold more than one channel axis")
+    chosen = _choose_level(path, [tuple(a.shape[i] for i in keep) for a in arrays], level, budget)
+    ndim = len(axes)
+    scale, offset = _scale_translation(datasets[chosen]["coordinateTransformations"], ndim)
+    outer_scale, outer_offset = _scale_translation(multiscale.get("coordinateTransformations", []), ndim)
+    scale, offset = scale * outer_scale, offset * outer_scale + outer_offset
+    index = tuple(slice(None) if i in keep else 0 for i in range(ndim))
+    data = np.asarray(arrays[chosen][index])  # this level's chunks only
+    if len(keep) == 4:  # the channel axis first, whatever its place among the kept axes
+        data = np.moveaxis(data, sorted(keep).index(keep[0]), 0)
+    # index (i, j, k) = (x, y, z) -> file coordinates; the NGFF axes run z, y, x
+    step, origin = scale[space][::-1], offset[space][::-1]
+    units = [axes[i][2] for i in space]
+    metres = [NGFF_UNITS.get(str(u).lower()) if u is not None else None for u in units]
+    if any(u is not None and m is None for u, m in zip(units, metres, strict=True)):
+        raise VolrenError(f"{path}: unknown space unit in {units}; volren knows {', '.join(NGFF_UNITS)}")
+    if not all(v > 0 for v in step):
+        raise VolrenError(f"{path}: level {chosen}'s voxel size {step.tolist()} (x, y, z) is not positive")
+    if len(set(metres)) == 1:  # one unit (or none: --units or millimetres then)
+        metres_per_unit = metres[0]
+    elif None in metres:
+        raise VolrenError(f"{path}: some space axes state a unit and some do not ({units})")
+    else:  # differing units: convert each axis to metres here
+        step, origin, metres_per_unit = step * metres[::-1], origin * metres[::-1], 1.0
+    m = np.eye(4)
+    m[:3, :3] = np.diag(step)
+    m[:3, 3] = origin
+    return _Grid(data, m, IMAGE_SPACE, metres_per_unit, level=chosen)

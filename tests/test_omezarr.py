@@ -1,0 +1,155 @@
+"""OME-Zarr / Zarr volumes (issue 21 item 5, `volren.data.omezarr`): pyramids written by ome-zarr itself, placed by
+their coordinate transformations (file x, y, z -> world +x, -y, -z in metres), one level read."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+zarr = pytest.importorskip("zarr")
+writer = pytest.importorskip("ome_zarr.writer")
+
+from volren.cli import main  # noqa: E402
+from volren.data.loaders import load_volume  # noqa: E402
+from volren.errors import VolrenError  # noqa: E402
+
+UM = 1e-6
+MARKER = (5, 20, 7)
+"""channel 1's marker voxel (z, y, x) at level 0"""
+SCALE = (2.0, 0.5, 0.5)
+"""[um] z, y, x voxel size: anisotropic, as confocal stacks are"""
+TRANSLATION = (10.0, 4.0, -3.0)
+"""[um] z, y, x of voxel 0's centre"""
+
+
+def space_axes(units=("micrometer",) * 3) -> list[dict]:
+    return [{"name": "c", "type": "channel"}] + [{"name": n, "type": "space", "unit": u}
+                                                  for n, u in zip("zyx", units, strict=True)]
+
+
+def write_pyramid(path, units=("micrometer",) * 3) -> np.ndarray:
+    """Two channels (8, 32, 32), levels 0 and 1 (y, x halved), an explicit scale and translation per level."""
+    data = np.zeros((2, 8, 32, 32), np.uint16)
+    data[(1, *MARKER)] = 4000
+    data[0, 2:4, 2:6, 2:6] = 900
+    levels = [data, data[:, :, ::2, ::2]]
+    transforms = []
+    for lv in range(2):
+        scale = [1.0, SCALE[0], SCALE[1] * 2**lv, SCALE[2] * 2**lv]
+        # voxel centres: a coarser voxel's centre sits half its growth further (as ome-zarr's own writer does)
+        offset = [0.0, TRANSLATION[0]] + [t + (s - s0) / 2 for t, s, s0 in zip(TRANSLATION[1:], scale[2:], SCALE[1:],
+                                                                                strict=True)]
+        transforms.append([{"type": "scale", "scale": scale}, {"type": "translation", "translation": offset}])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # coordinate_transformations: the only way to translate
+        writer.write_multiscale(levels, zarr.open_group(str(path), mode="w"), axes=space_axes(units),
+                                coordinate_transformations=transforms)
+    return data
+
+
+def voxel_world(loaded, zyx) -> np.ndarray:
+    """World position [m] of voxel (z, y, x) of the loaded grid (DESIGN.md voxel centres)."""
+    n = np.array(loaded.density.shape[::-1], dtype=float)
+    local = -1 + (np.array(zyx[::-1], dtype=float) + 0.5) * 2 / n
+    return (loaded.to_world @ np.r_[local, 1.0])[:3]
+
+
+def test_marker_lands_at_its_world_position(tmp_path):
+    write_pyramid(tmp_path / "p.zarr")
+    loaded = load_volume(tmp_path / "p.zarr")
+    assert loaded.level == 0 and len(loaded.channels) == 2 and loaded.density.shape == (8, 32, 32)
+    marker = tuple(np.argwhere(loaded.channels[1] == 1.0)[0])
+    assert marker == MARKER  # channel 1 read as channel 1, voxels not reordered
+    z, y, x = (t + i * s for t, i, s in zip(TRANSLATION, MARKER, SCALE, strict=True))
+    np.testing.assert_allclose(voxel_world(loaded, MARKER), np.array([x, -y, -z]) * UM, rtol=1e-9, atol=1e-15)
+    # the coarser level covers the same box (its translation moves the centres of its bigger voxels)
+    coarse = load_volume(tmp_path / "p.zarr", level=1)
+    assert coarse.level == 1 and coarse.density.shape == (8, 16, 16)
+    np.testing.assert_allclose(coarse.corners_world, loaded.corners_world, rtol=1e-9, atol=1e-15)
+
+
+def test_units_per_axis_and_the_units_override(tmp_path):
+    write_pyramid(tmp_path / "mixed.zarr", units=("millimeter", "micrometer", "micrometer"))
+    mixed = load_volume(tmp_path / "mixed.zarr")
+    # half-extents x, y, z: 32 x 0.5 um, 32 x 0.5 um, 8 x 2 mm
+    np.testing.assert_allclose(np.abs(np.diag(mixed.to_world)[:3]), [8 * UM, 8 * UM, 8e-3], rtol=1e-9)
+    write_pyramid(tmp_path / "p.zarr")
+    as_mm = load_volume(tmp_path / "p.zarr", units="mm")  # the file's numbers read as millimetres
+    np.testing.assert_allclose(as_mm.to_world[:3], load_volume(tmp_path / "p.zarr").to_world[:3] * 1e3, rtol=1e-9)
+
+
+def test_ngff_04_pyramid_from_write_image_with_its_scaler(tmp_path):
+    from ome_zarr.format import FormatV04
+
+    data = np.zeros((2, 8, 32, 32), np.uint16)
+    data[0, 4, 8, 16] = 100
+    group = zarr.open_group(str(tmp_path / "v4.zarr"), mode="w", zarr_format=2)
+    writer.write_image(data, group, axes="czyx", scale_factors=(2, 4), fmt=FormatV04(),
+                       scale={"c": 1.0, "z": 2.0, "y": 0.5, "x": 0.5},
+                       axes_units={a: "micrometer" for a in "zyx"})
+    assert "multiscales" in json.loads((tmp_path / "v4.zarr" / ".zattrs").read_text())  # 0.4: no 'ome' key
+    loaded = load_volume(tmp_path / "v4.zarr")
+    np.testing.assert_allclose(np.abs(np.diag(loaded.to_world)[:3]), [8 * UM, 8 * UM, 8 * UM], rtol=1e-9)
+    assert np.argwhere(loaded.channels[0] == 1.0).tolist() == [[4, 8, 16]]
+
+
+def test_level_choice_by_budget_and_by_level(tmp_path):
+    write_pyramid(tmp_path / "p.zarr")
+    level0 = 2 * 8 * 32 * 32 * 4  # float32 bytes, both channels
+    assert load_volume(tmp_path / "p.zarr", memory_budget=level0).level == 0
+    assert load_volume(tmp_path / "p.zarr", memory_budget=level0 - 1).level == 1
+    assert load_volume(tmp_path / "p.zarr", memory_budget=level0 - 1, level=0).level == 0  # --level overrides
+    with pytest.raises(VolrenError, match="exceeds the memory budget"):
+        load_volume(tmp_path / "p.zarr", memory_budget=level0 / 4 - 1)
+    with pytest.raises(VolrenError, match="levels 0 to 1"):
+        load_volume(tmp_path / "p.zarr", level=2)
+    np.save(tmp_path / "a.npy", np.zeros((4, 4, 4), np.float32))
+    with pytest.raises(VolrenError, match=r"apply to \.zarr only"):
+        load_volume(tmp_path / "a.npy", level=0)
+
+
+def test_plain_zarr_array_reads_as_npy_would(tmp_path):
+    data = np.random.default_rng(1).integers(0, 255, (6, 7, 8), dtype=np.uint8)
+    zarr.create_array(str(tmp_path / "plain.zarr"), shape=data.shape, dtype=data.dtype)[...] = data
+    np.save(tmp_path / "plain.npy", data)
+    z, n = load_volume(tmp_path / "plain.zarr"), load_volume(tmp_path / "plain.npy")
+    np.testing.assert_array_equal(z.density, n.density)
+    np.testing.assert_allclose(z.to_world, n.to_world)
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (lambda ms: ms["datasets"][0]["coordinateTransformations"][0].update(scale=[1, 2]), "malformed OME-Zarr"),
+    (lambda ms: ms["datasets"][0].pop("coordinateTransformations"), "malformed OME-Zarr"),
+    (lambda ms: ms["axes"][1].update(name="t", type="time"), "needs the space axes z, y, x"),
+    (lambda ms: ms["axes"][3].update(unit="parsec"), "unknown space unit"),
+])
+def test_malformed_metadata_is_one_line_naming_the_file(tmp_path, edit, message):
+    path = tmp_path / "bad.zarr"
+    write_pyramid(path)
+    meta = json.loads((path / "zarr.json").read_text())
+    edit(meta["attributes"]["ome"]["multiscales"][0])
+    (path / "zarr.json").write_text(json.dumps(meta))
+    with pytest.raises(VolrenError, match=message) as info:
+        load_volume(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_cli_renders_a_level_with_row_0_at_the_top(tmp_path):
+    """Channel 0's block at rows 2-5 (near y = 0) must show in the picture's top half, channel 1's marker below."""
+    write_pyramid(tmp_path / "p.zarr")
+    out = tmp_path / "out"
+    assert main(["render", "--volume", str(tmp_path / "p.zarr"), "--level", "1", "--views", "mono", "--width", "32",
+                 "--height", "32", "--samples", "48", "--channel-opacity", "20", "--out", str(out),
+                 "--save-linear"]) == 0
+    image = np.load(out / "view0.npy")
+    rows = np.arange(32)
+    green = image[..., 1].sum(axis=1)
+    assert green.sum() > 0 and (green * rows).sum() / green.sum() < 14
+
+
+def test_cli_refuses_level_without_a_volume(tmp_path, capsys):
+    assert main(["render", "--scene", "cloud", "--level", "1", "--out", str(tmp_path / "o")]) == 2
+    assert "there is no --volume" in capsys.readouterr().err
