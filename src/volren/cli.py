@@ -45,10 +45,14 @@ FROXEL_BYTES = 16
 """fog froxel: one vec4 in each of the lighting, history and integrated grids."""
 
 DEFAULT_SCENE = "smoke"
+DEFAULT_EYE = (0.0, 0.4, 3.2)
+"""[m] the default camera position; a volume file is seen from its direction, framed"""
 DEFAULT_RESOLUTION = 64
 """voxels per axis of a built-in volume scene (render, animate; demo: 128)"""
 ANIMATION_FPS = 30.0
 """frames per second of scene time for animated scenes rendered with --frames"""
+ANIMATE_FRAMES = 60
+"""``volren animate``'s --frames unless a --volume sequence gives its length"""
 
 
 class CliError(VolrenError):
@@ -129,6 +133,12 @@ def rgb(text: str) -> tuple[float, ...]:
     return v * 3 if len(v) == 1 else v
 
 
+def channel_colors(text: str) -> tuple[tuple[float, float, float], ...]:
+    from volren.render.compositing.channels import parse_channel_colors
+
+    return parse_channel_colors(text)
+
+
 def ints3(text: str) -> tuple[int, int, int]:
     try:
         values = tuple(int(t) for t in text.lower().replace("x", ",").split(","))
@@ -143,6 +153,39 @@ def add_device(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda or cuda:N")
 
 
+def add_volume_args(src: argparse._ArgumentGroup | argparse.ArgumentParser) -> None:
+    """``--volume`` and every flag saying how to read it: render, animate and serve take them all (`_file_scene`
+    reads them)."""
+    src.add_argument("--volume", type=Path, help="density file (default: none, a --scene): .npy .npz .nrrd .nhdr "
+                     ".nii(.gz) .tif(f) .nvdb .vdb or raw, a folder of DICOM slices or one of its .dcm files (the "
+                     "series is read); placed where the file says (mm unless it states metres). A sequence, one "
+                     "file per frame: 'sim_####.vdb' (# = the zero-padded frame number), 'sim_%%04d.npy', a glob "
+                     "'sim_*.npy' (numeric order) or a folder of numbered files; render --frames, animate and serve "
+                     "play it")
+    src.add_argument("--shape", type=ints3, help="raw files: voxels X,Y,Z, each >= 2 (x varies fastest in the "
+                     "file; default: none, required for raw)")
+    src.add_argument("--dtype", help="raw files: uint8, uint16, int16, float32, ... (default: none, required for "
+                     "raw)")
+    src.add_argument("--spacing", type=vec3, help="voxel size x,y,z in --units for .npy .npz raw files, or to "
+                     "replace a .tif's, .nvdb's or .vdb's own (default: what the file stores, else cubic voxels, "
+                     "longest side 2 m)")
+    src.add_argument("--units", choices=("m", "cm", "mm", "um"), help="unit of the file's coordinates and "
+                     "--spacing (default: what the file states, e.g. a TIFF's microns, else mm; .vdb: m, "
+                     "OpenVDB states no unit)")
+    src.add_argument("--grid", help=".vdb files: the density grid's name (default: 'density', else the file's "
+                     "only float grid)")
+    src.add_argument("--level", type=int, help=".zarr (OME-Zarr) pyramids: the level to read, 0 = finest "
+                     "(default: the finest within --memory-budget)")
+    src.add_argument("--memory-budget", type=float, help=".zarr pyramids: [GiB] of float32 voxels (all "
+                     "channels) the chosen level may take (default: 1)")
+    src.add_argument("--channel-colors", type=channel_colors, help="multi-channel volumes: a colour per "
+                     "channel, names (green,magenta) or r,g,b triples separated by ';' (default: green, magenta, "
+                     "cyan, yellow, red, blue, ...)")
+    src.add_argument("--channel-opacity", type=lambda t: floats(t, len(t.split(","))), help="multi-channel "
+                     "volumes: optical depth at density 1 across the volume's longest side, one for all or one "
+                     "per channel (default: 4)")
+
+
 def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     animate = p.prog.endswith("animate")
     from volren.presets import QUALITIES
@@ -150,21 +193,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     src = p.add_argument_group("data")
     if not demo:
         src.add_argument("--scene", default=None, help=f"built-in scene (default {DEFAULT_SCENE}; see `volren scenes`)")
-        src.add_argument("--volume", type=Path, help="density file (default: none, a --scene): .npy .npz .nrrd .nhdr "
-                         ".nii(.gz) .tif(f) .nvdb .vdb or raw, a folder of DICOM slices or one of its .dcm files (the "
-                         "series is read); placed where the file says (mm unless it states metres)")
-        src.add_argument("--shape", type=ints3, help="raw files: voxels X,Y,Z, each >= 2 (x varies fastest in the "
-                         "file; default: none, required for raw)")
-        src.add_argument("--dtype", help="raw files: uint8, uint16, int16, float32, ... (default: none, required for "
-                         "raw)")
-        src.add_argument("--spacing", type=vec3, help="voxel size x,y,z in --units for .npy .npz raw files, or to "
-                         "replace a .tif's, .nvdb's or .vdb's own (default: what the file stores, else cubic voxels, "
-                         "longest side 2 m)")
-        src.add_argument("--units", choices=("m", "cm", "mm", "um"), help="unit of the file's coordinates and "
-                         "--spacing (default: what the file states, e.g. a TIFF's microns, else mm; .vdb: m, "
-                         "OpenVDB states no unit)")
-        src.add_argument("--grid", help=".vdb files: the density grid's name (default: 'density', else the file's "
-                         "only float grid)")
+        add_volume_args(src)
     # None unless given, so --volume and the fog scenes (which take no voxel count) can refuse it
     src.add_argument("--resolution", type=int, default=128 if demo else None, help="built-in volume scenes: voxels "
                      f"per axis, 64-512{'' if demo else f' (default: {DEFAULT_RESOLUTION})'}")
@@ -222,7 +251,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     cam.add_argument("--fov", type=float, default=45.0, help="vertical field of view [degrees], in (0, 180)")
     cam.add_argument("--width", type=int, default=640, help=f"[px] in [1, {MAX_IMAGE_SIDE}]")
     cam.add_argument("--height", type=int, default=360, help=f"[px] in [1, {MAX_IMAGE_SIDE}]")
-    cam.add_argument("--near", type=float, default=0.01, help="[m], > 0")
+    cam.add_argument("--near", type=float, help="[m], > 0 (default: 0.01, or a thousandth of the distance to a "
+                     "framed --volume where that is less: micrometre microscopy)")
     cam.add_argument("--far", type=float, default=1000.0, help="[m], > --near")
     cam.add_argument("--views", default="stereo", help="mono, stereo, or N viewers (placed by --rig), N in [1, 1024]")
     cam.add_argument("--rig", choices=("arc", "wander", "overlap"), help="N viewers (default arc): on an arc "
@@ -259,6 +289,11 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
     r.add_argument("--no-vsa", action="store_true", help="cacrm: uniform steps (no variable step amplification)")
     r.add_argument("--no-interleave", action="store_true", help="cacrm: no interleaved spatial reuse of 2x2 quads")
+    r.add_argument("--mode", choices=("dvr", "mip", "mida", "iso"), help="dssrm/cmsrm/cacrm: dvr (volume rendering, "
+                   "default), mip (maximum intensity projection), mida (maximum intensity difference accumulation) "
+                   "or iso (shaded isosurface at --iso-value)")
+    r.add_argument("--iso-value", type=float, help="--mode iso: the surface's density V > 0, in the grid's units (a CT "
+                   "with a Hounsfield range lo..hi holds (HU - lo) / (hi - lo)); default 0.5")
     r.add_argument("--oit", choices=("tiled", "pixel-rt", "pixel-sort"), help="dssrm/cmsrm/cacrm: how each pixel "
                    "finds the boxes its ray meets, in ray order: tiled (paper 000 §3.4 tiled k-buffer, default), "
                    "pixel-rt (per-pixel BVH ray queries) or pixel-sort (every box tested per pixel)")
@@ -299,8 +334,9 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--fog-far", type=float, help="fog: end of the fog range [m], > 0 (default 64)")
     r.add_argument("--trilinear", action="store_true", help="fog: interpolate 8 shadow-grid voxels, not the nearest")
     r.add_argument("--no-temporal", action="store_true", help="fog: no jitter and temporal blending")
-    r.add_argument("--frames", type=int, default=60 if animate else 1, help="render N >= 1 frames (temporal methods), "
-                   "keep every frame")
+    r.add_argument("--frames", type=int, default=None if animate else 1, help="render N >= 1 frames (temporal "
+                   "methods), keep every frame; a --volume sequence plays its frames 0..N-1, N at most its length "
+                   f"(default: {f'{ANIMATE_FRAMES}, or the length of a --volume sequence' if animate else 1})")
     r.add_argument("--seed", type=int, default=0, help="random seed (jitter, scenes, viewers): any integer")
     r.add_argument("--max-minutes", type=float, default=60.0, help="refuse a render estimated to run longer "
                    "(estimated by a quarter-size probe when views x pixels x frames exceeds 20 M; 0: no limit)")
@@ -316,9 +352,10 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
 def add_serve_args(p: argparse.ArgumentParser) -> None:
     from volren.presets import QUALITIES
 
-    p.add_argument("--scene", default=DEFAULT_SCENE, help="built-in scene (see `volren scenes`)")
-    p.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION, help="built-in volume scenes: voxels per "
-                   "axis, 64-512")
+    p.add_argument("--scene", help=f"built-in scene (default {DEFAULT_SCENE}; see `volren scenes`)")
+    add_volume_args(p)
+    p.add_argument("--resolution", type=int, help=f"built-in volume scenes: voxels per axis, 64-512 (default: "
+                   f"{DEFAULT_RESOLUTION})")
     p.add_argument("--method", help="dssrm, cmsrm, cacrm, vpt or fog (default: dssrm, fog for fog scenes)")
     p.add_argument("--quality", default="interactive", choices=QUALITIES, help="starting preset (viewers may switch)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on; any but loopback needs --token")
@@ -349,11 +386,38 @@ def run_serve(args: argparse.Namespace) -> int:
 
     check_bind(args.host, args.token, tuple(args.allow_origin))
     limits = Limits(args.max_viewers, args.max_width, args.max_height, args.pixel_budget)
-    loop = build_loop(args.scene, args.method, args.quality, args.resolution, args.device, limits,
-                      args.lock_settings)
-    serve(make_app(loop, args.scene, args.token, hosts=(args.host, *args.allow_host), origins=tuple(args.allow_origin)),
+    name = args.scene or DEFAULT_SCENE
+    loop = build_loop(name, args.method, args.quality, args.resolution or DEFAULT_RESOLUTION, args.device, limits,
+                      args.lock_settings, **served_volume(args))
+    name = args.volume.name if args.volume is not None else name
+    serve(make_app(loop, name, args.token, hosts=(args.host, *args.allow_host), origins=tuple(args.allow_origin)),
           args.host, args.port, args.token)
     return 0
+
+
+def served_volume(args: argparse.Namespace) -> dict:
+    """`build_loop`'s scene, camera and play step for ``serve --volume`` (none without): the file's scene, framed as
+    `views_from_args` frames it for a --max-width x --max-height view; a sequence plays its frames in a loop."""
+    if args.volume is None:
+        return {}
+    import numpy as np
+
+    from volren.camera import Camera
+    from volren.serve.loop import sequence_player
+
+    if args.scene is not None or args.resolution is not None:
+        raise CliError("serve --volume shows the file: --scene and --resolution apply to built-in scenes")
+    scene = _file_scene(args)
+    corners = _volume_from_args(args).corners_world
+    look_at = (corners.min(axis=0) + corners.max(axis=0)) / 2
+    direction = np.array(DEFAULT_EYE) / np.linalg.norm(DEFAULT_EYE)
+    distance = framing_distance(corners, look_at, direction, (0.0, 1.0, 0.0), Camera.fov_y,
+                                args.max_width / args.max_height)
+    played = volume_sequence(args)
+    animate = None if played is None or len(played) == 1 else sequence_player(
+        len(played), lambda i: dataclasses.replace(scene, volumes=_file_scene(args, i).volumes))
+    return {"scene": scene, "camera": Camera(position=tuple(look_at + distance * direction), look_at=tuple(look_at)),
+            "animate": animate}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -392,8 +456,9 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     light overrides."""
     from volren.data import COUNTED_SCENES, builtin_scene, load_mesh_file
     from volren.data.fog_scenes import FOG_SCENES, fog_scene
-    from volren.scene import DirectionalLight, Environment, Plane, Scene, Sphere, Volume
+    from volren.scene import DirectionalLight, Environment, Plane, Sphere
 
+    check_channel_flags(args)
     if getattr(args, "grid", None) is not None and getattr(args, "volume", None) is None:
         raise CliError("--grid names a grid of a .vdb --volume; there is no --volume")
     if getattr(args, "volume", None) is not None:
@@ -401,12 +466,7 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
             raise CliError("give either --scene or --volume, not both")
         if args.resolution is not None:
             raise CliError("--resolution applies to built-in volume scenes only; --volume's file sets its own voxels")
-        loaded = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units, args.grid)
-        # CT presets classify by HU; a constant file (lo = hi) has no HU scale
-        hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
-        value_range = loaded.value_range if hu else None
-        scene = Scene((Volume(loaded.density, loaded.to_world, name=args.volume.name, value_range=value_range),),
-                      name=args.volume.stem)
+        scene = _file_scene(args)
     elif getattr(args, "scene", None) in FOG_SCENES:
         if args.resolution is not None:
             raise CliError(f"--resolution applies to built-in volume scenes only, not to fog scene '{args.scene}'")
@@ -419,10 +479,8 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
             raise CliError(f"--count applies to --scene {', '.join(COUNTED_SCENES)} only, not to scene '{name}'")
         resolution = DEFAULT_RESOLUTION if args.resolution is None else args.resolution
         scene = builtin_scene(name, resolution, count=16 if args.count is None else args.count, seed=args.seed)
-    names = ("density_scale", "albedo", "g", "emission", "temperature_range", "emission_scale")
-    material = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
     check_fire_flags(args, scene)
-    volumes = tuple(dataclasses.replace(v, **material) for v in scene.volumes) if material else scene.volumes
+    volumes = _with_material(args, scene.volumes)
     lights = list(scene.lights)
     if args.light_dir is not None or args.light_irradiance is not None:
         idx = next((i for i, lt in enumerate(lights) if isinstance(lt, DirectionalLight)), None)
@@ -508,16 +566,104 @@ def check_fire_flags(args: argparse.Namespace, scene) -> None:
         raise CliError(f"--emission-scale must be a finite number >= 0, got {scale:g}")
 
 
+def channel_scene(args: argparse.Namespace, loaded):
+    """A multi-channel ``--volume``: one volume per channel glowing in its colour, unlit
+    (`volren.render.compositing.channels`); material and light flags would do nothing and are refused."""
+    from volren.render.compositing.channels import channel_volumes
+    from volren.scene import Environment, Scene
+
+    unused = [flag for flag, value in (
+        ("--density-scale", args.density_scale), ("--albedo", args.albedo), ("--g", args.g),
+        ("--emission", args.emission), ("--light-dir", args.light_dir), ("--light-irradiance", args.light_irradiance),
+        ("--rect-light", args.rect_light or None), ("--ambient", args.ambient), ("--environment", args.environment),
+        ("--tf", args.tf), ("--gi", None if args.gi in (None, "none") else args.gi)) if value is not None]
+    if unused:
+        raise CliError(f"a multi-channel volume glows in its channel colours, unlit: {', '.join(unused)} would do "
+                       "nothing (use --channel-colors, --channel-opacity)")
+    volumes = channel_volumes(loaded.channels, loaded.to_world, colors=args.channel_colors,
+                              opacity=args.channel_opacity, name=args.volume.name)
+    return Scene(volumes, lights=(), environment=Environment((0.0, 0.0, 0.0)), name=args.volume.stem)
+
+
+def check_channel_flags(args: argparse.Namespace) -> None:
+    """--channel-colors / --channel-opacity need a multi-channel --volume; --level / --memory-budget a --volume (the
+    loader refuses them for anything but .zarr)."""
+    volume = getattr(args, "volume", None)
+    channel_flags = [f for f, k in (("--channel-colors", "channel_colors"), ("--channel-opacity", "channel_opacity"))
+                     if getattr(args, k, None) is not None]
+    if channel_flags and (volume is None or not _volume_from_args(args).channels):
+        raise CliError(f"{', '.join(channel_flags)} apply to a multi-channel --volume only (a (C, Z, Y, X) array, a "
+                       "TIFF or OME-Zarr with a channel axis)")
+    zarr_flags = [f for f, k in (("--level", "level"), ("--memory-budget", "memory_budget"))
+                  if getattr(args, k, None) is not None]
+    if zarr_flags and volume is None:
+        raise CliError(f"{', '.join(zarr_flags)} choose the level of a .zarr --volume; there is no --volume")
+
+
+def _with_material(args: argparse.Namespace, volumes: tuple) -> tuple:
+    """``volumes`` with the material flags' values in place of their own."""
+    names = ("density_scale", "albedo", "g", "emission", "temperature_range", "emission_scale")
+    material = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
+    return tuple(dataclasses.replace(v, **material) for v in volumes) if material else volumes
+
+
+def _file_scene(args: argparse.Namespace, frame: int = 0):
+    """``--volume``'s scene (of frame ``frame`` of a sequence), before the material and light overrides."""
+    from volren.scene import Scene, Volume
+
+    loaded = _volume_from_args(args, frame)
+    # CT presets classify by HU; a constant file (lo = hi) has no HU scale
+    hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
+    value_range = loaded.value_range if hu else None
+    return channel_scene(args, loaded) if loaded.channels else Scene(
+        (Volume(loaded.density, loaded.to_world, name=args.volume.name, value_range=value_range,
+                emission_grid=loaded.emission_source),),
+        name=args.volume.stem)
+
+
 def _value_mapping(args: argparse.Namespace) -> dict:
-    """stats.json's ``value_mapping``: how ``--volume``'s file values became densities; nothing for built-in
-    scenes."""
-    if getattr(args, "volume", None) is None:
-        return {}
-    mapping = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units, args.grid).value_mapping
+    """stats.json's ``value_mapping``: how ``--volume``'s file values became densities (a sequence's frames share
+    frame 0's); nothing for built-in scenes and multi-channel files."""
+    mapping = _volume_from_args(args).value_mapping if getattr(args, "volume", None) is not None else None
     return {} if mapping is None else {"value_mapping": mapping.to_dict()}
 
 
-def _load_volume(path: Path, shape, dtype, spacing, units, grid=None):
+def _volume_options(args: argparse.Namespace) -> tuple:
+    """How to read ``--volume`` (`_read_volume`'s arguments after the path)."""
+    return (args.shape, args.dtype, args.spacing, args.units, args.grid, args.level, args.memory_budget,
+            getattr(args, "emission_grid", None))
+
+
+def _volume_from_args(args: argparse.Namespace, frame: int = 0):
+    """``--volume`` (frame ``frame`` of a sequence) with the options that say how to read it (`_load_volume`)."""
+    sequence = volume_sequence(args)
+    if sequence is not None:
+        return sequence.frame(frame)
+    return _load_volume(args.volume, *_volume_options(args))
+
+
+def volume_sequence(args: argparse.Namespace):
+    """The `VolumeSequence` a ``--volume`` pattern names (serve's reads ahead across the end: it plays in a loop),
+    opened once (keyed on the folder's mtime too, so added or removed frames are found); None for one volume."""
+    if getattr(args, "volume", None) is None:
+        return None
+    folder = args.volume if args.volume.is_dir() else args.volume.parent
+    stamp = folder.stat().st_mtime_ns if folder.exists() else None
+    return _open_sequence(args.volume, stamp, args.command == "serve", *_volume_options(args))
+
+
+@functools.lru_cache(maxsize=1)
+def _open_sequence(path: Path, _stamp, loop: bool, *options):
+    from volren.data.sequence import SequenceConfig, VolumeSequence, frame_files
+
+    files = frame_files(path)
+    if files is None:
+        return None
+    return VolumeSequence(SequenceConfig(files, loop=loop), lambda frame: _read_volume(frame, *options))
+
+
+def _load_volume(path: Path, shape, dtype, spacing, units, grid=None, level=None, memory_budget=None,
+                 emission_grid=None):
     """``--volume`` read once: the scene and the default camera framing both need it (keyed on the file's mtime too,
     so a rewritten file is read again). One ``.dcm`` file stands for its series: the files of its folder with its
     SeriesInstanceUID (other series beside it are skipped)."""
@@ -525,7 +671,8 @@ def _load_volume(path: Path, shape, dtype, spacing, units, grid=None):
     source = path.parent if dicom_file else path
     stamp = source.stat().st_mtime_ns if source.exists() else None
     try:
-        return _load_volume_cached(path, stamp, shape, dtype, spacing, units, grid)
+        return _load_volume_cached(path, stamp, shape, dtype, spacing, units, grid, level, memory_budget,
+                                   emission_grid)
     except VolrenError as exc:
         if not dicom_file:
             raise
@@ -534,10 +681,16 @@ def _load_volume(path: Path, shape, dtype, spacing, units, grid=None):
 
 
 @functools.lru_cache(maxsize=1)
-def _load_volume_cached(path: Path, _stamp, shape, dtype, spacing, units, grid):
+def _load_volume_cached(path: Path, _stamp, *options):
+    return _read_volume(path, *options)
+
+
+def _read_volume(path: Path, shape, dtype, spacing, units, grid, level, memory_budget, emission_grid):
     from volren.data.loaders import load_volume
 
-    return load_volume(path, shape=shape, dtype=dtype, spacing=spacing, units=units, grid=grid)
+    budget = None if memory_budget is None else memory_budget * 2**30  # --memory-budget is in GiB
+    return load_volume(path, shape=shape, dtype=dtype, spacing=spacing, units=units, grid=grid, level=level,
+                       memory_budget=budget, emission_grid=emission_grid)
 
 
 def framing_distance(corners, look_at, direction, up, fov_y: float, aspect: float, eye_offset: float = 0.0) -> float:
@@ -569,7 +722,7 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
     from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera, fog_scene_walk_area
     from volren.viewers import WalkArea, arc_viewers, overlap_viewers, wandering_viewers
 
-    position, look_at = (0.0, 0.4, 3.2), (0.0, 0.0, 0.0)
+    position, look_at, near = DEFAULT_EYE, (0.0, 0.0, 0.0), 0.01
     fog_scene = getattr(args, "scene", None) in FOG_SCENES
     if fog_scene:
         default = fog_scene_camera(args.scene)
@@ -577,14 +730,15 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
     elif getattr(args, "volume", None) is not None and args.camera_pos is None:
         import numpy as np
 
-        corners = _load_volume(args.volume, args.shape, args.dtype, args.spacing, args.units, args.grid).corners_world
+        corners = _volume_from_args(args).corners_world
         look_at = tuple(args.look_at or (corners.min(axis=0) + corners.max(axis=0)) / 2)
         direction = np.array(position) / np.linalg.norm(position)
         distance = framing_distance(corners, look_at, direction, args.up, args.fov, args.width / max(args.height, 1),
                                     args.ipd / 2 if args.views == "stereo" else 0.0)
         position = tuple(np.array(look_at) + distance * direction)
+        near = min(near, distance / 1000)  # a 100 um stack framed from 0.4 mm: the default 1 cm would clip it all
     cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
-                 width=args.width, height=args.height, near=args.near, far=args.far)
+                 width=args.width, height=args.height, near=near if args.near is None else args.near, far=args.far)
     if args.overlap is not None and args.rig != "overlap":
         raise CliError("--overlap needs --rig overlap and --views N")
     if args.views in ("mono", "stereo"):
@@ -647,6 +801,8 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "share_voxels": (False if args.no_share else None, "--no-share"),
         "vsa": (False if args.no_vsa else None, "--no-vsa"),
         "interleave": (False if args.no_interleave else None, "--no-interleave"),
+        "mode": (None if args.mode in (None, "dvr") else args.mode, "--mode"),
+        "iso_value": (args.iso_value, "--iso-value"),
         "oit": (args.oit, "--oit"),
         "oit_k": (args.oit_k, "--oit-k"),
         "spp": (args.spp, "--spp"),
@@ -664,6 +820,8 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "trilinear": (args.trilinear or None, "--trilinear"),
         "temporal": (False if args.no_temporal else None, "--no-temporal"),
     }
+    if args.iso_value is not None and args.mode != "iso":
+        raise CliError("--iso-value needs --mode iso")
     gi = {"method": (args.gi, "--gi"), "order": (args.gi_order, "--gi-order"), "rays": (args.gi_rays, "--gi-rays"),
           "volumes_per_frame": (args.gi_volumes, "--gi-volumes")}
     gi_options = {k: v for k, (v, _) in gi.items() if v is not None}
@@ -684,6 +842,11 @@ def renderer_from_args(args: argparse.Namespace, method: str):
             raise CliError(f"--tf gives the extinction, albedo and emission: {', '.join(replaced)} would do nothing")
     if "seed" in fields:
         options["seed"] = args.seed
+    channels = len(_volume_from_args(args).channels) if getattr(args, "volume", None) is not None else 0
+    if channels:  # each channel its own renderer, the images added
+        from volren.render.compositing.channels import AdditiveChannels
+
+        return AdditiveChannels(lambda: cls(config_cls(**options), device=args.device), channels)
     return cls(config_cls(**options), device=args.device)
 
 
@@ -778,7 +941,7 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     # the checks that need no data first: the imports below take seconds
     check_method(method)
     check_scene_name(getattr(args, "scene", None))
-    if args.frames < 1:
+    if args.frames is not None and args.frames < 1:  # None: animate's default, set below
         raise CliError(f"--frames must be >= 1, got {args.frames}")
     for flag, side in (("--width", args.width), ("--height", args.height)):
         if not 1 <= side <= MAX_IMAGE_SIDE:
@@ -790,6 +953,13 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     from volren.imageio import composite, to_srgb8
     from volren.output import contact_sheet, run_output, write_frame, write_stats
 
+    played = volume_sequence(args)
+    if args.frames is None:
+        args.frames = ANIMATE_FRAMES if played is None else len(played)
+    if played is not None:
+        if args.frames > len(played):
+            raise CliError(f"--frames {args.frames}: the sequence {args.volume} has {len(played)} frames")
+        played.check_start()  # the first two frames read and matched before any output
     scene = scene_from_args(args)
     value_mapping = _value_mapping(args)
     animated = getattr(args, "scene", None) in ANIMATED_FOG_SCENES
@@ -814,10 +984,12 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
             for i in range(args.frames):
                 if animated and i:
                     scene = scene_from_args(args, i / ANIMATION_FPS)
+                if played is not None and i:  # the lights, geometry and environment stay the same objects
+                    scene = dataclasses.replace(base_scene, volumes=_with_material(args, _file_scene(args, i).volumes))
                 if walking and i:
                     views = views_from_args(args, i / ANIMATION_FPS)
                 if sequence is not None:
-                    scene = frame_scene(sequence, base_scene if not animated else scene, i)
+                    scene = frame_scene(sequence, scene if animated or played is not None else base_scene, i)
                     views = frame_views(sequence, base_views, i)
                     renderer.config = frame_config(sequence, base_config, i)
                 frame = renderer.render(scene, views, frame=i, occluder_depth=occluder_depth)
