@@ -249,3 +249,10 @@ def test_playback_counts_the_frames_not_read_in_time():
     fast = play(paths(6), 30.0, slow)
     assert (fast.frames, fast.missed) == (6, 5) and fast.read_s >= 0.05
     assert play(paths(6), 5.0, slow).missed == 0
+
+
+def test_serve_refuses_a_multi_channel_volume(tmp_path: Path):
+    np.save(tmp_path / "two.npy", np.stack([blob(0), blob(3)]))
+    args = build_parser().parse_args(["serve", "--volume", str(tmp_path / "two.npy")])
+    with pytest.raises(VolrenError, match="multi-channel volume renders with render and animate only"):
+        served_volume(args)

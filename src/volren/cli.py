@@ -407,8 +407,11 @@ def served_volume(args: argparse.Namespace) -> dict:
 
     if args.scene is not None or args.resolution is not None:
         raise CliError("serve --volume shows the file: --scene and --resolution apply to built-in scenes")
+    loaded = _volume_from_args(args)
+    if loaded.channels:  # `channel_scene` renders each channel by a renderer of its own; the loop has one
+        raise CliError(f"serve --volume {args.volume}: a multi-channel volume renders with render and animate only")
     scene = _file_scene(args)
-    corners = _volume_from_args(args).corners_world
+    corners = loaded.corners_world
     look_at = (corners.min(axis=0) + corners.max(axis=0)) / 2
     direction = np.array(DEFAULT_EYE) / np.linalg.norm(DEFAULT_EYE)
     distance = framing_distance(corners, look_at, direction, (0.0, 1.0, 0.0), Camera.fov_y,
