@@ -115,12 +115,13 @@ def test_many_skipped_files_are_counted_not_listed(tmp_path: Path) -> None:
         load_volume(folder)
 
 
-def enhanced_ct(path: Path, z_mm: list[float], marker: tuple[int, int, int]) -> None:
-    """A 4-frame Enhanced CT (uint16 stored, RescaleIntercept -1024 shared): frames at LPS (-10, -20, z) mm,
-    written in the order of ``z_mm``; 1000 HU at ``marker`` = (frame, row, column), -1000 HU elsewhere; 0.5 mm columns,
-    0.8 mm rows."""
+def enhanced_ct(path: Path, z_mm: list[float], marker: tuple[int, int, int] | None, **attributes) -> None:
+    """An Enhanced CT of one frame per ``z_mm`` (uint16 stored, RescaleIntercept -1024 shared): frames at LPS (-10,
+    -20, z) mm, written in the order of ``z_mm``; 1000 HU at ``marker`` = (frame, row, column), -1000 HU elsewhere;
+    0.5 mm columns, 0.8 mm rows."""
     hu = np.full((len(z_mm), 6, 8), -1000.0)
-    hu[marker] = 1000.0
+    if marker is not None:
+        hu[marker] = 1000.0
     shared = _item(PlaneOrientationSequence=Sequence([_item(ImageOrientationPatient=[1, 0, 0, 0, 1, 0])]),
                    PixelMeasuresSequence=Sequence([_item(PixelSpacing=[0.8, 0.5], SliceThickness=2.0)]),
                    PixelValueTransformationSequence=Sequence([_item(RescaleSlope=1, RescaleIntercept=-1024,
@@ -129,7 +130,8 @@ def enhanced_ct(path: Path, z_mm: list[float], marker: tuple[int, int, int]) -> 
                  for zz in z_mm]
     groups = {"SharedFunctionalGroupsSequence": Sequence([shared]),
               "PerFrameFunctionalGroupsSequence": Sequence(per_frame)}
-    dataset(ENHANCED_CT, (hu + 1024).astype(np.uint16), Modality="CT", **groups).save_as(path, enforce_file_format=True)
+    ds = dataset(ENHANCED_CT, (hu + 1024).astype(np.uint16), Modality="CT", **groups, **attributes)
+    ds.save_as(path, enforce_file_format=True)
 
 
 def test_enhanced_ct_frames_placed_by_their_functional_groups(tmp_path: Path) -> None:
@@ -147,6 +149,13 @@ def test_enhanced_ct_frames_placed_by_their_functional_groups(tmp_path: Path) ->
     assert density_at(loaded, marker * [1, -1, 1] + [0, 6e-3, 0]) == 0.0  # z = 4 mm mirrored about the middle: 2
     one = load_volume(tmp_path / "e" / "ct.dcm")  # the file names its series: itself
     np.testing.assert_array_equal(one.to_world, loaded.to_world)
+    series = generate_uid()  # the same frames as one single-frame enhanced file each (as some scanners export)
+    (tmp_path / "f").mkdir()
+    for n, zz in enumerate([6.0, 0.0, 4.0, 2.0]):
+        enhanced_ct(tmp_path / "f" / f"{n}.dcm", [zz], (0, 2, 5) if zz == 4.0 else None, SeriesInstanceUID=series)
+    split = load_volume(tmp_path / "f")
+    np.testing.assert_array_equal(split.density, loaded.density)
+    np.testing.assert_allclose(split.to_world, loaded.to_world, atol=1e-15)
 
 
 def rt_dose(path: Path, offsets: list[float], ipp_z: float = -30.0, scaling: float = 2e-4) -> np.ndarray:

@@ -99,40 +99,40 @@ def _group(ds, frame: int, sequence: str):
 
 
 def _frames(ds, pixels: np.ndarray, file: Path, folder: Path) -> list[_Frame]:
-    """The planes of one file. A single frame is placed by its top-level attributes; an RT dose's frames by
-    GridFrameOffsetVector (PS3.3 C.8.8.3.2: offsets along the normal, frame 0 at ImagePositionPatient); other
-    multi-frame images by their functional groups (PS3.3 C.7.6.16)."""
+    """The planes of one file. Enhanced images (any number of frames) are placed by their functional groups (PS3.3
+    C.7.6.16); an RT dose's frames by GridFrameOffsetVector (PS3.3 C.8.8.3.2: offsets along the normal, frame 0 at
+    ImagePositionPatient); a single frame by its top-level attributes."""
     count = int(ds.get("NumberOfFrames", 1) or 1)
     if pixels.ndim != (3 if count > 1 else 2) or (count > 1 and len(pixels) != count):
         raise VolrenError(f"{folder}: {file.name} holds pixel data of shape {pixels.shape} for {count} frame(s); "
                           "volren reads grey images")
     planes = pixels if count > 1 else pixels[None]
-    if count == 1 or "GridFrameOffsetVector" in ds:
-        orientation = _vector(ds, "ImageOrientationPatient", 6, folder, file.name)
-        origin = _vector(ds, "ImagePositionPatient", 3, folder, file.name)
-        spacing = _vector(ds, "PixelSpacing", 2, folder, file.name)
-        if ds.get("Modality") == "RTDOSE":
-            slope, intercept = _number(ds, "DoseGridScaling", 1.0), 0.0  # Gy = DoseGridScaling * v
-        else:
-            slope, intercept = _number(ds, "RescaleSlope", 1.0), _number(ds, "RescaleIntercept", 0.0)
-        if count == 1:
-            return [_Frame(file.name, planes[0], orientation, origin, spacing, slope, intercept)]
-        offsets = _vector(ds, "GridFrameOffsetVector", count, folder, file.name)
-        normal = np.cross(orientation[:3], orientation[3:])
-        # a first offset of 0 means offsets relative to frame 0; one equal to frame 0's z means absolute z (axial)
-        return [_Frame(f"{file.name}[{k}]", planes[k], orientation, origin + (offsets[k] - offsets[0]) * normal,
-                       spacing, slope, intercept) for k in range(count)]
-    frames = []
-    for k in range(count):
-        name = f"{file.name}[{k}]"
-        transform = _group(ds, k, "PixelValueTransformationSequence") or ds
-        frames.append(_Frame(
-            name, planes[k],
-            _vector(_group(ds, k, "PlaneOrientationSequence"), "ImageOrientationPatient", 6, folder, name),
-            _vector(_group(ds, k, "PlanePositionSequence"), "ImagePositionPatient", 3, folder, name),
-            _vector(_group(ds, k, "PixelMeasuresSequence"), "PixelSpacing", 2, folder, name),
-            _number(transform, "RescaleSlope", 1.0), _number(transform, "RescaleIntercept", 0.0)))
-    return frames
+    names = [f"{file.name}[{k}]" for k in range(count)] if count > 1 else [file.name]
+    if "GridFrameOffsetVector" not in ds and _group(ds, 0, "PlanePositionSequence") is not None:
+        frames = []
+        for k, name in enumerate(names):
+            transform = _group(ds, k, "PixelValueTransformationSequence") or ds
+            frames.append(_Frame(
+                name, planes[k],
+                _vector(_group(ds, k, "PlaneOrientationSequence"), "ImageOrientationPatient", 6, folder, name),
+                _vector(_group(ds, k, "PlanePositionSequence"), "ImagePositionPatient", 3, folder, name),
+                _vector(_group(ds, k, "PixelMeasuresSequence"), "PixelSpacing", 2, folder, name),
+                _number(transform, "RescaleSlope", 1.0), _number(transform, "RescaleIntercept", 0.0)))
+        return frames
+    orientation = _vector(ds, "ImageOrientationPatient", 6, folder, file.name)
+    origin = _vector(ds, "ImagePositionPatient", 3, folder, file.name)
+    spacing = _vector(ds, "PixelSpacing", 2, folder, file.name)
+    if ds.get("Modality") == "RTDOSE":
+        slope, intercept = _number(ds, "DoseGridScaling", 1.0), 0.0  # Gy = DoseGridScaling * v
+    else:
+        slope, intercept = _number(ds, "RescaleSlope", 1.0), _number(ds, "RescaleIntercept", 0.0)
+    if count == 1:
+        return [_Frame(file.name, planes[0], orientation, origin, spacing, slope, intercept)]
+    offsets = _vector(ds, "GridFrameOffsetVector", count, folder, file.name)  # else the frames have no positions
+    normal = np.cross(orientation[:3], orientation[3:])
+    # a first offset of 0 means offsets relative to frame 0; one equal to frame 0's z means absolute z (axial)
+    return [_Frame(name, planes[k], orientation, origin + (offsets[k] - offsets[0]) * normal, spacing, slope,
+                   intercept) for k, name in enumerate(names)]
 
 
 def _units(ds) -> str:
