@@ -172,6 +172,9 @@ def test_load_places_a_file_as_the_cli_does(tmp_path):
     (lambda s, c: vr.views(c, "three"), "--views must be mono, stereo or a positive integer"),
     (lambda s, c: vr.views(s, "mono"), "views: camera must be a volren.Camera, got Scene"),
     (lambda s, c: vr.load("x.npy", spacng=(1, 1, 1)), "load: unknown argument spacng: choose from shape"),
+    (lambda s, c: vr.builtin_scene("smoke", time=1.0), "builtin_scene: scene 'smoke' takes no time"),
+    (lambda s, c: vr.builtin_scene("cloud", count=4), "builtin_scene: scene 'cloud' takes no count"),
+    (lambda s, c: vr.builtin_scene("hall", 64), "builtin_scene: scene 'hall' takes no resolution"),
 ])
 def test_bad_arguments_get_one_line_naming_them(call, message):
     scene = vr.Scene([vr.Volume(np.ones((2, 2, 2), np.float32))])  # a list is accepted

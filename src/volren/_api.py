@@ -23,13 +23,14 @@ DEFAULT_QUALITY = "interactive"
 
 
 def volume_from_file(loaded: LoadedVolume, name: str, **material: Any) -> Volume:
-    """A loaded file as a Volume: its placement, and its value range when that is Hounsfield units (CT transfer
-    functions classify by HU; a constant file, lo = hi, has no HU scale)."""
+    """A loaded file as a Volume (`volren load`, ``volren render --volume``): its placement, its emission grid, and
+    its value range when that is Hounsfield units (CT transfer functions classify by HU; a constant file, lo = hi,
+    has no HU scale)."""
     from volren.scene import Volume
 
     hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
     return Volume(loaded.density, loaded.to_world, name=name, value_range=loaded.value_range if hu else None,
-                  **material)
+                  emission_grid=loaded.emission_source, **material)
 
 
 MATERIAL = ("density_scale", "albedo", "g", "emission")
@@ -51,20 +52,32 @@ def load(path: str | Path, **options: Any) -> Volume:
         raise VolrenError(f"load: unknown argument {unknown[0]}: choose from {', '.join([*reader, *MATERIAL])}")
     loaded = load_volume(path, **{k: v for k, v in options.items() if k in reader})
     if loaded.channels:
-        raise VolrenError(f"load: {path} holds {len(loaded.channels)} channels, and load returns one volume: render "
-                          "it with `volren render --volume`")
+        raise VolrenError(f"load: {path} holds {len(loaded.channels)} channels and load returns one volume "
+                          "(`volren render --volume` renders them all)")
     return volume_from_file(loaded, Path(path).name, **{k: v for k, v in options.items() if k in MATERIAL})
 
 
-def builtin_scene(name: str, resolution: int = 64, *, count: int = 4, seed: int = 0, time: float = 0.0) -> Scene:
-    """A scene of `volren scenes`: a built-in volume scene of ``resolution`` voxels per axis (``count`` instances
-    for multi, instances and instances-overlap), or a fog scene at ``time`` [s] (which takes no resolution)."""
+def builtin_scene(name: str, resolution: int | None = None, *, count: int | None = None, seed: int | None = None,
+                  time: float | None = None) -> Scene:
+    """A scene of `volren scenes`: a built-in volume scene of ``resolution`` voxels per axis (default 64; ``count``
+    instances for the scenes that have several), or a fog scene at ``time`` [s] (default 0). An argument the scene
+    would ignore is refused, as the CLI refuses the flag."""
+    from volren.data import COUNTED_SCENES
     from volren.data import builtin_scene as volume_scene
     from volren.data.fog_scenes import FOG_SCENES, fog_scene
 
+    given = {k: v for k, v in (("resolution", resolution), ("count", count), ("seed", seed), ("time", time))
+             if v is not None}
     if name in FOG_SCENES:
-        return fog_scene(name, time)
-    return volume_scene(name, resolution, count=count, seed=seed)
+        takes = {"time"}
+    else:
+        takes = {"resolution", "count", "seed"} if name in COUNTED_SCENES else {"resolution", "seed"}
+    ignored = sorted(set(given) - takes)
+    if ignored:
+        raise VolrenError(f"builtin_scene: scene '{name}' takes no {', '.join(ignored)}")
+    if name in FOG_SCENES:
+        return fog_scene(name, **given)
+    return volume_scene(name, given.pop("resolution", 64), **given)
 
 
 def views(camera: Camera, mode: str | int = "stereo", *, ipd: float = 0.063) -> list[Camera]:

@@ -612,16 +612,12 @@ def _with_material(args: argparse.Namespace, volumes: tuple) -> tuple:
 
 def _file_scene(args: argparse.Namespace, frame: int = 0):
     """``--volume``'s scene (of frame ``frame`` of a sequence), before the material and light overrides."""
-    from volren.scene import Scene, Volume
+    from volren._api import volume_from_file
+    from volren.scene import Scene
 
     loaded = _volume_from_args(args, frame)
-    # CT presets classify by HU; a constant file (lo = hi) has no HU scale
-    hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
-    value_range = loaded.value_range if hu else None
     return channel_scene(args, loaded) if loaded.channels else Scene(
-        (Volume(loaded.density, loaded.to_world, name=args.volume.name, value_range=value_range,
-                emission_grid=loaded.emission_source),),
-        name=args.volume.stem)
+        (volume_from_file(loaded, args.volume.name),), name=args.volume.stem)
 
 
 def _value_mapping(args: argparse.Namespace) -> dict:
