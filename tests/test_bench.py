@@ -315,3 +315,13 @@ def test_load_suite_reads_what_the_reader_reads_and_reports_the_ratios():
     (ratio,), _ = result["summary"]
     assert ratio["time_ratio"] == pytest.approx(row["volren_s"] / row["reader_s"])
     assert ratio["met"] == ("yes" if ratio["time_ratio"] <= 1.2 and (ratio["memory_ratio"] or 0) <= 1.2 else "no")
+
+
+def test_load_suite_omezarr_reads_the_level_zarr_reads():
+    """``bench load``'s OME-Zarr row at a 50^3 level 0 (n = 16): volren's grid holds the voxels of the level zarr's own
+    read picks by the same budget (run_config refuses a differing total), the folder's files counted."""
+    from volren.bench.load import CASES, run_config
+
+    result = run_config({"size": 16, "repeats": 1}, [c for c in CASES if c.name == "ome-zarr level"])
+    (row,) = result["rows"]
+    assert row["shape"] == "50x50x50" and row["file_mib"] > 0.1

@@ -153,3 +153,18 @@ def test_cli_renders_a_level_with_row_0_at_the_top(tmp_path):
 def test_cli_refuses_level_without_a_volume(tmp_path, capsys):
     assert main(["render", "--scene", "cloud", "--level", "1", "--out", str(tmp_path / "o")]) == 2
     assert "there is no --volume" in capsys.readouterr().err
+
+
+def test_density_validation_by_min_and_max_still_refuses_and_counts():
+    """`validate_density` checks a big level by its min and max (two reductions); what it refuses is still counted."""
+    from volren.scene import validate_density
+
+    grid = np.zeros((2, 3, 4))
+    grid[0, 0, :2] = 1e39  # beyond float32
+    with pytest.raises(VolrenError, match="2 value"):
+        validate_density(grid)
+    grid[0, 0, :2] = -1e-50  # rounds to -0.0 in float32: not negative
+    assert validate_density(grid).min() == 0.0
+    grid[1, 2, 3] = np.nan
+    with pytest.raises(VolrenError, match="1 NaN/Inf"):
+        validate_density(grid)

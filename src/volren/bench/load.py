@@ -129,6 +129,34 @@ def tinyvdb_open(path: Path) -> np.ndarray:
                              np.float32)
 
 
+ZARR_BUDGET = 1 << 30
+"""[bytes] volren's default OME-Zarr memory budget (`volren.data.omezarr.DEFAULT_MEMORY_BUDGET`), which the bare
+reader applies too"""
+
+
+def write_omezarr(folder: Path, n: int) -> Path:
+    """An OME-Zarr pyramid written by ome-zarr (levels 0 and 1, every axis halved) of float32 ``[z, y, x]`` with side
+    ``25 n / 8``: 400^3 = 256 MiB at n = 128 (``--quick``: level 0 fits the 1 GiB budget), 800^3 = 2 GiB at n = 256
+    (level 1, 256 MiB, is chosen)."""
+    import zarr
+    from ome_zarr.writer import write_multiscale
+
+    field = _smooth_field(25 * n // 8)
+    axes = [{"name": a, "type": "space", "unit": "micrometer"} for a in "zyx"]
+    path = folder / "image.zarr"  # ome-zarr derives each level's scale from the shapes
+    write_multiscale([field, field[::2, ::2, ::2]], zarr.open_group(str(path), mode="w"), axes=axes)
+    return path
+
+
+def zarr_open(path: Path) -> np.ndarray:
+    """zarr's own read of the level volren picks: the finest whose float32 voxels fit ``ZARR_BUDGET``."""
+    import zarr
+
+    group = zarr.open_group(str(path), mode="r")
+    levels = [group[d["path"]] for d in group.attrs["ome"]["multiscales"][0]["datasets"]]
+    return next(a for a in levels if 4 * a.size <= ZARR_BUDGET)[...]
+
+
 @dataclass(frozen=True)
 class LoadCase:
     """One row: a file written into a temporary folder, opened by volren and by the bare reader library."""
@@ -144,6 +172,7 @@ class LoadCase:
 CASES = [
     LoadCase("vdb dense", write_dense_vdb, volren_open, tinyvdb_open, "tinyvdb"),
     LoadCase("vdb 10% sparse", write_sparse_vdb, volren_open, tinyvdb_open, "tinyvdb"),
+    LoadCase("ome-zarr level", write_omezarr, volren_open, zarr_open, "zarr"),
 ]
 """The suite's rows; other formats (sequences, OME-Zarr) add a LoadCase here."""
 
@@ -153,8 +182,11 @@ def child() -> None:
     sides' libraries, then time one open and print JSON with the seconds and the rise of the peak resident set [KiB]
     over the imports' (``ru_maxrss``)."""
     import tinyvdb  # noqa: F401  (both sides import the same modules, so the baseline is the same)
+    import zarr  # noqa: F401  (the OME-Zarr row: zarr's own read and volren's reader)
 
-    import volren.data.loaders  # noqa: F401
+    import volren.data.loaders
+    import volren.data.omezarr
+    import volren.data.vdb  # noqa: F401
 
     name, side, path = sys.argv[1:4]
     case = next(c for c in CASES if c.name == name)
@@ -192,7 +224,9 @@ def run_config(cfg: dict[str, Any], cases: list[LoadCase] | None = None) -> dict
                 raise VolrenError(f"bench load: {case.name}: volren read {ours['shape']} (sum {ours['sum']}), "
                                   f"{case.reader_name} {reader['shape']} (sum {reader['sum']})")
             dense = np.prod(ours["shape"])
-            rows.append({"case": case.name, "reader": case.reader_name, "file_mib": path.stat().st_size / 2**20,
+            files = [f for f in path.rglob("*") if f.is_file()] if path.is_dir() else [path]  # a .zarr is a folder
+            rows.append({"case": case.name, "reader": case.reader_name,
+                         "file_mib": sum(f.stat().st_size for f in files) / 2**20,
                          "shape": "x".join(str(v) for v in ours["shape"][::-1]), "voxels": int(dense),
                          "volren_s": ours["seconds"], "reader_s": reader["seconds"],
                          "volren_peak_mib": ours["peak_mib"], "reader_peak_mib": reader["peak_mib"],
