@@ -79,9 +79,11 @@ def test_public_names_are_their_modules_objects():
     first = "import sys, volren as vr\nassert vr.render is sys.modules['volren.render'] and callable(vr.render)"
     assert "warp" in loaded_after(first)
     assert vr.__version__ == importlib.metadata.version("volren")
+    import volren.notebook
+
+    assert vr.Viewer is volren.notebook.Viewer
     for name in vr.__all__:
-        if name != "Viewer":  # volren.notebook (helper G's)
-            assert getattr(vr, name) is not None
+        assert getattr(vr, name) is not None
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         vr.nope  # noqa: B018
 
