@@ -55,6 +55,21 @@ def check_sample_count(name: str, value: int) -> None:
         raise VolrenError(f"{name} must be an integer in [1, {MAX_SAMPLES}], got {value}")
 
 
+def check_scene_mode(scene: Scene, mode: str) -> None:
+    """Refuse what the sci-vis modes do not composite: translucent mesh layers (blended by "over" between march
+    pieces) and boxes overlapping along a ray (marched jointly as DVR, `oit.march_joint`)."""
+    if mode == "dvr":
+        return
+    if any(getattr(o, "alpha", 1.0) < 1.0 for o in scene.opaque):
+        raise VolrenError(f"mode {mode} draws no translucent meshes (mesh alpha < 1): use mode dvr")
+    boxes = [(v.corners_world.min(axis=0), v.corners_world.max(axis=0)) for v in scene.volumes]
+    for i, (lo_a, hi_a) in enumerate(boxes):
+        for lo_b, hi_b in boxes[i + 1:]:
+            if np.all(lo_a < hi_b) and np.all(lo_b < hi_a):
+                raise VolrenError(f"mode {mode} marches one box at a time and two volumes' bounding boxes overlap: "
+                                  "use mode dvr")
+
+
 @dataclass(frozen=True)
 class LightMapMarchConfig:
     """Settings every light-map-lit ray marcher shares (DSSRM, CMSRM, CACRM): the papers' METHOD:V:L."""
@@ -254,7 +269,7 @@ class LightMapRenderer(Renderer):
 
     def _lighting(self, ds: DeviceScene, clock: PassClock) -> None:
         ds.skip_empty = self.config.skip_empty  # read by this frame's marches (`DeviceScene.medium`)
-        self._check_mode(ds)
+        check_scene_mode(ds.scene, self.config.mode)
         gi = self.config.gi
         last = self._light_map_of
         if not (self.config.reuse_light_map and last is not None and last[0] is ds
@@ -266,22 +281,6 @@ class LightMapRenderer(Renderer):
         if self._gi is None or not self._gi.fits(ds, gi):
             self._gi = AmbientGI(gi, ds, self.config.seed)
         self._frame_info["gi"] = self._gi.update(ds, self.config.light_samples, clock)
-
-    def _check_mode(self, ds: DeviceScene) -> None:
-        """Refuse what the sci-vis modes do not composite: translucent mesh layers (blended by "over" between march
-        pieces) and boxes overlapping along a ray (marched jointly as DVR, `oit.march_joint`)."""
-        mode = self.config.mode
-        if mode == "dvr":
-            return
-        scene = ds.scene
-        if any(getattr(o, "alpha", 1.0) < 1.0 for o in scene.opaque):
-            raise VolrenError(f"mode {mode} draws no translucent meshes (mesh alpha < 1): use mode dvr")
-        boxes = [(v.corners_world.min(axis=0), v.corners_world.max(axis=0)) for v in scene.volumes]
-        for i, (lo_a, hi_a) in enumerate(boxes):
-            for lo_b, hi_b in boxes[i + 1:]:
-                if np.all(lo_a < hi_b) and np.all(lo_b < hi_a):
-                    raise VolrenError(f"mode {mode} marches one box at a time and two volumes' bounding boxes "
-                                      "overlap: use mode dvr")
 
     def _mode_params(self, params: Any, ds: DeviceScene) -> Any:
         """Fill the mode fields of a `MarchParams`: the mode, V and 1 / the scene's largest density (cached per

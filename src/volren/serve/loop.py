@@ -37,8 +37,9 @@ from volren.camera import Camera
 from volren.errors import VolrenError
 from volren.presets import QUALITIES, quality_config
 from volren.render import METHODS
-from volren.render.base import LightMapMarchConfig
+from volren.render.base import LightMapMarchConfig, check_scene_mode
 from volren.render.fog.renderer import FogConfig, FogRenderer
+from volren.render.marching.modes import MODES
 from volren.render.vpt.tracer import VPTConfig
 from volren.scene import DirectionalLight, Scene
 from volren.serve.jpeg import JPEG_QUALITY, display_image, encode_jpeg
@@ -185,13 +186,15 @@ class RenderLoop:
         self._step = 0
         """animation steps taken (part of a still view's key)"""
         self.limits = limits or Limits()
-        self.choices = Choices(self.methods, QUALITIES, (DENSITY_TF, *PRESETS))
+        self.choices = Choices(self.methods, QUALITIES, (DENSITY_TF, *PRESETS), MODES)
         self.viewers = ViewerSet(self.limits.max_viewers)
         self.camera = camera or Camera(position=(0.0, 0.4, 3.2))
         self.device, self.shared, self.ipd, self.jpeg_quality = device, shared, ipd, jpeg_quality
         self.encode = encode
         self.overrides = dict(overrides or {})
         self.method, self.quality, self.tf = method, quality, DENSITY_TF
+        self.mode, self.iso_value = "dvr", LightMapMarchConfig.iso_value
+        """the light-map marchers' sci-vis mode and its iso value (`volren.render.marching.modes`)"""
         self.light_dir: tuple[float, float, float] | None = None
         self.playing = False
         self._animate = animate
@@ -245,6 +248,11 @@ class RenderLoop:
             self._config = dataclasses.replace(self._config, transfer=transfer)
             for r in (self.renderer, *self._own.values()):
                 r.config = self._config
+        # a mode switch, like the transfer function, keeps the renderer (its light map stays valid)
+        if "mode" in fields and (self._config.mode, self._config.iso_value) != (self.mode, self.iso_value):
+            self._config = dataclasses.replace(self._config, mode=self.mode, iso_value=self.iso_value)
+            for r in (self.renderer, *self._own.values()):
+                r.config = self._config
 
     def _make_renderer(self) -> Any:
         """(also from the worker thread, for a new viewer of the naive server: settings may change meanwhile, so
@@ -264,7 +272,8 @@ class RenderLoop:
 
     def shared_settings(self) -> dict[str, Any]:
         return {"method": self.method, "quality": self.quality, "tf": self.tf,
-                "light_dir": list(self.light_dir or self._scene_light()), "playing": self.playing}
+                "light_dir": list(self.light_dir or self._scene_light()), "playing": self.playing,
+                "mode": self.mode, "iso_value": self.iso_value}
 
     def _scene_light(self) -> tuple[float, float, float]:
         light = next((lt for lt in self.scene.lights if isinstance(lt, DirectionalLight)), DirectionalLight())
@@ -273,11 +282,12 @@ class RenderLoop:
     def apply(self, settings: Settings, viewer: Viewer) -> bool:
         """Apply a settings message from ``viewer``; True when a shared setting changed (to tell the others). With
         ``lock_settings`` only the viewer's own stereo mode may change."""
-        shared = [name for name in ("method", "quality", "tf", "light_dir", "playing")
+        shared = [name for name in ("method", "quality", "tf", "light_dir", "playing", "mode", "iso_value")
                   if getattr(settings, name) is not None]
         if self.lock_settings and shared:
             raise ProtocolError(f"settings: {', '.join(shared)} locked by the operator (--lock-settings); only "
                                 "stereo may change")
+        self._check_mode(settings)
         if settings.stereo is not None and settings.stereo != viewer.stereo:
             viewer.resize(viewer.width, viewer.height, settings.stereo, self.limits)
         changed = {name for name in shared if getattr(settings, name) != getattr(self, name)}
@@ -289,6 +299,20 @@ class RenderLoop:
             self.version += 1
         self.wake()
         return bool(changed)
+
+    def _check_mode(self, settings: Settings) -> None:
+        """Refuse, before anything changes, a mode other than dvr with a method that is no light-map marcher or a
+        scene the mode does not composite (`check_scene_mode`)."""
+        method = settings.method or self.method
+        mode = settings.mode or self.mode
+        if mode == "dvr":
+            return
+        if not issubclass(METHODS[method][1], LightMapMarchConfig):
+            raise ProtocolError(f"settings.mode {mode} needs method dssrm, cmsrm or cacrm, not {method}")
+        try:
+            check_scene_mode(self.scene, mode)
+        except VolrenError as exc:
+            raise ProtocolError(f"settings.mode: {exc}") from None
 
     # ---- the loop -------------------------------------------------------------------------------------------
 

@@ -32,6 +32,8 @@ MIN_SIDE = 16
 """[px] smallest image side a viewer may ask for (the clamp's floor)"""
 MIN_FOV, MAX_FOV = 1.0, 170.0
 """[deg] vertical field of view"""
+MIN_ISO, MAX_ISO = 1e-6, 1e6
+"""[density] the iso value of mode iso (> 0)"""
 
 
 class ProtocolError(VolrenError):
@@ -77,6 +79,8 @@ class Settings:
     light_dir: tuple[float, float, float] | None = None
     playing: bool | None = None
     stereo: bool | None = None
+    mode: str | None = None
+    iso_value: float | None = None
 
 
 Message = Hello | CameraMessage | Ack | Resize | Settings
@@ -87,7 +91,7 @@ _FIELDS: dict[str, tuple[set[str], set[str]]] = {
     "camera": ({"id", "position", "look_at"}, {"up", "fov"}),
     "ack": ({"tick"}, set()),
     "resize": ({"width", "height"}, set()),
-    "settings": (set(), {"method", "quality", "tf", "light_dir", "playing", "stereo"}),
+    "settings": (set(), {"method", "quality", "tf", "light_dir", "playing", "stereo", "mode", "iso_value"}),
 }
 
 
@@ -139,6 +143,8 @@ class Choices:
     methods: tuple[str, ...]
     qualities: tuple[str, ...]
     tfs: tuple[str, ...]
+    modes: tuple[str, ...] = ("dvr",)
+    """the light-map marchers' modes (`volren.render.marching.modes.MODES`)"""
 
 
 def _side(value: Any, field: str) -> int:
@@ -197,6 +203,10 @@ def parse_message(data: str | bytes, choices: Choices) -> Message:
         fields["quality"] = _name(msg["quality"], "settings.quality", choices.qualities)
     if "tf" in msg:
         fields["tf"] = _name(msg["tf"], "settings.tf", choices.tfs)
+    if "mode" in msg:
+        fields["mode"] = _name(msg["mode"], "settings.mode", choices.modes)
+    if "iso_value" in msg:
+        fields["iso_value"] = _number(msg["iso_value"], "settings.iso_value", MIN_ISO, MAX_ISO)
     if "light_dir" in msg:
         d = _vec3(msg["light_dir"], "settings.light_dir")
         if math.hypot(*d) < 1e-6:

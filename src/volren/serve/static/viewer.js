@@ -109,6 +109,7 @@ function onText(msg) {
     fill($("method"), msg.methods, msg.method);
     fill($("quality"), msg.qualities, msg.quality);
     fill($("tf"), msg.tfs, msg.tf);
+    setMode(msg);
     state.walk = msg.walk ?? msg.method === "fog";
     setCamera(msg.camera);
     if (msg.light_dir) setLight(msg.light_dir);
@@ -116,7 +117,7 @@ function onText(msg) {
     $("play").disabled = msg.animated === false;
     if (typeof msg.stereo === "boolean") $("stereo").checked = state.stereo = msg.stereo;
     if (msg.locked) { // the operator locked the shared settings (--lock-settings)
-      for (const id of ["method", "quality", "tf", "play"]) $(id).disabled = true;
+      for (const id of ["method", "quality", "tf", "mode", "iso_value", "play"]) $(id).disabled = true;
       pad.style.pointerEvents = "none";
     }
     sendCamera();
@@ -124,6 +125,7 @@ function onText(msg) {
     if (msg.method) $("method").value = msg.method;
     if (msg.quality) $("quality").value = msg.quality;
     if (msg.tf) $("tf").value = msg.tf;
+    setMode(msg);
     if (msg.light_dir) setLight(msg.light_dir);
     if (typeof msg.playing === "boolean") setPlaying(msg.playing);
   } else if (msg.type === "error") {
@@ -265,8 +267,18 @@ function walkStep() {
 }
 
 // ---- panel: shared settings ----------------------------------------------------------------------------------------
-for (const key of ["method", "quality", "tf"]) {
+for (const key of ["method", "quality", "tf", "mode"]) {
   $(key).addEventListener("change", (e) => send({ type: "settings", [key]: e.target.value }));
+}
+$("mode").addEventListener("change", () => setMode({}));
+$("iso_value").addEventListener("change", (e) => {
+  const v = Number(e.target.value);
+  if (Number.isFinite(v) && v > 0) send({ type: "settings", iso_value: v });
+});
+function setMode(msg) { // the sci-vis mode (dssrm/cmsrm/cacrm) and its iso value, shared by every viewer
+  if (msg.mode) $("mode").value = msg.mode;
+  if (typeof msg.iso_value === "number") $("iso_value").value = msg.iso_value;
+  $("iso_value").disabled = $("mode").disabled || $("mode").value !== "iso";
 }
 $("stereo").addEventListener("change", (e) => {
   state.stereo = e.target.checked;
