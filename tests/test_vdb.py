@@ -75,6 +75,7 @@ def vdb_dir(tmp_path_factory) -> Path:
         "centred.vdb": [{**_grid("density", DENSITY), "matrix": _matrix(translation=CENTRED)}],
         "rotated.vdb": [{**_grid("density", DENSITY), "matrix": ROTATED}],
         "many.vdb": [{"name": "density", "array": MANY, "ijk": (100, -20, 3), "matrix": _matrix()}],
+        "tiles.vdb": [{"name": "density", "array": np.ones((16, 16, 16), np.float32)}],
         "moved.vdb": [_grid("density", DENSITY), {**_grid("temperature", TEMPERATURE), "matrix": _matrix((0.5,) * 3)}],
     }, folder)
     data = (folder / "two.vdb").read_bytes()
@@ -175,6 +176,7 @@ def test_memory_check_refuses_before_allocating(vdb_dir, monkeypatch):
 
 
 @pytest.mark.parametrize("name, fragment", [("empty.vdb", "grid 'density' has no active voxels"),
+                                            ("tiles.vdb", "has active tiles (constant regions)"),
                                             ("truncated.vdb", "not a readable OpenVDB file, truncated or corrupt")])
 def test_empty_and_truncated_files_are_one_line_errors(vdb_dir, name, fragment):
     with pytest.raises(VolrenError) as err:

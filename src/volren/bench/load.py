@@ -6,13 +6,13 @@ with ``--quick``) are written by OpenVDB itself (Debian's ``python3-openvdb`` un
 and timed as ``load_volume`` (a validated float32 ``[z, y, x]`` grid) against tinyvdb's open + read_grids + its
 decoded leaf values joined into one array (tinyvdb's own ``materialize_dense`` drops leaves, see
 ``volren.data.vdb``). Every load runs in a fresh subprocess that first imports both sides' modules; peak memory is
-the rise of that process's ``ru_maxrss`` (peak resident set) over its value after the imports, seconds the median of
-``repeats`` runs timed inside the processes. Goal: volren's time and peak memory at most 1.2x the reader's."""
+its peak resident set during the open (Linux ``VmHWM``, reset just before) minus the resident set before it, seconds
+the median of ``repeats`` runs timed inside the processes. Goal: volren's time and peak memory at most 1.2x the
+reader's."""
 
 from __future__ import annotations
 
 import json
-import resource
 import statistics
 import subprocess
 import sys
@@ -177,10 +177,16 @@ CASES = [
 """The suite's rows; other formats (sequences, OME-Zarr) add a LoadCase here."""
 
 
+def _status_kib(field: str) -> int:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith(field + ":"))
+
+
 def child() -> None:
     """In a fresh process (``python -c 'from volren.bench.load import child; child()' CASE SIDE PATH``): import both
-    sides' libraries, then time one open and print JSON with the seconds and the rise of the peak resident set [KiB]
-    over the imports' (``ru_maxrss``)."""
+    sides' modules, reset the peak resident set (``/proc/self/clear_refs``: 5), then time one open and print JSON with
+    the seconds and the peak resident set's rise over the resident set before the open [KiB] (Linux ``VmHWM`` and
+    ``VmRSS``)."""
     import tinyvdb  # noqa: F401  (both sides import the same modules, so the baseline is the same)
     import zarr  # noqa: F401  (the OME-Zarr row: zarr's own read and volren's reader)
 
@@ -190,11 +196,13 @@ def child() -> None:
 
     name, side, path = sys.argv[1:4]
     case = next(c for c in CASES if c.name == name)
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+    before = _status_kib("VmRSS")
     start = time.perf_counter()
     data = (case.volren if side == "volren" else case.reader)(Path(path))
     seconds = time.perf_counter() - start
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+    peak = _status_kib("VmHWM") - before
     print(json.dumps({"seconds": seconds, "peak_kib": peak, "shape": list(data.shape),
                       "sum": float(data.sum(dtype=np.float64))}))
 
@@ -245,7 +253,8 @@ def run_config(cfg: dict[str, Any], cases: list[LoadCase] | None = None) -> dict
     summary_columns = [("case", "case", "s"), ("time_ratio", "volren / reader time", ".3f"),
                        ("memory_ratio", "volren / reader peak memory", ".3f"), ("goal", "goal (at most)", ".2f"),
                        ("met", "met", "s")]
-    settings = {**cfg, "memory": "ru_maxrss rise of a fresh subprocess over its imports (resident set)",
+    settings = {**cfg, "memory": "peak resident set (VmHWM, reset before the open) minus the resident set before it, "
+                "in a fresh subprocess",
                 "seconds": "median over repeats, each timed inside its subprocess"}
     return {"settings": settings, "rows": rows, "columns": columns, "summary": (summary, summary_columns)}
 

@@ -261,18 +261,19 @@ def _leaves(path: Path, data: mmap.mmap, vdb, index: int) -> tuple[list, np.ndar
 
 def _densify(leaves: list, origins: np.ndarray, lo: np.ndarray, hi: np.ndarray, background: float) -> np.ndarray:
     """float32 ``[z, y, x]`` over the inclusive box: each 8^3 leaf (tinyvdb's values, x slowest, z fastest) copied
-    into its place, the rest the background. Leaves are scattered in chunks, so only a chunk's values are joined."""
+    into its place through a block view of the output, the rest the background. Leaves are scattered in chunks, so
+    only a chunk's values are joined."""
     start, stop = (lo >> 3) << 3, ((hi >> 3) + 1) << 3  # the box widened to whole leaves
     blocks = (stop - start) >> 3
     inside = np.flatnonzero(np.all((origins >= start) & (origins < stop), axis=1))
     shape = (blocks[2] * 8, blocks[1] * 8, blocks[0] * 8)
     full = len(inside) == np.prod(blocks)  # leaves cover every block (a dense grid): no background to fill
     out = np.empty(shape, np.float32) if full else np.full(shape, background, dtype=np.float32)
-    tiles = out.reshape(blocks[2], 8, blocks[1], 8, blocks[0], 8)
+    tiles = out.reshape(blocks[2], 8, blocks[1], 8, blocks[0], 8).transpose(0, 2, 4, 5, 3, 1)  # [bz, by, bx, x, y, z]
     for chunk in np.array_split(inside, max(1, len(inside) // _LEAF_CHUNK)):
         values = np.frombuffer(b"".join(leaves[i].data for i in chunk), np.float32).reshape(-1, 8, 8, 8)
         b = (origins[chunk] - start) >> 3
-        tiles[b[:, 2], :, b[:, 1], :, b[:, 0], :] = values.transpose(0, 3, 2, 1)
+        tiles[b[:, 2], b[:, 1], b[:, 0]] = values
     crop = out[lo[2] - start[2] : hi[2] + 1 - start[2], lo[1] - start[1] : hi[1] + 1 - start[1],
                lo[0] - start[0] : hi[0] + 1 - start[0]]
     return crop if crop.shape == out.shape else np.ascontiguousarray(crop)
