@@ -69,6 +69,7 @@ class Frame:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """the scene's background (linear RGB), composited under the images when they are saved or shown"""
     scene_name: str = "scene"
+    """the scene's name, stats.json's ``scene``"""
 
     def save(self, out: str | Path, *, exposure: float = 0.0, tonemap: str = "none",
              linear: bool = False) -> list[Path]:
