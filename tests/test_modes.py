@@ -254,6 +254,8 @@ def test_modes_refuse_what_they_do_not_composite(scene) -> None:
     sheet = TriangleMesh(np.array([[-2, -2, 0.0], [2, -2, 0], [0, 2, 0]]), np.array([[0, 1, 2]]), alpha=0.5)
     with pytest.raises(VolrenError, match="translucent"):
         render("dssrm", Scene(scene.volumes, opaque=(sheet,)), mode="mip")
+    with pytest.warns(UserWarning, match="isosurface is empty"):
+        render("dssrm", scene, mode="iso", iso_value=1.5)
     shifted = Volume(blobs(), to_world=scale_translate(1.0, (0.5, 0.0, 0.0)))
     with pytest.raises(VolrenError, match="overlap"):
         render("cmsrm", Scene((scene.volumes[0], shifted)), mode="iso")

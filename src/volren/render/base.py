@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any, ClassVar
@@ -288,6 +289,9 @@ class LightMapRenderer(Renderer):
         if self._peak_of is None or self._peak_of[0] is not ds:
             peak = max(float(np.max(v.density)) for v in ds.scene.volumes)
             self._peak_of = (ds, 1.0 / peak if peak > 0 else 1.0)
+            if self.config.mode == "iso" and self.config.iso_value > peak:
+                warnings.warn(f"iso_value (--iso-value) {self.config.iso_value:g} exceeds the scene's largest density "
+                              f"{peak:g}: the isosurface is empty", stacklevel=2)
         params.mode = mode_index(self.config.mode)
         params.iso_value = self.config.iso_value
         params.inv_max = self._peak_of[1]

@@ -12,6 +12,7 @@ resolves and writes pixels through the code DVR uses:
   resample pass combines a pixel's segments by max instead of "over" (`combine_segment`): the pixel's max is the max
   over the texel segments it crosses, and bilinear interpolation of texel maxima blurs as DVR's texel interpolation
   does. Empty-space skipping leaves out every skip cell whose conservative max P does not exceed the running max.
+  The depth buffer holds, as in DVR, where T fell to 1/2: where the running max first passed P = 1/2.
 - ``mida``: maximum intensity difference accumulation (Bruckner and Groeller 2009, Eq. 5-6 with gamma = 0):
   delta_i = max(P_i - P_max,i-1, 0), beta_i = 1 - delta_i, C_i = beta_i C_i-1 + (1 - beta_i A_i-1) alpha_i c_i,
   A_i = beta_i A_i-1 + (1 - beta_i A_i-1) alpha_i, with DVR's lit sample as alpha_i c_i (the paper's transfer
