@@ -43,11 +43,12 @@ views directly: DSSRM's image exactly)"""
 
 
 def direct(cam: Camera, method: str = "dssrm", stereo: bool = False, **settings) -> np.ndarray:
-    """``cam`` rendered outside the widget by ``method`` at the interactive preset, as the loop shows it."""
+    """``cam`` rendered outside the widget by ``method`` at the interactive preset, as the loop shows it: in sRGB
+    over the background, a stereo pair's left eye (view 0) on the left."""
     cls, _ = METHODS[method]
     views = StereoRig(cam).eyes() if stereo else [cam]
     frame = cls(quality_config(method, "interactive", **SMALL, **settings), device=DEVICE).render(SCENE, views)
-    return display_image(frame.images, SCENE.background)
+    return np.concatenate([display_image([image], SCENE.background) for image in frame.images], axis=1)
 
 
 def same(a: np.ndarray, b: np.ndarray) -> bool:
@@ -152,6 +153,16 @@ def test_stereo_shows_both_eyes_side_by_side(viewer):
     assert same(frame, direct(sized(START, W // 2, H), stereo=True))
     viewer.handle_event({"type": "resize", "width": 96.0, "height": 48.0, "pixel_ratio": 1.0})
     assert same(viewer.get_frame(), direct(sized(START, 48, H), stereo=True))  # a resize keeps stereo
+
+
+def test_stereo_from_the_start_and_after_close():
+    viewer = make_viewer(stereo=True)
+    frame = viewer.get_frame()
+    assert same(frame, direct(sized(START, W // 2, H), stereo=True))
+    viewer.close()
+    assert viewer.get_frame() is frame  # the last frame stays; nothing renders any more
+    with pytest.raises(VolrenError, match="Viewer: stopped"):
+        viewer.method = "cmsrm"
 
 
 def test_burst_between_two_draws_renders_once(viewer):
