@@ -97,9 +97,9 @@ def numpy_mida(density: np.ndarray, cam: Camera, scale: float, colour: np.ndarra
 
 
 def numpy_iso(density: np.ndarray, cam: Camera, iso: float):
-    """First crossing of iso along each pixel ray, found on a lattice 32x finer than V and refined by bisection:
+    """First crossing of iso along each pixel ray, found on a lattice 16x finer than V and refined by bisection:
     linear depth (inf where none) and the Lambert colour there (normal: minus the central-difference gradient)."""
-    d, t0, t1, hit, p, t = lattice(cam, V * 32)
+    d, t0, t1, hit, p, t = lattice(cam, V * 16)
     rho = np.where(np.isnan(t), 0.0, sampled(density, np.nan_to_num(p)))
     above = rho >= iso
     found = above.any(-1)
