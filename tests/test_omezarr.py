@@ -138,16 +138,16 @@ def test_malformed_metadata_is_one_line_naming_the_file(tmp_path, edit, message)
 
 
 def test_cli_renders_a_level_with_row_0_at_the_top(tmp_path):
-    """Channel 0's block at rows 2-5 (near y = 0) must show in the picture's top half, channel 1's marker below."""
+    """A 16 um stack in the default stereo pair (its eyes closer than the stack is wide, its near plane closer than
+    1 cm): channel 0's block at rows 2-5 (near y = 0) must show in each eye's top half."""
     write_pyramid(tmp_path / "p.zarr")
     out = tmp_path / "out"
-    assert main(["render", "--volume", str(tmp_path / "p.zarr"), "--level", "1", "--views", "mono", "--width", "32",
-                 "--height", "32", "--samples", "48", "--channel-opacity", "20", "--out", str(out),
-                 "--save-linear"]) == 0
-    image = np.load(out / "view0.npy")
+    assert main(["render", "--volume", str(tmp_path / "p.zarr"), "--level", "1", "--width", "32", "--height", "32",
+                 "--samples", "48", "--channel-opacity", "20", "--out", str(out), "--save-linear"]) == 0
     rows = np.arange(32)
-    green = image[..., 1].sum(axis=1)
-    assert green.sum() > 0 and (green * rows).sum() / green.sum() < 14
+    for eye in ("view0", "view1"):
+        green = np.load(out / f"{eye}.npy")[..., 1].sum(axis=1)
+        assert green.sum() > 1.0 and (green * rows).sum() / green.sum() < 14
 
 
 def test_cli_refuses_level_without_a_volume(tmp_path, capsys):

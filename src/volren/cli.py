@@ -259,7 +259,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                      "around --look-at, wandering the scene's area (moving with --frames), or yawed copies of one "
                      "camera whose neighbours share --overlap of the field of view")
     cam.add_argument("--overlap", type=float, help="--rig overlap: shared fraction in [0, 1] (default 0.5)")
-    cam.add_argument("--ipd", type=float, default=0.063, help="stereo eye distance [m], in [0, 10)")
+    cam.add_argument("--ipd", type=float, help="stereo eye distance [m], in [0, 10) (default: 0.063, or the longest "
+                     "side of a framed --volume where that is less: micrometre microscopy)")
     r = p.add_argument_group("method")
     if not demo:
         r.add_argument("--method", default="dssrm", help=f"one of: {', '.join(METHOD_NAMES)}")
@@ -721,7 +722,7 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
     from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera, fog_scene_walk_area
     from volren.viewers import WalkArea, arc_viewers, overlap_viewers, wandering_viewers
 
-    position, look_at, near = DEFAULT_EYE, (0.0, 0.0, 0.0), 0.01
+    position, look_at, near, ipd = DEFAULT_EYE, (0.0, 0.0, 0.0), 0.01, 0.063
     fog_scene = getattr(args, "scene", None) in FOG_SCENES
     if fog_scene:
         default = fog_scene_camera(args.scene)
@@ -731,9 +732,11 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
 
         corners = _volume_from_args(args).corners_world
         look_at = tuple(args.look_at or (corners.min(axis=0) + corners.max(axis=0)) / 2)
+        # eyes 63 mm apart would each see a 30 um stack as a speck off to the side
+        ipd = min(ipd, float(np.ptp(corners, axis=0).max())) if args.ipd is None else args.ipd
         direction = np.array(position) / np.linalg.norm(position)
         distance = framing_distance(corners, look_at, direction, args.up, args.fov, args.width / max(args.height, 1),
-                                    args.ipd / 2 if args.views == "stereo" else 0.0)
+                                    ipd / 2 if args.views == "stereo" else 0.0)
         position = tuple(np.array(look_at) + distance * direction)
         near = min(near, distance / 1000)  # a 100 um stack framed from 0.4 mm: the default 1 cm would clip it all
     cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
@@ -743,7 +746,7 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
     if args.views in ("mono", "stereo"):
         if args.rig is not None:
             raise CliError(f"--rig {args.rig} places N viewers, not --views {args.views}: give --views N")
-        return make_views(cam, args.views, args.ipd)
+        return make_views(cam, args.views, ipd if args.ipd is None else args.ipd)
     count = len(make_views(cam, args.views))  # validates N
     rig = args.rig or "arc"
     if rig == "overlap":
