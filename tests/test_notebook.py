@@ -208,6 +208,7 @@ def test_on_the_kernel_thread_frames_are_pushed_and_never_waited_for():
     ({"method": "mip"}, "method must be one of dssrm, cmsrm, cacrm, vpt"),
     ({"quality": "ultra"}, "quality must be one of interactive, default, high"),
     ({"tf": "bone"}, "tf must be one of density"),
+    ({"mode": "xray"}, "mode must be one of dvr, mip, mida, iso"),
     ({"width": 8}, "width must be an integer in [32, 1920]"),
     ({"height": 100.5}, "height must be an integer in [16, 1080]"),
     ({"sample": 64}, "unknown setting(s) sample"),
@@ -227,9 +228,26 @@ def test_bad_trait_values_are_refused_and_kept(viewer):
     assert viewer.render_loop.method == "dssrm"
 
 
+def test_mode_switch_and_its_refusals(viewer):
+    dvr = viewer.get_frame()
+    viewer.mode = "mip"
+    frame = viewer.get_frame()
+    assert viewer.render_loop.mode == "mip"
+    assert same(frame, direct(sized(START), mode="mip")) and db(frame, dvr) < DIFFERS_DB
+    with pytest.raises(VolrenError, match="mode mip needs method dssrm, cmsrm or cacrm, not vpt") as err:
+        viewer.method = "vpt"
+    assert "\n" not in str(err.value) and viewer.method == "dssrm" and viewer.render_loop.method == "dssrm"
+    with pytest.raises(VolrenError, match=r"iso_value must be a finite density in \[1e-06, 1e\+06\]"):
+        viewer.iso_value = -1.0
+    assert viewer.iso_value == 0.5
+    with pytest.raises(VolrenError, match=r"Viewer: settings\.mode mip needs method"):
+        Viewer(SCENE, method="vpt", mode="mip", device=DEVICE)
+
+
 def test_controls_follow_and_set_the_traits(viewer):
-    method, quality, tf, stereo = viewer.controls().children
+    method, quality, tf, mode, iso, stereo = viewer.controls().children
     assert method.options == ("dssrm", "cmsrm", "cacrm", "vpt") and tf.options == ("density", *PRESETS)
+    assert mode.options == ("dvr", "mip", "mida", "iso") and iso.value == 0.5
     tf.value = "smoke"
     assert viewer.tf == "smoke" and viewer.render_loop.tf == "smoke"
     viewer.preset = "default"

@@ -36,16 +36,18 @@ from typing import Any
 import ipywidgets
 import numpy as np
 from jupyter_rfb import RemoteFrameBuffer
-from traitlets import Bool, Unicode, observe, validate
+from traitlets import Bool, Float, Unicode, validate
 
 from volren.camera import Camera
 from volren.device import resolve_device
 from volren.errors import VolrenError
 from volren.presets import QUALITIES
 from volren.render import METHODS
+from volren.render.base import LightMapMarchConfig
+from volren.render.marching.modes import MODES
 from volren.scene import Scene
 from volren.serve.loop import DENSITY_TF, RenderLoop, scene_methods
-from volren.serve.protocol import CameraMessage, Settings, unpack_frame
+from volren.serve.protocol import MAX_ISO, MIN_ISO, CameraMessage, ProtocolError, Settings, unpack_frame
 from volren.serve.viewers import Limits
 
 ORBIT_RAD_PER_PX = 0.01
@@ -59,6 +61,9 @@ RADIUS_RANGE = (0.05, 1e4)
 FRAME_TIMEOUT_S = 180.0
 """[s] `get_frame` outside a kernel waits this long for a frame: the first one compiles Warp's kernels when its cache
 is cold (30-90 s a module on two CPU cores)"""
+SETTINGS = {"method": "method", "preset": "quality", "tf": "tf", "mode": "mode", "iso_value": "iso_value",
+            "stereo": "stereo"}
+"""the viewer's setting traits -> the fields of serve's settings message they are applied as"""
 DEFAULT_EYE = (0.0, 0.4, 3.2)
 """the default camera of `volren serve` and `volren render` for the unit box [-1, 1]^3, scaled to the scene's"""
 
@@ -142,8 +147,9 @@ class Viewer(RemoteFrameBuffer):
     (both eyes side by side when ``stereo``); the widget's size in the page replaces it once it is shown. ``quality``
     is the preset the render starts with (the `preset` trait; jupyter_rfb's own ``quality`` is the JPEG quality of
     the frames it streams); ``settings`` are config fields on top of it (``samples=64``, ``light_grid=16``) for
-    whichever method is on. `method`, `preset`, `tf` and `stereo` are traits: set them (``viewer.method =
-    "cmsrm"``) or show `controls` beside the widget. ``camera``: the start view (default: `default_camera`)."""
+    whichever method is on. `method`, `preset`, `tf`, `mode`, `iso_value` and `stereo` are traits: set them
+    (``viewer.method = "cmsrm"``) or show `controls` beside the widget. ``camera``: the start view (default:
+    `default_camera`)."""
 
     method = Unicode("dssrm")
     preset = Unicode("interactive")
@@ -151,17 +157,24 @@ class Viewer(RemoteFrameBuffer):
     tf = Unicode(DENSITY_TF)
     """transfer function: a `volren.transfer` preset, or "density" (extinction proportional to density)"""
     stereo = Bool(False)
+    mode = Unicode("dvr")
+    """the light-map marchers' sci-vis mode: dvr, mip, mida or iso (`volren.render.marching.modes`)"""
+    iso_value = Float(LightMapMarchConfig.iso_value)
+    """[density] of mode iso"""
 
     def __init__(self, scene: Scene, method: str = "dssrm", quality: str = "interactive", stereo: bool = False,
                  width: int = 480, height: int = 270, *, camera: Camera | None = None, device: str = "auto",
-                 ipd: float = 0.063, tf: str = DENSITY_TF, **settings: Any) -> None:
+                 ipd: float = 0.063, tf: str = DENSITY_TF, mode: str = "dvr",
+                 iso_value: float = LightMapMarchConfig.iso_value, **settings: Any) -> None:
         if not isinstance(scene, Scene):
             raise VolrenError(f"Viewer: scene must be a volren Scene, got {type(scene).__name__}")
         self._limits = Limits(max_viewers=1)
+        self._loop: RenderLoop | None = None
         methods = scene_methods(scene)
         _check_choice("method", method, methods)
         _check_choice("quality", quality, QUALITIES)
-        _check_choice("tf", tf, self._tfs())
+        _check_choice("tf", tf, self._choices("tf"))
+        _check_choice("mode", mode, MODES)
         (min_w, min_h), max_w, max_h = self._limits.clamp(0, 0), self._limits.max_width, self._limits.max_height
         for name, side, lo, hi in (("width", width, min_w, max_w), ("height", height, min_h, max_h)):
             if isinstance(side, bool) or not isinstance(side, int) or not lo <= side <= hi:
@@ -175,7 +188,6 @@ class Viewer(RemoteFrameBuffer):
         camera = camera if camera is not None else default_camera(scene)
         self._orbit = Orbit.of(camera)
         self._up, self._fov = camera.up, camera.fov_y
-        self._loop: RenderLoop | None = None
         self._camera_id = 0
         self._drag: tuple[float, float] | None = None
         self._frame: _Delivered | None = None
@@ -188,13 +200,13 @@ class Viewer(RemoteFrameBuffer):
         quiet = contextlib.nullcontext() if _in_ipython() else contextlib.redirect_stdout(io.StringIO())
         with quiet:  # outside IPython jupyter_rfb's display() of its output area would print the area's repr
             super().__init__(css_width=f"{width}px", css_height=f"{height}px", method=method, preset=quality,
-                             tf=tf, stereo=stereo)
+                             tf=tf, stereo=stereo, mode=mode, iso_value=iso_value)
         self._aio = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._aio.run_forever, name="volren viewer", daemon=True)
         self._thread.start()
         try:
-            self._call(self._start, scene, method, quality, tf, camera, (width, height, stereo), device, ipd,
-                       settings)
+            self._call(self._start, scene, method, quality, Settings(tf=tf, mode=mode, iso_value=iso_value), camera,
+                       (width, height, stereo), device, ipd, settings)
         except BaseException:
             self.stop()
             raise
@@ -218,17 +230,15 @@ class Viewer(RemoteFrameBuffer):
         self._aio.call_soon_threadsafe(run)
         return done.result()
 
-    def _start(self, scene: Scene, method: str, quality: str, tf: str, camera: Camera, size: tuple[int, int, bool],
-               device: str, ipd: float, settings: dict[str, Any]) -> None:
+    def _start(self, scene: Scene, method: str, quality: str, shared: Settings, camera: Camera,
+               size: tuple[int, int, bool], device: str, ipd: float, settings: dict[str, Any]) -> None:
         loop = RenderLoop(scene, method, quality, limits=self._limits, camera=camera, device=device, ipd=ipd,
                           overrides=settings, encode=_raw_pixels)
         self._client = loop.viewers.add(self._deliver, self._text)
         self._loop = loop
-        if tf != DENSITY_TF:
-            loop.apply(Settings(tf=tf), self._client)
         self._client.resize(*size, self._limits)
+        self._apply(shared)  # and the first camera
         loop.start()
-        self._send_camera()
 
     def _send_camera(self) -> None:
         """The orbit's camera as the page sends it: a camera message with the next id (any change of the view, size
@@ -347,44 +357,47 @@ class Viewer(RemoteFrameBuffer):
         assert self._loop is not None
         return self._loop
 
-    def _tfs(self) -> tuple[str, ...]:
+    def _choices(self, trait: str) -> tuple[str, ...]:
         from volren.transfer import PRESETS
 
-        return (DENSITY_TF, *PRESETS)
+        return {"method": self._loop.methods if self._loop else tuple(METHODS), "preset": QUALITIES,
+                "tf": (DENSITY_TF, *PRESETS), "mode": MODES}[trait]
 
-    @validate("method")
-    def _valid_method(self, proposal: Any) -> str:
-        return _check_choice("method", proposal["value"], self._loop.methods if self._loop else METHODS)
-
-    @validate("preset")
-    def _valid_preset(self, proposal: Any) -> str:
-        return _check_choice("preset", proposal["value"], QUALITIES)
-
-    @validate("tf")
-    def _valid_tf(self, proposal: Any) -> str:
-        return _check_choice("tf", proposal["value"], self._tfs())
-
-    @observe("method", "preset", "tf", "stereo")
-    def _setting_changed(self, change: dict[str, Any]) -> None:
-        if self._loop is None:  # set by the constructor: the loop starts with them
-            return
-        name = "quality" if change["name"] == "preset" else change["name"]
-        self._call(self._apply, Settings(**{name: change["new"]}))
+    @validate(*SETTINGS)
+    def _apply_setting(self, proposal: Any) -> Any:
+        """Check a setting and hand it to the loop before the trait takes it: a value the loop refuses (mode mip
+        with vpt) leaves the trait as it was. The constructor's values reach the loop when it starts."""
+        name, value = proposal["trait"].name, proposal["value"]
+        if name == "iso_value":
+            if not (math.isfinite(value) and MIN_ISO <= value <= MAX_ISO):
+                raise VolrenError(f"Viewer: iso_value must be a finite density in [{MIN_ISO:g}, {MAX_ISO:g}], got "
+                                  f"{value}")
+        elif name != "stereo":
+            _check_choice(name, value, self._choices(name))
+        if self._loop is not None and value != getattr(self, name):
+            self._call(self._apply, Settings(**{SETTINGS[name]: value}))
+        return value
 
     def _apply(self, settings: Settings) -> None:
-        self._loop.apply(settings, self._client)
+        try:
+            self._loop.apply(settings, self._client)
+        except ProtocolError as exc:  # serve's words for it: settings.mode ... needs method ...
+            raise VolrenError(f"Viewer: {exc}") from None
         self._send_camera()
 
     def controls(self) -> ipywidgets.HBox:
-        """Menus for method, quality preset and transfer function and a stereo box, linked to this viewer's traits:
-        ``display(ipywidgets.VBox([viewer.controls(), viewer]))``."""
-        menus = [ipywidgets.Dropdown(options=self._loop.methods, description="method"),
-                 ipywidgets.Dropdown(options=QUALITIES, description="quality"),
-                 ipywidgets.Dropdown(options=self._tfs(), description="tf")]
-        box = ipywidgets.Checkbox(description="stereo")
-        for trait, control in zip(("method", "preset", "tf", "stereo"), (*menus, box), strict=True):
-            ipywidgets.link((self, trait), (control, "value"))
-        return ipywidgets.HBox([*menus, box])
+        """Menus for method, quality preset, transfer function and mode, the iso value and a stereo box, linked to
+        this viewer's traits: ``display(ipywidgets.VBox([viewer.controls(), viewer]))``."""
+        layout = ipywidgets.Layout(width="max-content")
+        controls = {name: ipywidgets.Dropdown(options=self._choices(name), description=SETTINGS[name],
+                                              layout=layout)
+                    for name in ("method", "preset", "tf", "mode")}
+        controls["iso_value"] = ipywidgets.BoundedFloatText(min=MIN_ISO, max=MAX_ISO, step=0.05,
+                                                            description="iso value", layout=layout)
+        controls["stereo"] = ipywidgets.Checkbox(description="stereo", layout=layout)
+        for name, control in controls.items():
+            ipywidgets.link((self, name), (control, "value"))
+        return ipywidgets.HBox(list(controls.values()))
 
     def close(self) -> None:
         """Close the widget's views and stop the render (`stop`)."""
