@@ -120,8 +120,10 @@ def test_scene_materials_lights_and_bounds(name: str) -> None:
     lo, hi = scene.bounds
     assert np.all(lo >= -1.2) and np.all(hi <= 1.2)
     assert any(isinstance(light, DirectionalLight) and light.direction[1] < 0 for light in scene.lights)
-    assert 2.0 <= scene.lights[0].irradiance[0] <= 4.0
-    assert min(scene.environment.radiance) >= 0.04 and max(scene.environment.radiance) <= 0.12
+    # the cloud's own daylight sun and sky are brighter (issue 22.10: it reads as white, tests/test_scene_looks.py)
+    sun, sky = ((8.0, 16.0), (0.15, 0.3)) if name == "cloud" else ((2.0, 4.0), (0.04, 0.12))
+    assert sun[0] <= scene.lights[0].irradiance[0] <= sun[1]
+    assert min(scene.environment.radiance) >= sky[0] and max(scene.environment.radiance) <= sky[1]
     assert max(scene.background) < 0.1
     for v in scene.volumes:
         # optical depth along the default camera's axis (z), through the densest column: visible, not a wall

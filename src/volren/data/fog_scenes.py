@@ -148,6 +148,10 @@ def _hall(time: float) -> Scene:
     return Scene((), lights, Environment((0.02, 0.022, 0.026)), name="hall", opaque=opaque, fog=fog)
 
 
+COURTYARD_SKY = (0.01, 0.016, 0.04)
+"""the courtyard's night sky: dark blue, the ambient of everything the lamps do not reach"""
+
+
 def _courtyard(time: float) -> Scene:
     ground = merge([box_mesh((-15.0, -0.3, -15.0), (15.0, 0.0, 15.0))], "ground", (0.35, 0.33, 0.3))
     # (x0, x1, z0, z1, height): blocks along the four sides, with alleys between them
@@ -165,19 +169,21 @@ def _courtyard(time: float) -> Scene:
     props = [cylinder_mesh((x, 0.0, z), 0.08, 3.4, 12) for x, z in lamp_xz]
     props += [box_mesh((-8.0, 0.0, -1.0), (-6.5, 0.45, 1.0)), box_mesh((4.0, 0.0, 3.0), (5.0, 0.9, 4.0)),
               box_mesh((4.6, 0.0, 4.3), (5.4, 0.6, 5.1))]  # a bench and two crates
-    lamps = [PointLight((x, 3.6, z), e) for (x, z), e in zip(lamp_xz, [(45.0, 30.0, 14.0), (40.0, 28.0, 12.0),
-                                                                       (35.0, 26.0, 14.0), (50.0, 34.0, 16.0)],
+    # A night picture (issue 22.10): lamps and spots dim enough that the square between their pools stays dark under
+    # a blue night sky (4.5 W/sr lamps, not 45, which lit every facade beige through the fog)
+    lamps = [PointLight((x, 3.6, z), e) for (x, z), e in zip(lamp_xz, [(4.5, 3.0, 1.4), (4.0, 2.8, 1.2),
+                                                                       (3.5, 2.6, 1.4), (5.0, 3.4, 1.6)],
                                                              strict=True)]
     # (position on a facade, aim point on the ground)
     spots = [((0.0, 7.0, -9.6), (0.0, 0.0, -4.0)), ((9.6, 4.5, 3.0), (5.0, 0.0, 3.0)),
              ((-6.0, 4.5, 9.6), (-6.0, 0.0, 5.0))]
-    spot_lights = [SpotLight(p, tuple(np.subtract(a, p)), (180.0, 190.0, 210.0), inner_angle=20.0, outer_angle=35.0)
+    spot_lights = [SpotLight(p, tuple(np.subtract(a, p)), (11.0, 11.5, 12.5), inner_angle=20.0, outer_angle=35.0)
                    for p, a in spots]
-    fog = Fog(extinction=0.03, albedo=(0.9, 0.9, 0.9), g=0.3, density=1.0, height_density=1.0, height_falloff=0.3,
+    fog = Fog(extinction=0.012, albedo=(0.9, 0.9, 0.9), g=0.3, density=1.0, height_density=1.0, height_falloff=0.3,
               height_base=0.0, boxes=(FogBox((0.0, 1.0, 0.0), (3.5, 1.0, 3.5), density=3.0, noise_amount=0.5,
                                              noise_frequency=0.7, seed=3),))
     opaque = (ground, buildings, fountain, merge(props, "props", (0.4, 0.36, 0.3)))
-    return Scene((), (*lamps, *spot_lights), Environment((0.004, 0.005, 0.009)), name="courtyard", opaque=opaque,
+    return Scene((), (*lamps, *spot_lights), Environment(COURTYARD_SKY), name="courtyard", opaque=opaque,
                  fog=fog)
 
 
