@@ -72,7 +72,8 @@ def vdb_dir(tmp_path_factory) -> Path:
         "half.vdb": [_grid("density", DENSITY, half=True)],
         "empty.vdb": [_grid("density", None)],
         "sparse.vdb": [{"name": "density", "array": SPARSE, "ijk": (-8, 4, 0), "matrix": _matrix((0.1,) * 3)}],
-        "centred.vdb": [{**_grid("density", DENSITY), "matrix": _matrix(translation=CENTRED)}],
+        "centred.vdb": [{**_grid("density", DENSITY), "matrix": _matrix(translation=CENTRED)},
+                        {**_grid("temperature", TEMPERATURE), "matrix": _matrix(translation=CENTRED)}],
         "rotated.vdb": [{**_grid("density", DENSITY), "matrix": ROTATED}],
         "many.vdb": [{"name": "density", "array": MANY, "ijk": (100, -20, 3), "matrix": _matrix()}],
         "tiles.vdb": [{"name": "density", "array": np.ones((16, 16, 16), np.float32)}],
@@ -209,8 +210,12 @@ def test_vdb_renders_like_the_npy_it_was_written_from(vdb_dir, tmp_path, capfd):
     assert reference[..., 3].max() > 0.05
     image = _linear_render(capfd, tmp_path / "vdb", vdb_dir / "centred.vdb")
     np.testing.assert_allclose(image, reference, rtol=0, atol=1e-6)
-    other = _linear_render(capfd, tmp_path / "temperature", vdb_dir / "two.vdb", "--grid", "temperature")
-    assert other[..., 3].max() > reference[..., 3].max()  # --grid reached the loader: a far denser grid
+    np.save(tmp_path / "temperature.npy", TEMPERATURE)
+    scale = ("--density-scale", str(1 / 1500))  # kelvin as density: 300-1800 would be opaque
+    reference = _linear_render(capfd, tmp_path / "npy-t", tmp_path / "temperature.npy", "--spacing", "0.5,0.25,2",
+                               "--units", "m", *scale)
+    image = _linear_render(capfd, tmp_path / "vdb-t", vdb_dir / "centred.vdb", "--grid", "temperature", *scale)
+    np.testing.assert_allclose(image, reference, rtol=0, atol=1e-6)  # --grid reached the loader
 
 
 @pytest.mark.parametrize("case", ["npy", "scene", "truncated", "unknown"])

@@ -41,7 +41,8 @@ class VdbGrid:
     """One grid densified over an index box."""
 
     data: np.ndarray
-    """float32 ``[z, y, x]``: dense index (0, 0, 0) is file index ``lo``."""
+    """float32 ``[z, y, x]``: dense index (0, 0, 0) is file index ``lo``; a view into the leaf-aligned box (not
+    contiguous unless the box is leaf-aligned)."""
     lo: tuple[int, int, int]
     """inclusive index bounds (x, y, z) of the box."""
     hi: tuple[int, int, int]
@@ -274,9 +275,9 @@ def _densify(leaves: list, origins: np.ndarray, lo: np.ndarray, hi: np.ndarray, 
         values = np.frombuffer(b"".join(leaves[i].data for i in chunk), np.float32).reshape(-1, 8, 8, 8)
         b = (origins[chunk] - start) >> 3
         tiles[b[:, 2], b[:, 1], b[:, 0]] = values
-    crop = out[lo[2] - start[2] : hi[2] + 1 - start[2], lo[1] - start[1] : hi[1] + 1 - start[1],
+    # a view: the caller copies it contiguous once tinyvdb's trees are freed (load_volume's validate_density does)
+    return out[lo[2] - start[2] : hi[2] + 1 - start[2], lo[1] - start[1] : hi[1] + 1 - start[1],
                lo[0] - start[0] : hi[0] + 1 - start[0]]
-    return crop if crop.shape == out.shape else np.ascontiguousarray(crop)
 
 
 def _check_size(path: Path, lo: np.ndarray, hi: np.ndarray, grids: int) -> None:
@@ -316,6 +317,8 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
     finally:
         vdb.close()  # the sparse trees go before the caller validates (and copies) the dense grid
         data.close()
+    if emission is not None:
+        emission = np.ascontiguousarray(emission)
     placed = to_world.copy()
     placed[:3, 3] = to_world[:3, :3] @ lo + to_world[:3, 3]  # dense index 0 is file index lo
     return VdbGrid(values, tuple(int(v) for v in lo), tuple(int(v) for v in hi), placed), emission
