@@ -14,8 +14,7 @@ import re
 import signal
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from pathlib import Path
 
 from volren.errors import VolrenError
@@ -33,12 +32,16 @@ TONEMAPS = ("none", "reinhard", "aces")
 SCENE_NAMES = ("smoke", "cloud", "phantom", "multi", "instances", "instances-overlap", "smoke-floor", "fire",
                "hall", "courtyard", "dynamic")
 """`volren.data.BUILTIN_SCENES`, then `volren.data.fog_scenes.FOG_SCENES`"""
+FOG_SCENE_NAMES = SCENE_NAMES[-3:]
+"""`volren.data.fog_scenes.FOG_SCENES`"""
 
 MAX_EXPOSURE = 64.0
 """[stops] beyond this every pixel is black or white, and 2**exposure overflows soon after."""
 
 MAX_IMAGE_SIDE = 16384
 """[px] --width and --height: beyond any display, and a typo for a smaller number far more often than meant."""
+MAX_VIEW_PIXELS = 8192 * 8192
+"""[px] --width x --height: `volren.camera.MAX_PIXELS`"""
 HOST_BYTES_PER_PIXEL = 20
 """Each finished frame's host copies, kept until stats.json is written: float32 RGBA and depth."""
 FROXEL_BYTES = 16
@@ -114,6 +117,13 @@ def floats(text: str, count: int | tuple[int, ...] = 3) -> tuple[float, ...]:
     if len(values) not in counts:
         raise argparse.ArgumentTypeError(f"'{text}' needs {' or '.join(map(str, counts))} comma-separated numbers")
     return values
+
+
+def out_folder(text: str) -> Path:
+    """``--out``: a folder name; an empty one would write into the current folder unasked (``.`` says so)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("is empty: give a folder name ('.' for the current folder)")
+    return Path(text)
 
 
 def vec3(text: str) -> tuple[float, ...]:
@@ -249,7 +259,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     cam.add_argument("--look-at", type=vec3, help="x,y,z (default 0,0,0; fog scenes: their own)")
     cam.add_argument("--up", type=vec3, default=(0.0, 1.0, 0.0), help="x,y,z")
     cam.add_argument("--fov", type=float, default=45.0, help="vertical field of view [degrees], in (0, 180)")
-    cam.add_argument("--width", type=int, default=640, help=f"[px] in [1, {MAX_IMAGE_SIDE}]")
+    cam.add_argument("--width", type=int, default=640, help=f"[px] in [1, {MAX_IMAGE_SIDE}],"
+                     f" width x height at most {MAX_VIEW_PIXELS:,} pixels")
     cam.add_argument("--height", type=int, default=360, help=f"[px] in [1, {MAX_IMAGE_SIDE}]")
     cam.add_argument("--near", type=float, help="[m], > 0 (default: 0.01, or a thousandth of the distance to a "
                      "framed --volume where that is less: micrometre microscopy)")
@@ -338,12 +349,12 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--frames", type=int, default=None if animate else 1, help="render N >= 1 frames (temporal "
                    "methods), keep every frame; a --volume sequence plays its frames 0..N-1, N at most its length "
                    f"(default: {f'{ANIMATE_FRAMES}, or the length of a --volume sequence' if animate else 1})")
-    r.add_argument("--seed", type=int, default=0, help="random seed (jitter, scenes, viewers): any integer")
+    r.add_argument("--seed", type=int, default=0, help="random seed (jitter, scenes, viewers): an integer >= 0")
     r.add_argument("--max-minutes", type=float, default=60.0, help="refuse a render estimated to run longer "
                    "(estimated by a quarter-size probe when views x pixels x frames exceeds 20 M; 0: no limit)")
     add_device(p)
     o = p.add_argument_group("output")
-    o.add_argument("--out", type=Path, default=Path("out"), help="output folder")
+    o.add_argument("--out", type=out_folder, default=Path("out"), help="output folder")
     o.add_argument("--save-linear", action="store_true", help="also write linear (H, W, 4) float32 .npy images")
     o.add_argument("--exposure", type=float, default=1.0 if demo else 0.0, help=f"PNG exposure in stops, in "
                    f"[-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
@@ -485,6 +496,7 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
         scene = builtin_scene(name, resolution, count=16 if args.count is None else args.count, seed=args.seed)
     check_fire_flags(args, scene)
     volumes = _with_material(args, scene.volumes)
+    warn_density(volumes, transfer=args.tf is not None)
     lights = list(scene.lights)
     if args.light_dir is not None or args.light_irradiance is not None:
         idx = next((i for i, lt in enumerate(lights) if isinstance(lt, DirectionalLight)), None)
@@ -501,8 +513,6 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     lights += [rect_light(*r) for r in args.rect_light]
     if args.ambient is not None and args.environment is not None:
         raise CliError("give either --ambient or --environment, not both")
-    if not (math.isfinite(args.mesh_scale) and args.mesh_scale > 0):
-        raise CliError(f"--mesh-scale must be a positive number, got {args.mesh_scale:g}")
     opaque = list(scene.opaque) + [Sphere(tuple(s[:3]), s[3]) for s in args.sphere]
     alphas = mesh_alphas(args.mesh_alpha, len(args.mesh))
     opaque += [load_mesh_file(m, scale=args.mesh_scale, translate=args.mesh_translate, alpha=a)
@@ -523,6 +533,25 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     background = args.background if args.background is not None else scene.background
     return dataclasses.replace(scene, volumes=volumes, lights=tuple(lights), environment=environment,
                                background=background, opaque=tuple(opaque))
+
+
+OPAQUE_VOXEL_DEPTH = 100.0
+"""optical depth of one voxel beyond which a volume renders as an opaque box (transmittance e^-100 per voxel)"""
+
+
+def warn_density(volumes: tuple, transfer: bool) -> None:
+    """Warn of a density that renders nothing (all zero) or an opaque box (the densest voxel's optical depth over
+    `OPAQUE_VOXEL_DEPTH`, sigma_t = density_scale * density); a --tf reads density / its maximum, so only the first."""
+    import numpy as np
+
+    for v in volumes:
+        hi = float(v.density.max())
+        voxel = float(np.min(np.linalg.norm(v.to_world[:3, :3], axis=0) * 2 / np.array(v.density.shape[::-1])))
+        if hi == 0:
+            print(f"volren: warning: volume '{v.name}' has an all-zero density: it renders nothing", file=sys.stderr)
+        elif not transfer and hi * v.density_scale * voxel > OPAQUE_VOXEL_DEPTH:
+            print(f"volren: warning: volume '{v.name}' is opaque (optical depth {hi * v.density_scale * voxel:.3g} "
+                  "in its densest voxel): check --density-scale", file=sys.stderr)
 
 
 def rect_light(x: float, y: float, z: float, width: float, height: float, radiance: float):
@@ -852,20 +881,6 @@ def renderer_from_args(args: argparse.Namespace, method: str):
     return cls(config_cls(**options), device=args.device)
 
 
-@contextmanager
-def progress_bar(label: str, total_rows: int) -> Iterator[Callable[[int], None] | None]:
-    """A rich progress bar over rendered image rows on an interactive terminal; nothing in CI, pipes or tests."""
-    if not sys.stderr.isatty() or os.environ.get("CI"):
-        yield None
-        return
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    columns = (TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), TimeRemainingColumn())
-    with Progress(*columns, transient=True) as bar:
-        task = bar.add_task(label, total=total_rows)
-        yield lambda rows: bar.advance(task, rows)
-
-
 def sequence_from_args(args: argparse.Namespace):
     """``volren animate``'s sequence; None for ``render``."""
     if args.command != "animate":
@@ -939,6 +954,37 @@ def check_scene_name(name: str | None) -> None:
         raise CliError(f"--scene: unknown scene '{name}': choose from {', '.join(SCENE_NAMES)}")
 
 
+def check_idle_flags(args: argparse.Namespace) -> None:
+    """Refuse the flags that would do nothing in this run, and values outside the ranges --help gives (issue 22.7)."""
+    given = lambda *names: [f"--{n.replace('_', '-')}" for n in names if getattr(args, n, None) is not None]  # noqa: E731
+    if getattr(args, "volume", None) is None and (unused := given("shape", "dtype", "spacing", "units")):
+        raise CliError(f"built-in scenes ignore {', '.join(unused)}: they say how to read a --volume file")
+    scale = getattr(args, "mesh_scale", 1.0)
+    if not (math.isfinite(scale) and scale > 0):
+        raise CliError(f"--mesh-scale must be a positive number, got {scale:g}")
+    mesh_flags = [flag for flag, value, default in (
+        ("--mesh-alpha", getattr(args, "mesh_alpha", []), []), ("--mesh-scale", scale, 1.0),
+        ("--mesh-translate", getattr(args, "mesh_translate", (0.0, 0.0, 0.0)), (0.0, 0.0, 0.0))) if value != default]
+    if mesh_flags and not getattr(args, "mesh", None):
+        raise CliError(f"{', '.join(mesh_flags)}: there is no --mesh to place")
+    ipd = getattr(args, "ipd", None)
+    if ipd is not None:
+        if not (math.isfinite(ipd) and 0 <= ipd < 10):
+            raise CliError(f"--ipd must lie in [0, 10) m, got {ipd:g}")
+        if getattr(args, "views", "stereo") != "stereo":
+            raise CliError(f"--ipd separates the eyes of --views stereo; --views {args.views} has none")
+    background = getattr(args, "background", None)
+    if background is not None and not all(math.isfinite(c) and c >= 0 for c in background):
+        raise CliError(f"--background must be >= 0 in every channel, got {','.join(f'{c:g}' for c in background)}")
+    if getattr(args, "seed", 0) < 0:
+        raise CliError(f"--seed must be an integer >= 0, got {args.seed}")
+    if args.width * args.height > MAX_VIEW_PIXELS:
+        raise CliError(f"--width x --height is {args.width * args.height:,} pixels, over the {MAX_VIEW_PIXELS:,} "
+                       "pixels a view may have")
+    if getattr(args, "scene", None) in FOG_SCENE_NAMES and (unused := given("density_scale", "albedo")):
+        raise CliError(f"fog scene '{args.scene}' has its own fog: {', '.join(unused)} would do nothing")
+
+
 def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     # the checks that need no data first: the imports below take seconds
     check_method(method)
@@ -950,10 +996,12 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
             raise CliError(f"{flag} must lie in [1, {MAX_IMAGE_SIDE}] pixels, got {side}")
     if not (math.isfinite(args.exposure) and abs(args.exposure) <= MAX_EXPOSURE):
         raise CliError(f"--exposure must be a number of stops in [-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
+    check_idle_flags(args)
     from volren.animate import frame_config, frame_scene, frame_views, write_mp4
     from volren.data.fog_scenes import ANIMATED_FOG_SCENES
     from volren.imageio import composite, to_srgb8
     from volren.output import contact_sheet, run_output, write_frame, write_stats
+    from volren.progress import progress
 
     played = volume_sequence(args)
     if args.frames is None:
@@ -981,7 +1029,8 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     frames, files, movie = [], [], []
     start = time.perf_counter()
     with run_output(args.out) as out:  # written beside --out, moved in when complete
-        with progress_bar(f"{method} {scene.name}", args.frames * sum(v.height for v in views)) as advance:
+        rows = args.frames * sum(v.height for v in views)  # each view's image pass reports its rows
+        with progress(f"{method} {scene.name}", rows, always=args.frames > 1) as advance:
             renderer.on_rows = advance
             for i in range(args.frames):
                 if animated and i:
@@ -1067,6 +1116,7 @@ def run_command(args: argparse.Namespace, command: str) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    console = argv is None  # the volren command, not a caller in Python
     argv = list(sys.argv[1:] if argv is None else argv)
     command = " ".join(["volren", *argv])
     try:
@@ -1084,8 +1134,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MemoryError:
         print("volren: error: out of memory (try a smaller image, resolution or view count)", file=sys.stderr)
         return 2
+    except OSError as exc:  # what no loader or writer turned into a VolrenError: stdout on a full disk, mostly
+        if exc.filename is None:  # a print: stdout. The exit-time flush would fail again: point it at /dev/null
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        print(f"volren: error: cannot write {exc.filename or 'stdout'}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("volren: interrupted", file=sys.stderr)
+        if console:  # run_output has removed any partial run; the interpreter's exit would wait seconds on Warp
+            sys.stderr.flush()
+            os._exit(130)
         return 130
 
 

@@ -7,6 +7,8 @@ import os
 import re
 import sys
 import tempfile
+import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -118,28 +120,63 @@ def launch_rows(
     (the native call releases the GIL; see DESIGN.md, measured 1.9x on 2 cores). On the CPU the rows are split into
     bands run by one thread per core; on CUDA it is a single launch. ``progress``, if given, is called with the
     number of rows each launch covered once it has been issued (a CPU launch has then finished).
+
+    A CPU launch cannot be interrupted, so each band is issued as launches of `_band_step` rows, short enough that
+    Ctrl-C stops a render within about `STOP_SECONDS` (the bands not yet started then do nothing).
     """
     if rows <= 0 or cols <= 0:
         return
-    threads = cpu_threads()
-    if not device.startswith("cpu") or threads == 1 or rows < 2 * threads:
-        # On CUDA every counter row at once (`counter_row` spreads the threads over them); on the CPU the first.
-        rows_used = counters if not device.startswith("cpu") else counters[0:1]
-        wp.launch(kernel, dim=(rows, cols), inputs=[*inputs, rows_used, 0], device=device)
+    if not device.startswith("cpu"):  # every counter row at once: `counter_row` spreads the threads over them
+        wp.launch(kernel, dim=(rows, cols), inputs=[*inputs, counters, 0], device=device)
         if progress is not None:
             progress(rows)
+        return
+    threads = cpu_threads()
+    stop = threading.Event()
+    key = (kernel, cols)
+
+    def run(band: int, start: int, end: int) -> None:
+        step = end - start
+        while start < end and not stop.is_set():
+            step = min(_band_step(key, end - start), 2 * step)  # doubling at most: rows differ in cost
+            began = time.perf_counter()
+            wp.launch(kernel, dim=(step, cols), inputs=[*inputs, counters[band : band + 1], start], device=device)
+            # a cheap stretch (sky) only halves an expensive one's estimate: the next band may be all volume
+            _row_seconds[key] = max((time.perf_counter() - began) / step, 0.5 * _row_seconds.get(key, 0.0))
+            start += step
+            if progress is not None:
+                progress(step)
+
+    if threads == 1 or rows < 2 * threads:
+        run(0, 0, rows)  # on this thread: Ctrl-C lands between its launches
         return
     # More bands than threads balances uneven per-row cost (a volume covers only part of the image).
     bands = min(rows, threads * 4, MAX_BANDS)
     edges = [rows * b // bands for b in range(bands + 1)]
+    pool = _band_pool(threads)
+    futures = [pool.submit(run, b, edges[b], edges[b + 1]) for b in range(bands)]
+    try:
+        for f in futures:
+            f.result()
+    except BaseException:  # Ctrl-C (or a failed band): the others stop after their current launch
+        stop.set()
+        raise
 
-    def run(b: int) -> None:
-        dim = (edges[b + 1] - edges[b], cols)
-        wp.launch(kernel, dim=dim, inputs=[*inputs, counters[b : b + 1], edges[b]], device=device)
-        if progress is not None:
-            progress(dim[0])
 
-    list(_band_pool(threads).map(run, range(bands)))
+STOP_SECONDS = 0.25
+"""[s] the longest CPU launch `launch_rows` aims for, so that Ctrl-C stops a render within about this long."""
+_row_seconds: dict[tuple[Any, int], float] = {}
+"""[s] per image row of the last launch of each (kernel, width): sizes the next launch of that kernel."""
+
+
+def _band_step(key: tuple[Any, int], left: int) -> int:
+    """Rows for the next launch of a band: all that are left for a kernel known to be fast (one launch per band, as
+    before, costing nothing), else as many as take about `STOP_SECONDS`; a kernel not yet timed starts with one
+    row. A launch costs ~0.2 ms on the CPU, so short launches are kept to kernels that take far longer than that."""
+    per_row = _row_seconds.get(key)
+    if per_row is None:
+        return 1
+    return max(1, min(left, int(STOP_SECONDS / max(per_row, 1e-9))))
 
 
 @functools.cache

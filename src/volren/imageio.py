@@ -146,8 +146,9 @@ def load_image(path: str | Path) -> np.ndarray:
     if suffix == ".npy":
         try:
             data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise VolrenError(f"cannot read '{path}' as .npy: {exc}") from exc
+        except (OSError, ValueError, EOFError) as exc:  # an empty file: EOFError; no header: pickle advice
+            why = "not a .npy file (no NumPy header)" if isinstance(exc, EOFError) or "pickle" in str(exc) else exc
+            raise VolrenError(f"cannot read '{path}' as .npy: {why}") from None
         if data.dtype.kind != "f":
             raise VolrenError(f"'{path}': expected linear float data, got dtype {data.dtype}")
         image = data

@@ -1,0 +1,55 @@
+"""Progress of long runs on stderr (renders, ``animate``, bench suites, scripts), so slow can be told from stuck.
+
+On an interactive terminal a rich bar with an ETA; otherwise (CI, pipes, logs) a plain line at every 10% of the
+work. A run that may be short (one frame) prints its lines only once it has run `QUIET_SECONDS`; one of many steps
+(frames, bench cases) always prints them. Light to import: rich only when a bar is drawn.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+QUIET_SECONDS = 2.0
+"""[s] a run that may be short prints no plain progress line before this: a quick render stays one line of output"""
+STEPS = 10
+"""plain lines per run: one at every 10% of the work"""
+
+
+def _line(label: str, done: int, total: int, unit: str, elapsed: float) -> str:
+    left = elapsed * (total - done) / done if done else float("nan")
+    return f"volren: {label}: {100 * done // total}% ({done}/{total} {unit}), {elapsed:.0f} s, about {left:.0f} s left"
+
+
+@contextmanager
+def progress(label: str, total: int, unit: str = "rows", *, always: bool = False) -> Iterator[Callable[[int], None]]:
+    """Yield ``advance(n)``: ``n`` more of ``total`` units of work are done (thread-safe: render bands call it).
+    ``always``: print the plain lines even in a run shorter than `QUIET_SECONDS` (a run of several frames)."""
+    total = max(total, 1)
+    if sys.stderr.isatty() and not os.environ.get("CI"):
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+        columns = (TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+        with Progress(*columns, transient=True) as bar:
+            task = bar.add_task(label, total=total)
+            yield lambda n: bar.advance(task, n)
+        return
+    start = time.perf_counter()
+    lock = threading.Lock()
+    state = {"done": 0, "shown": 0, "first": 0.0}  # units done; the last step (of STEPS) printed; first report
+
+    def advance(n: int) -> None:
+        with lock:
+            now = time.perf_counter()
+            state["first"] = state["first"] or now  # quiet counted from here: a cold kernel compile is no work
+            done = state["done"] = min(total, state["done"] + n)  # a channel's renderers each report the rows
+            step = done * STEPS // total
+            if step > state["shown"] and (always or now - state["first"] >= QUIET_SECONDS):
+                state["shown"] = step
+                print(_line(label, done, total, unit, now - start), file=sys.stderr, flush=True)
+
+    yield advance

@@ -1,0 +1,139 @@
+"""A CLI that says what it does (issue 22 items 4, 8, 9): progress lines, one-line errors for what used to be
+tracebacks or misleading messages, density warnings, and a Ctrl-C that stops a render at once."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+
+from test_cli import PROGRESS_LINE, assert_error, run
+from volren import progress as progress_module
+from volren.device import MAX_BANDS, _band_pool, init_warp, launch_rows
+
+TINY = ["--width", "16", "--height", "8", "--views", "mono"]
+
+
+def test_a_run_of_frames_prints_a_line_at_every_tenth(capfd, tmp_path: Path) -> None:
+    r = run(capfd, "render", *TINY, "--frames", "10", "--out", tmp_path / "out")
+    assert r.code == 0, r.err
+    lines = r.err.splitlines()
+    assert all(PROGRESS_LINE.fullmatch(line) for line in lines), r.err
+    assert [int(line.split(": ")[2].split("%")[0]) for line in lines] == list(range(10, 101, 10))
+    assert "rows)" in lines[-1] and "(80/80 rows)" in lines[-1]  # 10 frames of 8 rows
+
+
+def test_plain_progress_steps_and_quiet_start(capfd) -> None:
+    with progress_module.progress("job", 100, "cases", always=True) as advance:
+        for _ in range(100):
+            advance(1)
+    lines = capfd.readouterr().err.splitlines()
+    assert [line.split(": ")[2].split(" ")[0] for line in lines] == [f"{p}%" for p in range(10, 101, 10)]
+    assert lines[4].startswith("volren: job: 50% (50/100 cases), 0 s, about 0 s left")
+    with progress_module.progress("short", 10) as advance:  # one quick render: no lines
+        advance(10)
+    assert capfd.readouterr().err == ""
+
+
+def test_empty_compare_input_is_one_line(capfd, tmp_path: Path) -> None:
+    empty = tmp_path / "empty.npy"
+    empty.write_bytes(b"")
+    assert_error(capfd, ["compare", empty, empty], "empty.npy", "not a .npy file")
+
+
+def test_random_bytes_npz_is_not_blamed_on_pickles(capfd, tmp_path: Path) -> None:
+    path = tmp_path / "noise.npz"
+    path.write_bytes(np.random.default_rng(0).bytes(2000))
+    line = assert_error(capfd, ["render", *TINY, "--volume", path, "--out", tmp_path / "out"], "noise.npz",
+                        "not a .npz file")
+    assert "pickle" not in line
+
+
+@pytest.mark.parametrize(("density", "warning"), [
+    (0.0, "has an all-zero density: it renders nothing"),
+    (1e30, "is opaque (optical depth 2.5e+30 in its densest voxel): check --density-scale"),
+])
+def test_a_density_that_renders_nothing_or_a_box_is_warned_of(capfd, tmp_path: Path, density: float,
+                                                              warning: str) -> None:
+    path = tmp_path / "grid.npy"
+    np.save(path, np.full((8, 8, 8), density, dtype=np.float32))
+    r = run(capfd, "render", *TINY, "--volume", path, "--out", tmp_path / "out")
+    assert r.code == 0, r.err
+    assert r.err.splitlines() == [f"volren: warning: volume 'grid.npy' {warning}"]
+
+
+def test_builtin_scenes_get_no_density_warning(capsys) -> None:
+    from volren.cli import warn_density
+    from volren.data import BUILTIN_SCENES, builtin_scene
+
+    for name in BUILTIN_SCENES:
+        warn_density(builtin_scene(name, 64).volumes, transfer=False)
+    assert capsys.readouterr().err == ""
+
+
+def test_stdout_on_a_full_disk_is_one_line() -> None:
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full here")
+    code = "import sys; from volren.cli import main; sys.exit(main(['scenes']))"
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-c", code], stdout=full, stderr=subprocess.PIPE, text=True,
+                              timeout=120)
+    assert done.returncode == 2
+    assert done.stderr == "volren: error: cannot write stdout: No space left on device\n"
+
+
+def test_ctrl_c_stops_a_long_render_at_once_and_leaves_nothing(tmp_path: Path) -> None:
+    """One CPU thread: the whole frame would be one uninterruptible launch, so this checks the row steps."""
+    out = tmp_path / "out"
+    argv = [sys.executable, "-m", "volren.cli", "render", "--method", "reference", "--scene", "cloud", "--width",
+            "320", "--height", "180", "--views", "mono", "--max-minutes", "0", "--out", str(out)]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                            env={**os.environ, "VOLREN_CPU_THREADS": "1"})
+    first = proc.stderr.readline()  # rendering for >= 2 s (volren.progress.QUIET_SECONDS) with far to go
+    assert PROGRESS_LINE.fullmatch(first.strip()), first + proc.stderr.read()
+    sent = time.perf_counter()
+    proc.send_signal(signal.SIGINT)
+    rest = proc.communicate(timeout=60)[1]
+    stopped = time.perf_counter() - sent
+    assert proc.returncode == 130, rest
+    assert rest.splitlines()[-1] == "volren: interrupted" and "Traceback" not in rest
+    assert stopped < 2.0, f"took {stopped:.1f} s to stop"
+    assert list(tmp_path.iterdir()) == [], "a partial run was left behind"
+
+
+@wp.kernel
+def slow_rows_kernel(out: wp.array2d(dtype=wp.float32), work: int, counter_rows: wp.array2d(dtype=wp.int64),
+                     row0: int):
+    i, j = wp.tid()
+    acc = float(0.0)
+    for k in range(work):
+        acc += wp.sin(float(k + j))
+    out[row0 + i, j] = 1.0 + 0.0 * acc
+
+
+def test_an_interrupted_launch_stops_its_other_bands(monkeypatch) -> None:
+    """Ctrl-C in Python (a notebook): the bands still running stop after their current launch, not at the frame's
+    end (the pool would otherwise go on rendering it while the next call waits)."""
+    monkeypatch.setenv("VOLREN_CPU_THREADS", "2")
+    init_warp()
+    rows, cols = 256, 64
+    out = wp.zeros((rows, cols), dtype=wp.float32, device="cpu")
+    counters = wp.zeros((MAX_BANDS, 1), dtype=wp.int64, device="cpu")
+    launch_rows(slow_rows_kernel, 1, cols, [out, 1], "cpu", counters)  # compiled before the timed launch
+
+    def interrupt(_rows: int) -> None:
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        launch_rows(slow_rows_kernel, rows, cols, [out, 20000], "cpu", counters, progress=interrupt)
+    for idle in [_band_pool(2).submit(time.sleep, 0.5) for _ in range(2)]:  # both band threads done
+        idle.result()
+    done = int(np.count_nonzero(out.numpy()[:, 0]))
+    assert done < rows // 8 // 2, f"{done} rows rendered after the interrupt"  # less than half a band
