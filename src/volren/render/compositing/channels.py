@@ -16,6 +16,7 @@ overlap, as additive blending does (the tone map or the PNG's clamp limits it).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -151,8 +152,6 @@ class AdditiveChannels:
             raise VolrenError("a multi-channel volume is drawn without opaque geometry (--sphere, --ground, --mesh): "
                               "each channel's render would add the surfaces once more")
         if self._scenes is None or self._scenes[0] is not scene:
-            from dataclasses import replace
-
             self._scenes = (scene, tuple(replace(scene, volumes=(v,), name=f"{scene.name}[c{c}]")
                                          for c, v in enumerate(scene.volumes)))
         return self._scenes[1]
