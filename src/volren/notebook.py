@@ -21,8 +21,8 @@ frame of the current camera, size and settings, so ``Viewer(scene).get_frame()``
 from __future__ import annotations
 
 import asyncio
-import atexit
 import concurrent.futures
+import concurrent.futures.thread  # registers its exit hook first (`_close_all`)
 import contextlib
 import dataclasses
 import io
@@ -38,7 +38,7 @@ import numpy as np
 from jupyter_rfb import RemoteFrameBuffer
 from traitlets import Bool, Float, Unicode, validate
 
-from volren.camera import Camera
+from volren.camera import Camera, StereoRig
 from volren.device import resolve_device
 from volren.errors import VolrenError
 from volren.presets import QUALITIES
@@ -135,11 +135,16 @@ def _raw_pixels(rgb: np.ndarray) -> bytes:
 _OPEN: weakref.WeakSet[Viewer] = weakref.WeakSet()
 
 
-@atexit.register
 def _close_all() -> None:
-    """Stop every viewer's render before the interpreter's teardown (a daemon thread inside a kernel launch then)."""
+    """Stop every viewer's render at the interpreter's exit, before `concurrent.futures` refuses new work (the loop's
+    next tick would log a traceback) and before the teardown (a daemon thread inside a kernel launch then)."""
     for viewer in list(_OPEN):
         viewer.stop()
+
+
+# threading's exit hooks run before `atexit`'s, the last registered first: concurrent.futures.thread (imported above)
+# has registered its shutdown, so this runs before it
+threading._register_atexit(_close_all)  # type: ignore[attr-defined]
 
 
 class Viewer(RemoteFrameBuffer):
@@ -186,6 +191,7 @@ class Viewer(RemoteFrameBuffer):
                               f"{', '.join(methods)} only")
         device = resolve_device(device)
         camera = camera if camera is not None else default_camera(scene)
+        StereoRig(camera, ipd)  # checks ipd now, not at the first stereo frame
         self._orbit = Orbit.of(camera)
         self._up, self._fov = camera.up, camera.fov_y
         self._camera_id = 0
@@ -208,7 +214,7 @@ class Viewer(RemoteFrameBuffer):
             self._call(self._start, scene, method, quality, Settings(tf=tf, mode=mode, iso_value=iso_value), camera,
                        (width, height, stereo), device, ipd, settings)
         except BaseException:
-            self.stop()
+            self.close()
             raise
         _OPEN.add(self)
 
