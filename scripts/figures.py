@@ -21,6 +21,7 @@ from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.imageio import composite, to_srgb8
 from volren.metrics import error_heatmap, psnr
+from volren.progress import progress
 from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "out" / "figures"
@@ -44,7 +45,10 @@ def main() -> None:
         "CMSRM:100:48": CMSRM(CMSRMConfig(samples=100, light_samples=48, **common), "cpu"),
         "CACRM": CACRM(CACRMConfig(samples=360, light_samples=96, **common), "cpu"),
     }
-    images = {name: r.render(scene, views).images[0] for name, r in renders.items()}
+    with progress("figures: banding", len(renders) * sum(v.height for v in views), always=True) as advance:
+        for r in renders.values():  # each view's image pass reports its rows: minutes on a CPU
+            r.on_rows = advance
+        images = {name: r.render(scene, views).images[0] for name, r in renders.items()}
     ref = images["reference 512:512"]
     top = [to_srgb8(composite(img, scene.background), exposure=EXPOSURE) for img in images.values()]
     bottom = [error_heatmap(ref, img) for img in images.values()]

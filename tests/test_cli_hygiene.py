@@ -137,3 +137,20 @@ def test_an_interrupted_launch_stops_its_other_bands(monkeypatch) -> None:
         idle.result()
     done = int(np.count_nonzero(out.numpy()[:, 0]))
     assert done < rows // 8 // 2, f"{done} rows rendered after the interrupt"  # less than half a band
+
+
+def test_a_bench_suite_reports_each_measured_case(capfd) -> None:
+    from types import SimpleNamespace
+
+    from volren.bench import measure
+    from volren.progress import case_done, cases
+
+    stats = SimpleNamespace(times_ms={"march": 2.0}, counters={"rays": 1})
+    renderer = SimpleNamespace(name="dssrm", render=lambda scene, views, frame=0: SimpleNamespace(stats=stats))
+    view = SimpleNamespace(width=96, height=64)
+    with cases("bench dssrm"):
+        measure(renderer, None, [view, view], repeats=2)
+        case_done("cmsrm, 1 view(s) of 96x64")
+    case_done("outside any suite")  # says nothing
+    assert capfd.readouterr().err.splitlines() == ["volren: bench dssrm: case 1 done (dssrm, 2 view(s) of 96x64), 0 s",
+                                                   "volren: bench dssrm: case 2 done (cmsrm, 1 view(s) of 96x64), 0 s"]

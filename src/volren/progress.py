@@ -53,3 +53,32 @@ def progress(label: str, total: int, unit: str = "rows", *, always: bool = False
                 print(_line(label, done, total, unit, now - start), file=sys.stderr, flush=True)
 
     yield advance
+
+
+_case_hook: list[Callable[[str], None]] = []
+"""the innermost `cases` context's report function (bench suites report each measured case through `case_done`)"""
+
+
+@contextmanager
+def cases(label: str) -> Iterator[None]:
+    """Steps whose number is not known up front (a bench suite's cases): a plain line on stderr as each ends, saying
+    how many are done and the time so far; `case_done` reports one."""
+    start = time.perf_counter()
+    done = [0]
+
+    def report(what: str) -> None:
+        done[0] += 1
+        print(f"volren: {label}: case {done[0]} done ({what}), {time.perf_counter() - start:.0f} s", file=sys.stderr,
+              flush=True)
+
+    _case_hook.append(report)
+    try:
+        yield
+    finally:
+        _case_hook.pop()
+
+
+def case_done(what: str) -> None:
+    """One case of the running `cases` is done (nothing outside one)."""
+    if _case_hook:
+        _case_hook[-1](what)

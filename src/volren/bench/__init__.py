@@ -19,6 +19,7 @@ import warp as wp
 from volren.camera import Camera
 from volren.device import cpu_threads, resolve_device
 from volren.errors import VolrenError
+from volren.progress import case_done, cases
 from volren.render import Renderer
 from volren.scene import Scene
 
@@ -66,6 +67,7 @@ def measure(renderer: Renderer, scene: Scene, views: list[Camera], repeats: int)
     passes = sorted({k for f in frames for k in f.stats.times_ms if k not in NOT_PASSES})
     times = {f"{k}_ms": statistics.median(f.stats.times_ms.get(k, 0.0) for f in frames) for k in passes}
     fastest = min(sum(f.stats.times_ms.get(k, 0.0) for k in passes) for f in frames)
+    case_done(f"{renderer.name}, {len(views)} view(s) of {views[0].width}x{views[0].height}")
     return {"frame_ms": sum(times.values()), "frame_min_ms": fastest, **times, **frames[-1].stats.counters,
             "frame": frames[-1]}
 
@@ -125,7 +127,8 @@ def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None) -
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise VolrenError(f"cannot create '{out}': {exc.strerror}") from exc
-    result = suites[name].run(quick, device)
+    with cases(f"bench {name}"):  # a line per measured case on stderr: a suite takes minutes
+        result = suites[name].run(quick, device)
     table = markdown_table(result["rows"], result["columns"])
     summary_rows, summary_columns = result.pop("summary", ([], []))
     if summary_rows:
