@@ -168,3 +168,19 @@ def test_density_validation_by_min_and_max_still_refuses_and_counts():
     grid[1, 2, 3] = np.nan
     with pytest.raises(VolrenError, match="1 NaN/Inf"):
         validate_density(grid)
+
+
+def test_omero_channel_colours_are_the_default_and_the_flag_overrides_them(tmp_path):
+    """A file's ``omero`` channel colours (cyan, orange) colour its channels unless --channel-colors is given."""
+    path = tmp_path / "p.zarr"
+    write_pyramid(path)
+    meta = json.loads((path / "zarr.json").read_text())
+    meta["attributes"]["ome"]["omero"] = {"channels": [{"color": "00FFFF"}, {"color": "FF8000"}]}
+    (path / "zarr.json").write_text(json.dumps(meta))
+    assert load_volume(path).channel_colors == ((0.0, 1.0, 1.0), (1.0, 128 / 255, 0.0))
+    from volren.cli import build_parser, scene_from_args
+
+    for flags, blue0, green1 in (([], 1.0, 128 / 255), (["--channel-colors", "green,magenta"], 0.0, 0.0)):
+        vols = scene_from_args(build_parser().parse_args(["render", "--volume", str(path), *flags])).volumes
+        assert vols[0].emission[2] == pytest.approx(vols[0].density_scale * blue0)  # cyan / green
+        assert vols[1].emission[1] == pytest.approx(vols[1].density_scale * green1)  # orange / magenta

@@ -613,8 +613,9 @@ def channel_scene(args: argparse.Namespace, loaded):
     if unused:
         raise CliError(f"a multi-channel volume glows in its channel colours, unlit: {', '.join(unused)} would do "
                        "nothing (use --channel-colors, --channel-opacity)")
-    volumes = channel_volumes(loaded.channels, loaded.to_world, colors=args.channel_colors,
-                              opacity=args.channel_opacity, name=args.volume.name)
+    colors = args.channel_colors or loaded.channel_colors or None  # the flag, else the file's (OME-Zarr omero)
+    volumes = channel_volumes(loaded.channels, loaded.to_world, colors=colors, opacity=args.channel_opacity,
+                              name=args.volume.name)
     return Scene(volumes, lights=(), environment=Environment((0.0, 0.0, 0.0)), name=args.volume.stem)
 
 

@@ -67,6 +67,8 @@ class _Grid:
     """``spacing`` replaces the stored placement (ImageJ TIFF, NanoVDB) instead of being refused."""
     level: int | None = None
     """the OME-Zarr pyramid level read (`volren.data.omezarr`)."""
+    channel_colors: tuple[tuple[float, float, float], ...] = ()
+    """the file's own colour per channel (OME-Zarr ``omero``), () when it states none."""
     emission: np.ndarray | None = None
     """a second grid of an OpenVDB file (``emission_grid``), raw float32 values, the shape of ``data``."""
 
@@ -116,6 +118,8 @@ class LoadedVolume:
     for voxel with ``density``; None otherwise."""
     value_mapping: ValueMapping | None = None
     """how the file's values became ``density`` (stats.json's ``value_mapping``)."""
+    channel_colors: tuple[tuple[float, float, float], ...] = ()
+    """a multi-channel file's own colour per channel (OME-Zarr ``omero``); () when it states none."""
 
     @property
     def corners_world(self) -> np.ndarray:
@@ -510,7 +514,7 @@ def load_volume(
     hounsfield = value_range is not None and units == "HU"
     mapping = None if channels else ValueMapping(grid.source or grid.data.dtype.name, value_range, units)
     return LoadedVolume(density, index_to_world @ _local_to_index(density.shape), value_range, hounsfield, channels,
-                        grid.level, grid.emission, mapping)
+                        grid.level, grid.emission, mapping, grid.channel_colors if channels else ())
 
 
 def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None, **options: str) -> _Grid:

@@ -161,4 +161,15 @@ def _read_multiscale(path: Path, group: Any, level: int | None, budget: float) -
     m = np.eye(4)
     m[:3, :3] = np.diag(step)
     m[:3, 3] = origin
-    return _Grid(data, m, IMAGE_SPACE, metres_per_unit, level=chosen)
+    colors = _omero_colors(attrs, data.shape[0]) if len(keep) == 4 else ()
+    return _Grid(data, m, IMAGE_SPACE, metres_per_unit, level=chosen, channel_colors=colors)
+
+
+def _omero_colors(attrs: dict[str, Any], count: int) -> tuple[tuple[float, float, float], ...]:
+    """The channels' display colours of the (transitional) ``omero`` metadata, hex ``RRGGBB``; () unless every
+    channel has one."""
+    channels = attrs.get("omero", {}).get("channels", []) if isinstance(attrs.get("omero"), dict) else []
+    colors = [str(c.get("color", "")) if isinstance(c, dict) else "" for c in channels]
+    if len(colors) != count or not all(len(c) == 6 and all(h in "0123456789abcdefABCDEF" for h in c) for c in colors):
+        return ()
+    return tuple(tuple(int(c[i : i + 2], 16) / 255 for i in (0, 2, 4)) for c in colors)
