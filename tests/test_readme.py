@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
+import importlib.util
 import re
 import shlex
 from pathlib import Path
-
-import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text()
@@ -26,8 +25,9 @@ def test_every_repository_file_named_exists():
 
 
 # Every `volren` line of the README's sh blocks runs at a reduced size (the overrides below come last, so argparse
-# takes them over the line's own values), in a scratch folder holding stand-ins for the user's files it names.
-# Skipped: `volren bench` suites (minutes each even with --quick; tests/test_bench.py runs their configs small).
+# takes them over the line's own values), in a scratch folder holding stand-ins for the user's files it names;
+# scripts/readme_examples.py --time runs them as written. `volren bench` lines are parsed and their suites looked
+# up, not run (minutes each even with --quick; tests/test_bench.py runs their configs small).
 MARCHERS = ("--samples", "16", "--light-samples", "8")
 SMALL = {
     "dssrm": (*MARCHERS, "--light-grid", "16"), "cmsrm": (*MARCHERS, "--light-grid", "16", "--cube-size", "32"),
@@ -37,10 +37,18 @@ SMALL = {
 SIZE = ("--width", "32", "--height", "24", "--device", "cpu")
 
 
+def _examples_module():
+    spec = importlib.util.spec_from_file_location("readme_examples", ROOT / "scripts" / "readme_examples.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+EXAMPLES = _examples_module()
+
+
 def readme_commands() -> list[list[str]]:
-    blocks = re.findall(r"```sh\n(.*?)```", README, flags=re.S)
-    lines = "\n".join(blocks).replace("\\\n", " ").splitlines()
-    return [words for line in lines if (words := shlex.split(line, comments=True)) and words[0] == "volren"]
+    return [words for words in EXAMPLES.readme_examples(README) if words[0] == "volren"]
 
 
 def reduced(words: list[str]) -> list[str]:
@@ -59,35 +67,58 @@ def reduced(words: list[str]) -> list[str]:
         extra += ["--switch-tf", "1:" + args[args.index("--switch-tf") + 1].split(":", 1)[1]]
     if "--gi-rays" in args:
         extra += ["--gi-rays", "16"]
-    if "--shape" in args:
-        extra += ["--shape", "16,16,16"]
     return [*args, *extra]
-
-
-def stand_ins(folder: Path) -> None:
-    """The user's files the README names, small."""
-    import nibabel as nib
-    import nrrd
-
-    from volren.data.procedural import phantom_density
-    from volren.transfer import PRESETS
-
-    head = phantom_density(64)
-    nrrd.write(str(folder / "head.nrrd"), np.asfortranarray((head * 1000).astype(np.int16).transpose(2, 1, 0)),
-               {"space": "left-posterior-superior", "space directions": np.diag([3.0, 3.0, 3.0]).tolist()},
-               index_order="F")
-    nib.save(nib.Nifti1Image(np.ascontiguousarray(head.transpose(2, 1, 0)), np.diag([3.0, 3.0, 3.0, 1.0])),
-             str(folder / "ct.nii.gz"))
-    (head[::4, ::4, ::4] * 60000).astype(np.uint16).tofile(folder / "ct.raw")  # 16^3, as --shape 16,16,16 says
-    sky = np.ones((16, 32, 3), np.float32) * np.linspace(2.0, 0.2, 16, dtype=np.float32)[:, None, None]
-    np.save(folder / "sky.npy", sky)
-    np.save(folder / "zbuffer.npy", np.full((24, 32), 3.0, np.float32))
-    (folder / "bunny.obj").write_text("v 0 0 0\nv 0.2 0 0\nv 0 0.2 0\nv 0 0 0.2\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
-    (folder / "my_tf.json").write_text(PRESETS["ct-bone"].to_json())
 
 
 def out_folder(args: list[str]) -> Path:
     return Path(args[len(args) - 1 - args[::-1].index("--out") + 1]) if "--out" in args else Path("out")
+
+
+EXAMPLE_PIXEL_FRAMES = 5_000_000
+"""width x height x views x frames of a README render as written: 2.2x the largest (fog hall, 16 viewers at 640x360);
+the full-size animate examples (60 frames of 640x360 stereo) were 28 M"""
+EXAMPLE_PATHS = 4_000_000
+"""vpt: pixel-frames x spp as written (the largest: 3.7 M, the phantom at 320x180 stereo, 32 spp)"""
+EXAMPLE_REFERENCE_STEPS = 7e10
+"""reference: pixel-frames x view steps x shadow steps, as written (the largest: the cloud for the comparison at
+320x180, 1024 x 1024, 6.0e10; instances-overlap at 640x360 was 2.4e11)"""
+
+
+def test_every_readme_render_is_sized_to_finish_in_about_a_minute():
+    """Issue 22.5: the README's renders as written stay within the sizes measured to run in about a minute on two
+    cores (scripts/readme_examples.py --time); a line that grows back to full size fails here."""
+    from volren.cli import build_parser
+    from volren.presets import quality_config
+
+    parser = build_parser()
+    over = []
+    for words in readme_commands():
+        if words[1] not in ("render", "animate", "demo"):
+            continue
+        args = parser.parse_args(words[1:])
+        views = {"mono": 1, "stereo": 2}.get(args.views) or int(args.views)
+        pixel_frames = args.width * args.height * views * (args.frames or 60)  # animate's default 60
+        config = quality_config(getattr(args, "method", "dssrm"), args.quality)
+        work = {"pixel-frames": (pixel_frames, EXAMPLE_PIXEL_FRAMES)}
+        if hasattr(config, "spp"):
+            work["paths"] = (pixel_frames * (args.spp or config.spp), EXAMPLE_PATHS)
+        if type(config).__name__ == "ReferenceConfig":
+            steps = (args.samples or config.samples) * (args.light_samples or config.light_samples)
+            work["reference steps"] = (pixel_frames * steps, EXAMPLE_REFERENCE_STEPS)
+        over += [f"{shlex.join(words)}: {n:.2e} {what}" for what, (n, most) in work.items() if n > most]
+    assert not over, "README examples too large to finish in about a minute:\n" + "\n".join(over)
+
+
+def test_every_readme_bench_line_names_a_suite():
+    from volren.bench import all_suites
+    from volren.cli import build_parser
+
+    benches = [w[1:] for w in readme_commands() if w[1] == "bench"]
+    assert len(benches) >= 10
+    parser = build_parser()
+    for args in benches:
+        parsed = parser.parse_args(args)
+        assert parsed.suite == "list" or parsed.suite in all_suites(), args
 
 
 def test_every_readme_command_runs_at_reduced_size(tmp_path, monkeypatch, capsys):
@@ -99,7 +130,7 @@ def test_every_readme_command_runs_at_reduced_size(tmp_path, monkeypatch, capsys
     # compare reads what the renders wrote, wherever the README puts it
     commands.sort(key=lambda a: a[0] == "compare")
     assert len(commands) >= 35  # 44 volren lines, 8 of them benches
-    stand_ins(tmp_path)
+    EXAMPLES.stand_ins(tmp_path, 32, 24)
     monkeypatch.chdir(tmp_path)
     # `volren serve` builds its scene, render loop and app, then would listen until interrupted: not here
     monkeypatch.setattr("volren.serve.app.serve", lambda app, host, port, token: None)
@@ -125,7 +156,7 @@ def test_every_readme_python_block_runs_as_written(tmp_path, monkeypatch):
 
     blocks = re.findall(r"```python\n(.*?)```", README, flags=re.S)
     assert blocks
-    stand_ins(tmp_path)
+    EXAMPLES.stand_ins(tmp_path, 32, 24)
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(Image.Image, "show", lambda image, *args, **kwargs: None)  # Frame.show: no viewer here
     for n, code in enumerate(blocks):
