@@ -42,6 +42,15 @@ def test_plain_progress_steps_and_quiet_start(capfd) -> None:
     assert capfd.readouterr().err == ""
 
 
+def test_a_long_single_render_says_it_runs_once_the_quiet_time_is_over(capfd, monkeypatch) -> None:
+    monkeypatch.setattr(progress_module, "QUIET_SECONDS", 0.0)
+    with progress_module.progress("long", 100) as advance:
+        for n in (3, 3, 10, 1):
+            advance(n)
+    percents = [line.split(": ")[2].split(" ")[0] for line in capfd.readouterr().err.splitlines()]
+    assert percents == ["3%", "16%"]  # at once, then the next 10% step (and not again within it)
+
+
 def test_empty_compare_input_is_one_line(capfd, tmp_path: Path) -> None:
     empty = tmp_path / "empty.npy"
     empty.write_bytes(b"")

@@ -1,8 +1,9 @@
 """Progress of long runs on stderr (renders, ``animate``, bench suites, scripts), so slow can be told from stuck.
 
 On an interactive terminal a rich bar with an ETA; otherwise (CI, pipes, logs) a plain line at every 10% of the
-work. A run that may be short (one frame) prints its lines only once it has run `QUIET_SECONDS`; one of many steps
-(frames, bench cases) always prints them. Light to import: rich only when a bar is drawn.
+work. A run that may be short (one frame) prints nothing for its first `QUIET_SECONDS` of work, then a line saying
+where it is and one at every 10%; a run of many frames prints the ten lines whatever its length. Light to
+import: rich only when a bar is drawn.
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ def progress(label: str, total: int, unit: str = "rows", *, always: bool = False
         return
     start = time.perf_counter()
     lock = threading.Lock()
-    state = {"done": 0, "shown": 0, "first": 0.0}  # units done; the last step (of STEPS) printed; first report
+    state = {"done": 0, "shown": -1 if not always else 0, "first": 0.0}  # units done; the last step (of STEPS)
+    # printed, -1: none yet (a single render says it is running once the quiet time is over, then every 10%)
 
     def advance(n: int) -> None:
         with lock:
