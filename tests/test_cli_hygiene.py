@@ -163,3 +163,18 @@ def test_a_bench_suite_reports_each_measured_case(capfd) -> None:
     case_done("outside any suite")  # says nothing
     assert capfd.readouterr().err.splitlines() == ["volren: bench dssrm: case 1 done (dssrm, 2 view(s) of 96x64), 0 s",
                                                    "volren: bench dssrm: case 2 done (cmsrm, 1 view(s) of 96x64), 0 s"]
+
+
+@pytest.mark.parametrize(("name", "content", "cause"), [
+    ("noise.usdc", np.random.default_rng(1).bytes(2000), "Sdf crate bootstrap section corrupt"),
+    ("cut.usda", b'#usda 1.0\ndef Mesh "m" { int[] faceVertexCounts = [3\n', "parse error matching"),
+    ("noise.stl", np.random.default_rng(2).bytes(2000), "noise.stl"),
+])
+def test_a_corrupt_mesh_is_one_line_naming_its_cause(capfd, tmp_path: Path, name: str, content: bytes,
+                                                     cause: str) -> None:
+    if name.startswith(("noise.usd", "cut.usd")):
+        pytest.importorskip("pxr")
+    path = tmp_path / name
+    path.write_bytes(content)
+    line = assert_error(capfd, ["render", *TINY, "--mesh", path, "--out", tmp_path / "out"], name, cause)
+    assert "Error in" not in line and "pxrInternal" not in line and "charset" not in line

@@ -3,6 +3,7 @@ translucent scene geometry."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -36,12 +37,20 @@ def load_mesh_file(
     except VolrenError:
         raise
     except Exception as exc:  # any parser failure on user data means an unreadable or corrupt file
-        raise VolrenError(f"{path}: cannot read the mesh ({type(exc).__name__}: {exc})") from None
+        raise VolrenError(f"{path}: cannot read the mesh ({type(exc).__name__}: {_cause(exc)})") from None
     if faces.size == 0:
         raise VolrenError(f"{path}: holds no triangles")
     check_manifold(faces, path)
     vertices = vertices * float(scale) + np.asarray(translate, dtype=np.float64)
     return TriangleMesh(vertices, faces.astype(np.int64), albedo=albedo, name=path.name, alpha=alpha)
+
+
+def _cause(exc: Exception) -> str:
+    """A parser's error in one line. USD's lists its C++ frames, a line each: "Error in 'f' at line N in file F :
+    'what'"; the first what is the cause (its namespace names shortened)."""
+    text = re.sub(r"pxrInternal_\w+?__pxrReserved__::", "", str(exc))
+    what = re.search(r" : '(.+)", text)
+    return what.group(1).rstrip("'") if what else " ".join(text.split())
 
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
