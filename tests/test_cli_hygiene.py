@@ -178,3 +178,11 @@ def test_a_corrupt_mesh_is_one_line_naming_its_cause(capfd, tmp_path: Path, name
     path.write_bytes(content)
     line = assert_error(capfd, ["render", *TINY, "--mesh", path, "--out", tmp_path / "out"], name, cause)
     assert "Error in" not in line and "pxrInternal" not in line and "charset" not in line
+
+
+def test_the_cli_copies_of_fog_scene_names_and_the_pixel_cap_equal_their_sources() -> None:
+    from volren import camera, cli
+    from volren.data.fog_scenes import FOG_SCENES
+
+    assert cli.FOG_SCENE_NAMES == tuple(FOG_SCENES)
+    assert cli.MAX_VIEW_PIXELS == camera.MAX_PIXELS
