@@ -1136,8 +1136,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("volren: error: out of memory (try a smaller image, resolution or view count)", file=sys.stderr)
         return 2
     except OSError as exc:  # what no loader or writer turned into a VolrenError: stdout on a full disk, mostly
-        if exc.filename is None:  # a print: stdout. The exit-time flush would fail again: point it at /dev/null
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         print(f"volren: error: cannot write {exc.filename or 'stdout'}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
