@@ -15,6 +15,7 @@ import pytest
 import warp as wp
 
 from test_cli import PROGRESS_LINE, assert_error, run
+from volren import device
 from volren import progress as progress_module
 from volren.device import MAX_BANDS, _band_pool, init_warp, launch_rows
 
@@ -131,11 +132,12 @@ def test_an_interrupted_launch_stops_its_other_bands(monkeypatch) -> None:
     """Ctrl-C in Python (a notebook): the bands still running stop after their current launch, not at the frame's
     end (the pool would otherwise go on rendering it while the next call waits)."""
     monkeypatch.setenv("VOLREN_CPU_THREADS", "2")
+    monkeypatch.setattr(device, "STOP_SECONDS", 1e-4)  # a launch of one row each, whatever this machine's speed
     init_warp()
     rows, cols = 256, 64
     out = wp.zeros((rows, cols), dtype=wp.float32, device="cpu")
     counters = wp.zeros((MAX_BANDS, 1), dtype=wp.int64, device="cpu")
-    launch_rows(slow_rows_kernel, 1, cols, [out, 1], "cpu", counters)  # compiled before the timed launch
+    launch_rows(slow_rows_kernel, 1, cols, [out, 20000], "cpu", counters)  # compiled and timed first
 
     def interrupt(_rows: int) -> None:
         raise KeyboardInterrupt
@@ -184,5 +186,5 @@ def test_the_cli_copies_of_fog_scene_names_and_the_pixel_cap_equal_their_sources
     from volren import camera, cli
     from volren.data.fog_scenes import FOG_SCENES
 
-    assert cli.FOG_SCENE_NAMES == tuple(FOG_SCENES)
+    assert tuple(FOG_SCENES) == cli.FOG_SCENE_NAMES
     assert cli.MAX_VIEW_PIXELS == camera.MAX_PIXELS
