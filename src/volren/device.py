@@ -10,7 +10,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from typing import Any
 
 import warp as wp
@@ -156,9 +156,11 @@ def launch_rows(
     pool = _band_pool(threads)
     futures = [pool.submit(run, b, edges[b], edges[b + 1]) for b in range(bands)]
     try:
-        for f in futures:
-            f.result()
-    except BaseException:  # Ctrl-C (or a failed band): the others stop after their current launch
+        wait(futures, return_when=FIRST_EXCEPTION)  # Ctrl-C lands here, between the bands' launches
+        failed = [f.exception() for f in futures if f.done() and f.exception() is not None]
+        if failed:
+            raise failed[0]
+    except BaseException:  # Ctrl-C or a failed band (a serve render abandoned): the others stop after their launch
         stop.set()
         raise
 
