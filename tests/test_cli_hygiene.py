@@ -114,7 +114,7 @@ def test_ctrl_c_stops_a_long_render_at_once_and_leaves_nothing(tmp_path: Path) -
     stopped = time.perf_counter() - sent
     assert proc.returncode == 130, rest
     assert rest.splitlines()[-1] == "volren: interrupted" and "Traceback" not in rest
-    assert stopped < 2.0, f"took {stopped:.1f} s to stop"
+    assert stopped < 1.5, f"took {stopped:.1f} s to stop"  # a row launch at most, no interpreter exit (~2-4 s)
     assert list(tmp_path.iterdir()) == [], "a partial run was left behind"
 
 
