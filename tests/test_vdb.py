@@ -47,6 +47,30 @@ SPARSE[10, 9, 6] = 7.0  # the marker voxel
 MANY = RNG.uniform(0.1, 1.0, (40, 36, 64)).astype(np.float32)
 """5 x 5 x 8 leaves and more at an offset that spans two lower internal nodes in x (128 voxels each): tinyvdb 0.9.0's
 own densify keeps at most 64 leaves per lower node"""
+PRUNED = np.zeros((40, 40, 48), np.float32)
+PRUNED[4:28, 4:28, 4:36] = 0.5  # a thick smoke's constant interior: OpenVDB stores its whole 8^3 blocks as tiles
+PRUNED[8, 14, 14] = 0.9  # one whole block of the interior (index x 0-7, y 16-23, z 8-15) stays a leaf
+PRUNED[32:, 32:, 40:] = RNG.uniform(0.1, 1.0, (8, 8, 8))  # a far corner: background between it and the interior
+PRUNED_IJK = (-12, 5, 3)
+"""x from -12: the interior's tiles lie in two lower internal nodes (x < 0 and x >= 0)"""
+INACTIVE_TILES = [((-128, 0, 0), (-121, 7, 7), 5.0, False), ((-120, 0, 0), (-113, 7, 7), 6.0, False),
+                  ((-112, 0, 0), (-105, 7, 7), 7.0, False), ((64, 64, 64), (71, 71, 71), 5.0, False)]
+"""inactive 8^3 tiles outside the active box, in the lower nodes that hold the interior's tiles: three distinct
+inactive values (plus the background) make OpenVDB store all 4096 tile values of one node (metadata
+NO_MASK_AND_ALL_VALS), one value the active ones and a selection mask"""
+COARSE = np.zeros((128, 128, 136), np.float32)
+COARSE[:, :, 8:] = 2.0  # an upper internal node's 128^3 tile (index x 128-255), filled by grid.fill
+COARSE[:8, :8, :8] = RNG.uniform(0.1, 1.0, (8, 8, 8))  # a leaf at index x 120-127
+FLOOR = np.full((40, 40, 40), 300.0, np.float32)
+FLOOR[12:20, 14:30, 9:17] = 300.0 + 1500.0 * RNG.uniform(0.0, 1.0, (8, 16, 8))
+"""a temperature grid: an ambient 300 K floor (tiles wherever a whole 8^3 block is at the floor) and a hot core"""
+SMOKE = RNG.uniform(0.1, 1.0, (16, 16, 16)).astype(np.float32)
+SMOKE_IJK = (-8, 200, 300)
+"""x -8 to 7: across two root tiles, an inactive and an active one"""
+AMBIENT = [((0, 0, 0), (4095, 4095, 4095), 300.0, True), ((4096, 0, 0), (8191, 4095, 4095), 1200.0, True),
+           ((-4096, 0, 0), (-1, 4095, 4095), 70.0, False)]
+"""a temperature grid of root tiles only: 300 K over index x 0-4095 and 1200 K over 4096-8191 (4096^3 each), beside
+an inactive one (its value not the background 0; inactive voxels read as the background)"""
 
 
 CENTRED = -np.array(SCALE) * (np.array(IJK) + (np.array(SHAPE[::-1]) - 1) / 2)
@@ -76,7 +100,14 @@ def vdb_dir(tmp_path_factory) -> Path:
                         {**_grid("temperature", TEMPERATURE), "matrix": _matrix(translation=CENTRED)}],
         "rotated.vdb": [{**_grid("density", DENSITY), "matrix": ROTATED}],
         "many.vdb": [{"name": "density", "array": MANY, "ijk": (100, -20, 3), "matrix": _matrix()}],
-        "tiles.vdb": [{"name": "density", "array": np.ones((16, 16, 16), np.float32)}],
+        "pruned.vdb": [{"name": "density", "array": PRUNED, "ijk": PRUNED_IJK, "matrix": _matrix(),
+                        "fills": INACTIVE_TILES}],
+        "pruned-half.vdb": [{"name": "density", "array": PRUNED, "ijk": PRUNED_IJK, "half": True}],
+        "coarse.vdb": [{"name": "density", "array": COARSE[:, :, :8], "ijk": (120, 0, 0),
+                        "fills": [((128, 0, 0), (255, 127, 127), 2.0, True)]}],
+        "floor.vdb": [{"name": "temperature", "array": FLOOR}],
+        "ambient.vdb": [{"name": "density", "array": SMOKE, "ijk": SMOKE_IJK},
+                        {"name": "temperature", "array": None, "fills": AMBIENT}],
         "moved.vdb": [_grid("density", DENSITY), {**_grid("temperature", TEMPERATURE), "matrix": _matrix((0.5,) * 3)}],
     }, folder)
     data = (folder / "two.vdb").read_bytes()
@@ -177,7 +208,6 @@ def test_memory_check_refuses_before_allocating(vdb_dir, monkeypatch):
 
 
 @pytest.mark.parametrize("name, fragment", [("empty.vdb", "grid 'density' has no active voxels"),
-                                            ("tiles.vdb", "has active tiles (constant regions)"),
                                             ("truncated.vdb", "not a readable OpenVDB file, truncated or corrupt")])
 def test_empty_and_truncated_files_are_one_line_errors(vdb_dir, name, fragment):
     with pytest.raises(VolrenError) as err:
@@ -230,3 +260,69 @@ def test_cli_refuses_grid_misuse_and_bad_files_in_one_line(vdb_dir, tmp_path, ca
         "unknown": (["--volume", vdb_dir / "two.vdb", "--grid", "fuel"], ["two.vdb", "'fuel'", "density (float)"]),
     }[case]
     render_error(capfd, tmp_path, extra, *fragments)
+
+
+def _tile_counts(path: Path) -> tuple[int, int]:
+    """Active tiles of the (upper, lower) internal nodes, as tinyvdb counts them: the fixture really has tiles."""
+    import tinyvdb
+
+    with tinyvdb.open(str(path)) as f:
+        f.read_grids()
+        tree = f.grid(0).tree
+        nodes = [tree.node(i) for i in range(tree.num_nodes)]
+        return tuple(sum(n.active_voxel_count for n in nodes if n.level == level) for level in (1, 2))
+
+
+def _active_crop(array: np.ndarray) -> np.ndarray:
+    nz = np.nonzero(array)
+    return array[tuple(slice(int(a.min()), int(a.max()) + 1) for a in nz)]
+
+
+@pytest.mark.parametrize("compression", ["blosc", "zip", "zip-active-mask", "none"])
+def test_pruned_interior_tiles_read_as_their_value(vdb_dir, tmp_path, compression):
+    """A thick smoke whose constant interior OpenVDB stored as 8^3 tiles of the lower internal nodes (their values
+    compressed as the grid says) reads exactly as the array written; the inactive tiles beside it add nothing."""
+    import tinyvdb
+
+    path = vdb_dir / "pruned.vdb"
+    assert _tile_counts(path) == (0, 4 * 2 * 2 - 1)  # the interior's whole 8^3 blocks of index space, but one
+    if compression != "blosc":
+        flags = {"zip": tinyvdb.COMPRESS_ZIP, "zip-active-mask": tinyvdb.COMPRESS_ZIP | tinyvdb.COMPRESS_ACTIVE_MASK,
+                 "none": tinyvdb.COMPRESS_NONE}[compression]
+        with tinyvdb.open(str(path)) as f:
+            f.read_grids()
+            path = tmp_path / f"{compression}.vdb"
+            path.write_bytes(f.to_bytes(compression=flags, level=5))
+    loaded = load_volume(path)
+    np.testing.assert_array_equal(loaded.density, _active_crop(PRUNED))
+    lo = np.add(PRUNED_IJK, (4, 4, 4))  # the active box's first voxel (x, y, z)
+    np.testing.assert_allclose(_world(loaded, (0, 0, 0)), np.array(SCALE) * lo + TRANSLATION, atol=1e-12)
+
+
+def test_pruned_half_precision_tiles(vdb_dir):
+    loaded = load_volume(vdb_dir / "pruned-half.vdb")
+    assert _tile_counts(vdb_dir / "pruned-half.vdb") == (0, 15)
+    np.testing.assert_array_equal(loaded.density, _active_crop(PRUNED).astype(np.float16).astype(np.float32))
+
+
+def test_upper_node_tile_fills_128_cubed(vdb_dir):
+    assert _tile_counts(vdb_dir / "coarse.vdb") == (1, 0)
+    np.testing.assert_array_equal(load_volume(vdb_dir / "coarse.vdb").density, COARSE)
+
+
+def test_temperature_floor_tiles(vdb_dir):
+    """300 K ambient everywhere but a hot core: the floor's whole 8^3 blocks are tiles, read back exactly."""
+    assert _tile_counts(vdb_dir / "floor.vdb")[1] >= 100
+    np.testing.assert_array_equal(load_volume(vdb_dir / "floor.vdb").density, FLOOR)
+
+
+def test_root_tiles_fill_the_density_box_and_their_own_box_is_8192_wide(vdb_dir):
+    """Ambient temperature as root tiles (4096^3 each) densified over the smoke's box, which straddles the inactive
+    one and an active one; on its own its active box is the two active root tiles, too large to densify."""
+    loaded = load_volume(vdb_dir / "ambient.vdb", emission_grid="temperature")
+    np.testing.assert_array_equal(loaded.density, SMOKE)
+    expected = np.full(SMOKE.shape, 300.0, np.float32)
+    expected[:, :, :8] = 0.0  # index x < 0: the inactive root tile
+    np.testing.assert_array_equal(loaded.emission_source, expected)
+    with pytest.raises(VolrenError, match=r"ambient\.vdb: a dense copy of 1 grid\(s\) of 8192x4096x4096 voxels"):
+        load_volume(vdb_dir / "ambient.vdb", grid="temperature")

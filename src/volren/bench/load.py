@@ -49,6 +49,8 @@ for name, grids in spec.items():
         if g.get("array"):
             a = np.load(g["array"])  # volren's [z, y, x] (vec3: [z, y, x, 3]); pyopenvdb takes [x, y, z]
             grid.copyFromArray(np.ascontiguousarray(np.swapaxes(a, 0, 2)), ijk=tuple(g.get("ijk", (0, 0, 0))))
+        for lo, hi, value, active in g.get("fills", ()):
+            grid.fill(tuple(lo), tuple(hi), value, active)
         if g.get("matrix") is not None:
             grid.transform = vdb.createLinearTransform(g["matrix"])
         grid.saveFloatAsHalf = bool(g.get("half", False))
@@ -68,8 +70,10 @@ def openvdb_available() -> bool:
 def write_with_openvdb(files: dict[str, list[dict[str, Any]]], folder: Path) -> None:
     """Write ``.vdb`` files with OpenVDB itself: ``files`` maps a file name to its grids, each a dict with ``name``,
     ``array`` (float32 ``[z, y, x]``, or ``[z, y, x, 3]`` with ``vec3``; None: an empty grid), ``ijk`` (index of
-    element [0, 0, 0]), ``matrix`` (OpenVDB's 4x4 row-vector index-to-world map; None: voxel size 1) and ``half``.
-    Voxels equal to the background 0 are inactive (pyopenvdb's copyFromArray), so zeros make a grid sparse."""
+    element [0, 0, 0]), ``matrix`` (OpenVDB's 4x4 row-vector index-to-world map; None: voxel size 1), ``half`` and
+    ``fills`` (``grid.fill`` boxes ``(lo, hi, value, active)`` in index (x, y, z), after the array).
+    Voxels equal to the background 0 are inactive (pyopenvdb's copyFromArray), so zeros make a grid sparse; constant
+    8^3 blocks of the array and filled whole nodes are stored as tiles, not leaves."""
     spec = {}
     for k, (file, grids) in enumerate(files.items()):
         spec[str(folder / file)] = []

@@ -1,10 +1,12 @@
 """OpenVDB ``.vdb`` files (Houdini, Blender, EmberGen smoke and fire) through tinyvdb: ZIP / Blosc, half precision.
 
 A grid is densified over its active voxels' index bounding box (OpenVDB's ``file_bbox_min`` / ``file_bbox_max``
-stats, which ``openvdb::io::File::write`` stores for every grid; else the box of its active leaves), inactive voxels
-reading as the background value. Placement is the grid's index-to-world map (OpenVDB's row-vector convention,
-world = [i j k 1] M): translation, non-unit and non-uniform voxel sizes, or a general affine map. OpenVDB states no
-length unit; volren reads it as metres (Blender and Houdini work in metres) unless ``units`` says otherwise.
+stats, which ``openvdb::io::File::write`` stores for every grid; else the box of its active leaves and tiles), inactive
+voxels reading as the background value. Active tiles (the constant regions ``prune()`` stores in the internal nodes
+and the root instead of leaves: 8^3, 128^3 and 4096^3 voxels) fill their region with their value. Placement is the
+grid's index-to-world map (OpenVDB's row-vector convention, world = [i j k 1] M): translation, non-unit and
+non-uniform voxel sizes, or a general affine map. OpenVDB states no length unit; volren reads it as metres (Blender
+and Houdini work in metres) unless ``units`` says otherwise.
 """
 
 from __future__ import annotations
@@ -32,8 +34,25 @@ _MAP_BYTES = {"AffineMap": 128, "UnitaryMap": 128, "ScaleMap": 120, "UniformScal
 """bytes each linear map writes after its type name (Mat4d, or 5-6 Vec3d of scale, voxel size and their inverses)"""
 _LEAF_CHUNK = 512
 """leaves (1 MiB of values) joined per scatter into the dense grid"""
+_TILE_EXTENT = {4: 8, 5: 128}
+"""voxels along an edge of a tile of the lower (log2dim 4) and upper (log2dim 5) internal node: its child's extent"""
+_ROOT_TILE_EXTENT = 4096
+_NO_MASK_AND_ALL_VALS = 6
+"""``io::readCompressedValues`` metadata byte: every value is stored, even with active-mask compression"""
 _SCALE_TRANSLATE = ("scale", "translation", "scale_translate", "uniform_scale", "uniform_scale_translate")
 """tinyvdb map types whose ``scale`` and ``translation`` are the whole map (their ``matrix`` is the identity)."""
+
+
+@dataclass(frozen=True)
+class _Tiles:
+    """A grid's active tiles: constant cubes stored in its internal nodes and root instead of leaves."""
+
+    origins: np.ndarray
+    """(T, 3) int64 index (x, y, z) of each tile's first voxel"""
+    extents: np.ndarray
+    """(T,) int64 edge in voxels: 8 (lower internal node), 128 (upper) or 4096 (root)"""
+    values: np.ndarray
+    """(T,) float32"""
 
 
 @dataclass(frozen=True)
@@ -162,27 +181,56 @@ def _grid_offsets(data: bytes | mmap.mmap) -> list[tuple[str, int, int, bool]]:
     return grids
 
 
-def _skip_compressed_values(r: _Reader, count: int, value_mask: np.ndarray, compression: int, half: bool) -> None:
-    """Step over ``io::readCompressedValues`` (an internal node's tile values): the mask-compression metadata byte,
-    inactive values and selection mask, then the data, size-prefixed when ZIP / Blosc compressed."""
+def _compressed_values(r: _Reader, count: int, value_mask: np.ndarray, compression: int, half: bool,
+                       decode: bool) -> np.ndarray | None:
+    """``io::readCompressedValues`` (an internal node's tile values): the mask-compression metadata byte, inactive
+    values and selection mask, then the data, size-prefixed when ZIP / Blosc compressed. Decoded (float32, all
+    ``count`` places, inactive ones 0) when ``decode``, else stepped over."""
     metadata = r.take("b")
     r.raw(4 * (metadata in (2, 4, 5)) + 4 * (metadata == 5))  # one or two float inactive values
     r.raw(count // 8 * (metadata in (3, 4, 5)))  # selection mask between the two inactive values
-    stored = int(value_mask.sum()) if compression & _COMPRESS_ACTIVE_MASK and metadata != 6 else count
+    masked = bool(compression & _COMPRESS_ACTIVE_MASK) and metadata != _NO_MASK_AND_ALL_VALS
+    stored = int(value_mask.sum()) if masked else count  # mask compression keeps the active values only
     if half and stored == 0:  # io::HalfReader reads (and HalfWriter writes) nothing for no values
-        return
+        return None
+    width = 2 if half else 4
     if compression & (_COMPRESS_BLOSC | _COMPRESS_ZIP):
-        r.raw(abs(r.take("q")))  # the compressed size; <= 0: stored uncompressed, -size bytes
+        size = r.take("q")  # the compressed size; <= 0: stored uncompressed, -size bytes
+        raw = r.raw(abs(size))
+        if decode and size > 0:
+            raw = _decompress(raw, compression)
     else:
-        r.raw(stored * (2 if half else 4))
+        raw = r.raw(stored * width)
+    if not decode:
+        return None
+    if len(raw) != stored * width:
+        raise VolrenError(f"tile values decode to {len(raw)} bytes, not the {stored * width} of {stored} values")
+    values = np.frombuffer(raw, np.float16 if half else np.float32).astype(np.float32)
+    if not masked:
+        return values
+    out = np.zeros(count, np.float32)
+    out[value_mask] = values
+    return out
 
 
-def _leaf_origins(path: Path, data: mmap.mmap, index: int, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Origins (L, 3) (x, y, z) of the grid's leaves in file order and their active voxel counts, read from the tree
-    topology (root tiles and children, then per internal node its child and value masks and tile values), which
-    ends where the leaf buffers begin. tinyvdb 0.9.0 decodes every leaf's values but places at most 64 leaves per
-    lower internal node in its own index (so its ``materialize_dense`` / ``to_sparse`` drop the rest of any larger
-    grid); volren places the leaves itself."""
+def _decompress(raw: bytes, compression: int) -> bytes:
+    """One ``io::bloscToStream`` / ``zipToStream`` chunk (Blosc takes precedence, as in ``io::readData``)."""
+    import zlib
+
+    from numcodecs import blosc  # zarr's Blosc; lazy: only grids with active tiles decode any
+
+    try:
+        return blosc.decompress(raw) if compression & _COMPRESS_BLOSC else zlib.decompress(raw)
+    except (RuntimeError, ValueError, zlib.error) as exc:
+        raise VolrenError(f"its tile values do not decompress ({exc})") from None
+
+
+def _leaf_origins(path: Path, data: mmap.mmap, index: int, name: str) -> tuple[np.ndarray, np.ndarray, _Tiles]:
+    """Origins (L, 3) (x, y, z) of the grid's leaves in file order, their active voxel counts and the grid's active
+    tiles, read from the tree topology (root tiles and children, then per internal node its child and value masks
+    and tile values), which ends where the leaf buffers begin. tinyvdb 0.9.0 decodes every leaf's values (not the
+    tiles') but places at most 64 leaves per lower internal node in its own index (so its ``materialize_dense`` /
+    ``to_sparse`` drop the rest of any larger grid); volren places the leaves itself."""
     offsets = _grid_offsets(data)
     if index >= len(offsets) or offsets[index][0] != name:
         raise VolrenError(f"grid {name!r} is not where the file header puts it")
@@ -197,20 +245,30 @@ def _leaf_origins(path: Path, data: mmap.mmap, index: int, name: str) -> tuple[n
     r.take("i")  # buffer count (1)
     r.take("f")  # background
     tiles, children = r.take("II")
-    if any(r.take("iiif?")[4] for _ in range(tiles)):
-        raise VolrenError(f"grid {name!r} has active tiles (constant regions), which volren does not read yet")
+    root = [r.take("iiif?") for _ in range(tiles)]  # RootNode::readTopology: origin, value, active
+    root = [t for t in root if t[4]]
     origins, counts = [], []
+    tile_origins = [np.array([t[:3] for t in root], np.int64).reshape(-1, 3)]
+    tile_extents = [np.full(len(root), _ROOT_TILE_EXTENT, np.int64)]
+    tile_values = [np.array([t[3] for t in root], np.float32)]
 
     def node(origin: np.ndarray, log2dim: int, child_extent: int) -> None:
         size = 1 << (3 * log2dim)
         child_mask = np.unpackbits(np.frombuffer(r.raw(size // 8), np.uint8), bitorder="little").astype(bool)
         value_mask = np.unpackbits(np.frombuffer(r.raw(size // 8), np.uint8), bitorder="little").astype(bool)
-        if value_mask.any():
-            raise VolrenError(f"grid {name!r} has active tiles (constant regions), which volren does not read yet")
-        _skip_compressed_values(r, size, value_mask, compression, half)
-        index = np.flatnonzero(child_mask)
+        active = np.flatnonzero(value_mask & ~child_mask)
+        values = _compressed_values(r, size, value_mask, compression, half, decode=len(active) > 0)
         dim = (1 << log2dim) - 1
-        children = origin + np.stack([index >> (2 * log2dim), (index >> log2dim) & dim, index & dim], 1) * child_extent
+
+        def place(index: np.ndarray) -> np.ndarray:  # table index (x slowest) to the child's or tile's origin
+            return origin + np.stack([index >> (2 * log2dim), (index >> log2dim) & dim, index & dim], 1) * child_extent
+
+        if len(active):
+            tile_origins.append(place(active))
+            tile_extents.append(np.full(len(active), _TILE_EXTENT[log2dim], np.int64))
+            tile_values.append(values[active])
+        index = np.flatnonzero(child_mask)
+        children = place(index)
         if log2dim == 4:  # the lower internal node's children are leaves: their 512-bit value masks, one after another
             origins.append(children)
             masks = np.frombuffer(r.raw(64 * len(index)), np.uint8).reshape(-1, 64)
@@ -224,15 +282,19 @@ def _leaf_origins(path: Path, data: mmap.mmap, index: int, name: str) -> tuple[n
     if block_pos > grid_pos and r.pos != block_pos:  # tinyvdb's own writer leaves the buffer position unset
         raise VolrenError(f"grid {name!r}: its tree topology does not end where the file says ({r.pos} != "
                           f"{block_pos})")
+    tiles_found = _Tiles(np.concatenate(tile_origins), np.concatenate(tile_extents), np.concatenate(tile_values))
     if not origins:
-        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
-    return np.concatenate(origins).astype(np.int64), np.concatenate(counts).astype(np.int64)
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64), tiles_found
+    return np.concatenate(origins).astype(np.int64), np.concatenate(counts).astype(np.int64), tiles_found
 
 
-def _active_box(path: Path, grid, origins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inclusive index bounds of the active voxels: the stats OpenVDB writes (``file_bbox_min`` / ``max``), if they
-    lie within the leaves, else the leaves' box."""
-    leaf_lo, leaf_hi = origins.min(axis=0), origins.max(axis=0) + 7
+def _active_box(path: Path, grid, origins: np.ndarray, tiles: _Tiles) -> tuple[np.ndarray, np.ndarray]:
+    """Inclusive index bounds of the active voxels: the stats OpenVDB writes (``file_bbox_min`` / ``max``,
+    ``evalActiveVoxelBoundingBox``: tiles included), if they lie within the leaves and active tiles, else the box of
+    those."""
+    starts = np.concatenate([origins, tiles.origins])
+    ends = np.concatenate([origins + 7, tiles.origins + tiles.extents[:, None] - 1])
+    leaf_lo, leaf_hi = starts.min(axis=0), ends.max(axis=0)
     meta = grid.metadata
     lo, hi = np.array(meta.get("file_bbox_min", leaf_lo)), np.array(meta.get("file_bbox_max", leaf_hi))
     if lo.shape != (3,) or hi.shape != (3,) or np.any(lo < leaf_lo) or np.any(hi > leaf_hi) or np.any(hi < lo):
@@ -240,14 +302,14 @@ def _active_box(path: Path, grid, origins: np.ndarray) -> tuple[np.ndarray, np.n
     return lo.astype(np.int64), hi.astype(np.int64)
 
 
-def _leaves(path: Path, data: mmap.mmap, vdb, index: int) -> tuple[list, np.ndarray]:
-    """tinyvdb's decoded leaves of grid ``index`` in file order and their origins; refused unless every leaf's
-    active count matches the topology's, so that a leaf is never put in another's place."""
+def _leaves(path: Path, data: mmap.mmap, vdb, index: int) -> tuple[list, np.ndarray, _Tiles]:
+    """tinyvdb's decoded leaves of grid ``index`` in file order, their origins and the grid's active tiles; refused
+    unless every leaf's active count matches the topology's, so that a leaf is never put in another's place."""
     grid = vdb.grid(index)
     tree = grid.tree
     leaves = [n for n in (tree.node(i) for i in range(tree.num_nodes)) if n.level == 3]
     try:
-        origins, counts = _leaf_origins(path, data, index, grid.name)
+        origins, counts, tiles = _leaf_origins(path, data, index, grid.name)
     except struct.error:
         raise VolrenError(f"{path}: not a readable OpenVDB file, truncated or corrupt (grid {grid.name!r})") from None
     except VolrenError as exc:
@@ -255,26 +317,35 @@ def _leaves(path: Path, data: mmap.mmap, vdb, index: int) -> tuple[list, np.ndar
     if len(leaves) != len(origins) or not np.array_equal([n.active_voxel_count for n in leaves], counts):
         raise VolrenError(f"{path}: grid {grid.name!r}: tinyvdb decoded {len(leaves)} leaves, the file's topology "
                           f"lists {len(origins)} (or their active voxels differ)")
-    if not leaves or not counts.any():
+    if not counts.any() and not len(tiles.values):
         raise VolrenError(f"{path}: grid {grid.name!r} has no active voxels")
-    return leaves, origins
+    return leaves, origins, tiles
 
 
-def _densify(leaves: list, origins: np.ndarray, lo: np.ndarray, hi: np.ndarray, background: float) -> np.ndarray:
-    """float32 ``[z, y, x]`` over the inclusive box: each 8^3 leaf (tinyvdb's values, x slowest, z fastest) copied
-    into its place through a block view of the output, the rest the background. Leaves are scattered in chunks, so
-    only a chunk's values are joined."""
-    start, stop = (lo >> 3) << 3, ((hi >> 3) + 1) << 3  # the box widened to whole leaves
+def _densify(leaves: list, origins: np.ndarray, tiles: _Tiles, lo: np.ndarray, hi: np.ndarray, background: float
+             ) -> np.ndarray:
+    """float32 ``[z, y, x]`` over the inclusive box: each active tile's cube (clipped to the box) set to its value,
+    each 8^3 leaf (tinyvdb's values, x slowest, z fastest) copied into its place through a block view of the output,
+    the rest the background. Leaves are scattered in chunks, so only a chunk's values are joined."""
+    start, stop = (lo >> 3) << 3, ((hi >> 3) + 1) << 3  # the box widened to whole leaves (tiles are whole leaves)
     blocks = (stop - start) >> 3
     inside = np.flatnonzero(np.all((origins >= start) & (origins < stop), axis=1))
     shape = (blocks[2] * 8, blocks[1] * 8, blocks[0] * 8)
     full = len(inside) == np.prod(blocks)  # leaves cover every block (a dense grid): no background to fill
     out = np.empty(shape, np.float32) if full else np.full(shape, background, dtype=np.float32)
-    tiles = out.reshape(blocks[2], 8, blocks[1], 8, blocks[0], 8).transpose(0, 2, 4, 5, 3, 1)  # [bz, by, bx, x, y, z]
+    blocked = out.reshape(blocks[2], 8, blocks[1], 8, blocks[0], 8).transpose(0, 2, 4, 5, 3, 1)  # [bz, by, bx, x, y, z]
+    small = tiles.extents == 8
+    b = (tiles.origins[small] - start) >> 3
+    keep = np.all((b >= 0) & (b < blocks), axis=1)
+    blocked[b[keep, 2], b[keep, 1], b[keep, 0]] = tiles.values[small][keep, None, None, None]  # one leaf each
+    for o, e, v in zip(tiles.origins[~small], tiles.extents[~small], tiles.values[~small], strict=True):
+        a, z = np.maximum(o, start) - start, np.minimum(o + e, stop) - start  # 128^3 / 4096^3, few: one slice each
+        if np.all(z > a):
+            out[a[2] : z[2], a[1] : z[1], a[0] : z[0]] = v
     for chunk in np.array_split(inside, max(1, len(inside) // _LEAF_CHUNK)):
         values = np.frombuffer(b"".join(leaves[i].data for i in chunk), np.float32).reshape(-1, 8, 8, 8)
         b = (origins[chunk] - start) >> 3
-        tiles[b[:, 2], b[:, 1], b[:, 0]] = values
+        blocked[b[:, 2], b[:, 1], b[:, 0]] = values
     # a view: the caller copies it contiguous once tinyvdb's trees are freed (load_volume's validate_density does)
     return out[lo[2] - start[2] : hi[2] + 1 - start[2], lo[1] - start[1] : hi[1] + 1 - start[1],
                lo[0] - start[0] : hi[0] + 1 - start[0]]
@@ -299,8 +370,8 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
         index = _find_grid(path, vdb, grid, "--grid")
         density_grid = vdb.grid(index)
         to_world = _index_to_world(path, density_grid)
-        leaves, origins = _leaves(path, data, vdb, index)
-        lo, hi = _active_box(path, density_grid, origins)
+        leaves, origins, tiles = _leaves(path, data, vdb, index)
+        lo, hi = _active_box(path, density_grid, origins, tiles)
         emission = None
         if emission_grid is not None:
             other_index = _find_grid(path, vdb, emission_grid, "--emission-grid")
@@ -309,7 +380,7 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
                 raise VolrenError(f"{path}: grid {emission_grid!r} (--emission-grid) has another index-to-world "
                                   f"transform than the density grid {density_grid.name!r}")
         _check_size(path, lo, hi, 1 if emission_grid is None else 2)
-        values = _densify(leaves, origins, lo, hi, density_grid.float_background())
+        values = _densify(leaves, origins, tiles, lo, hi, density_grid.float_background())
         if emission_grid is not None:
             emission = _densify(*_leaves(path, data, vdb, other_index), lo, hi, other.float_background())
             if not np.all(np.isfinite(emission)):
