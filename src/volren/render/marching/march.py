@@ -16,6 +16,7 @@ from volren.kernels.common import (
     Medium,
     VolumeGPU,
     composite_step,
+    emitted_radiance,
     first_skip_check,
     half_depth,
     hg_phase,
@@ -102,7 +103,7 @@ def lit_step(
     and emission as the source, extinction density_scale * rho."""
     sigma_t = vol.density_scale * rho
     light = shade_light_map(vol, medium, p, x, d, ambient)
-    source = wp.cw_mul(vol.albedo, light) * sigma_t + vol.emission * rho
+    source = wp.cw_mul(vol.albedo, light) * sigma_t + emitted_radiance(vol, medium.density, p, rho)
     return composite_step(acc, source, sigma_t, dt)
 
 
