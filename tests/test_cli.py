@@ -78,8 +78,8 @@ def run(capfd: pytest.CaptureFixture[str], *argv: object) -> Result:
     return Result(code, out, err, [f"{w.category.__name__}: {w.message}" for w in caught])
 
 
-PROGRESS_LINE = re.compile(r"volren: .+: \d+% \(\d+/\d+ \w+\), \d+ s, about (\d+|nan) s left")
-"""`volren.progress`'s plain line (a run of several frames prints ten)"""
+PROGRESS_LINE = re.compile(r"volren: .+: (\d+% \(\d+/\d+ \w+\), \d+ s, about (\d+|nan) s left|case \d+ done .+, \d+ s)")
+"""`volren.progress`'s plain lines: a run of several frames prints ten, a bench suite one per measured case"""
 
 
 def ok(capfd: pytest.CaptureFixture[str], *argv: object) -> Result:
@@ -104,7 +104,7 @@ def assert_error(capfd: pytest.CaptureFixture[str], argv: list[object], *fragmen
     r = run(capfd, *argv)
     assert "Traceback" not in r.out + r.err, r.err
     assert r.code == 2, f"exit {r.code}; stdout: {r.out!r}; stderr: {r.err!r}"
-    lines = r.err.splitlines()
+    lines = [line for line in r.err.splitlines() if not PROGRESS_LINE.fullmatch(line)]  # the frames before it
     assert len(lines) == 1, f"expected one stderr line, got {r.err!r}"
     line = lines[0]
     assert line.startswith("volren: error: "), line

@@ -8,18 +8,15 @@ no quad interleaves (neighbouring texel rays are a voxel apart from the box entr
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
-from conftest import DEVICE, hard_phantom
+from conftest import DEVICE, cloud_under_shared_light, hard_phantom
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CACRMConfig
 from volren.render.marching import cacrm as cacrm_module
-from volren.scene import DirectionalLight, Environment
 
 INSIDE = make_views(Camera(position=(0.1, 0.0, 0.5), width=96, height=64), "stereo")
 FAR = make_views(Camera(position=(0.0, 0.3, 3.2), width=96, height=64), "stereo")
@@ -101,8 +98,7 @@ def test_fitted_vsa_interleaves_near_the_eye_and_gains_on_the_cloud():
     measured 50.6 -> 57.0 and 53.7 -> 58.9 dB (left, right) at 1.5% more gathers; the floor asks for 3 dB per eye.
     With the earlier floor of two base steps InS stayed off here (+1.2 dB, the quad's step rule alone). Measured under
     the shared light the cloud had then (its own brighter sun since issue 22.10 gives +2.6 dB on the left eye)."""
-    scene = dataclasses.replace(builtin_scene("cloud", 64), lights=(DirectionalLight((-0.5, -1.0, -0.35), (3.0,) * 3),),
-                                environment=Environment((0.05, 0.065, 0.09)))
+    scene = cloud_under_shared_light(64)
     fitted = {"light_grid": 32, "hybrid": False, "skip_empty": False}
     dense = CACRM(CACRMConfig(samples=2048, vsa=False, interleave=False, **fitted), device=DEVICE).render(scene, INSIDE)
     on = CACRM(CACRMConfig(samples=100, **fitted), device=DEVICE).render(scene, INSIDE)

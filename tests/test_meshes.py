@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from conftest import DEVICE, axis_camera, homogeneous_volume, scene_of
+from conftest import DEVICE, axis_camera, cloud_under_shared_light, homogeneous_volume, scene_of
 from volren.camera import Camera
-from volren.data import builtin_scene, load_mesh_file
+from volren.data import load_mesh_file
 from volren.errors import VolrenError
 from volren.render import DSSRM, DSSRMConfig
 from volren.scene import DirectionalLight, Plane, Sphere, TriangleMesh
@@ -28,7 +28,7 @@ def ground_quad(y: float, half: float = 50.0) -> TriangleMesh:
 
 
 def test_mesh_quad_equals_the_analytic_plane():
-    base = builtin_scene("cloud", 64)
+    base = cloud_under_shared_light(64)  # its atol was set under that light
     plane = render(dataclasses.replace(base, opaque=(Plane((0, -0.6, 0), (0, 1, 0), 0.5),)))
     mesh = render(dataclasses.replace(base, opaque=(ground_quad(-0.6),)))
     d = CAM.ray_directions()

@@ -10,9 +10,8 @@ import itertools
 import numpy as np
 import pytest
 
-from conftest import DEVICE, axis_camera, chords, homogeneous_volume
+from conftest import DEVICE, axis_camera, chords, cloud_under_shared_light, homogeneous_volume
 from volren.camera import Camera, make_views
-from volren.data import builtin_scene
 from volren.errors import VolrenError
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
@@ -148,7 +147,7 @@ def lit_cloud(inside: bool) -> tuple[Scene, Camera]:
         sheets = (quad(0.9, 0.25, albedo=(0.9, 0.6, 0.2), half=0.5), quad(0.1, 0.4, albedo=(0.2, 0.5, 0.9), half=0.45))
     else:
         sheets = (quad(1.2, 0.3, albedo=(0.9, 0.6, 0.2), half=0.6), quad(-1.3, 0.5, albedo=(0.2, 0.5, 0.9), half=2.0))
-    scene = dataclasses.replace(builtin_scene("cloud", 64), opaque=(*sheets, Plane((0, -0.8, 0), (0, 1, 0), 0.4)))
+    scene = dataclasses.replace(cloud_under_shared_light(64), opaque=(*sheets, Plane((0, -0.8, 0), (0, 1, 0), 0.4)))
     return scene, Camera(position=(0.2, 0.3, 3.0), width=48, height=32)
 
 

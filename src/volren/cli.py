@@ -1123,6 +1123,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         code = run_command(build_parser().parse_args(argv), command)
         sys.stdout.flush()  # a reader that left shows here, not in Python's exit-time flush
+        if console and "warp" in sys.modules:
+            # every output is closed by now; the interpreter's teardown with Warp loaded waits 2-4 s in native code
+            sys.stderr.flush()
+            os._exit(code)
         return code
     except BrokenPipeError:
         # `volren scenes | head -1`: the reader has all it wanted. Stop quietly with the status SIGPIPE would give,

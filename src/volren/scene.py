@@ -59,7 +59,7 @@ def validate_density(density: np.ndarray, what: str = "density") -> np.ndarray:
     if not (np.isfinite(lo) and np.isfinite(hi)):
         bad = int(np.count_nonzero(~np.isfinite(arr)))
         raise VolrenError(f"{what} has {bad} NaN/Inf value(s); clean the data first")
-    if max(-lo, hi) > np.finfo(np.float32).max:
+    if max(-lo, hi) > float(np.finfo(np.float32).max):  # a Python float: NumPy 2 would cast it to float32
         huge = int(np.count_nonzero(np.abs(arr) > np.finfo(np.float32).max))
         raise VolrenError(f"{what} has {huge} value(s) beyond the float32 range; rescale the data first")
     arr = np.ascontiguousarray(arr, dtype=np.float32)

@@ -187,7 +187,7 @@ def _read_npy(path: Path) -> np.ndarray:
 def _read_npz(path: Path) -> np.ndarray:
     with open(path, "rb") as f:  # np.load takes anything else for a pickle and advises allow_pickle
         if f.read(2) != b"PK":
-            raise VolrenError(f"{path}: not a .npz file (no zip header)")
+            raise VolrenError(f"{path}: cannot read the file (not a .npz file: no zip header)")
     with np.load(path, allow_pickle=False) as archive:
         keys = list(archive.files)
         if "density" in keys:
