@@ -41,10 +41,16 @@ def readme_examples(text: str) -> list[list[str]]:
 
 def stand_ins(folder: Path, width: int = 640, height: int = 360) -> None:
     """The user's files the README names, small; the depth image matches views of ``width`` x ``height``."""
+    import warnings
+
     import nibabel as nib
     import nrrd
+    import tifffile
+    import zarr
+    from ome_zarr.writer import write_image
 
-    from volren.data.procedural import phantom_density
+    from volren.bench.load import write_with_openvdb
+    from volren.data.procedural import fire_fields, phantom_density, smoke_density
     from volren.transfer import PRESETS
 
     head = phantom_density(64)
@@ -61,6 +67,21 @@ def stand_ins(folder: Path, width: int = 640, height: int = 360) -> None:
     np.save(folder / "zbuffer.npy", np.full((height, width), 3.0, np.float32))
     (folder / "bunny.obj").write_text("v 0 0 0\nv 0.2 0 0\nv 0 0 0.2\nv 0 0.2 0\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
     (folder / "my_tf.json").write_text(PRESETS["ct-bone"].to_json())
+    for i in range(3):  # a sequence: the smoke drifting up a voxel a frame
+        np.save(folder / f"sim_{i:04d}.npy", np.roll(smoke_density(64)[::2, ::2, ::2], i, axis=1))
+    z, y, x = np.mgrid[0:16, 0:24, 0:24]
+    cells = (np.stack([np.exp(-((x - cx) ** 2 + (y - 12) ** 2 + (z - 8) ** 2) / 20.0) for cx in (8, 16)]) * 3000
+             ).astype(np.uint16)  # (C, Z, Y, X), 12-bit
+    tifffile.imwrite(folder / "cells.tif", cells.transpose(1, 0, 2, 3), imagej=True, metadata={"axes": "ZCYX"})
+    with warnings.catch_warnings():  # ome-zarr 0.18 warns of its own default Scaler even given scale_factors
+        warnings.simplefilter("ignore", DeprecationWarning)
+        write_image(cells, zarr.open_group(str(folder / "cells.zarr"), mode="w"), axes="czyx", scale_factors=(2,),
+                    scale={"c": 1.0, "z": 2.0, "y": 0.5, "x": 0.5}, axes_units={a: "micrometer" for a in "zyx"})
+    soot, temperature = (f[::2, ::2, ::2] for f in fire_fields(64))
+    voxel = np.diag([2 / 32, 2 / 32, 2 / 32, 1.0]).tolist()
+    write_with_openvdb({"fire.vdb": [{"name": "density", "array": soot, "matrix": voxel},
+                                     {"name": "temperature", "array": 2000.0 * temperature, "matrix": voxel}],
+                        "explosion.vdb": [{"name": "density", "array": head, "matrix": voxel}]}, folder)
 
 
 def command_line(words: list[str]) -> list[str]:
