@@ -192,3 +192,22 @@ def test_the_cli_copies_of_fog_scene_names_and_the_pixel_cap_equal_their_sources
 
     assert tuple(FOG_SCENES) == cli.FOG_SCENE_NAMES
     assert cli.MAX_VIEW_PIXELS == camera.MAX_PIXELS
+
+
+def test_ctrl_c_while_the_cli_imports_is_one_line(monkeypatch, capsys) -> None:
+    """Issue 22.8: the console script catches a Ctrl-C that lands while `volren.cli` is still importing."""
+    import types
+
+    from volren import _entry
+
+    class Interrupted(types.ModuleType):
+        def __getattr__(self, name: str):  # only `main`: pytest's report looks up other attributes
+            if name == "main":
+                raise KeyboardInterrupt
+            raise AttributeError(name)
+
+    monkeypatch.setitem(sys.modules, "volren.cli", Interrupted("volren.cli"))
+    with pytest.raises(SystemExit) as exit_:
+        _entry.main()
+    assert exit_.value.code == 130
+    assert capsys.readouterr().err == "volren: interrupted\n"
