@@ -326,13 +326,13 @@ class Viewer(RemoteFrameBuffer):
         kind = event.get("type", event.get("event_type"))
         if kind == "pointer_down" and event.get("button") == 1:
             self._drag = (event["x"], event["y"])
-        elif kind == "pointer_move" and self._drag is not None:
+        elif kind in ("pointer_move", "pointer_up") and self._drag is not None:
+            # the release counts too: jupyter_rfb throttles moves, so the last ones may reach us only as the up
             x, y = event["x"], event["y"]
-            self._orbit = self._orbit.dragged(x - self._drag[0], y - self._drag[1])
-            self._drag = (x, y)
-            self._call(self._send_camera)
-        elif kind == "pointer_up":
-            self._drag = None
+            if (x, y) != self._drag:
+                self._orbit = self._orbit.dragged(x - self._drag[0], y - self._drag[1])
+                self._call(self._send_camera)
+            self._drag = None if kind == "pointer_up" else (x, y)
         elif kind == "wheel":
             self._orbit = self._orbit.zoomed(event["dy"])
             self._call(self._send_camera)
