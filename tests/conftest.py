@@ -83,3 +83,15 @@ def cloud_under_shared_light(resolution: int = 64) -> Scene:
 
 
 DOWN = DirectionalLight(direction=(0.0, -1.0, 0.0), irradiance=(2.0, 2.0, 2.0))
+
+
+@pytest.fixture(scope="session")
+def ray_cluster():
+    """One local Ray cluster (2 CPUs, loopback only) for the test session: starting one costs ~20 s. Tests that use it
+    carry ``@pytest.mark.xdist_group("ray")`` so that under ``pytest -n 2 --dist loadgroup`` they share one worker
+    and so one start."""
+    from volren.distributed.runtime import connect
+
+    ray = connect("tests", num_cpus=2)
+    yield ray
+    ray.shutdown()

@@ -1,0 +1,46 @@
+"""Connecting to Ray: a local cluster started on demand (loopback only, no dashboard, no usage reporting) or an
+existing one at ``--ray-address``. Every Ray entry point of volren goes through `connect`."""
+
+from __future__ import annotations
+
+import os
+from types import ModuleType
+
+from volren.errors import VolrenError
+
+RAY_MISSING = "Ray is not installed: pip install 'volren[ray]'"
+LOOPBACK_ONLY = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+def import_ray(flag: str) -> ModuleType:
+    """Ray, or a one-line error naming the flag that asked for it."""
+    try:
+        import ray
+    except ImportError:
+        raise VolrenError(f"{flag}: {RAY_MISSING}") from None
+    return ray
+
+
+def connect(flag: str, address: str | None = None, num_cpus: int | None = None,
+            num_gpus: int | None = None) -> ModuleType:
+    """Join the cluster at ``address``, or start a local one holding ``num_cpus`` CPUs (and ``num_gpus`` GPUs) bound
+    to 127.0.0.1 with no dashboard. A process already connected (a test session's cluster, a second job in one
+    Python session) keeps its connection."""
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no report sent home from a laptop or a cluster
+    if not address:
+        # Ray's single-machine mode (read when Ray is imported): the node's address is 127.0.0.1, so the GCS,
+        # raylet, agents and workers listen on loopback only; otherwise they bind every interface
+        os.environ.setdefault(LOOPBACK_ONLY, "0")
+    ray = import_ray(flag)
+    if ray.is_initialized():
+        return ray
+    options = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
+    try:
+        if address:
+            ray.init(address=address, **options)
+        else:
+            ray.init(num_cpus=num_cpus, num_gpus=num_gpus, _node_ip_address="127.0.0.1", **options)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
+        raise VolrenError(f"{flag}: cannot start or reach {where}: {str(exc).splitlines()[0]}") from None
+    return ray
