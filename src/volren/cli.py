@@ -359,6 +359,14 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     o.add_argument("--exposure", type=float, default=1.0 if demo else 0.0, help=f"PNG exposure in stops, in "
                    f"[-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
     o.add_argument("--tonemap", default="none", choices=TONEMAPS, help="PNG tone map")
+    if not demo:
+        b = p.add_argument_group("beyond one process (Ray: pip install 'volren[ray]')")
+        b.add_argument("--workers", type=int, help="render the frames (and views) in work units on N >= 1 Ray "
+                       "workers, each holding one renderer; a local Ray is started (default: none, in process)")
+        b.add_argument("--ray-address", help="run the workers on the Ray cluster at ADDR (host:port, or 'auto'); "
+                       "with no --workers, one per CPU (GPU on CUDA) the cluster has (default: none)")
+        b.add_argument("--gpus-per-worker", type=float, help="CUDA: the GPU share each worker asks, in (0, 1] "
+                       "(default 1)")
 
 
 def add_serve_args(p: argparse.ArgumentParser) -> None:
@@ -463,6 +471,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="folder for the JSON and Markdown (default out/bench; --out docs/bench updates the committed "
                         "tables)")
     add_device(b)
+    j = sub.add_parser("batch", help="run a sweep of renders a TOML job file describes: in process, or on Ray with "
+                       "--workers or --ray-address")
+    j.add_argument("job", type=Path, help="job file: render/animate options and a [sweep] of what varies (see "
+                   "examples/turntable-sweep.toml)")
+    j.add_argument("--workers", type=int, help="run on a local Ray with N >= 1 workers (default: none, in process)")
+    j.add_argument("--ray-address", help="run on the Ray cluster at ADDR (host:port, or 'auto') (default: none)")
+    j.add_argument("--gpus-per-worker", type=float, help="CUDA: the GPU share each worker asks, in (0, 1] "
+                   "(default 1)")
+    j.add_argument("--dry-run", action="store_true", help="check the job file, print its jobs and render nothing")
     return p
 
 
@@ -986,11 +1003,57 @@ def check_idle_flags(args: argparse.Namespace) -> None:
         raise CliError(f"fog scene '{args.scene}' has its own fog: {', '.join(unused)} would do nothing")
 
 
-def run_render(args: argparse.Namespace, method: str, command: str) -> int:
-    # the checks that need no data first: the imports below take seconds
+@dataclasses.dataclass
+class RenderPlan:
+    """What `plan_render` built for a render or animate run, and `frame`: frame i's scene and views (and the
+    renderer's config). The in-process loop of `run_render` and the batch engine's workers
+    (`volren.distributed.engine`) both go through it, so a distributed run renders the same frames by construction."""
+
+    args: argparse.Namespace
+    method: str
+    scene: object
+    views: list
+    renderer: object
+    sequence: object
+    played: object
+    occluder_depth: list | None
+    value_mapping: dict
+    animated: bool
+    walking: bool
+
+    def __post_init__(self) -> None:
+        self.base_config = self.renderer.config
+
+    def frame(self, i: int) -> tuple:
+        """Frame i's (scene, views), with the renderer's config set for it: an animated fog scene at i / fps, a
+        volume sequence's frame i (the lights, geometry and environment the same objects), wandering viewers at
+        i / fps, then animate's orbit, light orbit and transfer-function switch. Frame 0 is the planned scene."""
+        args, scene, views = self.args, self.scene, self.views
+        if self.animated and i:
+            scene = scene_from_args(args, i / ANIMATION_FPS)
+        if self.played is not None and i:  # the lights, geometry and environment stay the same objects
+            scene = dataclasses.replace(self.scene, volumes=_with_material(args, _file_scene(args, i).volumes))
+        if self.walking and i:
+            views = views_from_args(args, i / ANIMATION_FPS)
+        if self.sequence is not None:
+            from volren.animate import frame_config, frame_scene, frame_views
+
+            scene = frame_scene(self.sequence, scene, i)
+            views = frame_views(self.sequence, self.views, i)
+            self.renderer.config = frame_config(self.sequence, self.base_config, i)
+        return scene, views
+
+    def render(self, i: int):
+        """Frame i rendered (`frame`), as `Frame` with ``index`` i (its per-frame seeds)."""
+        scene, views = self.frame(i)
+        return self.renderer.render(scene, views, frame=i, occluder_depth=self.occluder_depth)
+
+
+def check_render_args(args: argparse.Namespace, method: str) -> None:
+    """`run_render`'s checks that need no data: the imports after them take seconds."""
     check_method(method)
     check_scene_name(getattr(args, "scene", None))
-    if args.frames is not None and args.frames < 1:  # None: animate's default, set below
+    if args.frames is not None and args.frames < 1:  # None: animate's default, set by plan_render
         raise CliError(f"--frames must be >= 1, got {args.frames}")
     for flag, side in (("--width", args.width), ("--height", args.height)):
         if not 1 <= side <= MAX_IMAGE_SIDE:
@@ -998,11 +1061,19 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     if not (math.isfinite(args.exposure) and abs(args.exposure) <= MAX_EXPOSURE):
         raise CliError(f"--exposure must be a number of stops in [-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
     check_idle_flags(args)
-    from volren.animate import frame_config, frame_scene, frame_views, write_mp4
+    workers = getattr(args, "workers", None)
+    if workers is not None and workers < 1:
+        raise CliError(f"--workers must be >= 1, got {workers}")
+    if getattr(args, "gpus_per_worker", None) is not None and workers is None and args.ray_address is None:
+        raise CliError("--gpus-per-worker shares a GPU among the workers of --workers or --ray-address: there are none")
+
+
+def plan_render(args: argparse.Namespace, method: str) -> RenderPlan:
+    """Every check of a render before any output (`check_render_args` first), then its scene, views and renderer;
+    sets animate's default --frames. The run-time estimate (a probe render) is the last check."""
+    check_render_args(args, method)
+    from volren.animate import frame_config
     from volren.data.fog_scenes import ANIMATED_FOG_SCENES
-    from volren.imageio import composite, to_srgb8
-    from volren.output import contact_sheet, run_output, write_frame, write_stats
-    from volren.progress import progress
 
     played = volume_sequence(args)
     if args.frames is None:
@@ -1026,44 +1097,65 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     if sequence is not None:
         frame_config(sequence, renderer.config, sequence.frames - 1)  # refuse a switch the method cannot take
     check_run_time(args, scene, views, method)  # the last check: it renders a probe
-    base_scene, base_views, base_config = scene, views, renderer.config
+    return RenderPlan(args, method, scene, views, renderer, sequence, played, occluder_depth, value_mapping,
+                      animated, walking)
+
+
+def frame_prefix(args: argparse.Namespace, i: int) -> str:
+    """What tells frame i's files apart in a run of several frames (none in a run of one)."""
+    return f"frame{i:04d}_" if args.frames > 1 else ""
+
+
+def write_plan_frame(plan: RenderPlan, frame, out: Path) -> list[Path]:
+    """`write_frame` with the run's output flags: frame ``frame.index``'s files into ``out``."""
+    from volren.output import write_frame
+
+    args = plan.args
+    return write_frame(frame, out, frame.background, exposure=args.exposure, tonemap=args.tonemap,
+                       linear=args.save_linear, prefix=frame_prefix(args, frame.index))
+
+
+def run_render(args: argparse.Namespace, method: str, command: str) -> int:
+    if getattr(args, "workers", None) is not None or getattr(args, "ray_address", None) is not None:
+        from volren.distributed.engine import run_command_on_ray
+
+        return run_command_on_ray(args)
+    plan = plan_render(args, method)
+    from volren.animate import write_mp4
+    from volren.imageio import composite, to_srgb8
+    from volren.output import contact_sheet, run_output, write_stats
+    from volren.progress import progress
+
     frames, files, movie = [], [], []
     start = time.perf_counter()
     with run_output(args.out) as out:  # written beside --out, moved in when complete
-        rows = args.frames * sum(v.height for v in views)  # each view's image pass reports its rows
-        with progress(f"{method} {scene.name}", rows, always=args.frames > 1) as advance:
-            renderer.on_rows = advance
+        rows = args.frames * sum(v.height for v in plan.views)  # each view's image pass reports its rows
+        with progress(f"{method} {plan.scene.name}", rows, always=args.frames > 1) as advance:
+            plan.renderer.on_rows = advance
             for i in range(args.frames):
-                if animated and i:
-                    scene = scene_from_args(args, i / ANIMATION_FPS)
-                if played is not None and i:  # the lights, geometry and environment stay the same objects
-                    scene = dataclasses.replace(base_scene, volumes=_with_material(args, _file_scene(args, i).volumes))
-                if walking and i:
-                    views = views_from_args(args, i / ANIMATION_FPS)
-                if sequence is not None:
-                    scene = frame_scene(sequence, scene if animated or played is not None else base_scene, i)
-                    views = frame_views(sequence, base_views, i)
-                    renderer.config = frame_config(sequence, base_config, i)
-                frame = renderer.render(scene, views, frame=i, occluder_depth=occluder_depth)
-                if sequence is not None:
+                frame = plan.render(i)
+                if plan.sequence is not None:
                     shown = frame.images[0] if len(frame.images) == 1 else contact_sheet(frame.images)
-                    movie.append(to_srgb8(composite(shown, scene.background), args.exposure, args.tonemap))
-                prefix = f"frame{i:04d}_" if args.frames > 1 else ""
-                files += write_frame(frame, out, scene.background, exposure=args.exposure, tonemap=args.tonemap,
-                                     linear=args.save_linear, prefix=prefix)
+                    movie.append(to_srgb8(composite(shown, frame.background), args.exposure, args.tonemap))
+                files += write_plan_frame(plan, frame, out)
                 frames.append(frame)
         wall = time.perf_counter() - start
-        if sequence is not None:
-            files.append(write_mp4(out / "animation.mp4", movie, sequence.fps))
-        stats = write_stats(out, frames, {"scene": scene.name, "command": command, **value_mapping})
+        if plan.sequence is not None:
+            files.append(write_mp4(out / "animation.mp4", movie, plan.sequence.fps))
+        stats = write_stats(out, frames, {"scene": plan.scene.name, "command": command, **plan.value_mapping})
     files, stats = [args.out / f.name for f in files], args.out / stats.name
-    last = frames[-1].stats
-    print(f"{method} on {last.device}: {len(views)} view(s) of '{scene.name}', {args.frames} frame(s) in {wall:.2f} s")
+    print_summary(method, plan.scene.name, len(plan.views), args.frames, wall, frames[-1].stats, files, stats)
+    return 0
+
+
+def print_summary(method: str, scene: str, views: int, frames: int, wall: float, last, files: list,
+                  stats: Path) -> None:
+    """The lines a render ends with: what ran, the last frame's pass times and work, the files written."""
+    print(f"{method} on {last.device}: {views} view(s) of '{scene}', {frames} frame(s) in {wall:.2f} s")
     print("  last frame, ms per pass: " + ", ".join(f"{k} {v:.1f}" for k, v in last.times_ms.items()))
     print("  work: " + ", ".join(f"{k} {v:,}" for k, v in last.counters.items()))
     shown = files if len(files) <= 8 else [*files[:6], f"... ({len(files) - 6} more)"]
     print("  wrote " + ", ".join(str(f) for f in [*shown, stats]))
-    return 0
 
 
 def run_scenes() -> int:
@@ -1113,6 +1205,10 @@ def run_command(args: argparse.Namespace, command: str) -> int:
         return run_compare(args)
     if args.command == "serve":
         return run_serve(args)
+    if args.command == "batch":
+        from volren.distributed.job import run_batch
+
+        return run_batch(args)
     return run_bench(args)
 
 
@@ -1121,7 +1217,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = " ".join(["volren", *argv])
     try:
-        code = run_command(build_parser().parse_args(argv), command)
+        args = build_parser().parse_args(argv)
+        args.argv = tuple(argv)  # what the batch engine's workers parse again (--workers)
+        code = run_command(args, command)
         sys.stdout.flush()  # a reader that left shows here, not in Python's exit-time flush
         if console and "warp" in sys.modules:
             # every output is closed by now; the interpreter's teardown with Warp loaded waits 2-4 s in native code

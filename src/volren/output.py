@@ -28,8 +28,10 @@ from volren.errors import VolrenError
 from volren.imageio import save_linear, save_png, save_side_by_side
 from volren.render.frame import Frame
 
-# The names write_frame, write_stats, write_mp4 and ``volren compare``'s default heat map give a run's files.
-RUN_FILE = re.compile(r"(frame\d{4}_)?(view\d+(_error)?\.(png|npy)|(stereo|contact)\.png)|stats\.json|animation\.mp4")
+# The names write_frame, write_stats, write_mp4 and ``volren compare``'s default heat map give a run's files, and
+# ``--workers``' manifest (`volren.distributed.engine`): a plain render there ends the batch it recorded.
+RUN_FILE = re.compile(r"(frame\d{4}_)?(view\d+(_error)?\.(png|npy)|(stereo|contact)\.png)|stats\.json|animation\.mp4"
+                      r"|batch\.json")
 
 
 def is_run_file(path: Path) -> bool:

@@ -1,0 +1,433 @@
+"""The batch engine: ``volren render|animate ... --workers N`` (or ``--ray-address ADDR``), and `run_jobs` for
+``volren batch``. Each job is a render or animate command line; the driver runs all its checks first (the CLI's
+`plan_render`, once, before Ray starts), splits its frames into work units (`Unit`: contiguous frames, every view of
+them: a stereo pair's eyes and a CACRM pair are never split), and hands the units to Ray actors, each holding one
+renderer (`volren.distributed.worker.UnitWorker`: the CLI's own functions rebuild the job from its argv, so the frames
+come from the same `RenderPlan.render` as in process). CUDA workers ask ``num_gpus`` = ``--gpus-per-worker``, CPU
+workers one CPU (and launch on one thread).
+
+Output: the files ``render``/``animate`` write, each written by the driver under a temporary name and moved in with
+``os.replace``; ``batch.json`` (the manifest: the command, its settings, every complete unit with its files' SHA-256
+and frames' stats) after each unit; ``stats.json`` (the frames' stats as ``render`` writes them, plus ``batch``: the
+units, their times and workers) and animate's ``animation.mp4`` (from the frames' PNGs) when all units are done.
+Re-running the same command resumes: a unit in the manifest whose files are all there, unchanged, is skipped. A
+different command into that folder starts clean (the earlier run's files removed, as a plain ``render`` replaces
+them; ``batch.json`` is one of them, so a plain render there later removes it too).
+
+Faults: a worker that dies mid-unit (killed, out of memory) costs a retry of that unit only, on a fresh actor
+(`MAX_RETRIES`); a unit failing with a `VolrenError` fails the job with that line, no retry; Ctrl-C kills the actors
+and leaves only complete units and the manifest. A unit is written once: a result for a unit already complete is
+dropped.
+
+Temporal methods keep history across frames (`warmup_frames`): a unit starting at frame s renders the W frames
+before s first, not written, unless its worker's renderer has just rendered frame s - 1 (then it continues, exactly as
+in process). Measured on the smoke scene (64^3, 64x48, frames 16-23 after a warm-up against the same frames of one
+in-process run), W per method, as the history forgets:
+
+* fog (temporal blend, ``temporal_weight`` 0.1 of the new frame: the history's share after W frames is 0.9^W):
+  W = `FOG_WARMUP`; the shadow grid's parity re-trace alone (``--no-temporal``) needs 1 frame, then bit-identical.
+* vpt with ``--denoise`` (Eq. 12 counts a class for at most `FRAMES_MAX` = 4 frames): W = `DENOISE_WARMUP`.
+* ``--gi`` sresir, restir, major (lambda(n) = 1 / min(n + 1, 32): a running mean over 32 frames; their seeds follow
+  the frames rendered, so after the warm-up the noise differs, not its level): W = `GI_WARMUP`. prt and brute
+  precompute once per scene: none.
+
+Deterministic methods (dssrm, cmsrm, cacrm, reference without GI) are bit-identical to ``volren render`` in process;
+stochastic ones (jitter, vpt) use the same per-frame seeds (``frame=i``), so they are too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from volren.distributed.worker import Unit, UnitWorker
+from volren.errors import VolrenError
+
+MANIFEST = "batch.json"
+"""the manifest's name in --out (`volren.output.RUN_FILE` matches it: a new run replaces it)"""
+MANIFEST_VERSION = 1
+MAX_RETRIES = 3
+"""retries of one unit whose worker died, before the job fails"""
+PART = ".volren-part-"
+"""the temporary names files are written under before ``os.replace`` moves them in"""
+FOG_WARMUP = 16
+DENOISE_WARMUP = 8
+GI_WARMUP = 32
+IGNORED_SETTINGS = ("workers", "ray_address", "gpus_per_worker", "max_minutes", "argv")
+"""what may differ between a run and the run it resumes: where and how long, not what is rendered"""
+
+
+@dataclass(frozen=True)
+class Job:
+    argv: tuple[str, ...]
+    """a ``volren render|animate ...`` command line without the leading "volren", incl. --out"""
+    out: Path
+    """that --out folder"""
+
+
+@dataclass(frozen=True)
+class UnitReport:
+    job: int
+    unit: str
+    start: int
+    stop: int
+    warmup: int
+    worker: str
+    """host:pid of the actor that completed it"""
+    attempts: int
+    """1, plus one per worker that died running it"""
+    seconds: float
+    """dispatch to its files written, in the driver"""
+    setup_seconds: float
+    """the worker building the job's scene and renderer (0 when it held them)"""
+    warmup_seconds: float
+    render_seconds: float
+    """its frames rendered and encoded, in the worker"""
+
+    @property
+    def overhead_seconds(self) -> float:
+        """what the unit cost beyond the worker's setup, warm-up and frames: scheduling, transfer, writing"""
+        return self.seconds - self.setup_seconds - self.warmup_seconds - self.render_seconds
+
+
+@dataclass(frozen=True)
+class BatchReport:
+    units: tuple[UnitReport, ...]
+    """the units run by this call, in completion order (skipped ones are not here)"""
+    units_skipped: int
+    """complete in the manifest of an earlier run, files unchanged"""
+    units_retried: int
+    """retries after a worker died"""
+    files_written: int
+    """unit files moved into --out (each unit's once)"""
+    workers: int
+    ray_start_seconds: float
+    """connecting to (or starting) Ray and starting the actors"""
+    wall_seconds: float
+
+    @property
+    def units_run(self) -> int:
+        return len(self.units)
+
+    @property
+    def frames_rendered(self) -> int:
+        return sum(u.stop - u.start for u in self.units)
+
+
+def warmup_frames(config: Any, volumes: int) -> int:
+    """Frames a unit starting mid-sequence renders before its first (module docstring); 0: the method keeps no
+    history across frames."""
+    if hasattr(config, "temporal_weight"):  # fog
+        return FOG_WARMUP if config.temporal else int(config.sharing == "grid")
+    if getattr(config, "denoise", "none") != "none":
+        return DENOISE_WARMUP
+    gi = getattr(config, "gi", None)
+    if gi is not None and gi.method in ("sresir", "restir", "major"):
+        # major keeps nothing but the volumes' round-robin updates (--gi-volumes under the count)
+        return GI_WARMUP if gi.method != "major" else int(min(gi.volumes_per_frame, volumes) < volumes) * volumes
+    return 0
+
+
+def settings_of(args: argparse.Namespace) -> dict[str, str]:
+    """What a run renders, as the manifest compares it (not `IGNORED_SETTINGS`)."""
+    return {k: str(v) for k, v in sorted(vars(args).items()) if k not in IGNORED_SETTINGS}
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def write_atomically(path: Path, data: bytes) -> None:
+    """``data`` at ``path``, under a temporary name first: a reader (or a Ctrl-C) never meets half a file."""
+    fd, tmp = tempfile.mkstemp(prefix=f"{PART}{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+@dataclass
+class JobState:
+    """One job in the driver: its plan (checks done), units, and manifest."""
+
+    job: Job
+    plan: Any
+    units: list[Unit]
+    settings: dict[str, str]
+    manifest: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def out(self) -> Path:
+        return self.plan.args.out
+
+    def complete(self, unit: Unit) -> bool:
+        entry = self.manifest["units"].get(unit.key)
+        return entry is not None and all((self.out / n).is_file() and sha256(self.out / n) == h
+                                         for n, h in entry["files"].items())
+
+    def save_manifest(self) -> None:
+        write_atomically(self.out / MANIFEST, (json.dumps(self.manifest, indent=1) + "\n").encode())
+
+    def open_output(self) -> None:
+        """Resume the manifest of the same command, or start clean: the earlier run's files removed."""
+        from volren.output import is_run_file
+
+        out = self.out
+        if out.exists() and not out.is_dir():
+            raise VolrenError(f"--out '{out}' is a file, not a folder")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise VolrenError(f"cannot create output folder '{out}': {exc.strerror}") from exc
+        for p in out.glob(f"{PART}*"):  # left by a driver killed mid-write
+            p.unlink()
+        try:
+            old = json.loads((out / MANIFEST).read_text())
+        except (OSError, ValueError):
+            old = None
+        if old is not None and old.get("version") == MANIFEST_VERSION and old.get("settings") == self.settings:
+            self.manifest = old
+            return
+        if old is not None:
+            print(f"volren: --out {out}: its {MANIFEST} is of another command: starting clean", file=sys.stderr)
+        for p in out.iterdir():
+            if is_run_file(p):
+                p.unlink()
+        self.manifest = {"version": MANIFEST_VERSION, "command": ["volren", *self.job.argv],
+                         "settings": self.settings, "units": {}}
+
+    def commit(self, unit: Unit, result: dict[str, Any], report: UnitReport) -> int:
+        """Write a finished unit's files and record it; returns the files written (none for a unit already
+        complete: a retried unit is written once)."""
+        if unit.key in self.manifest["units"]:
+            return 0
+        for name, data in result["files"].items():
+            write_atomically(self.out / name, data)
+        self.manifest["units"][unit.key] = {
+            "frames": [unit.start, unit.stop], "warmup": unit.warmup, "worker": report.worker,
+            "attempts": report.attempts, "seconds": round(report.seconds, 4),
+            "render_seconds": round(report.render_seconds, 4), "scene": result["scene"],
+            "files": {name: hashlib.sha256(data).hexdigest() for name, data in result["files"].items()},
+            "stats": result["stats"]}
+        self.save_manifest()
+        return len(result["files"])
+
+    def prune(self) -> None:
+        """After a Ctrl-C or a failure: only complete units' files stay (and the manifest)."""
+        from volren.output import is_run_file
+
+        kept = {n for entry in self.manifest.get("units", {}).values() for n in entry["files"]} | {MANIFEST}
+        for p in self.out.iterdir():
+            if p.name.startswith(PART) or (is_run_file(p) and p.name not in kept):
+                p.unlink(missing_ok=True)
+
+    def finish(self, extra: dict[str, Any]) -> list[Path]:
+        """stats.json (and animate's animation.mp4) once every unit is complete; returns the files of the run."""
+        from volren.cli import frame_prefix
+
+        entries = sorted(self.manifest["units"].values(), key=lambda e: e["frames"][0])
+        frames = [s for e in entries for s in e["stats"]]
+        plan, out = self.plan, self.out
+        files = [out / n for e in entries for n in e["files"]]
+        if plan.sequence is not None:
+            import imageio.v3 as iio
+
+            from volren.animate import write_mp4
+
+            shown = ["view0.png", "stereo.png"][len(plan.views) - 1] if len(plan.views) <= 2 else "contact.png"
+            movie = [iio.imread(out / f"{frame_prefix(plan.args, i)}{shown}") for i in range(plan.args.frames)]
+            with tempfile.TemporaryDirectory(prefix=PART, dir=out) as tmp:
+                os.replace(write_mp4(Path(tmp) / "animation.mp4", movie, plan.sequence.fps), out / "animation.mp4")
+            files.append(out / "animation.mp4")
+        batch = {"units": [{"unit": k, **{n: e[n] for n in ("frames", "warmup", "worker", "attempts", "seconds",
+                                                           "render_seconds")}}
+                           for k, e in sorted(self.manifest["units"].items(), key=lambda kv: kv[1]["frames"][0])]}
+        doc = {"scene": entries[0]["scene"], "command": " ".join(self.manifest["command"]), **plan.value_mapping,
+               "frames": frames, "batch": batch | extra}
+        write_atomically(out / "stats.json", (json.dumps(doc, indent=2, default=str) + "\n").encode())
+        return files
+
+
+def plan_job(index: int, job: Job, workers: int | None, unit_frames: int | None) -> JobState:
+    """A job's checks (the CLI's, in the driver, before any work) and its units."""
+    from volren import cli
+
+    if not job.argv or job.argv[0] not in ("render", "animate"):
+        raise VolrenError(f"a batch job is a render or animate command line, got '{' '.join(job.argv[:1])}'")
+    args = cli.build_parser().parse_args(list(job.argv))
+    if Path(args.out) != Path(job.out):
+        raise VolrenError(f"job {index}: its --out is {args.out}, not {job.out}")
+    plan = cli.plan_render(args, args.method)
+    volumes = len(plan.scene.volumes)
+    warmup = warmup_frames(plan.renderer.config, volumes)
+    frames = args.frames
+    # temporal methods: one contiguous range per worker by default (each warm-up paid once)
+    size = unit_frames or (math.ceil(frames / max(workers or 1, 1)) if warmup else 1)
+    if size < 1:
+        raise VolrenError(f"unit frames must be >= 1, got {size}")
+    units = [Unit(index, s, min(s + size, frames), min(warmup, s), warmup > 0) for s in range(0, frames, size)]
+    return JobState(job, plan, units, settings_of(args))
+
+
+def _actor_options(cuda: bool, gpus_per_worker: float) -> dict[str, Any]:
+    return {"num_cpus": 0, "num_gpus": gpus_per_worker} if cuda else {"num_cpus": 1, "num_gpus": 0}
+
+
+def run_jobs(jobs: Sequence[Job], *, workers: int | None, address: str | None, flag: str,
+             gpus_per_worker: float = 1.0, unit_frames: int | None = None,
+             on_dispatch: Callable[[Unit, int], None] | None = None) -> BatchReport:
+    """Run ``jobs`` on ``workers`` Ray actors (a local Ray when ``address`` is None; default on a cluster: one per
+    GPU or CPU it has); ``flag`` names the option in errors. ``unit_frames``: frames per unit (default: 1, or for a
+    temporal method one range per worker). ``on_dispatch(unit, pid)`` is called as a unit goes to the actor with
+    that process id (the tests' fault injection). Returns what ran (`BatchReport`)."""
+    if workers is not None and workers < 1:
+        raise VolrenError(f"{flag}: the workers must be >= 1, got {workers}")
+    if not 0 < gpus_per_worker <= 1:
+        raise VolrenError(f"--gpus-per-worker must lie in (0, 1], got {gpus_per_worker:g}")
+    start = time.perf_counter()
+    states = [plan_job(i, job, workers, unit_frames) for i, job in enumerate(jobs)]
+    cuda = any(s.plan.renderer.device.startswith("cuda") for s in states)
+    for s in states:
+        s.open_output()
+    queue = deque(u for s in states for u in s.units if not s.complete(u))
+    skipped = sum(len(s.units) for s in states) - len(queue)
+    reports: list[UnitReport] = []
+    counts = {"retried": 0, "files": 0, "workers": 0}
+    ray_start = 0.0
+    try:
+        if queue:
+            ray_start = _run_units(states, queue, reports, counts, workers, address, flag, cuda, gpus_per_worker,
+                                   on_dispatch)
+    except BaseException:
+        for s in states:
+            s.prune()
+        raise
+    for s in states:
+        s.finish({"workers": counts["workers"], "ray_start_seconds": round(ray_start, 3)})
+    return BatchReport(tuple(reports), skipped, counts["retried"], counts["files"], counts["workers"], ray_start,
+                       time.perf_counter() - start)
+
+
+def _run_units(states: list[JobState], queue: deque[Unit], reports: list[UnitReport], counts: dict[str, int],
+               workers: int | None, address: str | None, flag: str, cuda: bool, gpus_per_worker: float,
+               on_dispatch: Callable[[Unit, int], None] | None) -> float:
+    """Hand the queued units to the actors until all are written; returns Ray's start-up seconds."""
+    from volren.distributed.runtime import connect
+    from volren.progress import progress
+
+    t0 = time.perf_counter()
+    ray = connect(flag, address, num_cpus=None if address or cuda else workers)
+    if workers is None:
+        have = ray.cluster_resources().get("GPU" if cuda else "CPU", 1)
+        workers = max(1, int(have / gpus_per_worker) if cuda else int(have))
+    workers = min(workers, len(queue))
+    remote = ray.remote(max_restarts=0, max_task_retries=0)(UnitWorker).options(
+        **_actor_options(cuda, gpus_per_worker))
+    threads = None if cuda else 1
+
+    def spawn() -> tuple[Any, int]:
+        actor = remote.remote(threads)
+        return actor, ray.get(actor.pid.remote())
+
+    actors = [remote.remote(threads) for _ in range(workers)]
+    pids = dict(zip(actors, ray.get([a.pid.remote() for a in actors]), strict=True))
+    counts["workers"] = workers
+    ray_start = time.perf_counter() - t0
+    idle = list(actors)
+    last: dict[Any, tuple[int, int]] = {}  # actor -> (job, next frame) its renderer leads up to
+    pending: dict[Any, tuple[Any, Unit, float, int]] = {}
+    attempts: dict[tuple[int, str], int] = {}
+    per_worker: dict[str, list[float]] = {}
+    total = sum(u.frames for u in queue)
+    label = f"{len(queue)} unit(s) on {workers} worker(s)"
+    try:
+        with progress(label, total, "frames", always=True) as advance:
+            while queue or pending:
+                while idle and queue:
+                    actor = idle.pop()
+                    # a temporal unit that continues where this actor's renderer stopped skips its warm-up
+                    unit = next((u for u in queue if (u.job, u.start) == last.get(actor)), queue[0])
+                    queue.remove(unit)
+                    ref = actor.run.remote(states[unit.job].job.argv, unit)
+                    pending[ref] = (actor, unit, time.perf_counter(), attempts.get((unit.job, unit.key), 0) + 1)
+                    if on_dispatch is not None:
+                        on_dispatch(unit, pids[actor])
+                done, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
+                for ref in done:
+                    actor, unit, sent, attempt = pending.pop(ref)
+                    try:
+                        result = ray.get(ref)
+                    except ray.exceptions.RayActorError:  # the worker died: a fresh one retries this unit only
+                        if attempt > MAX_RETRIES:
+                            raise VolrenError(f"{unit.key} of job {unit.job}: {attempt} workers died running "
+                                              "it") from None
+                        attempts[(unit.job, unit.key)] = attempt
+                        counts["retried"] += 1
+                        queue.appendleft(unit)
+                        fresh, pid = spawn()
+                        pids[fresh] = pid
+                        idle.append(fresh)
+                        continue
+                    except ray.exceptions.RayTaskError as exc:
+                        cause = getattr(exc, "cause", None)
+                        if isinstance(cause, VolrenError):
+                            raise VolrenError(str(cause)) from None
+                        raise
+                    report = UnitReport(unit.job, unit.key, unit.start, unit.stop, unit.warmup, result["worker"],
+                                        attempt, time.perf_counter() - sent, result["setup_seconds"],
+                                        result["warmup_seconds"], result["render_seconds"])
+                    written = states[unit.job].commit(unit, result, report)
+                    report = replace(report, seconds=time.perf_counter() - sent)  # its files written too
+                    counts["files"] += written
+                    reports.append(report)
+                    per_worker.setdefault(report.worker, []).extend([unit.frames, result["busy_seconds"]])
+                    last[actor] = (unit.job, unit.stop)
+                    idle.append(actor)
+                    advance(unit.frames)
+    finally:
+        for actor in pids:
+            ray.kill(actor, no_restart=True)
+    rates = [f"{w} {sum(v[::2]) / max(sum(v[1::2]), 1e-9):.2f} frames/s" for w, v in per_worker.items()]
+    print(f"  per worker: {', '.join(rates)}", file=sys.stderr)
+    return ray_start
+
+
+def run_command_on_ray(args: argparse.Namespace) -> int:
+    """``volren render|animate ... --workers N | --ray-address ADDR``: the same run on Ray (`run_jobs`)."""
+    from volren.distributed.runtime import import_ray
+
+    flag = "--workers" if args.workers is not None else "--ray-address"
+    import_ray(flag)  # missing: one line before the checks' seconds of work
+    argv = getattr(args, "argv", None)
+    if argv is None:
+        raise VolrenError(f"{flag}: runs from the volren command line only (Python: volren.distributed.engine)")
+    if args.gpus_per_worker is not None:
+        from volren.device import resolve_device
+
+        if not resolve_device(args.device).startswith("cuda"):
+            raise VolrenError("--gpus-per-worker shares a GPU among workers: the workers render on the CPU here")
+    report = run_jobs([Job(tuple(argv), Path(args.out))], workers=args.workers, address=args.ray_address, flag=flag,
+                      gpus_per_worker=args.gpus_per_worker or 1.0)
+    doc = json.loads((Path(args.out) / "stats.json").read_text())
+    last = doc["frames"][-1]
+    print(f"{args.method} on {last['device']}: {len(doc['frames'])} frame(s) of '{doc['scene']}' in "
+          f"{report.wall_seconds:.2f} s on {report.workers} worker(s) (Ray start-up {report.ray_start_seconds:.1f} "
+          f"s): {report.units_run} unit(s) run, {report.units_skipped} skipped, {report.units_retried} retried")
+    print("  work (last frame): " + ", ".join(f"{k} {v:,}" for k, v in last["counters"].items()))
+    print(f"  wrote {args.out}: {len(list(Path(args.out).iterdir()))} files ({MANIFEST}, stats.json)")
+    return 0
+
