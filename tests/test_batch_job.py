@@ -1,0 +1,208 @@
+"""``volren batch JOB.toml``: a job file's expansion into jobs, its checks (each a one-line error naming the file and
+the key, before anything renders), the in-process run against ``volren render`` of the same flags, the same job on
+Ray, and ``volren bench batch`` at a toy size."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from volren.cli import main
+from volren.distributed.job import load_batch, write_index
+from volren.errors import VolrenError
+
+TINY = {"scene": "smoke", "width": 40, "height": 24, "samples": 24, "light-samples": 6, "light-grid": 8,
+        "views": "mono"}
+"""the flags of a render that takes a fraction of a second"""
+
+
+def toml_value(value) -> str:
+    return json.dumps(value)  # a JSON string, number, boolean or array of them is TOML too
+
+
+def job_file(tmp_path: Path, body: str = "", base: dict | None = None, name: str = "job.toml") -> Path:
+    lines = [f"out = {toml_value(str(tmp_path / 'batch'))}"]
+    lines += [f"{k} = {toml_value(v)}" for k, v in (TINY if base is None else base).items()]
+    path = tmp_path / name
+    path.write_text("\n".join(lines) + "\n" + body)
+    return path
+
+
+def flag_values(argv: tuple[str, ...], flag: str) -> list[str]:
+    return [argv[i + 1] for i, a in enumerate(argv) if a == flag]
+
+
+def test_expansion_is_the_product_of_the_axes_in_file_order(tmp_path):
+    path = job_file(tmp_path, """
+[sweep]
+method = ["dssrm", "cmsrm"]
+[[sweep.light]]
+name = "low"
+light-irradiance = 1
+light-dir = [1, -1, 0]
+[[sweep.light]]
+light-irradiance = [3, 2.5, 1]
+""", base={**TINY, "light-irradiance": 2})
+    batch = load_batch(path)
+    assert batch.folders == ("method-dssrm_light-low", "method-dssrm_light-irradiance-3-2.5-1",
+                             "method-cmsrm_light-low", "method-cmsrm_light-irradiance-3-2.5-1")
+    assert batch.out == tmp_path / "batch" and batch.frames == (1,) * 4 and batch.views == (1,) * 4
+    for job, folder in zip(batch.jobs, batch.folders, strict=True):
+        assert job.argv[0] == "render" and job.out == tmp_path / "batch" / folder
+        assert flag_values(job.argv, "--out") == [str(job.out)]
+    low, rgb = batch.jobs[2].argv, batch.jobs[3].argv
+    # the sweep's value replaces the shared one (one flag, not two); what an entry does not set stays shared
+    assert flag_values(low, "--light-irradiance") == ["1"] and flag_values(low, "--light-dir") == ["1,-1,0"]
+    assert flag_values(rgb, "--light-irradiance") == ["3,2.5,1"] and flag_values(rgb, "--light-dir") == []
+    assert flag_values(low, "--method") == ["cmsrm"] and flag_values(low, "--width") == ["40"]
+    assert batch.varies[1] == {"sweep.method[0]": "dssrm", "sweep.light[1].light-irradiance": [3, 2.5, 1]}
+    index = json.loads(write_index(batch).read_text())
+    assert list(index["jobs"]) == list(batch.folders) and index["command"] == "render"
+    entry = index["jobs"]["method-cmsrm_light-low"]
+    assert entry["settings"] == {"sweep.method[1]": "cmsrm", "sweep.light[0].light-irradiance": 1,
+                                 "sweep.light[0].light-dir": [1, -1, 0]}
+    assert entry["argv"] == ["volren", *low] and entry["frames"] == 1 and entry["views"] == 1
+
+
+def test_a_file_without_a_sweep_is_one_job_into_out_and_switches_and_repeatables_become_flags(tmp_path):
+    base = {**TINY, "command": "animate", "frames": 3, "orbit": 90, "no-skip": True, "jitter": False,
+            "sphere": [[0, 0, 0, 0.3], "0.5,0,0,0.2"], "views": "stereo"}
+    batch = load_batch(job_file(tmp_path, base=base))
+    (job,) = batch.jobs
+    assert batch.folders == (".",) and job.out == tmp_path / "batch" and job.argv[0] == "animate"
+    assert "--no-skip" in job.argv and "--jitter" not in job.argv
+    assert flag_values(job.argv, "--sphere") == ["0,0,0,0.3", "0.5,0,0,0.2"]
+    assert batch.frames == (3,) and batch.views == (2,)
+
+
+def test_frames_all_plays_every_frame_of_a_volume_sequence(tmp_path):
+    import numpy as np
+
+    for i in range(3):
+        np.save(tmp_path / f"sim_{i:04d}.npy", np.full((8, 8, 8), 0.5 + 0.1 * i, np.float32))
+    base = {k: v for k, v in TINY.items() if k != "scene"} | {"frames": "all"}
+    body = f"[sweep]\nvolume = {toml_value([str(tmp_path / 'sim_####.npy'), str(tmp_path / 'sim_0001.npy')])}\n"
+    batch = load_batch(job_file(tmp_path, body, base=base))
+    assert batch.folders == ("volume-sim", "volume-sim-0001") and batch.frames == (3, 1)
+    assert flag_values(batch.jobs[0].argv, "--frames") == ["3"]
+
+
+@pytest.mark.parametrize(("body", "key", "message"), [
+    ("widht = 40", "widht", "unknown key 'widht': did you mean 'width'?"),
+    ("light_dir = [0, -1, 0]", "light_dir", "did you mean 'light-dir'?"),
+    ("jitter = 1", "jitter", "'jitter' is an on/off flag: true or false, got 1"),
+    ("density-scale = true", "density-scale", "'density-scale' takes a value, not true"),
+    ("camera-pos = [[0, 1], 2]", "camera-pos", "'camera-pos' takes a string, a number or an array of them"),
+    ("sphere = \"0,0,0,1\"", "sphere", "'sphere' is repeatable: give an array of its values"),
+    ("height = \"tall\"", "height", "--height: invalid int value: 'tall'"),
+    ("height = 0", "height", "--height must lie in [1, 16384] pixels, got 0"),
+    ("tf = \"ct-bone\"", "tf", "method 'dssrm' does not take --tf"),
+    ("orbit = 90", "orbit", "'orbit' is a flag of `volren animate` only: set command = \"animate\""),
+    ("workers = 2", "workers", "'workers' is a `volren batch` option"),
+    ("command = \"serve\"", "command", "must be one of render, animate, got 'serve'"),
+    ("frames = \"all\"", "frames", "--frames \"all\" plays a --volume sequence; this job has no --volume"),
+    ("frames = 2.5", "frames", "frames must be a number of frames or \"all\""),
+    ("sweep = 3", "sweep", "must be a table of what varies"),
+    ("[sweep]\nviews = []", "sweep.views", "is empty: a sweep axis needs at least one value"),
+    ("[sweep]\nviews = \"mono\"", "sweep.views", "must be an array of values"),
+    ("[sweep]\nmethod = [\"dssrm\", \"vpt\"]\n[[sweep.looks]]\ntf = \"smoke\"", "sweep.looks[0].tf",
+     "method 'dssrm' does not take --tf"),
+    ("[sweep]\nviews = [\"mono\", \"stereo\", \"four\"]", "sweep.views[2]", "--views"),
+    ("[sweep]\nviews = [\"mono\", {views = \"stereo\"}]", "sweep.views", "mixes tables and values"),
+    ("[[sweep.albedo]]\nalbedo = 0.5", "sweep.albedo", "'albedo' is a flag: give its values"),
+    ("[[sweep.looks]]\nname = \"x\"", "sweep.looks[0]", "sets no flag"),
+    ("[[sweep.looks]]\nname = 3\nalbedo = 0.5", "sweep.looks[0].name", "must be a non-empty string"),
+    ("[[sweep.looks]]\nout = \"elsewhere\"", "sweep.looks[0].out", "the batch's folder is the top-level out"),
+    ("[sweep]\nviews = [\"mono\"]\n[[sweep.rigs]]\nviews = \"4\"\nrig = \"arc\"", "sweep.rigs[0].views",
+     "'views' is also set by sweep.views: one axis per flag"),
+    ("[[sweep.looks]]\nname = \"a\"\nalbedo = 0.5\n[[sweep.looks]]\nname = \"a\"\nalbedo = 0.9",
+     "sweep.looks[1].albedo", "both write folder 'looks-a'"),
+    ("[sweep]\nambient = [\"0.1,0.1,0.1\", [0.1, 0.1, 0.1]]", "sweep.ambient[1]", "both write folder "
+     "'ambient-0.1-0.1-0.1'"),
+])
+def test_every_problem_is_one_line_naming_the_file_and_key(tmp_path, body, key, message):
+    path = job_file(tmp_path, body + "\n", base={k: v for k, v in TINY.items() if k != "height"})
+    with pytest.raises(VolrenError) as refused:
+        load_batch(path)
+    text = str(refused.value)
+    assert text.startswith(f"{path}: {key}: ") and message in text and "\n" not in text, text
+
+
+def test_not_toml_and_a_missing_file_are_one_line(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("width = = 3\n")
+    with pytest.raises(VolrenError, match=r"bad.toml: not a valid TOML file: "):
+        load_batch(bad)
+    with pytest.raises(VolrenError, match=r"cannot read job file '.*missing.toml'"):
+        load_batch(tmp_path / "missing.toml")
+
+
+def test_a_bad_job_anywhere_stops_the_batch_before_anything_renders(tmp_path, capfd):
+    # the second job's --tf is refused by dssrm: the first (vpt) must not have rendered
+    base = {k: TINY[k] for k in ("scene", "width", "height", "views")}
+    path = job_file(tmp_path, "[sweep]\nmethod = [\"vpt\", \"dssrm\"]\ntf = [\"smoke\"]\n", base=base)
+    assert main(["batch", str(path)]) == 2
+    err = capfd.readouterr().err
+    assert err.strip().splitlines() == [f"volren: error: {path}: sweep.tf[0]: method 'dssrm' does not take --tf"]
+    assert not (tmp_path / "batch").exists()
+
+
+def test_dry_run_prints_the_jobs_and_writes_nothing(tmp_path, capfd):
+    path = job_file(tmp_path, "[sweep]\nviews = [\"mono\", \"stereo\"]\n", base={**TINY, "frames": 2})
+    assert main(["batch", str(path), "--dry-run"]) == 0
+    lines = capfd.readouterr().out.strip().splitlines()
+    # one unit per frame: dssrm keeps no history across frames
+    assert lines[0].startswith("views-mono: 2 frame(s) x 1 view(s), 2 unit(s): volren render --scene smoke ")
+    assert lines[1].startswith("views-stereo: 2 frame(s) x 2 view(s), 2 unit(s): volren render ")
+    assert lines[-1] == f"2 job(s), 4 unit(s) into {tmp_path / 'batch'}"
+    assert not (tmp_path / "batch").exists()
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.suffix == ".png"}
+
+
+def test_in_process_batch_writes_what_render_writes_for_each_job(tmp_path, capfd):
+    path = job_file(tmp_path, "[sweep]\nlight-irradiance = [1, 4]\n", base={**TINY, "frames": 2})
+    assert main(["batch", str(path)]) == 0
+    out = tmp_path / "batch"
+    assert json.loads((out / "jobs.json").read_text())["jobs"]["light-irradiance-4"]["settings"] == {
+        "sweep.light-irradiance[1]": 4}
+    for value in (1, 4):
+        flags = [x for k, v in TINY.items() for x in (f"--{k}", str(v))]
+        ref = tmp_path / f"ref{value}"
+        assert main(["render", *flags, "--frames", "2", "--light-irradiance", str(value), "--out", str(ref)]) == 0
+        files = _files(out / f"light-irradiance-{value}")
+        assert list(files) == ["frame0000_view0.png", "frame0001_view0.png"] and files == _files(ref)
+        stats = json.loads((out / f"light-irradiance-{value}" / "stats.json").read_text())
+        assert f"--light-irradiance {value}" in stats["command"] and len(stats["frames"]) == 2
+    assert _files(out / "light-irradiance-1") != _files(out / "light-irradiance-4")
+
+
+def test_example_job_file_expands_into_its_four_jobs():
+    batch = load_batch(Path(__file__).parents[1] / "examples" / "turntable-sweep.toml")
+    assert batch.folders == ("views-mono_light-noon", "views-mono_light-dusk", "views-stereo_light-noon",
+                             "views-stereo_light-dusk")
+    assert batch.frames == (64,) * 4 and batch.views == (1, 1, 2, 2) and batch.command == "animate"
+
+
+@pytest.mark.xdist_group("ray")
+def test_a_job_file_on_ray_writes_the_files_of_the_in_process_run(tmp_path, ray_cluster, capfd):
+    body = "[sweep]\nviews = [\"mono\", \"stereo\"]\n[[sweep.look]]\nname = \"dim\"\nlight-irradiance = 1\n"
+    runs = {}
+    for where, extra in (("here", []), ("ray", ["--workers", "2"])):
+        folder = tmp_path / where
+        folder.mkdir()
+        path = job_file(folder, body, base={**TINY, "frames": 2})
+        assert main(["batch", str(path), *extra]) == 0
+        runs[where] = folder / "batch"
+    assert "2 job(s) into" in capfd.readouterr().out
+    for name in ("views-mono_look-dim", "views-stereo_look-dim"):
+        here, ray = _files(runs["here"] / name), _files(runs["ray"] / name)
+        assert len(here) == (2 if name.startswith("views-mono") else 6) and ray == here  # stereo: 2 eyes + pair
+        assert (runs["ray"] / name / "batch.json").is_file()  # the engine's manifest: a re-run resumes
+    index = {w: json.loads((runs[w] / "jobs.json").read_text()) for w in runs}
+    assert [job["settings"] for job in index["ray"]["jobs"].values()] == [
+        job["settings"] for job in index["here"]["jobs"].values()]
