@@ -9,7 +9,7 @@ import platform
 import statistics
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -21,6 +21,7 @@ from volren.device import cpu_threads, resolve_device
 from volren.errors import VolrenError
 from volren.progress import case_done, cases
 from volren.render import Renderer
+from volren.render.base import LightMapMarchConfig
 from volren.scene import Scene
 
 # Untracked by default: `--out docs/bench` is the deliberate step that updates the committed tables.
@@ -45,13 +46,14 @@ def all_suites() -> dict[str, Suite]:
     from volren.bench.interactive import SUITE as INTERACTIVE_SUITE
     from volren.bench.load import SUITE as LOAD_SUITE
     from volren.bench.oit import SUITE as OIT_SUITE
+    from volren.bench.peers import SUITE as PEERS_SUITE
     from volren.bench.resolution import SUITE as RESOLUTION_SUITE
     from volren.bench.serve import SUITE as SERVE_SUITE
     from volren.bench.viewers import SUITE as VIEWERS_SUITE
     from volren.bench.vpt import SUITE as VPT_SUITE
 
     return {s.name: s for s in (DSSRM_SUITE, RESOLUTION_SUITE, BINOCULAR_SUITE, VIEWERS_SUITE, VPT_SUITE, GI_SUITE,
-                                OIT_SUITE, INTEGRATED_SUITE, SERVE_SUITE, INTERACTIVE_SUITE, LOAD_SUITE)}
+                                OIT_SUITE, INTEGRATED_SUITE, SERVE_SUITE, INTERACTIVE_SUITE, LOAD_SUITE, PEERS_SUITE)}
 
 
 NOT_PASSES = ("upload", "readback", "fog_bake")
@@ -61,7 +63,11 @@ NOT_PASSES = ("upload", "readback", "fog_bake")
 def measure(renderer: Renderer, scene: Scene, views: list[Camera], repeats: int) -> dict[str, Any]:
     """Median pass times [ms] over ``repeats`` frames after a warm-up frame (kernel compilation, upload), the
     frame time (sum of the median passes), the fastest frame (``frame_min_ms``: on a shared machine the least
-    disturbed run, the one ratios are taken from), the last frame's counters, and the last frame itself."""
+    disturbed run, the one ratios are taken from), the last frame's counters, and the last frame itself. Every pass
+    runs in every frame, as in the papers' tables (whose scenes move): a light-map renderer recomputes its map though
+    the scene stands still here (no light-map cache)."""
+    if isinstance(renderer.config, LightMapMarchConfig):
+        renderer.config = replace(renderer.config, reuse_light_map=False)
     renderer.render(scene, views)
     frames = [renderer.render(scene, views, frame=i) for i in range(repeats)]
     passes = sorted({k for f in frames for k in f.stats.times_ms if k not in NOT_PASSES})
@@ -137,6 +143,11 @@ def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None) -
     tag = f"{name}-{'cpu' if device == 'cpu' else 'cuda'}-{'quick' if quick else 'full'}"
     json_path, md_path = out / f"{tag}.json", out / f"{tag}.md"
     m = doc["machine"]
+    from volren.imageio import save_srgb8
+
+    for file, pixels in doc.pop("figures", {}).items():  # images a suite shows beside its table (uint8 sRGB)
+        save_srgb8(out / f"{tag}-{file}", pixels)
+        table += f"\n\n![{file}]({tag}-{file})"
     _write_replace(json_path, json.dumps(doc, indent=2, default=str) + "\n")
     _write_replace(md_path, f"### {name} ({'quick' if quick else 'full'}) on {m['device_name']} ({m['cpu']}, "
                             f"{m['cpu_threads_used']} CPU threads), warp {m['warp']}, {m['date']}\n\n{table}\n")

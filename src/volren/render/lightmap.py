@@ -20,9 +20,19 @@ for tau, against shadow rays), so it blends the corners' T (`sample_light_map_ac
 Empty-space skipping (not in the papers; on with the renderer's ``skip_empty``): the march towards the light leaves
 out steps in empty cells of each volume's skip grid, as the view march does (`volren.kernels.common.
 optical_depth_skipping`), with the same light map bit for bit; the ``light_skipped`` counter counts those steps.
+
+Cache (`LightMapCache`, not in the papers, which recompute the map each frame): the map depends only on the lights,
+the volumes (densities, skip grids, transforms, density scales, light-grid size: one upload holds one set of them,
+and a scene or light grid that changes any of them is a new upload with new light-map storage), L and whether the
+march crosses volumes (GI on).
+While none of these changed since the storage was last filled, the pass is skipped: on an orbit or a camera drag
+the light stands still, and the map is the same bit for bit. Densities edited in place after the upload are not
+seen (nor by the march, which reads the uploaded copy).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -43,6 +53,7 @@ from volren.kernels.common import (
     vec8,
 )
 from volren.render.frame import LIGHT_SAMPLES, LIGHT_SKIPPED, PassClock
+from volren.scene import Light
 from volren.upload import DeviceScene
 
 NODE_INSET = wp.constant(1.0 - 1.0e-5)
@@ -161,3 +172,39 @@ def compute_light_map(ds: DeviceScene, light_samples: int, clock: PassClock, cro
             ds.device,
             clock.counters,
         )
+
+
+@dataclass(frozen=True, eq=False)
+class LightMapInputs:
+    """What a light map's contents depend on (module docstring, "Cache"), and the storage they were written into."""
+
+    storage: wp.array
+    """the upload's light-map array: one upload holds one set of volumes (a scene with other volumes is a new upload
+    with new storage), so the storage stands for them"""
+    lights: tuple[Light, ...]
+    light_samples: int
+    cross_volume: bool
+
+    def matches(self, other: LightMapInputs | None) -> bool:
+        """Whether ``other``'s map is this one: the same storage (held here, so no later array can take its place),
+        equal lights, L and cross-volume."""
+        return (other is not None and other.storage is self.storage and other.lights == self.lights
+                and other.light_samples == self.light_samples and other.cross_volume == self.cross_volume)
+
+
+class LightMapCache:
+    """The light-map pass of one renderer, skipped while its inputs equal those the storage was last filled with."""
+
+    def __init__(self) -> None:
+        self._filled: LightMapInputs | None = None
+
+    def update(self, ds: DeviceScene, light_samples: int, clock: PassClock, cross_volume: bool = False,
+               reuse: bool = True) -> bool:
+        """Fill ``ds.lightmap`` unless it already holds these inputs' map (always with ``reuse`` False); returns
+        whether the pass ran."""
+        inputs = LightMapInputs(ds.lightmap, tuple(ds.scene.lights), light_samples, bool(cross_volume))
+        if reuse and inputs.matches(self._filled):
+            return False
+        compute_light_map(ds, light_samples, clock, cross_volume)
+        self._filled = inputs
+        return True
