@@ -393,6 +393,12 @@ def add_serve_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-height", type=int, default=1080, help="[px] largest viewer image")
     p.add_argument("--pixel-budget", type=int, default=1920 * 1080, help="[px] rendered per tick for all viewers, "
                    "shared fairly (a viewer over its share gets a smaller frame)")
+    s = p.add_argument_group("beyond one process (Ray: pip install 'volren[ray]')")
+    s.add_argument("--shards", type=int, help="render on N >= 1 Ray actors, each a render loop for the viewers "
+                   "placed on it (a stereo pair whole, viewers of one part of the scene together); a local Ray is "
+                   "started (default: none, one render loop in process)")
+    s.add_argument("--ray-address", help="with --shards: run the shards on the Ray cluster at ADDR (host:port, or "
+                   "'auto') (default: a local Ray)")
     add_device(p)
 
 
@@ -400,6 +406,10 @@ def run_serve(args: argparse.Namespace) -> int:
     # the checks that need no data first: the imports below take seconds
     if not 1 <= args.port <= 65535:
         raise CliError(f"--port must lie in [1, 65535], got {args.port}")
+    if args.ray_address is not None and args.shards is None:
+        raise CliError("--ray-address needs --shards N (the server renders in process without it)")
+    if args.shards is not None and args.shards < 1:
+        raise CliError(f"--shards must be at least 1, got {args.shards}")
     check_scene_name(args.scene)
     from volren.serve.app import build_loop, check_bind, make_app, serve
     from volren.serve.viewers import Limits
@@ -408,7 +418,7 @@ def run_serve(args: argparse.Namespace) -> int:
     limits = Limits(args.max_viewers, args.max_width, args.max_height, args.pixel_budget)
     name = args.scene or DEFAULT_SCENE
     loop = build_loop(name, args.method, args.quality, args.resolution or DEFAULT_RESOLUTION, args.device, limits,
-                      args.lock_settings, **served_volume(args))
+                      args.lock_settings, **served_volume(args), shards=args.shards, ray_address=args.ray_address)
     name = args.volume.name if args.volume is not None else name
     serve(make_app(loop, name, args.token, hosts=(args.host, *args.allow_host), origins=tuple(args.allow_origin)),
           args.host, args.port, args.token)
@@ -470,6 +480,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", type=Path, default=None,
                    help="folder for the JSON and Markdown (default out/bench; --out docs/bench updates the committed "
                         "tables)")
+    b.add_argument("--shards", help="bench serve: COUNTS, comma-separated (e.g. 1,2): the sharded server on a local "
+                   "Ray with each count of shards, against the loop in process (default: no shards)")
     add_device(b)
     j = sub.add_parser("batch", help="run a sweep of renders a TOML job file describes: in process, or on Ray with "
                        "--workers or --ray-address")
@@ -1188,7 +1200,18 @@ def run_bench(args: argparse.Namespace) -> int:
         for name, suite in all_suites().items():
             print(f"{name}: {suite.description}")
         return 0
-    json_path, md_path, table = run_suite(args.suite, quick=args.quick, device=args.device, out=args.out)
+    suite = None
+    if args.shards is not None:
+        if args.suite != "serve":
+            raise CliError(f"--shards: bench serve only (the sharded server), not bench {args.suite}")
+        from volren.bench.serve import shard_suite
+
+        try:
+            suite = shard_suite([int(n) for n in args.shards.split(",")])
+        except ValueError:
+            raise CliError(f"--shards must be comma-separated shard counts like 1,2, got {args.shards}") from None
+    json_path, md_path, table = run_suite(suite.name if suite else args.suite, quick=args.quick, device=args.device,
+                                          out=args.out, suite=suite)
     print(table)
     print(f"wrote {json_path} and {md_path}")
     return 0

@@ -121,11 +121,13 @@ def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, str
     return "\n".join([head, rule, *body])
 
 
-def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None) -> tuple[Path, Path, str]:
+def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None,
+              suite: Suite | None = None) -> tuple[Path, Path, str]:
     """Run suite ``name`` and write ``<name>-<cpu|cuda>-<quick|full>.{json,md}`` into ``out`` (default
-    :data:`DEFAULT_OUT`); each file is written beside its name and renamed over it, so a failure leaves the old one."""
+    :data:`DEFAULT_OUT`); each file is written beside its name and renamed over it, so a failure leaves the old one.
+    ``suite``: run that one under ``name`` (a suite with options bound: ``bench serve --shards``)."""
     out = DEFAULT_OUT if out is None else out
-    suites = all_suites()
+    suites = all_suites() if suite is None else {name: suite}
     if name not in suites:
         raise VolrenError(f"unknown bench suite '{name}': choose from {', '.join(suites)}")
     device = resolve_device(device)

@@ -24,6 +24,7 @@ Quick (CPU): 64^3 smoke, 160x90 per eye, 2 windows of 3 s per point and server.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 import statistics
 import time
@@ -37,6 +38,7 @@ import numpy as np
 from volren.bench import Suite
 from volren.camera import Camera
 from volren.errors import VolrenError
+from volren.scene import Scene
 
 FULL = {"cases": [("fog", "dynamic"), ("cacrm", "smoke")], "resolution": 256, "size": (480, 270),
         "counts": [1, 2, 4, 8, 16], "seconds": 10.0, "min_ticks": 10, "repeats": 3, "camera_hz": 60.0,
@@ -96,6 +98,8 @@ class ClientRecord:
     """[s, perf_counter] when the window opened: a frame answering a camera sent before it is warm-up left over (a
     first tick that compiled kernels for minutes answers the cameras it was started with), not latency"""
     warm: asyncio.Event = field(default_factory=asyncio.Event)
+    viewer: int = 0
+    """its viewer id (the welcome's): which shard serves it"""
 
 
 async def run_client(session: Any, url: str, rec: ClientRecord, index: int, count: int, size: tuple[int, int],
@@ -130,6 +134,7 @@ async def run_client(session: Any, url: str, rec: ClientRecord, index: int, coun
                     if data["type"] == "error":
                         raise VolrenError(f"bench serve: the server refused client {index}: {data['message']}")
                     if data["type"] == "welcome":
+                        rec.viewer = data["viewer"]
                         sender = asyncio.create_task(cameras())
                     continue
                 if msg.type != WSMsgType.BINARY:
@@ -181,25 +186,34 @@ async def served(loop: Any) -> AsyncIterator[Served]:
     try:
         await web.TCPSite(runner, "127.0.0.1", 0).start()
         out = Served(loop, f"http://127.0.0.1:{runner.addresses[0][1]}/ws")
-        render_encode = loop._render_encode
+        if loop.local:  # a sharded loop renders in its actors: `measure_window` counts their renders
+            render_encode = loop._render_encode
 
-        def counted(jobs: list, index: int, advance: bool, viewers: int) -> list[bytes]:
-            before, out.busy = loop.renders, True
-            try:
-                return render_encode(jobs, index, advance, viewers)
-            finally:
-                out.calls[index], out.busy = loop.renders - before, False
+            def counted(jobs: list, index: int, advance: bool, viewers: int) -> list[bytes]:
+                before, out.busy = loop.renders, True
+                try:
+                    return render_encode(jobs, index, advance, viewers)
+                finally:
+                    out.calls[index], out.busy = loop.renders - before, False
 
-        loop._render_encode = counted
+            loop._render_encode = counted
         yield out
     finally:
         await runner.cleanup()
 
 
+def shard_counts(loop: Any) -> list[tuple[int, int, int]]:
+    """Per shard of a sharded loop (none for one in process): its ticks, light maps and shadow grids so far."""
+    return [(s.tick, s.light_maps, s.shadow_grids) for s in getattr(loop, "shards", ())]
+
+
 async def measure_window(srv: Served, count: int, cfg: dict[str, Any], base: Camera, walk: bool,
-                         clients: list[tuple[tuple[int, int], float]] | None = None) -> dict[str, Any]:
+                         clients: list[tuple[tuple[int, int], float]] | None = None,
+                         bases: list[Camera] | None = None) -> dict[str, Any]:
     """Connect ``count`` clients to ``srv`` (or ``clients``: per client its size and read interval, all mono),
-    wait until each has its first frames, measure one window, disconnect and let the loop finish its tick."""
+    wait until each has its first frames, measure one window, disconnect and let the loop finish its tick.
+    ``bases``: each client's own rig (default: all on ``base``'s). A sharded loop's row has ``shards``: per shard its
+    viewers, ticks, tick time, shared passes per tick, and each client's p95 latency in its shard's tick times."""
     import aiohttp
 
     loop = srv.loop
@@ -210,7 +224,8 @@ async def measure_window(srv: Served, count: int, cfg: dict[str, Any], base: Cam
     else:
         recs, count = [ClientRecord(stereo=False) for _ in clients], len(clients)
     async with aiohttp.ClientSession() as session:
-        tasks = [asyncio.create_task(run_client(session, srv.url, rec, i, count, size, base, walk,
+        bases = bases or [base] * count
+        tasks = [asyncio.create_task(run_client(session, srv.url, rec, i, count, size, bases[i], walk,
                                                 cfg["camera_hz"], measuring, read_every))
                  for i, (rec, (size, read_every)) in enumerate(zip(recs, clients, strict=True))]
         try:
@@ -224,9 +239,9 @@ async def measure_window(srv: Served, count: int, cfg: dict[str, Any], base: Cam
                 raise VolrenError(f"bench serve: {count} clients not all served within {WARMUP_TIMEOUT_S:.0f} s")
 
             async def next_tick() -> float:
-                """Wait for the loop to finish a tick (5 ms resolution); the time it did."""
-                k = loop.tick
-                while loop.tick == k:
+                """Wait for the loop (any shard) to finish a tick (5 ms resolution); the time it did."""
+                k = loop.report()["tick"]
+                while loop.report()["tick"] == k:
                     await asyncio.sleep(0.005)
                     for t in tasks:
                         if t.done():
@@ -235,16 +250,18 @@ async def measure_window(srv: Served, count: int, cfg: dict[str, Any], base: Cam
 
             # the window opens and closes as ticks end: a whole number of ticks, not a time cut mid-tick
             t0 = await next_tick()
-            tick0 = loop.tick
+            tick0, renders0, shards0 = loop.report()["tick"], loop.report()["renders"], shard_counts(loop)
             for r in recs:
                 r.opened = time.perf_counter()
             measuring.set()
             t1 = t0
-            while t1 - t0 < cfg["seconds"] or loop.tick - tick0 < cfg["min_ticks"]:
+            while t1 - t0 < cfg["seconds"] or loop.report()["tick"] - tick0 < cfg["min_ticks"]:
                 t1 = await next_tick()
             measuring.clear()
-            elapsed, ticks = t1 - t0, loop.tick - tick0
-            renders = sum(srv.calls[k] for k in range(tick0, tick0 + ticks))
+            elapsed, ticks = t1 - t0, loop.report()["tick"] - tick0
+            shards1, placed = shard_counts(loop), [sorted(s.viewers.viewers) for s in getattr(loop, "shards", ())]
+            renders = (sum(srv.calls[k] for k in range(tick0, tick0 + ticks)) if loop.local
+                       else loop.report()["renders"] - renders0)
         finally:
             for t in tasks:
                 t.cancel()
@@ -254,6 +271,16 @@ async def measure_window(srv: Served, count: int, cfg: dict[str, Any], base: Cam
                               "latency_p95_ms": float(np.percentile(r.latencies_ms, 95)) if r.latencies_ms else None,
                               "latency_max_ms": max(r.latencies_ms, default=None)}
                              for r, (size, every) in zip(recs, clients, strict=True)]
+    if shards0:
+        row["shards"] = [{"shard": i, "viewers": ids, "ticks": b[0] - a[0],
+                          "tick_ms": 1e3 * elapsed / max(b[0] - a[0], 1),
+                          "light_maps_per_tick": (b[1] - a[1]) / max(b[0] - a[0], 1),
+                          "shadow_grids_per_tick": (b[2] - a[2]) / max(b[0] - a[0], 1)}
+                         for i, (a, b, ids) in enumerate(zip(shards0, shards1, placed, strict=True))]
+        shard_of = {vid: entry for entry in row["shards"] for vid in entry["viewers"]}
+        row["latency_worst_p95_tick_times"] = max(
+            (float(np.percentile(r.latencies_ms, 95)) / shard_of[r.viewer]["tick_ms"] for r in recs
+             if r.latencies_ms and r.viewer in shard_of), default=math.inf)
     while len(loop.viewers) or srv.busy:  # the last tick still running: the next window waits for it
         await asyncio.sleep(0.01)
     return row
@@ -401,3 +428,119 @@ def run(quick: bool, device: str) -> dict[str, Any]:
 
 
 SUITE = Suite("serve", "volren serve: 1-16 clients, shared render loop vs one renderer per viewer (issue 15)", run)
+
+
+# ---- serve --shards (issue 23) ----------------------------------------------------------------------------------
+
+SHARDS_FULL = {"method": "cacrm", "resolution": 256, "size": (480, 270), "clients": 16, "seconds": 10.0,
+               "min_ticks": 10, "repeats": 3, "camera_hz": 60.0, "overrides": {}, "apart": 3.0}
+SHARDS_QUICK = {"method": "cacrm", "resolution": 64, "size": (160, 90), "clients": 16, "seconds": 3.0,
+                "min_ticks": 4, "repeats": 2, "camera_hz": 30.0, "overrides": {}, "apart": 3.0}
+GOAL_SHARD_FPS = 0.85
+"""2 shards on this 2-core machine add no compute: their total frames per second at least 0.85x one shard's"""
+
+
+def two_rig_scene(resolution: int, apart: float) -> tuple[Scene, list[Camera]]:
+    """The smoke twice, at x = -``apart`` and +``apart`` [m] (two rigs far apart: their footprints do not overlap),
+    and each rig's base camera (the CLI's default view, moved to its smoke)."""
+    from volren.data import builtin_scene
+
+    scene = builtin_scene("smoke", resolution)
+    vol = scene.volumes[0]
+    moved = []
+    for x in (-apart, apart):
+        shift = np.eye(4)
+        shift[0, 3] = x
+        moved.append(dataclasses.replace(vol, to_world=shift @ np.asarray(vol.to_world), name=f"smoke{x:+g}"))
+    bases = [Camera(position=(x, 0.4, 3.2), look_at=(x, 0.0, 0.0)) for x in (-apart, apart)]
+    return dataclasses.replace(scene, volumes=tuple(moved)), bases
+
+
+async def run_shards_async(cfg: dict[str, Any], device: str, counts: list[int]) -> dict[str, Any]:
+    """``clients`` clients (every fourth stereo), client i on rig i % 2, against the loop in process and against
+    ``counts`` shards on a local Ray (started once, its start-up timed apart); the best of ``repeats`` windows each.
+    Goals: the most shards' total fps >= GOAL_SHARD_FPS x one shard's; no client's p95 latency above
+    GOAL_LATENCY_FRAMES tick times of its shard; the shared passes per shard and tick reported."""
+    import os
+    from functools import partial
+
+    from volren.distributed.runtime import connect
+    from volren.serve.loop import RenderLoop, animator
+    from volren.serve.shards import ShardedLoop
+    from volren.serve.viewers import Limits
+
+    scene, rigs = two_rig_scene(cfg["resolution"], cfg["apart"])
+    n = cfg["clients"]
+    bases = [rigs[i % 2] for i in range(n)]
+    w, h = cfg["size"]
+    limits = Limits(max_viewers=n, max_width=2 * w, max_height=h)
+    start = time.perf_counter()
+    ray = connect("--shards", None, num_cpus=max(os.cpu_count() or 1, *counts))
+    ray_start_s = time.perf_counter() - start
+    rows = []
+    try:
+        for shards in [0, *counts]:  # 0: the render loop in process, for reference
+            start = time.perf_counter()
+            if shards:
+                loop: Any = ShardedLoop(scene, cfg["method"], "interactive", shards=shards,
+                                        animate=partial(animator, scene, "smoke", device), limits=limits,
+                                        camera=rigs[0], device=device, overrides=cfg["overrides"])
+            else:
+                loop = RenderLoop(scene, cfg["method"], "interactive", limits=limits, camera=rigs[0], device=device,
+                                  animate=animator(scene, "smoke", device), overrides=cfg["overrides"])
+            loop.playing = loop.animated
+            up_s = time.perf_counter() - start
+            async with served(loop) as srv:
+                windows = [await measure_window(srv, n, cfg, rigs[0], False, bases=bases)
+                           for _ in range(cfg["repeats"])]
+            best = max(windows, key=lambda row: row["fps_total"])
+            per = best.get("shards", [])
+            rows.append({"server": f"{shards} shard(s)" if shards else "in process", "shards": shards, **best,
+                         "up_s": up_s, "fps_total_windows": [row["fps_total"] for row in windows],
+                         "shard_tick_ms": " / ".join(f"{s['tick_ms']:.1f}" for s in per),
+                         "shard_viewers": " / ".join(str(len(s["viewers"])) for s in per),
+                         "light_maps_per_tick": " / ".join(f"{s['light_maps_per_tick']:.2f}" for s in per)})
+            case_line(rows[-1])
+    finally:
+        ray.shutdown()
+    one = next(r for r in rows if r["shards"] == 1) if 1 in counts else rows[1]
+    most = rows[-1]
+    ratio = most["fps_total"] / one["fps_total"]
+    latency = max(r["latency_worst_p95_tick_times"] for r in rows if r["shards"])
+    summary = [{"shards": most["shards"], "fps_ratio": ratio, "fps_goal": GOAL_SHARD_FPS,
+                "latency_tick_times": latency, "latency_goal": GOAL_LATENCY_FRAMES, "ray_start_s": ray_start_s,
+                "goals": "pass" if ratio >= GOAL_SHARD_FPS and latency <= GOAL_LATENCY_FRAMES else "fail"}]
+    columns = [
+        ("server", "server", "s"), ("clients", "clients", "d"), ("stereo_clients", "stereo", "d"),
+        ("shard_viewers", "viewers per shard", "s"), ("tick_ms", "tick [ms] (all shards)", ".1f"),
+        ("shard_tick_ms", "tick per shard [ms]", "s"), ("light_maps_per_tick", "light maps/tick per shard", "s"),
+        ("renders_per_tick", "render calls/tick", ".2f"), ("fps_total", "fps total", ".1f"),
+        ("fps_client_min", "fps slowest client", ".2f"), ("latency_median_ms", "latency median [ms]", ".0f"),
+        ("latency_worst_p95_ms", "worst client p95 [ms]", ".0f"),
+        ("latency_worst_p95_tick_times", "worst p95 [own shard's tick times]", ".2f"), ("up_s", "start [s]", ".1f"),
+    ]
+    summary_columns = [
+        ("shards", "shards", "d"), ("fps_ratio", f"fps total vs 1 shard (goal >= {GOAL_SHARD_FPS:g})", ".2f"),
+        ("latency_tick_times", f"worst p95 latency [tick times] (goal <= {GOAL_LATENCY_FRAMES:g})", ".2f"),
+        ("ray_start_s", "local Ray start-up [s]", ".1f"), ("goals", "goals", "s"),
+    ]
+    settings = {k: v for k, v in cfg.items() if k != "overrides"} | {
+        "shard_counts": counts, "quality": "interactive", "stereo_every": STEREO_EVERY, "rigs": 2,
+        "timing": "CPU, 2 cores, shared with other jobs" if device == "cpu" else device}
+    return {"settings": settings, "rows": rows, "columns": columns, "summary": (summary, summary_columns)}
+
+
+def case_line(row: dict[str, Any]) -> None:
+    from volren.progress import case_done
+
+    case_done(f"{row['server']}: {row['fps_total']:.1f} fps total, tick per shard {row['shard_tick_ms'] or '-'} ms")
+
+
+def shard_suite(counts: list[int]) -> Suite:
+    """``bench serve --shards COUNTS``: the sharded server against one shard and the loop in process."""
+    if not counts or min(counts) < 1:
+        raise VolrenError(f"--shards must list shard counts >= 1, got {counts}")
+    return Suite("serve-shards", "volren serve --shards: 16 clients on two rigs far apart, in process and on 1-N "
+                 "Ray shards (issue 23)",
+                 lambda quick, device: asyncio.run(run_shards_async(SHARDS_QUICK if quick else SHARDS_FULL, device,
+                                                                   sorted(set(counts)))))

@@ -27,6 +27,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -316,10 +317,7 @@ async def health(request: web.Request) -> web.Response:
     loop = request.app[LOOP_KEY]
     viewers = list(loop.viewers.viewers.values())
     return web.json_response({
-        "viewers": len(viewers), "method": loop.method, "quality": loop.quality, "scene": request.app[SCENE_KEY],
-        "fps": round(loop.fps, 3), "tick": loop.tick, "renders": loop.renders, "views": loop.views_last,
-        "shared": loop.shared, "render_ms": round(loop.render_ms, 3), "encode_ms": round(loop.encode_ms, 3),
-        "pass_ms": {k: round(v, 3) for k, v in loop.pass_ms.items()},
+        "viewers": len(viewers), "scene": request.app[SCENE_KEY], **loop.report(),
         "frames_sent": sum(v.frames for v in viewers), "frames_dropped": sum(v.dropped for v in viewers),
     })
 
@@ -393,10 +391,13 @@ async def _serve(app: web.Application, host: str, port: int, ready: str) -> str 
 
 def build_loop(scene_name: str, method: str | None, quality: str, resolution: int, device: str,
                limits: Limits, lock_settings: bool = False, *, scene: Scene | None = None,
-               camera: Camera | None = None, animate: Callable[[], Scene] | None = None) -> RenderLoop:
+               camera: Camera | None = None, animate: Callable[[], Scene] | None = None, shards: int | None = None,
+               ray_address: str | None = None) -> RenderLoop:
     """The render loop of a built-in scene: a volume scene at ``resolution`` seen from the CLI's default camera, or
     a fog scene from its own viewpoint; ``method`` None = the first live method that can render it. A ``scene``
-    given (a file's, named ``scene_name``) is seen from ``camera`` and played by ``animate`` (None: not animated)."""
+    given (a file's, named ``scene_name``) is seen from ``camera`` and played by ``animate`` (None: not animated).
+    ``shards``: a `ShardedLoop` of that many Ray actors (on the cluster at ``ray_address``; None: a local one), each
+    building the animation itself."""
     from volren.data import BUILTIN_SCENES, builtin_scene
     from volren.data.fog_scenes import FOG_SCENES, fog_scene, fog_scene_camera
 
@@ -412,9 +413,25 @@ def build_loop(scene_name: str, method: str | None, quality: str, resolution: in
         else:
             raise VolrenError(f"--scene: unknown scene '{scene_name}': choose from "
                               f"{', '.join([*BUILTIN_SCENES, *FOG_SCENES])}")
-        animate = animator(scene, scene_name, device)
+        if shards is not None:  # each shard advects its own smoke: the simulation stays on its device
+            animate_in: Callable[[], Callable[[], Scene] | None] = partial(animator, scene, scene_name, device)
+        else:
+            animate = animator(scene, scene_name, device)
+    else:
+        animate_in = partial(_given, animate)
+    if shards is not None:
+        from volren.serve.shards import ShardedLoop
+
+        return ShardedLoop(scene, method or scene_methods(scene)[0], quality, shards=shards, address=ray_address,
+                           animate=animate_in, limits=limits, camera=camera, device=device,
+                           lock_settings=lock_settings)
     return RenderLoop(scene, method or scene_methods(scene)[0], quality, limits=limits, camera=camera,
                       device=device, animate=animate, lock_settings=lock_settings)
+
+
+def _given(animate: Callable[[], Scene] | None) -> Callable[[], Scene] | None:
+    """A shard's animation factory for a step built in the front end (a volume sequence's player: picklable)."""
+    return animate
 
 
 def serve(app: web.Application, host: str, port: int, token: str | None) -> None:

@@ -153,6 +153,10 @@ def sequence_player(length: int, scene_at: Callable[[int], Scene]) -> Callable[[
     return lambda: scene_at(next(steps) % length)
 
 
+SHARED_SETTINGS = ("method", "quality", "tf", "light_dir", "playing", "mode", "iso_value")
+"""the settings every viewer of a server shares (`RenderLoop.apply`, `RenderLoop.adopt`)"""
+
+
 class RenderLoop:
     """The shared renderer and its viewers. ``animate`` gives the next scene of an animation (None: not animated).
     ``shared=False`` is the naive server of the benchmark: each viewer rendered by its own renderer (own light map,
@@ -160,7 +164,15 @@ class RenderLoop:
     ``overrides`` are config fields on top of the quality preset (tests use small light grids). ``refine``: frames a
     still view is refined for by a temporal method (None: `refine_frames` of the method's config; 1: off).
     ``encode`` turns a viewer's uint8 sRGB image into its frame's bytes (None: JPEG at ``jpeg_quality``; the notebook
-    widget, `volren.notebook.Viewer`, takes the raw pixels)."""
+    widget, `volren.notebook.Viewer`, takes the raw pixels).
+
+    The loop has a socket part (viewers, settings, ticks: `step`) and a renderer part (`_build_renderer`,
+    `_render_encode`, run by `_render` in a worker thread). `volren.serve.shards` runs the renderer part of a loop in
+    each of its Ray actors and the socket part of one loop per shard in the front end (``local`` False there: the
+    front end's loops keep no renderer, only its config)."""
+
+    local = True
+    """this loop renders in this process (False: its renderer part runs elsewhere, `_render` calls it)"""
 
     def __init__(self, scene: Scene, method: str, quality: str = "interactive", *, limits: Limits | None = None,
                  camera: Camera | None = None, device: str = "cpu", shared: bool = True, ipd: float = 0.063,
@@ -240,18 +252,18 @@ class RenderLoop:
             if issubclass(config_cls, LightMapMarchConfig):
                 options["reuse_light_map"] = True
             self._config = quality_config(self.method, self.quality, **options)
-            self.renderer = self._make_renderer()
+            self.renderer = self._make_renderer() if self.local else None
             self._own = {}
             self._renderer_key = (self.method, self.quality)
         transfer = None if self.tf == DENSITY_TF else self.tf
         if "transfer" in fields and self._config.transfer != transfer:
             self._config = dataclasses.replace(self._config, transfer=transfer)
-            for r in (self.renderer, *self._own.values()):
+            for r in filter(None, (self.renderer, *self._own.values())):
                 r.config = self._config
         # a mode switch, like the transfer function, keeps the renderer (its light map stays valid)
         if "mode" in fields and (self._config.mode, self._config.iso_value) != (self.mode, self.iso_value):
             self._config = dataclasses.replace(self._config, mode=self.mode, iso_value=self.iso_value)
-            for r in (self.renderer, *self._own.values()):
+            for r in filter(None, (self.renderer, *self._own.values())):
                 r.config = self._config
 
     def _make_renderer(self) -> Any:
@@ -282,23 +294,28 @@ class RenderLoop:
     def apply(self, settings: Settings, viewer: Viewer) -> bool:
         """Apply a settings message from ``viewer``; True when a shared setting changed (to tell the others). With
         ``lock_settings`` only the viewer's own stereo mode may change."""
-        shared = [name for name in ("method", "quality", "tf", "light_dir", "playing", "mode", "iso_value")
-                  if getattr(settings, name) is not None]
+        shared = [name for name in SHARED_SETTINGS if getattr(settings, name) is not None]
         if self.lock_settings and shared:
             raise ProtocolError(f"settings: {', '.join(shared)} locked by the operator (--lock-settings); only "
                                 "stereo may change")
         self._check_mode(settings)
         if settings.stereo is not None and settings.stereo != viewer.stereo:
             viewer.resize(viewer.width, viewer.height, settings.stereo, self.limits)
-        changed = {name for name in shared if getattr(settings, name) != getattr(self, name)}
+        changed = self.adopt({name: getattr(settings, name) for name in shared})
+        self.wake()
+        return bool(changed)
+
+    def adopt(self, values: dict[str, Any]) -> set[str]:
+        """Take the shared settings in ``values`` (validated already); the names that changed. A change bumps the
+        version, so every viewer gets a frame of it."""
+        changed = {name for name, value in values.items() if value != getattr(self, name)}
         for name in changed:
-            setattr(self, name, getattr(settings, name))
+            setattr(self, name, values[name])
         if "light_dir" in changed:
             self.scene = with_light(self._frame_scene, self.light_dir)
         if changed:
             self.version += 1
-        self.wake()
-        return bool(changed)
+        return changed
 
     def _check_mode(self, settings: Settings) -> None:
         """Refuse, before anything changes, a mode other than dvr with a method that is no light-map marcher or a
@@ -416,8 +433,8 @@ class RenderLoop:
         shares = fair_shares([v.width * v.height for v in order], self.limits.pixel_budget)
         jobs = [(v, v.camera_id, v.views(self.ipd, px), self._still.get(v.id), (v.camera, version, step))
                 for v, px in zip(order, shares, strict=True)]
-        try:
-            frames = await asyncio.to_thread(self._render_encode, jobs, index, advance, len(self.viewers))
+        try:  # the renderer part sees viewer ids, not viewers (sockets): it may run in another process
+            frames = await self._render([(v.id, *job) for v, *job in jobs], index, advance, len(self.viewers))
         except VolrenError as exc:
             for v, cam_id, *_ in jobs:
                 v.shown = (cam_id, version)
@@ -440,10 +457,16 @@ class RenderLoop:
             v.unacked, v.unacked_since = index, time.monotonic()
             v.sending = asyncio.create_task(self._send(v, payload))
 
-    def _render_encode(self, jobs: list[tuple[Viewer, int, list[Camera], Still | None, tuple]], index: int,
+    async def _render(self, jobs: list[tuple[int, int, list[Camera], Still | None, tuple]], index: int,
+                      advance: bool, viewers: int) -> list[tuple[bytes, Still]]:
+        """The renderer part of a tick, `_render_encode`, in a worker thread (the event loop reads messages
+        meanwhile)."""
+        return await asyncio.to_thread(self._render_encode, jobs, index, advance, viewers)
+
+    def _render_encode(self, jobs: list[tuple[int, int, list[Camera], Still | None, tuple]], index: int,
                        advance: bool, viewers: int) -> list[tuple[bytes, Still]]:
-        """In the worker thread: advance the animation, render, refine, encode; per job its packed frame and still
-        view."""
+        """Advance the animation, render, refine, encode; per job (viewer id, camera id, views, still view so far,
+        its key) its packed frame and still view."""
         if advance:
             self._frame_scene = self._animate()
             self.scene = with_light(self._frame_scene, self.light_dir)
@@ -455,9 +478,9 @@ class RenderLoop:
             images, passes = frame.images, dict(frame.stats.times_ms)
         else:
             images, passes = [], {}
-            self._own = {v.id: self._own.get(v.id) or self._make_renderer() for v, *_ in jobs}
-            for v, _, cams, *_ in jobs:
-                frame = self._own[v.id].render(scene, cams, frame=index)
+            self._own = {vid: self._own.get(vid) or self._make_renderer() for vid, *_ in jobs}
+            for vid, _, cams, *_ in jobs:
+                frame = self._own[vid].render(scene, cams, frame=index)
                 self.renders += 1
                 images += frame.images
                 for k, ms in frame.stats.times_ms.items():
@@ -525,6 +548,13 @@ class RenderLoop:
                 await viewer.text(self.settings_message())
 
     # ---- reporting ------------------------------------------------------------------------------------------
+
+    def report(self) -> dict[str, Any]:
+        """The loop's figures for /health."""
+        return {"method": self.method, "quality": self.quality, "fps": round(self.fps, 3), "tick": self.tick,
+                "renders": self.renders, "views": self.views_last, "shared": self.shared,
+                "render_ms": round(self.render_ms, 3), "encode_ms": round(self.encode_ms, 3),
+                "pass_ms": {k: round(v, 3) for k, v in self.pass_ms.items()}}
 
     @property
     def fps(self) -> float:

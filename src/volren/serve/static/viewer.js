@@ -131,6 +131,8 @@ function onText(msg) {
   } else if (msg.type === "error") {
     state.errors.push(msg.message);
     showStatus(msg.message, 4000);
+  } else if (msg.type === "notice") { // a server event (a render shard lost): shown until the next one
+    showStatus(msg.message, 0);
   }
 }
 

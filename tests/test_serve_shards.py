@@ -1,0 +1,191 @@
+"""`volren serve --shards N`: placement (pure Python), and two Ray shards serving real WebSocket clients: rigs far
+apart on different shards, overlapping viewers together, a stereo viewer whole, a sharded frame equal to an unsharded
+one, /health's shards, a killed shard's viewers moved with a notice while the others keep receiving frames, and the
+last shard's loss reported. A scene of two 16^3 smokes 6 m apart at 64x48 keeps each tick ~10 ms."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import numpy as np
+import pytest
+from aiohttp.test_utils import TestClient, TestServer
+
+from volren.camera import Camera
+from volren.cli import main
+from volren.data.procedural import smoke_density
+from volren.scene import DirectionalLight, Environment, Scene, Volume
+from volren.serve.app import make_app
+from volren.serve.loop import RenderLoop
+from volren.serve.placement import SHARED_PASS_PX, Footprint, added_work, choose_shard, footprint
+from volren.serve.protocol import unpack_frame
+from volren.serve.viewers import Limits
+
+SMALL = {"samples": 64, "light_samples": 16, "light_grid": 8}
+W, H = 64, 48
+APART = 3.0
+"""[m] each smoke's centre from the origin along x: the two rigs' footprints (radius ~1.7 m at 2.5 m) lie apart"""
+DENSITY = smoke_density(64).reshape(16, 4, 16, 4, 16, 4).mean(axis=(1, 3, 5))
+TIMEOUT = 120.0
+"""[s] per awaited message: a shard's first tick loads Warp's kernels in its actor"""
+
+
+def placed(x: float) -> np.ndarray:
+    m = np.eye(4)
+    m[0, 3] = x
+    return m
+
+
+SCENE = Scene(tuple(Volume(DENSITY, to_world=placed(x), density_scale=13.0, albedo=0.85, g=0.2, name=f"smoke{i}")
+                    for i, x in enumerate((-APART, APART))),
+              (DirectionalLight((-0.5, -1.0, -0.35), (3.0, 3.0, 3.0)),), Environment((0.05, 0.065, 0.09)),
+              (0.015, 0.015, 0.02), name="two-smokes")
+
+
+def cam_msg(i: int, centre: float, angle: float = 0.0) -> dict:
+    """Camera ``i`` orbiting the smoke at x = ``centre``, ``angle`` [rad] round it."""
+    pos = [centre + 2.5 * np.sin(angle), 0.2, 2.5 * np.cos(angle)]
+    return {"type": "camera", "id": i, "position": pos, "look_at": [centre, 0, 0], "up": [0, 1, 0], "fov": 45}
+
+
+# ---- placement (no Ray) ---------------------------------------------------------------------------------------
+
+def fp(x: float, pixels: int = W * H) -> Footprint:
+    msg = cam_msg(0, x)
+    return footprint(Camera(position=msg["position"], look_at=msg["look_at"], width=W, height=H), W, H) \
+        if pixels == W * H else Footprint(pixels, (x, 0.0, 0.0), 1.0)
+
+
+def test_placement_overlap_together_rigs_apart_split():
+    """Viewers of one rig (overlapping footprints) go to the shard already rendering it (their pixels only, no new
+    shared passes); the first viewer of a rig far away ties between shards (pixels + shared passes anywhere) and
+    goes to the least loaded one; a shard that is down is never chosen."""
+    a, b = fp(-APART), fp(APART)
+    assert added_work([a], fp(-APART)) == W * H and added_work([a], b) == W * H + SHARED_PASS_PX
+    shards: list[list[Footprint] | None] = [[], []]
+    for new in (a, fp(-APART), b, fp(APART), fp(-APART)):
+        i = choose_shard(shards, new)
+        shards[i].append(new)
+    assert [len(s) for s in shards] == [3, 2] and all(f.centre[0] < 0 for f in shards[0]) \
+        and all(f.centre[0] > 0 for f in shards[1]), "each rig on a shard of its own"
+    # a third shard, empty: a new rig goes there (least loaded of the tied), a viewer of rig A stays with A
+    shards.append([])
+    assert choose_shard(shards, fp(20.0)) == 2 and choose_shard(shards, fp(-APART)) == 0
+    assert choose_shard([None, [a], []], fp(-APART)) == 1, "a shard down is never chosen"
+    with pytest.raises(ValueError):
+        choose_shard([None, None], a)
+
+
+def test_placement_ties_go_to_the_least_loaded_shard():
+    """Between shards where a viewer adds the same work the one with fewer pixels wins, whatever its index."""
+    big, small = Footprint(4 * W * H, (-10.0, 0, 0), 1.0), Footprint(W * H, (10.0, 0, 0), 1.0)
+    assert choose_shard([[big], [small]], Footprint(W * H, (0.0, 0, 0), 1.0)) == 1
+    assert choose_shard([[small], [big]], Footprint(W * H, (0.0, 0, 0), 1.0)) == 0
+
+
+def test_cli_refuses_ray_address_without_shards_and_zero_shards(capsys):
+    assert main(["serve", "--ray-address", "127.0.0.1:6379"]) == 2
+    assert "--ray-address needs --shards" in capsys.readouterr().err
+    assert main(["serve", "--shards", "0"]) == 2
+    assert "--shards must be at least 1" in capsys.readouterr().err
+
+
+# ---- two shards on Ray ----------------------------------------------------------------------------------------
+
+async def connect(client, stereo: bool = False):
+    ws = await client.ws_connect("/ws")
+    await ws.send_json({"type": "hello", "width": W, "height": H, "stereo": stereo})
+    welcome = await ws.receive_json(timeout=TIMEOUT)
+    assert welcome["type"] == "welcome"
+    return ws
+
+
+async def frame_for(ws, camera_id: int, texts: list | None = None) -> tuple[dict, bytes]:
+    """Frames (acknowledged) until the one answering ``camera_id``; text messages on the way go to ``texts``."""
+    while True:
+        msg = await ws.receive(timeout=TIMEOUT)
+        if isinstance(msg.data, str):
+            assert texts is not None, f"unexpected {msg.data}"
+            texts.append(json.loads(msg.data))
+            continue
+        header, jpeg = unpack_frame(msg.data)
+        await ws.send_json({"type": "ack", "tick": header["tick"]})
+        if header["camera_id"] == camera_id:
+            return header, jpeg
+
+
+async def next_text(ws) -> dict:
+    """The next text message (frames before it acknowledged and skipped)."""
+    while True:
+        msg = await ws.receive(timeout=TIMEOUT)
+        if isinstance(msg.data, str):
+            return json.loads(msg.data)
+        await ws.send_json({"type": "ack", "tick": unpack_frame(msg.data)[0]["tick"]})
+
+
+def unsharded(msg: dict, stereo: bool, tick: int) -> bytes:
+    """The JPEG an in-process render loop makes of that viewer at that tick (same views, same frame index)."""
+    from volren.serve.viewers import Viewer
+
+    loop = RenderLoop(SCENE, "dssrm", limits=Limits(8, 128, 96), device="cpu", overrides=SMALL)
+    v = Viewer(1, None)
+    v.resize(W, H, stereo, loop.limits)
+    v.camera = Camera(position=msg["position"], look_at=msg["look_at"], fov_y=msg["fov"],
+                      width=W // 2 if stereo else W, height=H)
+    [(payload, _)] = loop._render_encode([(1, msg["id"], v.views(loop.ipd), None, ())], tick, False, 1)
+    return unpack_frame(payload)[1]
+
+
+@pytest.mark.xdist_group("ray")
+def test_two_shards_place_serve_and_survive_a_killed_shard(ray_cluster):
+    from volren.serve.shards import ShardedLoop
+
+    async def main_() -> None:
+        loop = ShardedLoop(SCENE, "dssrm", shards=2, limits=Limits(8, 128, 96), device="cpu", overrides=SMALL)
+        async with TestClient(TestServer(make_app(loop, "two-smokes"), shutdown_timeout=1.0)) as client:
+            # rig A: a stereo viewer and a mono one round the left smoke; rig B: two mono viewers round the right one
+            a1, a2, b1, b2 = (await connect(client, stereo=True), await connect(client), await connect(client),
+                              await connect(client))
+            rigs = {a1: -APART, a2: -APART, b1: APART, b2: APART}
+            for k, (ws, x) in enumerate(rigs.items()):  # one at a time: each placed knowing the ones before
+                await ws.send_json(cam_msg(10 + k, x, 0.3 * k))
+                header, jpeg = await frame_for(ws, 10 + k)
+                if ws is a1:  # the stereo pair rendered whole on one shard, both eyes side by side
+                    assert header["stereo"] and (header["width"], header["height"]) == (W, H)
+                    assert jpeg == unsharded(cam_msg(10, -APART), True, header["tick"]), "sharded == unsharded"
+                if ws is b2:
+                    assert jpeg == unsharded(cam_msg(13, APART, 0.9), False, header["tick"])
+            health = await (await client.get("/health")).json()
+            shards = health["shards"]
+            assert [s["state"] for s in shards] == ["up", "up"] and health["shards_up"] == 2
+            assert [s["viewers"] for s in shards] == [[1, 2], [3, 4]], "rigs apart split, each rig's viewers together"
+            assert all(s["light_maps"] >= 1 and s["tick"] >= 2 for s in shards), shards
+            assert health["tick"] == sum(s["tick"] for s in shards) and health["viewers"] == 4
+
+            # shard 1 killed: its viewers get a notice and frames from shard 0; shard 0's viewers never stop
+            ray_cluster.kill(loop.shards[1].actor)
+            texts: dict = {ws: [] for ws in rigs}
+            for step in range(3):
+                for k, (ws, x) in enumerate(rigs.items()):
+                    await ws.send_json(cam_msg(20 + 10 * step + k, x, 0.1 * step))
+                for k, ws in enumerate(rigs):
+                    await frame_for(ws, 20 + 10 * step + k, texts[ws])
+            for ws in (b1, b2):
+                assert any(t["type"] == "notice" and "shard 1 stopped" in t["message"] for t in texts[ws]), texts[ws]
+            assert not texts[a1] and not texts[a2], "shard 0's viewers are not disturbed"
+            health = await (await client.get("/health")).json()
+            assert [s["state"] for s in health["shards"]] == ["up", "down"] and health["shards_up"] == 1
+            assert health["shards"][0]["viewers"] == [1, 2, 3, 4] and health["shards"][1]["viewers"] == []
+
+            # the last shard killed: every viewer is told, /health says no shard is up
+            ray_cluster.kill(loop.shards[0].actor)
+            await a2.send_json(cam_msg(90, -APART))
+            notice = await next_text(a1)
+            assert notice["type"] == "notice" and "no render shard is left" in notice["message"]
+            health = await (await client.get("/health")).json()
+            assert health["shards_up"] == 0 and [s["state"] for s in health["shards"]] == ["down", "down"]
+            for ws in rigs:
+                await ws.close()
+
+    asyncio.run(main_())
