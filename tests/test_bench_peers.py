@@ -58,6 +58,7 @@ def test_peers_suite_draws_the_same_view_and_keeps_the_light_map(tmp_path, monke
     (row,) = json.loads(json_path.read_text())["rows"]
     assert row["vtk_window"] == "vtkEGLRenderWindow"
     assert row["ratio"] == pytest.approx(row["volren_ms"] / row["vtk_ms"])
+    assert row["cpu_ratio"] == pytest.approx(row["volren_cpu_ms"] / row["vtk_cpu_ms"])
     assert row["light_maps"] == 0
     assert row["psnr"] > 26.0
     figure = tmp_path / "peers-cpu-quick-64x36.png"

@@ -15,10 +15,13 @@ their PSNR is only a sanity check that both draw the same view.
 
 Timing: VTK and volren frames are interleaved in one process (frame i of VTK, then of volren), so load from other
 processes hits both alike; a round is the whole orbit, and after a warm-up round (VTK's first render, volren's
-kernel compilation, upload and light map) the reported ms per frame is the fastest round's mean. volren's time is the
-wall time of ``render`` (all passes, readback included), VTK's that of ``vtkRenderWindow.Render`` (ray casting and
-drawing the image). The light does not move on the orbit, so volren computes its light map once (the light-map
-cache, `volren.render.base.LightMapRenderer`); the ``light maps`` column counts how often it did in the timed rounds.
+kernel compilation, upload and light map) the reported ms per frame is the fastest round's mean, of wall time and of
+process CPU time (all threads: on a shared machine the figure other jobs disturb least). volren's time is that of
+``render`` (all passes, readback included), VTK's that of ``vtkRenderWindow.Render`` (ray casting and drawing the
+image). Each takes every core: VTK through `vtkMultiThreader` (``VTK threads``), volren through its CPU launch bands
+(`volren.device.launch_rows`, ``volren threads``). The light does not move on the orbit, so volren computes its
+light map once (the light-map cache, `volren.render.lightmap.LightMapCache`); the ``light maps`` column counts how
+often it did in the timed rounds.
 """
 
 from __future__ import annotations
@@ -170,28 +173,30 @@ def run_size(scene: Scene, cfg: dict[str, Any], width: int, height: int, device:
     cams = orbit(Camera(position=CAMERA, width=width, height=height), cfg["frames"])
     peer = VTKPeer(scene, cfg["samples"], width, height)
     ours = DSSRM(DSSRMConfig(samples=cfg["samples"]), device)
-    vtk_rounds, ours_rounds, light_maps, march = [], [], 0, []
+    rounds: list[np.ndarray] = []  # per timed round: [VTK, volren] x [wall, CPU] seconds over the orbit
+    light_maps, march = 0, []
     for r in range(cfg["rounds"] + 1):  # round 0 warms up
-        t_vtk = t_ours = 0.0
+        spent = np.zeros((2, 2))
         for i, cam in enumerate(cams):
-            t = time.perf_counter()
-            peer.render(cam)
-            t_vtk += time.perf_counter() - t
-            t = time.perf_counter()
-            frame = ours.render(scene, [cam], frame=i)
-            t_ours += time.perf_counter() - t
+            for who in (0, 1):
+                wall, cpu = time.perf_counter(), time.process_time()
+                if who == 0:
+                    peer.render(cam)
+                else:
+                    frame = ours.render(scene, [cam], frame=i)
+                spent[who] += (time.perf_counter() - wall, time.process_time() - cpu)
             if r > 0:
                 light_maps += "light_map" in frame.stats.times_ms
                 march.append(frame.stats.times_ms["march"])
         if r > 0:
-            vtk_rounds.append(1e3 * t_vtk / len(cams))
-            ours_rounds.append(1e3 * t_ours / len(cams))
+            rounds.append(1e3 * spent / len(cams))
     peer.render(cams[0])
     vtk_image = peer.image()
     ours_image = to_srgb8(composite(ours.render(scene, [cams[0]]).images[0], scene.background))
     case_done(f"VTK and volren, {cfg['frames']} frames of {width}x{height}")
-    vtk_ms, ours_ms = min(vtk_rounds), min(ours_rounds)
+    (vtk_ms, vtk_cpu), (ours_ms, ours_cpu) = np.min(rounds, axis=0).tolist()
     return {"size": f"{width}x{height}", "vtk_ms": vtk_ms, "volren_ms": ours_ms, "ratio": ours_ms / vtk_ms,
+            "vtk_cpu_ms": vtk_cpu, "volren_cpu_ms": ours_cpu, "cpu_ratio": ours_cpu / vtk_cpu,
             "volren_march_ms": float(np.median(march)), "light_maps": light_maps,
             "psnr": psnr(vtk_image.astype(np.float32) / 255.0, ours_image.astype(np.float32) / 255.0),
             "vtk_threads": peer.threads, "volren_threads": cpu_threads(), "vtk_window": peer.window_class,
@@ -204,7 +209,9 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     figures = {f"{row['size']}.png": row.pop("figure") for row in rows}
     columns = [
         ("size", "image", "s"), ("vtk_ms", "VTK [ms/frame]", ".1f"), ("volren_ms", "volren DSSRM [ms/frame]", ".1f"),
-        ("ratio", "volren / VTK", ".2f"), ("volren_march_ms", "volren march [ms]", ".1f"),
+        ("ratio", "volren / VTK", ".2f"), ("vtk_cpu_ms", "VTK CPU [ms/frame]", ".1f"),
+        ("volren_cpu_ms", "volren CPU [ms/frame]", ".1f"), ("cpu_ratio", "CPU volren / VTK", ".2f"),
+        ("volren_march_ms", "volren march [ms]", ".1f"),
         ("light_maps", "light maps", "d"), ("psnr", "PSNR volren vs VTK [dB]", ".1f"),
         ("vtk_threads", "VTK threads", "d"), ("volren_threads", "volren threads", "d"),
     ]
