@@ -206,3 +206,28 @@ def test_a_job_file_on_ray_writes_the_files_of_the_in_process_run(tmp_path, ray_
     index = {w: json.loads((runs[w] / "jobs.json").read_text()) for w in runs}
     assert [job["settings"] for job in index["ray"]["jobs"].values()] == [
         job["settings"] for job in index["here"]["jobs"].values()]
+
+
+@pytest.mark.xdist_group("ray")
+def test_bench_batch_counts_every_unit_and_frame(ray_cluster):
+    from volren.bench.batch import GOAL_OVERHEAD_MS, GOAL_RAY_RATIO, run_config
+
+    cfg = {"frames": 3, "size": (40, 24), "resolution": 64, "workers": [1, 2],
+           "overrides": ["--samples", "24", "--light-samples", "6", "--light-grid", "8"]}
+    result = run_config(cfg, "cpu")
+    rows = result["rows"]
+    assert [(r["case"], r["workers"], r["threads"]) for r in rows] == [
+        ("in process", None, 1), ("in process", None, "all"), ("local Ray", 1, 1), ("local Ray", 2, 1)]
+    for r in rows:
+        assert r["frames"] == 3 and r["fps"] == pytest.approx(3 / r["wall_s"])
+    walls = {r["threads"]: r["wall_s"] for r in rows[:2]}
+    summary, _ = result["summary"]
+    for r, s in zip(rows[2:], summary, strict=True):
+        # one frame per unit (dssrm keeps no history), one PNG per mono frame, each written once, none retried
+        assert r["units"] == 3 and r["files"] == 3 and r["retried"] == 0 and r["same_files"] is True
+        assert r["overhead_ms"] == pytest.approx(r["unit_ms"] - r["frame_in_process_ms"])
+        assert r["overhead_max_ms"] >= r["overhead_ms"] and r["ray_start_s"] >= 0 and r["setup_ms"] > 0
+        assert s["workers"] == r["workers"]
+        assert s["ratio"] == pytest.approx(r["wall_s"] / walls[1 if r["workers"] == 1 else "all"])
+        met = s["ratio"] <= GOAL_RAY_RATIO and s["overhead_ms"] < GOAL_OVERHEAD_MS
+        assert s["goals"] == ("pass" if met else "fail")

@@ -39,6 +39,7 @@ class Suite:
 
 def all_suites() -> dict[str, Suite]:
     """Every suite by name (imported here, so importing volren.bench stays cheap)."""
+    from volren.bench.batch import SUITE as BATCH_SUITE
     from volren.bench.binocular import SUITE as BINOCULAR_SUITE
     from volren.bench.dssrm import SUITE as DSSRM_SUITE
     from volren.bench.gi import SUITE as GI_SUITE
@@ -53,7 +54,8 @@ def all_suites() -> dict[str, Suite]:
     from volren.bench.vpt import SUITE as VPT_SUITE
 
     return {s.name: s for s in (DSSRM_SUITE, RESOLUTION_SUITE, BINOCULAR_SUITE, VIEWERS_SUITE, VPT_SUITE, GI_SUITE,
-                                OIT_SUITE, INTEGRATED_SUITE, SERVE_SUITE, INTERACTIVE_SUITE, LOAD_SUITE, PEERS_SUITE)}
+                                OIT_SUITE, INTEGRATED_SUITE, SERVE_SUITE, INTERACTIVE_SUITE, LOAD_SUITE, PEERS_SUITE,
+                                BATCH_SUITE)}
 
 
 NOT_PASSES = ("upload", "readback", "fog_bake")

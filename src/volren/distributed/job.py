@@ -224,10 +224,9 @@ def _axis(fail, flags: Flags, name: str, values: Any) -> list[tuple[str, tuple[S
     tables = [isinstance(v, dict) for v in values]
     if any(tables) and not all(tables):
         fail(key, "mixes tables and values: an axis is either an array of tables or a flag's values")
-    if not all(tables):  # a flag's values
-        entries = [(f"{name}-{_folder_text(v)}", (_setting(fail, flags, f"{key}[{i}]", name, v),))
-                   for i, v in enumerate(values)]
-        return entries
+    if not any(tables):  # a flag's values
+        return [(f"{name}-{_folder_text(v)}", (_setting(fail, flags, f"{key}[{i}]", name, v),))
+                for i, v in enumerate(values)]
     if name in flags.actions:
         fail(key, f"'{name}' is a flag: give its values (an axis of tables needs a name of its own)")
     entries = []

@@ -1,0 +1,146 @@
+"""Suite ``batch``: the batch engine (`volren.distributed.engine`, issue 23) on this machine: a 64-frame turntable of
+the default scene (``volren animate --views mono``) in process against a local Ray with 1 and 2 workers.
+
+Rows: in process with one CPU thread (what one CPU worker has: a worker launches on one thread) and with all threads;
+Ray with each worker count, one frame per unit (dssrm keeps no history). Per row: wall time (Ray: from `run_jobs`'s
+start to its stats.json, its start-up aside), frames per second, units and frames run. Ray rows also give the
+start-up (starting the local cluster, then the actors: reported apart, it is paid once per session), the mean unit
+wall time (dispatch to its files written, in the driver), the per-unit overhead: the unit's wall time minus the
+in-process time of its frames (the same frames rendered and encoded by the worker's code in this process, one thread),
+mean and max, and the engine's own measure (wall minus the worker's setup, warm-up and frame time: scheduling,
+transfer, writing), the worker's setup (scene built and uploaded, renderer made: once per actor), and whether every
+file equals the in-process run's. Goals (issue 23): per-unit overhead < 50 ms; 1 worker within 1.15x of the
+in-process time on the same cores (one thread), start-up aside.
+
+Quick (CPU): 64^3 smoke at 320x180. Full (GPU): 128^3 smoke at 1280x720, the workers sharing the GPUs Ray finds.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from volren.bench import Suite, cpu_thread_limit
+from volren.progress import case_done
+
+FULL = {"frames": 64, "size": (1280, 720), "resolution": 128, "workers": [1, 2], "overrides": []}
+QUICK = {"frames": 64, "size": (320, 180), "resolution": 64, "workers": [1, 2], "overrides": []}
+GOAL_OVERHEAD_MS, GOAL_RAY_RATIO = 50.0, 1.15
+
+
+def turntable(cfg: dict[str, Any], device: str, out: Path) -> tuple[str, ...]:
+    """The job's command line (without "volren")."""
+    width, height = cfg["size"]
+    return ("animate", "--frames", str(cfg["frames"]), "--orbit", "360", "--views", "mono", "--width", str(width),
+            "--height", str(height), "--resolution", str(cfg["resolution"]), "--device", device, *cfg["overrides"],
+            "--out", str(out))
+
+
+def _pngs(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.glob("*.png"))}
+
+
+def in_process(argv: tuple[str, ...], threads: int | None) -> float:
+    """[s] ``volren <argv>`` run in this process with ``threads`` CPU threads (None: all)."""
+    from volren.cli import build_parser, run_command
+
+    with cpu_thread_limit(threads), contextlib.redirect_stdout(io.StringIO()):  # not its summary amid the table
+        start = time.perf_counter()
+        run_command(build_parser().parse_args(list(argv)), "volren " + " ".join(argv))
+        return time.perf_counter() - start
+
+
+def frame_seconds(argv: tuple[str, ...], frames: int) -> float:
+    """[s] one frame's in-process time: the worker's own code (`UnitWorker.run`: render, then encode the files) run
+    here on one thread, setup excluded, averaged over the job's frames."""
+    from volren.distributed.worker import Unit, UnitWorker
+
+    with cpu_thread_limit(1):
+        result = UnitWorker().run(argv, Unit(0, 0, frames))
+    return result["render_seconds"] / frames
+
+
+def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
+    from volren.distributed.engine import Job, run_jobs
+    from volren.distributed.runtime import connect, import_ray
+
+    frames, rows = cfg["frames"], []
+    with tempfile.TemporaryDirectory(prefix="volren-bench-batch-") as tmp:
+        base = Path(tmp)
+        ref = base / "in-process-1"
+        argv = turntable(cfg, device, ref)
+        in_process(argv, 1)  # warm-up: kernels compiled, the scene's first build
+        walls = {1: in_process(argv, 1), None: in_process(turntable(cfg, device, base / "in-process-all"), None)}
+        for threads, wall in walls.items():
+            rows.append({"case": "in process", "threads": threads or "all", "workers": None, "frames": frames,
+                         "units": None, "wall_s": wall, "fps": frames / wall})
+            case_done(f"in process, {threads or 'all'} thread(s)")
+        per_frame = frame_seconds(argv, frames)
+        reference = _pngs(ref)
+        was_up = import_ray("bench batch").is_initialized()  # a session's cluster (the tests') is kept
+        started = time.perf_counter()
+        ray = connect("bench batch", num_cpus=max(cfg["workers"]))
+        cluster_s = time.perf_counter() - started
+        gpus = ray.cluster_resources().get("GPU", 0)
+        for workers in cfg["workers"]:
+            out = base / f"ray-{workers}"
+            share = min(1.0, gpus / workers) if device.startswith("cuda") and gpus else 1.0
+            report = run_jobs([Job(turntable(cfg, device, out), out)], workers=workers, address=None,
+                              flag="bench batch", gpus_per_worker=share)
+            wall = report.wall_seconds - report.ray_start_seconds
+            units = report.units
+            overhead = [u.seconds - (u.stop - u.start) * per_frame for u in units]
+            rows.append({
+                "case": "local Ray", "threads": 1 if not device.startswith("cuda") else "all", "workers": workers,
+                "frames": report.frames_rendered, "units": report.units_run, "wall_s": wall,
+                "fps": report.frames_rendered / wall, "ray_start_s": cluster_s + report.ray_start_seconds,
+                "unit_ms": 1e3 * statistics.mean(u.seconds for u in units),
+                "frame_in_process_ms": 1e3 * per_frame,
+                "overhead_ms": 1e3 * statistics.mean(overhead), "overhead_max_ms": 1e3 * max(overhead),
+                "engine_overhead_ms": 1e3 * statistics.mean(u.overhead_seconds for u in units),
+                "setup_ms": 1e3 * max(u.setup_seconds for u in units),
+                "retried": report.units_retried, "files": report.files_written,
+                "same_files": _pngs(out) == reference})
+            case_done(f"local Ray, {workers} worker(s)")
+            cluster_s = 0.0  # paid once
+        if not was_up:
+            ray.shutdown()
+    # on the same cores: one worker (one thread) against one thread in process, more against all threads
+    in_proc = {r["threads"]: r["wall_s"] for r in rows if r["case"] == "in process"}
+    summary = []
+    for r in rows:
+        if r["case"] == "local Ray":
+            ratio = r["wall_s"] / in_proc[1 if r["workers"] == 1 else "all"]
+            met = ratio <= GOAL_RAY_RATIO and r["overhead_ms"] < GOAL_OVERHEAD_MS and r["same_files"]
+            summary.append({"workers": r["workers"], "against": f"in process, {1 if r['workers'] == 1 else 'all'} "
+                            "thread(s)", "ratio": ratio, "overhead_ms": r["overhead_ms"],
+                            "goals": "pass" if met else "fail"})
+    columns = [
+        ("case", "run", "s"), ("workers", "workers", ""), ("threads", "CPU threads", ""), ("frames", "frames", ""),
+        ("units", "units", ""), ("wall_s", "wall [s]", ".2f"), ("fps", "frames/s", ".2f"),
+        ("ray_start_s", "Ray start-up [s]", ".2f"), ("unit_ms", "unit [ms]", ".1f"),
+        ("frame_in_process_ms", "its frame in process [ms]", ".1f"), ("overhead_ms", "overhead/unit [ms]", ".1f"),
+        ("overhead_max_ms", "max overhead [ms]", ".1f"), ("engine_overhead_ms", "engine's overhead [ms]", ".1f"),
+        ("setup_ms", "worker setup [ms]", ".0f"), ("same_files", "files = in process", ""),
+    ]
+    summary_columns = [("workers", "Ray workers", ""), ("against", "against", "s"),
+                       ("ratio", "wall / in-process wall", ".3f"), ("overhead_ms", "overhead/unit [ms]", ".1f"),
+                       ("goals", f"goals (<= {GOAL_RAY_RATIO}x, < {GOAL_OVERHEAD_MS:g} ms, same files)", "s")]
+    width, height = cfg["size"]
+    settings = {"scene": "smoke", "command": "animate --views mono --orbit 360", "frames": frames,
+                "size": f"{width}x{height}", "resolution": cfg["resolution"], "workers": cfg["workers"],
+                "overrides": cfg["overrides"], "unit_frames": 1}
+    return {"settings": settings, "rows": rows, "columns": columns, "summary": (summary, summary_columns)}
+
+
+def run(quick: bool, device: str) -> dict[str, Any]:
+    return run_config(QUICK if quick else FULL, device)
+
+
+SUITE = Suite("batch", "volren batch's engine: a 64-frame turntable in process against local Ray, 1 and 2 workers",
+              run)
