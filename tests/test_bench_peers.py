@@ -5,6 +5,7 @@ from __future__ import annotations
 import builtins
 import json
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
 
@@ -61,8 +62,10 @@ def test_peers_suite_draws_the_same_view_and_keeps_the_light_map(tmp_path, monke
     assert row["cpu_ratio"] == pytest.approx(row["volren_cpu_ms"] / row["vtk_cpu_ms"])
     assert row["light_maps"] == 0
     assert row["psnr"] > 26.0
-    figure = tmp_path / "peers-cpu-quick-64x36.png"
-    assert "![64x36.png](peers-cpu-quick-64x36.png)" in md_path.read_text() and figure.is_file()
+    name = "64x36-volren-left-vtk-right.png"
+    assert f"![{name}](peers-cpu-quick-{name})" in md_path.read_text()
+    figure = iio.imread(tmp_path / f"peers-cpu-quick-{name}")
+    assert figure.shape == (36, 128, 3)
 
 
 def test_without_vtk_the_suite_names_the_extra(monkeypatch):

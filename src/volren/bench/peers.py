@@ -206,7 +206,7 @@ def run_size(scene: Scene, cfg: dict[str, Any], width: int, height: int, device:
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     scene = builtin_scene(cfg["scene"], cfg["resolution"])
     rows = [run_size(scene, cfg, w, h, device) for w, h in cfg["sizes"]]
-    figures = {f"{row['size']}.png": row.pop("figure") for row in rows}
+    figures = {f"{row['size']}-volren-left-vtk-right.png": row.pop("figure") for row in rows}
     columns = [
         ("size", "image", "s"), ("vtk_ms", "VTK [ms/frame]", ".1f"), ("volren_ms", "volren DSSRM [ms/frame]", ".1f"),
         ("ratio", "volren / VTK", ".2f"), ("vtk_cpu_ms", "VTK CPU [ms/frame]", ".1f"),
