@@ -181,11 +181,28 @@ def test_in_process_batch_writes_what_render_writes_for_each_job(tmp_path, capfd
     assert _files(out / "light-irradiance-1") != _files(out / "light-irradiance-4")
 
 
-def test_example_job_file_expands_into_its_four_jobs():
-    batch = load_batch(Path(__file__).parents[1] / "examples" / "turntable-sweep.toml")
-    assert batch.folders == ("views-mono_light-noon", "views-mono_light-dusk", "views-stereo_light-noon",
-                             "views-stereo_light-dusk")
-    assert batch.frames == (64,) * 4 and batch.views == (1, 1, 2, 2) and batch.command == "animate"
+def test_the_example_job_file_runs_its_four_jobs_tiny(tmp_path, capfd):
+    import tomllib
+
+    example = tomllib.loads((Path(__file__).parents[1] / "examples" / "turntable-sweep.toml").read_text())
+    assert example["frames"] == 24 and example["width"] == 320  # as the README gives it
+    sweep = example.pop("sweep")
+    small = {**example, **TINY, "frames": 2, "out": str(tmp_path / "batch")}
+    small.pop("views")  # the sweep's
+    lines = [f"{k} = {toml_value(v)}" for k, v in small.items()]
+    lines += ["[sweep]", f"views = {toml_value(sweep['views'])}"]
+    for entry in sweep["light"]:
+        lines += ["[[sweep.light]]", *(f"{k} = {toml_value(v)}" for k, v in entry.items())]
+    path = tmp_path / "example.toml"
+    path.write_text("\n".join(lines) + "\n")
+    assert main(["batch", str(path)]) == 0
+    folders = ["views-mono_light-noon", "views-mono_light-dusk", "views-stereo_light-noon", "views-stereo_light-dusk"]
+    assert list(json.loads((tmp_path / "batch" / "jobs.json").read_text())["jobs"]) == folders
+    for folder in folders:
+        names = sorted(p.name for p in (tmp_path / "batch" / folder).iterdir())
+        pngs = [f"frame000{i}_{v}.png" for i in range(2)
+                for v in (["view0"] if "mono" in folder else ["stereo", "view0", "view1"])]
+        assert names == sorted(["animation.mp4", "stats.json", *pngs]), names
 
 
 @pytest.mark.xdist_group("ray")
@@ -231,3 +248,11 @@ def test_bench_batch_counts_every_unit_and_frame(ray_cluster):
         assert s["ratio"] == pytest.approx(r["wall_s"] / walls[1 if r["workers"] == 1 else "all"])
         met = s["ratio"] <= GOAL_RAY_RATIO and s["overhead_ms"] < GOAL_OVERHEAD_MS
         assert s["goals"] == ("pass" if met else "fail")
+
+
+def test_a_temporal_method_is_planned_as_one_frame_range_per_worker(tmp_path):
+    base = {"scene": "smoke", "method": "vpt", "denoise": "ours", "width": 40, "height": 24, "views": "mono",
+            "frames": 4}
+    path = job_file(tmp_path, base=base)
+    # the denoiser's history: contiguous frames per worker (warm-up paid once each), not a unit per frame
+    assert load_batch(path).units == (1,) and load_batch(path, workers=2).units == (2,)
