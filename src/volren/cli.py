@@ -1128,6 +1128,7 @@ def write_plan_frame(plan: RenderPlan, frame, out: Path) -> list[Path]:
 
 
 def run_render(args: argparse.Namespace, method: str, command: str) -> int:
+    check_render_args(args, method)  # before the imports of either path
     if getattr(args, "workers", None) is not None or getattr(args, "ray_address", None) is not None:
         from volren.distributed.engine import run_command_on_ray
 

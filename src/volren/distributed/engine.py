@@ -61,9 +61,12 @@ MAX_RETRIES = 3
 """retries of one unit whose worker died, before the job fails"""
 PART = ".volren-part-"
 """the temporary names files are written under before ``os.replace`` moves them in"""
-FOG_WARMUP = 16
-DENOISE_WARMUP = 8
-GI_WARMUP = 32
+FOG_WARMUP = 4
+DENOISE_WARMUP = 4
+GI_WARMUP = 16
+_POOL: list[tuple[Any, int, tuple[bool, float, str]]] = []
+"""idle actors of this process's Ray connection (actor, pid, (resources, Ray job)), kept warm after a run for the
+next one (a bench's repeats, the tests); killed with the connection, on a failure, or when the next run needs fewer"""
 IGNORED_SETTINGS = ("workers", "ray_address", "gpus_per_worker", "max_minutes", "argv")
 """what may differ between a run and the run it resumes: where and how long, not what is rendered"""
 
@@ -304,6 +307,8 @@ def run_jobs(jobs: Sequence[Job], *, workers: int | None, address: str | None, f
     for s in states:
         s.open_output()
     queue = deque(u for s in states for u in s.units if not s.complete(u))
+    for u in queue:  # a unit whose files changed since is no longer complete
+        states[u.job].manifest["units"].pop(u.key, None)
     skipped = sum(len(s.units) for s in states) - len(queue)
     reports: list[UnitReport] = []
     counts = {"retried": 0, "files": 0, "workers": 0}
@@ -343,8 +348,15 @@ def _run_units(states: list[JobState], queue: deque[Unit], reports: list[UnitRep
         actor = remote.remote(threads)
         return actor, ray.get(actor.pid.remote())
 
-    actors = [remote.remote(threads) for _ in range(workers)]
-    pids = dict(zip(actors, ray.get([a.pid.remote() for a in actors]), strict=True))
+    key = (cuda, gpus_per_worker, ray.get_runtime_context().get_job_id())
+    kept = [(a, pid) for a, pid, k in _POOL if k == key][:workers]
+    for a, _, k in _POOL:  # the rest would hold resources a new actor may need
+        if k[2] == key[2] and a not in dict(kept):
+            ray.kill(a, no_restart=True)
+    _POOL.clear()
+    started = [remote.remote(threads) for _ in range(workers - len(kept))]
+    pids = dict(kept) | dict(zip(started, ray.get([a.pid.remote() for a in started]), strict=True))
+    actors = list(pids)
     counts["workers"] = workers
     ray_start = time.perf_counter() - t0
     idle = list(actors)
@@ -398,9 +410,11 @@ def _run_units(states: list[JobState], queue: deque[Unit], reports: list[UnitRep
                     last[actor] = (unit.job, unit.stop)
                     idle.append(actor)
                     advance(unit.frames)
-    finally:
+    except BaseException:
         for actor in pids:
             ray.kill(actor, no_restart=True)
+        raise
+    _POOL.extend((actor, pids[actor], key) for actor in idle)  # warm for the next call in this process
     rates = [f"{w} {sum(v[::2]) / max(sum(v[1::2]), 1e-9):.2f} frames/s" for w, v in per_worker.items()]
     print(f"  per worker: {', '.join(rates)}", file=sys.stderr)
     return ray_start
