@@ -86,6 +86,18 @@ def test_workers_without_ray_installed_is_one_line_naming_the_flag(tmp_path, cap
     assert err == "volren: error: --workers: Ray is not installed: pip install 'volren[ray]'"
 
 
+def test_a_plain_render_into_a_batch_folder_replaces_the_batch(tmp_path):
+    """The manifest is one of a run's files: a plain render there removes it with the batch's frames, so a later
+    --workers run of the batch's command starts clean instead of trusting files another render replaced."""
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in (MANIFEST, "frame0000_view0.png", "stats.json", "notes.txt"):
+        (out / name).write_text("{}")
+    assert cli.main(["render", "--width", "16", "--height", "12", "--resolution", "64", "--device", "cpu", "--views",
+                     "mono", "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "stats.json", "view0.png"]
+
+
 # --- on the session's Ray cluster ---
 
 @pytest.mark.xdist_group("ray")
@@ -198,3 +210,13 @@ def test_a_unit_failing_with_a_volren_error_fails_the_job_with_that_line(ray_clu
     assert "sim_0002.npy" in str(err.value) and "\n" not in str(err.value)
     assert sent.count(2) == 1
     assert set(json.loads((out / MANIFEST).read_text())["units"]) <= {"frames 0-0", "frames 1-1"}
+
+
+@pytest.mark.xdist_group("ray")
+def test_more_workers_than_the_cluster_holds_is_refused(ray_cluster, tmp_path):
+    """Three one-CPU workers on the session's 2-CPU cluster: the third would wait for ever; refused in one line."""
+    out = tmp_path / "out"
+    refusal = r"^--workers: 3 worker\(s\) need 3 CPU\(s\), Ray has 2: give fewer --workers$"
+    with pytest.raises(VolrenError, match=refusal):
+        run_jobs([Job(("render", *SMALL, "--views", "mono", "--frames", "3", "--out", str(out)), out)], workers=3,
+                 address=None, flag="--workers")

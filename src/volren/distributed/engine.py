@@ -336,9 +336,14 @@ def _run_units(states: list[JobState], queue: deque[Unit], reports: list[UnitRep
 
     t0 = time.perf_counter()
     ray = connect(flag, address, num_cpus=None if address or cuda else workers)
+    kind = "GPU" if cuda else "CPU"
+    have = ray.cluster_resources().get(kind, 0)
+    share = gpus_per_worker if cuda else 1
     if workers is None:
-        have = ray.cluster_resources().get("GPU" if cuda else "CPU", 1)
-        workers = max(1, int(have / gpus_per_worker) if cuda else int(have))
+        workers = max(1, int(have / share + 1e-9))
+    elif workers * share > have + 1e-9:  # the actors past it would wait for resources that never come
+        raise VolrenError(f"{flag}: {workers} worker(s) need {workers * share:g} {kind}(s), Ray has {have:g}: give "
+                          f"fewer --workers{' or a smaller --gpus-per-worker' if cuda else ''}")
     workers = min(workers, len(queue))
     remote = ray.remote(max_restarts=0, max_task_retries=0)(UnitWorker).options(
         **_actor_options(cuda, gpus_per_worker))
