@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -29,6 +31,8 @@ APART = 3.0
 DENSITY = smoke_density(64).reshape(16, 4, 16, 4, 16, 4).mean(axis=(1, 3, 5))
 TIMEOUT = 120.0
 """[s] per awaited message: a shard's first tick loads Warp's kernels in its actor"""
+WARM_TIMEOUT = 20.0
+"""[s] per awaited message once every shard has rendered"""
 
 
 def placed(x: float) -> np.ndarray:
@@ -91,6 +95,20 @@ def test_cli_refuses_ray_address_without_shards_and_zero_shards(capsys):
     assert "--shards must be at least 1" in capsys.readouterr().err
 
 
+def test_serve_without_shards_never_imports_ray():
+    code = ("import sys\nfrom volren.serve.app import build_loop, make_app\nfrom volren.serve.viewers import Limits\n"
+            "make_app(build_loop('hall', None, 'interactive', 64, 'cpu', Limits()), 'hall')\n"
+            "print('ray' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "False"
+
+
+def test_shards_without_ray_installed_is_one_line_naming_the_flag(capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    assert main(["serve", "--shards", "2", "--resolution", "64"]) == 2
+    assert capsys.readouterr().err.strip() == "volren: error: --shards: Ray is not installed: pip install 'volren[ray]'"
+
+
 # ---- two shards on Ray ----------------------------------------------------------------------------------------
 
 async def connect(client, stereo: bool = False):
@@ -101,10 +119,10 @@ async def connect(client, stereo: bool = False):
     return ws
 
 
-async def frame_for(ws, camera_id: int, texts: list | None = None) -> tuple[dict, bytes]:
+async def frame_for(ws, camera_id: int, texts: list | None = None, timeout: float = TIMEOUT) -> tuple[dict, bytes]:
     """Frames (acknowledged) until the one answering ``camera_id``; text messages on the way go to ``texts``."""
     while True:
-        msg = await ws.receive(timeout=TIMEOUT)
+        msg = await ws.receive(timeout=timeout)
         if isinstance(msg.data, str):
             assert texts is not None, f"unexpected {msg.data}"
             texts.append(json.loads(msg.data))
@@ -118,7 +136,7 @@ async def frame_for(ws, camera_id: int, texts: list | None = None) -> tuple[dict
 async def next_text(ws) -> dict:
     """The next text message (frames before it acknowledged and skipped)."""
     while True:
-        msg = await ws.receive(timeout=TIMEOUT)
+        msg = await ws.receive(timeout=WARM_TIMEOUT)
         if isinstance(msg.data, str):
             return json.loads(msg.data)
         await ws.send_json({"type": "ack", "tick": unpack_frame(msg.data)[0]["tick"]})
@@ -163,6 +181,15 @@ def test_two_shards_place_serve_and_survive_a_killed_shard(ray_cluster):
             assert all(s["light_maps"] >= 1 and s["tick"] >= 2 for s in shards), shards
             assert health["tick"] == sum(s["tick"] for s in shards) and health["viewers"] == 4
 
+            # a shared setting changed by a viewer on shard 0 reaches shard 1: b1's view under the new light
+            await b1.send_json(cam_msg(15, APART, 0.6))
+            _, before = await frame_for(b1, 15, timeout=WARM_TIMEOUT)
+            await a1.send_json({"type": "settings", "light_dir": [0.5, -1.0, 0.35]})
+            assert (await next_text(b1))["type"] == "settings"
+            await b1.send_json(cam_msg(16, APART, 0.6))
+            _, after = await frame_for(b1, 16, timeout=WARM_TIMEOUT)
+            assert after != before, "shard 1 renders under the light a viewer of shard 0 set"
+
             # shard 1 killed: its viewers get a notice and frames from shard 0; shard 0's viewers never stop
             ray_cluster.kill(loop.shards[1].actor)
             texts: dict = {ws: [] for ws in rigs}
@@ -170,17 +197,17 @@ def test_two_shards_place_serve_and_survive_a_killed_shard(ray_cluster):
                 for k, (ws, x) in enumerate(rigs.items()):
                     await ws.send_json(cam_msg(20 + 10 * step + k, x, 0.1 * step))
                 for k, ws in enumerate(rigs):
-                    await frame_for(ws, 20 + 10 * step + k, texts[ws])
+                    await frame_for(ws, 20 + 10 * step + k, texts[ws], WARM_TIMEOUT)
             for ws in (b1, b2):
                 assert any(t["type"] == "notice" and "shard 1 stopped" in t["message"] for t in texts[ws]), texts[ws]
-            assert not texts[a1] and not texts[a2], "shard 0's viewers are not disturbed"
+            assert not [t for ws in (a1, a2) for t in texts[ws] if t["type"] != "settings"], "shard 0's undisturbed"
             health = await (await client.get("/health")).json()
             assert [s["state"] for s in health["shards"]] == ["up", "down"] and health["shards_up"] == 1
             assert health["shards"][0]["viewers"] == [1, 2, 3, 4] and health["shards"][1]["viewers"] == []
 
             # the last shard killed: every viewer is told, /health says no shard is up
             ray_cluster.kill(loop.shards[0].actor)
-            await a2.send_json(cam_msg(90, -APART))
+            await a1.send_json(cam_msg(90, -APART))  # a1 acknowledges what it holds (next_text): due, a tick
             notice = await next_text(a1)
             assert notice["type"] == "notice" and "no render shard is left" in notice["message"]
             health = await (await client.get("/health")).json()
