@@ -140,6 +140,27 @@ def test_box(layers: Layers, volumes: wp.array(dtype=VolumeGPU), v: int, origin:
 
 
 @wp.func
+def pixel_tile(oit: OITParams, row: int, col: int) -> int:
+    """The tiled k-buffer's tile holding pixel (row, col)."""
+    return (row / oit.tile_h) * oit.tiles_x + col / oit.tile_w
+
+
+@wp.func
+def lone_candidate(oit: OITParams, volumes: wp.array(dtype=VolumeGPU), row: int, col: int) -> wp.vec2i:
+    """(n, v): the n boxes `pixel_layers` tests for pixel (row, col) without a ray query, and when n = 1 that box's
+    instance v (the cube resampling pass's one-box case); n = -1 for pixel-rt, whose boxes only its query reports."""
+    if oit.scheme == OIT_PIXEL_SORT:
+        return wp.vec2i(volumes.shape[0], 0)
+    if oit.scheme == OIT_PIXEL_RT:
+        return wp.vec2i(-1, 0)
+    tile = pixel_tile(oit, row, col)
+    n = oit.tile_count[tile]
+    if n == 1:
+        return wp.vec2i(1, oit.tile_ids[tile, 0])
+    return wp.vec2i(n, 0)
+
+
+@wp.func
 def pixel_layers(oit: OITParams, volumes: wp.array(dtype=VolumeGPU), origin: wp.vec3, d: wp.vec3, planes: wp.vec2,
                  row: int, col: int, counters: wp.array(dtype=wp.int64)) -> Layers:
     """The pixel's k-buffer by the configured scheme (module docstring), counting its box tests and BVH queries."""
@@ -158,7 +179,7 @@ def pixel_layers(oit: OITParams, volumes: wp.array(dtype=VolumeGPU), origin: wp.
             tested += 1
         count(counters, BVH_QUERIES, 1)
     else:
-        tile = (row / oit.tile_h) * oit.tiles_x + col / oit.tile_w
+        tile = pixel_tile(oit, row, col)
         tested = oit.tile_count[tile]
         for i in range(tested):
             layers = test_box(layers, volumes, oit.tile_ids[tile, i], origin, d, planes, oit.k)

@@ -50,6 +50,8 @@ reference resolves. Hence off by default, and for CACRM too.
 from __future__ import annotations
 
 import math
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -86,8 +88,16 @@ from volren.render.compositing.mesh_layers import (
     march_texel_segments,
     mesh_layers_pass,
 )
-from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, pixel_layers
-from volren.render.frame import DENSITY_SAMPLES, JOINT_RAYS, LIGHTMAP_LOOKUPS, RAYS, SKIPPED_STEPS, PassClock
+from volren.render.compositing.oit import LayerFinder, OITParams, cluster_end, lone_candidate, pixel_layers
+from volren.render.frame import (
+    BOX_TESTS,
+    DENSITY_SAMPLES,
+    JOINT_RAYS,
+    LIGHTMAP_LOOKUPS,
+    RAYS,
+    SKIPPED_STEPS,
+    PassClock,
+)
 from volren.render.marching.cubemap import (
     FACE_COUNT,
     MAX_TILE_LEVEL,
@@ -102,6 +112,7 @@ from volren.render.marching.cubemap import (
     face_tiles,
     max_tile_level,
     point_face,
+    ray_face_point,
     rim_needs_march,
     store_texel,
     texel_index,
@@ -129,6 +140,10 @@ CUBE_TEXEL_BYTES = 24
 """a cube-map texel: premultiplied RGB and transmittance, t_half, z_end (float32 each)"""
 SEGMENT_BYTES = 20
 """a cube k-buffer segment: premultiplied RGB and transmittance, end depth (float32 each)"""
+RESAMPLE_SPAN = 32
+"""pixels per thread of `cube_resample_kernel` on the CPU: Warp's CPU backend copies every kernel argument for each
+thread, which at one pixel per thread cost more than the lookups (cloud 128^3, 960x540, one core: 48 ms a pass at
+1 pixel, 35 at 8, 31.5 at 32, 33 at 128)"""
 
 
 @dataclass
@@ -320,8 +335,97 @@ def cube_compose_kernel(
                 cube_nearest_t(coarse.t_half, coarse.offset, coarse_size, p), z)
 
 
+@wp.func
+def resample_lone_box(
+    cam: CameraGPU,
+    volumes: wp.array(dtype=VolumeGPU),
+    oit: OITParams,
+    scheme: wp.array(dtype=int),
+    cube_offset: wp.array(dtype=int),
+    cube_size: wp.array(dtype=int),
+    exterior: int,
+    rim_direct: int,
+    k_z: float,
+    cube: wp.array(dtype=wp.vec4),
+    cube_t: wp.array(dtype=float),
+    cube_z: wp.array(dtype=float),
+    mode: int,
+    mesh_count: wp.array2d(dtype=int),
+    buffers: ViewBuffers,
+    counters: wp.array(dtype=wp.int64),
+    row: int,
+    col: int,
+) -> int:
+    """Pixel (row, col) of the cube resampling pass when its ray meets no box, or one cube-scheme box with no
+    translucent mesh layer and no rim to march (`rim_needs_march`): one 2x2 lookup where the ray leaves the box
+    (paper 001 §3.2's bilateral filter), written; returns 0 and writes nothing for any other pixel, which
+    `layered_resample_kernel` then takes. The same operations as that kernel's one-layer case, so the same bits."""
+    if mesh_count[row, col] != 0:
+        return 0
+    n = lone_candidate(oit, volumes, row, col)
+    if n[0] < 0 or n[0] > 1:
+        return 0
+    s = new_march_state()
+    d = cam.forward  # what `write_pixel` does with an untouched state does not depend on the ray
+    if n[0] == 1:
+        d, planes = pixel_ray(cam, buffers, row, col)
+        v = n[1]
+        o_l = wp.transform_point(volumes[v].to_local, cam.origin)
+        d_l = wp.transform_vector(volumes[v].to_local, d)
+        h = box_hit(o_l, d_l)
+        t_out = wp.min(h[1], planes[1])
+        if t_out > wp.max(h[0], planes[0]):
+            if scheme[v] != SCHEME_CUBE:
+                return 0
+            p = ray_face_point(o_l, d_l, h, exterior)
+            if rim_direct != 0 and rim_needs_march(cube, cube_offset[v], cube_size[v], p) != 0:
+                return 0
+            acc = combine_segment(mode, state_accumulator(s),
+                                  cube_sample(cube, cube_z, cube_offset[v], cube_size[v], p,
+                                              t_out * wp.dot(d, cam.forward), k_z))
+            if acc[3] <= 0.5:
+                s.depth_t = cube_nearest_t(cube_t, cube_offset[v], cube_size[v], p)
+            s = with_accumulator(s, acc)
+        count(counters, BOX_TESTS, 1)
+    write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
+    return 1
+
+
 @wp.kernel
 def cube_resample_kernel(
+    cam: CameraGPU,
+    volumes: wp.array(dtype=VolumeGPU),
+    oit: OITParams,
+    scheme: wp.array(dtype=int),
+    cube_offset: wp.array(dtype=int),
+    cube_size: wp.array(dtype=int),
+    exterior: int,
+    rim_direct: int,
+    k_z: float,
+    cube: wp.array(dtype=wp.vec4),
+    cube_t: wp.array(dtype=float),
+    cube_z: wp.array(dtype=float),
+    mode: int,
+    mesh_count: wp.array2d(dtype=int),
+    span: int,
+    buffers: ViewBuffers,
+    deferred: wp.array2d(dtype=int),
+    counter_rows: wp.array2d(dtype=wp.int64),
+    row0: int,
+):
+    """The cube resampling pass (paper 001 §3): thread (r, c) resamples the ``span`` pixels of row r from column
+    c span (`resample_lone_box`) and flags in ``deferred`` those it leaves to `layered_resample_kernel`."""
+    r, c = wp.tid()
+    counters = counter_row(counter_rows, r, c)
+    row = r + row0
+    for col in range(c * span, wp.min(c * span + span, cam.width)):
+        if resample_lone_box(cam, volumes, oit, scheme, cube_offset, cube_size, exterior, rim_direct, k_z, cube,
+                             cube_t, cube_z, mode, mesh_count, buffers, counters, row, col) == 0:
+            deferred[row, col] = 1
+
+
+@wp.kernel
+def layered_resample_kernel(
     cam: CameraGPU,
     volumes: wp.array(dtype=VolumeGPU),
     oit: OITParams,
@@ -342,10 +446,12 @@ def cube_resample_kernel(
     params: MarchParams,
     mesh: MeshLayers,
     buffers: ViewBuffers,
+    pixels: wp.array(dtype=int),
     counter_rows: wp.array2d(dtype=wp.int64),
     row0: int,
 ):
-    """Per pixel, front to back over the boxes its ray meets (`pixel_layers`): a cube-scheme volume alone on its
+    """Per pixel of the list ``pixels`` (row-major indices; thread r takes entry r), front to back over the boxes its
+    ray meets (`pixel_layers`): a cube-scheme volume alone on its
     stretch of the ray is looked up bilinearly where the ray leaves its box (enters, for exterior faces); a
     direct-scheme volume is marched here, as in DSSRM; boxes overlapping along the ray are marched jointly (a texel
     holds one volume's march only, wrong where another box shares that stretch). Translucent mesh layers (paper 000
@@ -353,9 +459,10 @@ def cube_resample_kernel(
     segments and its layers in turn (`blend_cube_segments`), and marches the box directly, split at its layers
     (`march_between_layers`, flagged in ``mesh.direct``), only where Eq. 13 leaves a segment without weight or there
     is no cube k-buffer (tile LOD on)."""
-    r, col = wp.tid()
-    counters = counter_row(counter_rows, r, col)
-    row = r + row0
+    r, lane = wp.tid()
+    counters = counter_row(counter_rows, r, lane)
+    row = pixels[r + row0] / cam.width
+    col = pixels[r + row0] % cam.width
     d, planes = pixel_ray(cam, buffers, row, col)
     layers = pixel_layers(oit, volumes, cam.origin, d, planes, row, col, counters)
     s = new_march_state()
@@ -672,6 +779,63 @@ class CMSRM(LightMapRenderer):
                 for i in group[1:]:
                     plans[i][v].update({k: plan[k] for k in ("tiles", "live_tiles", "tile_levels")})
 
+    def _resample(self, ds: DeviceScene, cam: Camera, view: int, plans: list[dict], cubes: CubeMaps, oit: OITParams,
+                  mesh: MeshLayers, target: ViewBuffers, clock: PassClock) -> None:
+        """The cube resampling pass of one view: `cube_resample_kernel` in spans of `RESAMPLE_SPAN` pixels (one on a
+        GPU) where a cube-scheme volume gives it something to read and the layer finder needs no ray query, then
+        `layered_resample_kernel` over the pixels it deferred (over every pixel without it)."""
+        c = self.config
+        per_volume = [wp.array(a, dtype=int, device=self.device)
+                      for a in ([p["scheme"] for p in plans], cubes.offsets, cubes.sizes)]
+        shared = [camera_struct(cam), ds.volumes, oit, *per_volume, int(c.cube_faces == "exterior"),
+                  int(c.rim_direct), c.k_z]
+        params = self._params(ds, view, c.samples)
+        if c.oit != "pixel-rt" and any(p["scheme"] == SCHEME_CUBE for p in plans):
+            span = RESAMPLE_SPAN if self.device.startswith("cpu") else 1
+            deferred = wp.zeros((cam.height, cam.width), dtype=int, device=self.device)
+            launch_rows(cube_resample_kernel, cam.height, -(-cam.width // span),
+                        [*shared, cubes.color, cubes.t_half, cubes.z_end, params.mode, mesh.count, span, target,
+                         deferred], self.device, clock.counters)
+            pixels = np.flatnonzero(deferred.numpy()).astype(np.int32)
+        else:
+            pixels = np.arange(cam.height * cam.width, dtype=np.int32)
+        # stats info: per view, the pixels the layered kernel took (the rest took one lookup each)
+        self._frame_info.setdefault("deferred_pixels", []).append(len(pixels))
+        launch_rows(
+            layered_resample_kernel,
+            len(pixels),
+            1,
+            [*shared, c.k_z_layers, cubes.color, cubes.t_half, cubes.z_end, cubes.seg, cubes.seg_z, cubes.segments,
+             ds.medium(), params, mesh, target, wp.array(pixels, dtype=int, device=self.device)],
+            self.device,
+            clock.counters,
+            self._pixel_progress(cam.height, len(pixels)),
+        )
+
+    def _pixel_progress(self, rows: int, pixels: int) -> Callable[[int], None] | None:
+        """`on_rows` for the launch over a view's ``pixels`` deferred pixels, the last of its ``rows`` image rows to
+        finish: each launch reports its share of the rows (bands call this from their threads); with none deferred
+        the rows are reported at once."""
+        on_rows = self.on_rows
+        if on_rows is None:
+            return None
+        if pixels == 0:
+            on_rows(rows)
+            return None
+        lock = threading.Lock()
+        launched = [0, 0]  # pixels launched, rows reported
+
+        def advance(step: int) -> None:
+            with lock:
+                launched[0] += step
+                done = rows * launched[0] // pixels
+                new = done - launched[1]
+                launched[1] = done
+            if new:
+                on_rows(new)
+
+        return advance
+
     def _render_views(
         self, ds: DeviceScene, views: list[Camera], frame: int, targets: list[ViewBuffers], clock: PassClock
     ) -> None:
@@ -683,27 +847,11 @@ class CMSRM(LightMapRenderer):
         cubes = [self._allocate(p, segments) for p in plans]
         with clock.measure("cube_march"):
             self._march_cubes(ds, views, plans, cubes, targets, clock)
-        exterior = int(self.config.cube_faces == "exterior")
         for view, cam in enumerate(views):
-            c = cubes[view]
-            per_volume = [wp.array(a, dtype=int, device=self.device)
-                          for a in ([p["scheme"] for p in plans[view]], c.offsets, c.sizes)]
             oit = self._layers.params(ds, cam, clock)
             mesh = self._meshes[view]
             with clock.measure("resample"):
-                launch_rows(
-                    cube_resample_kernel,
-                    cam.height,
-                    cam.width,
-                    [camera_struct(cam), ds.volumes, oit, *per_volume, exterior, int(self.config.rim_direct),
-                     self.config.k_z,
-                     self.config.k_z_layers, c.color,
-                     c.t_half, c.z_end, c.seg, c.seg_z, c.segments, ds.medium(),
-                     self._params(ds, view, self.config.samples), mesh, targets[view]],
-                    self.device,
-                    clock.counters,
-                    self.on_rows,
-                )
+                self._resample(ds, cam, view, plans[view], cubes[view], oit, mesh, targets[view], clock)
             self._frame_info["volumes"].append([
                 {"view": view, "volume": v, "scheme": SCHEME_NAMES[p["scheme"]],
                  "faces": p["faces"], "level": p["lod"].level, "face_size": p["lod"].size,

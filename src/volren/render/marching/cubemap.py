@@ -174,16 +174,21 @@ def cube_quad(offset: int, size: int, p: wp.vec3):
 
 
 @wp.func
-def cube_face_point(vol: VolumeGPU, origin: wp.vec3, d: wp.vec3, exterior: int) -> wp.vec3:
-    """Where the cube map is read for the world ray origin + t d: the local point where it leaves the box (enters,
-    for exterior faces)."""
-    o_l = wp.transform_point(vol.to_local, origin)
-    d_l = wp.transform_vector(vol.to_local, d)
-    h = box_hit(o_l, d_l)
+def ray_face_point(o_l: wp.vec3, d_l: wp.vec3, h: wp.vec2, exterior: int) -> wp.vec3:
+    """Where the cube map is read for the local ray o_l + t d_l with box hit h (`box_hit`): the point where it leaves
+    the box (enters, for exterior faces)."""
     t_face = h[1]
     if exterior != 0:
         t_face = h[0]
     return o_l + t_face * d_l
+
+
+@wp.func
+def cube_face_point(vol: VolumeGPU, origin: wp.vec3, d: wp.vec3, exterior: int) -> wp.vec3:
+    """`ray_face_point` of the world ray origin + t d."""
+    o_l = wp.transform_point(vol.to_local, origin)
+    d_l = wp.transform_vector(vol.to_local, d)
+    return ray_face_point(o_l, d_l, box_hit(o_l, d_l), exterior)
 
 
 @wp.func
