@@ -205,6 +205,7 @@ def run_size(scene: Scene, cfg: dict[str, Any], width: int, height: int, device:
 
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     scene = builtin_scene(cfg["scene"], cfg["resolution"])
+    load = os.getloadavg()[0]
     rows = [run_size(scene, cfg, w, h, device) for w, h in cfg["sizes"]]
     figures = {f"{row['size']}-volren-left-vtk-right.png": row.pop("figure") for row in rows}
     columns = [
@@ -218,7 +219,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     settings = {k: v for k, v in cfg.items() if k != "sizes"} | {
         "sizes": [f"{w}x{h}" for w, h in cfg["sizes"]], "camera": list(CAMERA), "method": "DSSRM",
         "vtk_mapper": "vtkFixedPointVolumeRayCastMapper", "vtk_window": rows[0]["vtk_window"],
-        "sample_distance": rows[0]["sample_distance"], "vtk_shading": {"ambient": VTK_AMBIENT, "diffuse": VTK_DIFFUSE}}
+        "sample_distance": rows[0]["sample_distance"], "vtk_shading": {"ambient": VTK_AMBIENT, "diffuse": VTK_DIFFUSE},
+        "load_average": [load, os.getloadavg()[0]]}  # 1-minute, before and after: other jobs on the cores
     return {"settings": settings, "rows": rows, "columns": columns, "figures": figures}
 
 
