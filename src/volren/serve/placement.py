@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 from volren.camera import Camera
 
-SHARED_PASS_PX = 320 * 180
-"""[px] the cost of a rig's shared passes in pixels of view work: on the CPU quick bench (64^3 smoke, interactive
-preset) the light map took about as long as a 320x180 view"""
+SHARED_PASS_PX = 128 * 128
+"""[px] the cost of a rig's shared passes in pixels of view work: the 64^3 smoke's light map at the interactive
+preset took 31-99 ms on the CPU (2 busy cores) where one 320x180 view's passes took 150-250 ms, about a quarter"""
 
 
 @dataclass(frozen=True)
