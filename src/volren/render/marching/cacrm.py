@@ -47,8 +47,6 @@ from volren.device import launch_rows
 from volren.errors import VolrenError
 from volren.kernels.common import (
     INF,
-    CameraGPU,
-    Medium,
     ViewBuffers,
     VolumeGPU,
     cell_fraction,
@@ -60,32 +58,23 @@ from volren.kernels.common import (
     grid_coords,
     half_depth,
     interpolate_cell,
-    skip_cell_ray,
     skip_lookup,
 )
-from volren.render.compositing.mesh_layers import (
-    MeshLayers,
-    next_layer_t,
-    segment_advance,
-    segment_finish,
-    texel_layers,
-)
+from volren.render.compositing.mesh_layers import next_layer_t, segment_advance
 from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, SKIPPED_STEPS, PassClock
 from volren.render.marching.cmsrm import CMSRM, CMSRMConfig, TileGroup
-from volren.render.marching.cubemap import (
-    CubeLOD,
-    CubeTarget,
-    eye_segment,
-    store_texel,
-    texel_index,
-    texel_point,
-    tile_texel,
-)
+from volren.render.marching.coupled import CoupledJob, job_constants, pair_eye_ray, pair_finish, pair_mesh, pair_target
+from volren.render.marching.cubemap import CubeLOD, CubeTarget, texel_index, texel_point, tile_texel
 from volren.render.marching.interleave import interleave_tiles, quad_march_kernel
-from volren.render.marching.march import MarchParams, mode_step
-from volren.render.marching.modes import MODE_MIP, skippable
-from volren.render.marching.vsa import END, VSA_FIT, VSAParams, vsa_amplification
+from volren.render.marching.march import lit_step, mode_step
+from volren.render.marching.modes import MODE_DVR, MODE_MIP, skippable
+from volren.render.marching.vsa import END, VSA_FIT, VSAParams, vsa_product, vsa_proposal, vsa_ramp
 from volren.upload import DeviceScene, camera_struct
+
+mat22 = wp.types.matrix(shape=(2, 2), dtype=wp.float32)
+mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
+mat24 = wp.types.matrix(shape=(2, 4), dtype=wp.float32)
+mat23i = wp.types.matrix(shape=(2, 3), dtype=wp.int32)
 
 
 @dataclass(frozen=True)
@@ -120,14 +109,6 @@ class CACRMConfig(CMSRMConfig):
 
 
 @wp.func
-def anchored_steps(seg: wp.vec4, dt: float) -> int:
-    """Steps of dt from the texel back to t_min (the last one clipped), 0 for an empty segment."""
-    if seg[3] == 0.0:
-        return 0
-    return wp.max(int(wp.ceil((seg[1] - seg[0]) / dt - 1.0e-6)), 1)
-
-
-@wp.func
 def lattice_step(seg: wp.vec4, pos: float, m: float, dt: float) -> wp.vec2:
     """(midpoint, length) of the step covering [pos - m, pos) base steps counted back from the texel:
     [t_max - pos dt, t_max - (pos - m) dt], clipped at t_min (a step wholly before t_min has length <= 0)."""
@@ -137,234 +118,245 @@ def lattice_step(seg: wp.vec4, pos: float, m: float, dt: float) -> wp.vec2:
 
 
 @wp.func
-def eye_update(
-    acc: wp.vec4,
-    half: float,
-    peak: float,
-    prev: float,
-    prev_t: float,
-    rho: float,
-    vol: VolumeGPU,
-    medium: Medium,
-    o_l: wp.vec3,
-    d_l: wp.vec3,
-    origin: wp.vec3,
-    d: wp.vec3,
-    step: wp.vec2,
-    seg: wp.vec4,
-    vp: VSAParams,
-    dt: float,
-    absorb: float,
-    params: MarchParams,
-):
-    """One eye's step of the coupled march: composite the sample (density rho on the local ray o_l + t d_l / world
-    ray origin + t d, step midpoint and length ``step``) in ``params.mode`` (`march.mode_step`; ``peak``: MIDA's
-    running max) and propose the next step's amplification by VSA. Returns (acc, half-transmittance distance, peak,
-    previous density, previous distance, 1 if the sample was lit, extra density fetches, amplification)."""
-    out, out_peak, lit, fetches, t_event = mode_step(acc, peak, rho, vol, medium, o_l, d_l, origin, d, step[0],
-                                                     step[1], wp.max(step[0] - dt, seg[0]), params)
-    out_half = half_depth(half, acc[3], out[3], t_event)
-    m = float(1.0)
-    out_prev = prev
-    out_prev_t = prev_t
-    if vp.enabled != 0:
-        drho = float(0.0)
-        if prev >= 0.0:
-            drho = (rho - prev) * dt / wp.max(step[0] - prev_t, 1.0e-9)
-        m = vsa_amplification(vp, step[0], seg[1], rho, drho, out[3], absorb)
-        out_prev = rho
-        out_prev_t = step[0]
-    return out, out_half, out_peak, out_prev, out_prev_t, lit, fetches, m
+def idle_run(pos: float, m: float, seg: mat24, live: wp.vec2i, n: wp.vec2i, trans: wp.vec2, check: wp.vec2,
+             next_t: wp.vec2, product: wp.vec2, vp: VSAParams, dt: float, min_t: float):
+    """The pair's steps from (pos, m) while they stay idle: each live eye's step midpoint before its next skip-cell
+    lookup and mesh layer, an eye not yet in its segment still out. Returns (pos, m) of the first step that is not
+    idle (or pos <= END), the eye steps taken and each eye's last step midpoint (VSA's previous distance).
+
+    Every live eye's samples here are 0 after a 0 (rho' = 0, T unchanged), so its proposal is `vsa_ramp` over the
+    constant ``product`` (`vsa_product`): the same lattice and counts as the kernel's loop, by the same arithmetic,
+    at a fraction of its cost. Runs of unit steps (uniform stepping, or VSA's ramp and product at most 1 up to the
+    run's end) are jumped in one go: pos - k is exact, and a step midpoint grows as pos falls, so the last step
+    decides for all."""
+    steps = float(0.0)
+    last = wp.vec2(0.0)
+    if m == 1.0:
+        k = wp.floor(pos)
+        for e in range(2):
+            if live[e] != 0:
+                bound = wp.min(check[e], next_t[e])
+                k = wp.min(k, wp.floor(pos + 0.5 - wp.max((seg[e, 1] - bound) / dt, -pos)))
+            elif trans[e] >= min_t and n[e] > 0:
+                k = wp.min(k, wp.floor(pos - float(n[e])))
+        for e in range(2):
+            if live[e] != 0:
+                end = lattice_step(seg[e], pos - k + 1.0, 1.0, dt)[0]
+                while k >= 1.0 and (end >= check[e] or end > next_t[e]
+                                    or (vp.enabled != 0 and vsa_ramp(vp, end, seg[e, 1], product[e]) > 1.0)):
+                    k = k - 1.0
+                    end = lattice_step(seg[e], pos - k + 1.0, 1.0, dt)[0]
+                last[e] = end
+        if k >= 1.0:
+            steps = k * float(live[0] + live[1])
+            pos = pos - k
+    while pos > END:
+        step = wp.min(m, pos)
+        t = wp.vec2(0.0)
+        for e in range(2):
+            if live[e] != 0:
+                t[e] = lattice_step(seg[e], pos, step, dt)[0]
+                if t[e] >= check[e] or t[e] > next_t[e]:
+                    return pos, m, steps, last
+            elif trans[e] >= min_t and pos - step < float(n[e]):
+                return pos, m, steps, last
+        next_m = float(1.0)
+        for e in range(2):
+            if live[e] != 0:
+                steps += 1.0
+                last[e] = t[e]
+                if vp.enabled != 0:
+                    next_m = wp.max(next_m, vsa_ramp(vp, t[e], seg[e, 1], product[e]))
+        pos = pos - step
+        m = next_m
+    return pos, m, steps, last
 
 
 @wp.kernel
-def coupled_march_kernel(
-    cam0: CameraGPU,
-    cam1: CameraGPU,
-    eyes: int,
-    share: int,
-    vol: VolumeGPU,
-    tiles: wp.array(dtype=wp.vec3i),
-    tile: int,
-    apron: int,
-    size: int,
-    medium: Medium,
-    params: MarchParams,
-    vp: VSAParams,
-    buffers0: ViewBuffers,
-    buffers1: ViewBuffers,
-    mesh0: MeshLayers,
-    mesh1: MeshLayers,
-    target0: CubeTarget,
-    target1: CubeTarget,
-    counter_rows: wp.array2d(dtype=wp.int64),
-    row0: int,
-):
-    """One texel, both eyes (eye 1 only when eyes == 2): synchronised anchored steps, shared cell fetches; with
+def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64), row0: int):
+    """One texel, both eyes (eye 1 only when job.eyes == 2): synchronised anchored steps, shared cell fetches; with
     translucent meshes each eye's ray is cut into its cube k-buffer's segments at the mesh layers of the pixel the
-    texel projects to in that eye (`segment_advance`)."""
+    texel projects to in that eye (`segment_advance`). Each eye's state is a row of small vectors and matrices, and
+    one loop over the eyes serves both."""
     r, c = wp.tid()
     counters = counter_row(counter_rows, r, c)
-    q = tile_texel(tiles, tile, apron, size, r + row0, c)
+    q = tile_texel(job.tiles, job.tile, job.apron, job.size, r + row0, c)
     if q[0] < 0:
         return
-    x = wp.transform_point(vol.to_world, texel_point(q, size))
-    seg0 = eye_segment(cam0, vol, x, buffers0)
-    seg1 = wp.vec4(0.0)
-    if eyes == 2:
-        seg1 = eye_segment(cam1, vol, x, buffers1)
-    d0 = wp.normalize(x - cam0.origin)
-    d1 = wp.normalize(x - cam1.origin)
-    o0 = wp.transform_point(vol.to_local, cam0.origin)
-    o1 = wp.transform_point(vol.to_local, cam1.origin)
-    dl0 = wp.transform_vector(vol.to_local, d0)
-    dl1 = wp.transform_vector(vol.to_local, d1)
-    # Empty-space skipping per eye (as `march_volume_light_map`): the skip cell holding a step's midpoint is looked
-    # up when the step leaves the last cell (or empty cube) looked up; a step in an empty one reads density 0 without
-    # a fetch, exactly what the fetch would read, so the lattice, VSA's proposals and the image are unchanged.
-    oc0, dc0, inv0 = skip_cell_ray(vol, o0, dl0)
-    oc1, dc1, inv1 = skip_cell_ray(vol, o1, dl1)
-    check0 = first_skip_check(vol, medium.skip)
-    check1 = check0
-    empty0 = int(0)
-    empty1 = int(0)
-    skipped = int(0)
-    dt = vol.diagonal / float(params.samples)
-    n0 = anchored_steps(seg0, dt)
-    n1 = anchored_steps(seg1, dt)
-    n = wp.max(n0, n1)
-    acc0 = wp.vec4(0.0, 0.0, 0.0, 1.0)
-    acc1 = wp.vec4(0.0, 0.0, 0.0, 1.0)
-    half0 = float(INF)
-    half1 = float(INF)
-    peak0 = float(0.0)
-    peak1 = float(0.0)
+    vol, medium, params, vp, dt = job_constants(job)
+    texel = texel_index(q[0], q[1], q[2], job.size)
+    x = wp.transform_point(vol.to_world, texel_point(q, job.size))
+    # Per eye (row e): the ray (`pair_eye_ray`), and its state: accumulator, half-transmittance distance, MIDA's
+    # running max, VSA's previous density and distance, the skip cell (next lookup distance, empty), the cube
+    # k-buffer cursor (open segment, accumulator where it began, where it closes).
+    seg = mat24()
+    origin = mat23()
+    d = mat23()
+    o = mat23()
+    dl = mat23()
+    oc = mat23()
+    dc = mat23()
+    inv = mat23()
+    n = wp.vec2i()
+    pix = mat23i()
+    base = wp.vec2i()
+    next_t = wp.vec2()
+    for e in range(2):
+        ray = pair_eye_ray(job, e, vol, x, texel, dt)
+        seg[e] = ray.seg
+        origin[e] = ray.origin
+        d[e] = ray.d
+        o[e] = ray.o
+        dl[e] = ray.dl
+        oc[e] = ray.oc
+        dc[e] = ray.dc
+        inv[e] = ray.inv
+        n[e] = ray.n
+        pix[e] = ray.pix
+        base[e] = ray.base
+        next_t[e] = ray.next_t
+    acc = mat24()
+    snap = mat24()
+    half = wp.vec2(INF)
+    peak = wp.vec2(0.0)
+    prev = wp.vec2(-1.0)
+    prev_t = wp.vec2(0.0)
+    check = wp.vec2(first_skip_check(vol, medium.skip))
+    empty = wp.vec2i(0)
+    j = wp.vec2i(0)
+    for e in range(2):
+        acc[e] = wp.vec4(0.0, 0.0, 0.0, 1.0)
+        snap[e] = acc[e]
     samples = int(0)
     shared = int(0)
+    skipped = int(0)
     shaded = int(0)
-    # VSA state per eye: the previous sample's density and position (for rho'), and the optical depth of a base step.
-    prev0 = float(-1.0)
-    prev1 = float(-1.0)
-    prev_t0 = float(0.0)
-    prev_t1 = float(0.0)
+    share = job.share
+    # VSA: the optical depth of a base step per unit density (Eq. 6's a).
     absorb = vol.density_scale * dt
     # The pair walks back from each eye's texel in units of the base step, front to back: pos base steps remain
     # before the texel, and each step covers m of them (m = 1: uniform steps on the texel-anchored lattice).
-    # Cube k-buffer per eye (paper 000 §3.3): the texel's pixel and layers, the open segment and where it began.
-    texel = texel_index(q[0], q[1], q[2], size)
-    pix0 = texel_layers(mesh0, cam0, x, target0.segments)
-    pix1 = texel_layers(mesh1, cam1, x, target1.segments)
-    j0 = int(0)
-    j1 = int(0)
-    snap0 = acc0
-    snap1 = acc1
-    next0 = next_layer_t(mesh0, pix0, 0, seg0)
-    next1 = next_layer_t(mesh1, pix1, 0, seg1)
-    pos = float(n)
+    pos = float(wp.max(n[0], n[1]))
     m = float(1.0)
     while pos > END:
         m = wp.min(m, pos)
-        in0 = pos - m < float(n0) and acc0[3] >= params.min_transmittance
-        in1 = pos - m < float(n1) and acc1[3] >= params.min_transmittance
-        if not in0 and not in1:
+        # Each eye's step while it is inside its segment (eye 1 is absent when marching one view alone), and its
+        # trilinear cell (-1: none: not live, or in an empty skip cell). Empty-space skipping per eye (as
+        # `march_volume_light_map`): the skip cell holding a step's midpoint is looked up when the step leaves the
+        # last cell (or empty cube) looked up; a step in an empty one reads density 0 without a fetch, exactly what
+        # the fetch would read, so the lattice, VSA's proposals and the image are unchanged.
+        live = wp.vec2i(0)
+        s = mat22()
+        p = mat23()
+        f = mat23()
+        cell = mat23i()
+        idle = params.mode == MODE_DVR
+        for e in range(2):
+            cell[e] = wp.vec3i(-1)
+            if pos - m < float(n[e]) and acc[e, 3] >= params.min_transmittance:
+                live[e] = 1
+                s[e] = lattice_step(seg[e], pos, m, dt)
+                if s[e, 0] >= check[e]:
+                    found = skip_lookup(vol, medium.max_density, oc[e] + s[e, 0] * dc[e], oc[e], inv[e])
+                    check[e] = found[1]
+                    empty[e] = int(skippable(params.mode, found[0], acc[e], params.inv_max, params.iso_value))
+                p[e] = o[e] + s[e, 0] * dl[e]
+                if empty[e] == 0:
+                    f[e] = grid_coords(vol.res, p[e])
+                    cell[e] = grid_cell(vol.res, f[e])
+                # Idle: in an empty cell before the next mesh layer, DVR composites nothing for its density 0.
+                idle = idle and empty[e] != 0 and s[e, 0] <= next_t[e]
+        if live[0] + live[1] == 0:
             break
-        # Each eye's work only while it is inside its segment (eye 1 is absent when marching one view alone).
-        s0 = wp.vec2(0.0)
-        s1 = wp.vec2(0.0)
-        p0 = wp.vec3(0.0)
-        p1 = wp.vec3(0.0)
-        f0 = wp.vec3(0.0)
-        f1 = wp.vec3(0.0)
-        # no cell (-2, -1: never equal): the eye is outside its segment or in an empty skip cell, and fetches nothing
-        c0 = wp.vec3i(-2)
-        c1 = wp.vec3i(-1)
-        if in0:
-            s0 = lattice_step(seg0, pos, m, dt)
-            if s0[0] >= check0:
-                cell0 = skip_lookup(vol, medium.max_density, oc0 + s0[0] * dc0, oc0, inv0)
-                check0 = cell0[1]
-                empty0 = int(skippable(params.mode, cell0[0], acc0, params.inv_max, params.iso_value))
-            p0 = o0 + s0[0] * dl0
-            if empty0 == 0:
-                f0 = grid_coords(vol.res, p0)
-                c0 = grid_cell(vol.res, f0)
-        if in1:
-            s1 = lattice_step(seg1, pos, m, dt)
-            if s1[0] >= check1:
-                cell1 = skip_lookup(vol, medium.max_density, oc1 + s1[0] * dc1, oc1, inv1)
-                check1 = cell1[1]
-                empty1 = int(skippable(params.mode, cell1[0], acc1, params.inv_max, params.iso_value))
-            p1 = o1 + s1[0] * dl1
-            if empty1 == 0:
-                f1 = grid_coords(vol.res, p1)
-                c1 = grid_cell(vol.res, f1)
-        rho0 = float(0.0)
-        rho1 = float(0.0)
-        if share != 0 and in0 and in1 and empty0 + empty1 == 1 and params.mode != MODE_MIP:
-            # One eye in an empty skip cell: every trilinear cell read there is zero in all 8 voxels
-            # (`volren.upload.skip_grid`), so where the other eye's sample falls in the same cell it reads 0 too,
-            # without a fetch (a coupled saving the eyes alone cannot make: the other eye's skip cell is not empty).
-            # Iso skips cells below V, where reading 0 decides the same; MIP skips cells below the eye's own max.
-            if empty0 != 0:
-                c0 = grid_cell(vol.res, grid_coords(vol.res, p0))
+        rho = wp.vec2(0.0)
+        if not idle:
+            # Most steps are idle for both eyes (they cross empty space together): only the counters and VSA's
+            # proposals then, without the sharing tests and compositing.
+            both = live[0] + live[1] == 2
+            if share != 0 and both and empty[0] + empty[1] == 1 and params.mode != MODE_MIP:
+                # One eye in an empty skip cell: every trilinear cell read there is zero in all 8 voxels
+                # (`volren.upload.skip_grid`), so where the other eye's sample falls in the same cell it reads 0
+                # too, without a fetch (a coupled saving the eyes alone cannot make: the other eye's skip cell is
+                # not empty). Iso skips cells below V, where reading 0 decides the same; MIP skips cells below the
+                # eye's own max.
+                zero = empty[1]
+                cell[zero] = grid_cell(vol.res, grid_coords(vol.res, p[zero]))
+            same = both and share != 0 and cell[0] == cell[1]
+            get = wp.vec2i(0)
+            for e in range(2):
+                get[e] = int(live[e] != 0 and empty[e] == 0 and not (same and empty[1 - e] != 0))
+            if get[0] + get[1] == 2 and same:
+                voxels = gather_cell(medium.density, vol.offset, vol.res, cell[0])
+                for e in range(2):
+                    rho[e] = interpolate_cell(voxels, cell_fraction(f[e], cell[0]))
+                shared += 1
             else:
-                c1 = grid_cell(vol.res, grid_coords(vol.res, p1))
-        same = in0 and in1 and share != 0 and c0 == c1
-        get0 = in0 and empty0 == 0 and not (same and empty1 != 0)
-        get1 = in1 and empty1 == 0 and not (same and empty0 != 0)
-        if get0 and get1 and same:
-            cell = gather_cell(medium.density, vol.offset, vol.res, c0)
-            rho0 = interpolate_cell(cell, cell_fraction(f0, c0))
-            rho1 = interpolate_cell(cell, cell_fraction(f1, c0))
-            shared += 1
+                for e in range(2):
+                    if get[e] != 0:
+                        rho[e] = interpolate_cell(gather_cell(medium.density, vol.offset, vol.res, cell[e]),
+                                                  cell_fraction(f[e], cell[e]))
+            for e in range(2):
+                if live[e] != 0:
+                    samples += get[e]
+                    if s[e, 0] > next_t[e]:
+                        mesh = pair_mesh(job, e)
+                        open_seg, began = segment_advance(mesh, pix[e], pair_target(job, e), base[e], seg[e], j[e],
+                                                          snap[e], acc[e], s[e, 0])
+                        j[e] = open_seg
+                        snap[e] = began
+                        next_t[e] = next_layer_t(mesh, pix[e], open_seg, seg[e])
+                    if params.mode == MODE_DVR:
+                        # DVR's step of `mode_step` called directly (as `march_volume_light_map`): each call level
+                        # copies the volume and medium structs it is passed.
+                        if rho[e] > 0.0:
+                            out = lit_step(acc[e], rho[e], vol, medium, p[e], origin[e] + s[e, 0] * d[e], d[e], s[e, 1],
+                                           params.ambient)
+                            half[e] = half_depth(half[e], acc[e, 3], out[3], s[e, 0])
+                            acc[e] = out
+                            shaded += 1
+                    else:
+                        out, top, lit, fetches, t_event = mode_step(acc[e], peak[e], rho[e], vol, medium, o[e], dl[e],
+                                                                    origin[e], d[e], s[e, 0], s[e, 1],
+                                                                    wp.max(s[e, 0] - dt, seg[e, 0]), params)
+                        half[e] = half_depth(half[e], acc[e, 3], out[3], t_event)
+                        acc[e] = out
+                        peak[e] = top
+                        shaded += lit
+                        samples += fetches
+                    skipped += 1 - get[e]
         else:
-            if get0:
-                rho0 = interpolate_cell(gather_cell(medium.density, vol.offset, vol.res, c0), cell_fraction(f0, c0))
-            if get1:
-                rho1 = interpolate_cell(gather_cell(medium.density, vol.offset, vol.res, c1), cell_fraction(f1, c1))
+            skipped += live[0] + live[1]
+        # VSA (Eq. 4-6): each live eye proposes the next step after its sample; the pair takes the larger.
         next_m = float(1.0)
-        if in0:
-            samples += int(get0)
-            skipped += 1 - int(get0)
-            if s0[0] > next0:
-                j0, snap0 = segment_advance(mesh0, pix0, target0, (target0.offset + texel) * target0.segments, seg0,
-                                            j0, snap0, acc0, s0[0])
-                next0 = next_layer_t(mesh0, pix0, j0, seg0)
-            acc0, half0, peak0, prev0, prev_t0, lit, fetches, m0 = eye_update(
-                acc0, half0, peak0, prev0, prev_t0, rho0, vol, medium, o0, dl0, cam0.origin, d0, s0,
-                seg0, vp, dt, absorb, params,
-            )
-            shaded += lit
-            samples += fetches
-            next_m = wp.max(next_m, m0)
-        if in1:
-            samples += int(get1)
-            skipped += 1 - int(get1)
-            if s1[0] > next1:
-                j1, snap1 = segment_advance(mesh1, pix1, target1, (target1.offset + texel) * target1.segments, seg1,
-                                            j1, snap1, acc1, s1[0])
-                next1 = next_layer_t(mesh1, pix1, j1, seg1)
-            acc1, half1, peak1, prev1, prev_t1, lit, fetches, m1 = eye_update(
-                acc1, half1, peak1, prev1, prev_t1, rho1, vol, medium, o1, dl1, cam1.origin, d1, s1,
-                seg1, vp, dt, absorb, params,
-            )
-            shaded += lit
-            samples += fetches
-            next_m = wp.max(next_m, m1)
+        for e in range(2):
+            if vp.enabled != 0 and live[e] != 0:
+                next_m = wp.max(next_m, vsa_proposal(vp, s[e, 0], seg[e, 1], rho[e], prev[e], prev_t[e], acc[e, 3],
+                                                     dt, absorb))
+                prev[e] = rho[e]
+                prev_t[e] = s[e, 0]
         pos = pos - m
         m = next_m
-    store_texel(target0, texel, acc0, half0, seg0[1] * seg0[2])
-    if seg0[3] > 0.0:
-        segment_finish(mesh0, pix0, target0, (target0.offset + texel) * target0.segments, seg0, j0, snap0, acc0)
-    if eyes == 2:
-        store_texel(target1, texel, acc1, half1, seg1[1] * seg1[2])
-        if seg1[3] > 0.0:
-            segment_finish(mesh1, pix1, target1, (target1.offset + texel) * target1.segments, seg1, j1, snap1, acc1)
+        if idle:
+            # The steps after an idle one are mostly idle too: walk them without the rest of the loop
+            # (`idle_run`); every live eye's last sample was 0, so its next proposals are Eq. 4's ramp over a
+            # constant product.
+            product = wp.vec2(1.0)
+            for e in range(2):
+                if vp.enabled != 0 and live[e] != 0:
+                    product[e] = vsa_product(vp, 0.0, 0.0, acc[e, 3], absorb)
+            pos, m, ran, last = idle_run(pos, m, seg, live, n, wp.vec2(acc[0, 3], acc[1, 3]), check, next_t, product,
+                                         vp, dt, params.min_transmittance)
+            skipped += int(ran)
+            for e in range(2):
+                if live[e] != 0 and vp.enabled != 0 and ran > 0.0:
+                    prev_t[e] = last[e]
+    for e in range(2):
+        pair_finish(job, e, texel, seg[e], acc[e], half[e], pix[e], base[e], j[e], snap[e])
     count(counters, DENSITY_SAMPLES, samples)
     count(counters, SHARED_SAMPLES, shared)
     count(counters, SKIPPED_STEPS, skipped)
     count(counters, LIGHTMAP_LOOKUPS, shaded * medium.lights.shape[0])
-    count(counters, RAYS, int(seg0[3] + seg1[3]))
+    count(counters, RAYS, int(seg[0, 3] + seg[1, 3]))
 
 
 def merge_lods(a: CubeLOD, b: CubeLOD) -> CubeLOD:
@@ -433,15 +425,14 @@ class CACRM(CMSRM):
                       for kernel, mask, cols in ((coupled_march_kernel, ~quad, tiles.rows),
                                                  (quad_march_kernel, quad, (tiles.rows + 1) // 2))
                       if mask.any()]
+        job = CoupledJob()
+        job.cam0, job.cam1 = camera_struct(views[first]), camera_struct(views[last])
+        job.buffers0, job.buffers1 = targets[first], targets[last]
+        job.mesh0, job.mesh1 = self._meshes[first], self._meshes[last]
+        job.target0, job.target1 = dest[0], dest[-1]
+        job.eyes, job.share = len(group), int(self.config.share_voxels)
+        job.vol, job.tile, job.apron, job.size = level, tiles.rows, tiles.apron, tiles.size
+        job.medium, job.params, job.vp = ds.medium(), self._params(ds, first, samples), self._vsa_params()
         for kernel, origins, cols in routes:
-            launch_rows(
-                kernel,
-                len(origins) * cols,
-                cols,
-                [camera_struct(views[first]), camera_struct(views[last]), len(group), int(self.config.share_voxels),
-                 level, origins, tiles.rows, tiles.apron, tiles.size, ds.medium(),
-                 self._params(ds, first, samples), self._vsa_params(), targets[first], targets[last],
-                 self._meshes[first], self._meshes[last], dest[0], dest[-1]],
-                self.device,
-                clock.counters,
-            )
+            job.tiles = origins
+            launch_rows(kernel, len(origins) * cols, cols, [job], self.device, clock.counters)

@@ -39,10 +39,6 @@ import warp as wp
 
 from volren.kernels.common import (
     INF,
-    CameraGPU,
-    Medium,
-    ViewBuffers,
-    VolumeGPU,
     cell_fraction,
     count,
     counter_row,
@@ -53,17 +49,12 @@ from volren.kernels.common import (
     interpolate_cell,
     vec8,
 )
-from volren.render.compositing.mesh_layers import (
-    MeshLayers,
-    next_layer_t,
-    segment_advance,
-    segment_finish,
-    texel_layers,
-)
+from volren.render.compositing.mesh_layers import next_layer_t, segment_advance
 from volren.render.frame import DENSITY_SAMPLES, INTERLEAVED_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES
-from volren.render.marching.cubemap import CubeTarget, eye_segment, store_texel, texel_index, texel_point, tile_texel
-from volren.render.marching.march import MarchParams, lit_step
-from volren.render.marching.vsa import END, VSAParams, vsa_amplification
+from volren.render.marching.coupled import CoupledJob, job_constants, pair_eye_ray, pair_finish, pair_mesh, pair_target
+from volren.render.marching.cubemap import texel_index, texel_point, tile_texel
+from volren.render.marching.march import lit_step
+from volren.render.marching.vsa import END, vsa_proposal
 
 LANES = 8
 """2 eyes x 2 x 2 texels"""
@@ -94,75 +85,41 @@ def lane_fraction(cell_origin: wp.vec3, res: wp.vec3i, p: wp.vec3) -> wp.vec3:
 
 
 @wp.kernel
-def quad_march_kernel(
-    cam0: CameraGPU,
-    cam1: CameraGPU,
-    eyes: int,
-    share: int,
-    vol: VolumeGPU,
-    tiles: wp.array(dtype=wp.vec3i),
-    tile: int,
-    apron: int,
-    size: int,
-    medium: Medium,
-    params: MarchParams,
-    vp: VSAParams,
-    buffers0: ViewBuffers,
-    buffers1: ViewBuffers,
-    mesh0: MeshLayers,
-    mesh1: MeshLayers,
-    target0: CubeTarget,
-    target1: CubeTarget,
-    counter_rows: wp.array2d(dtype=wp.int64),
-    row0: int,
-):
+def quad_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64), row0: int):
     """One 2x2 texel quad for both eyes of a pair (lanes 0-3: eye 0, 4-7: eye 1 when eyes == 2); with translucent
     meshes each lane also writes its cube k-buffer segments (`segment_advance`, as the texel kernel)."""
     r, c = wp.tid()
     counters = counter_row(counter_rows, r, c)
+    vol, medium, params, vp, dt = job_constants(job)
+    tile = job.tile
+    eyes = job.eyes
     row = r + row0
     quads = (tile + 1) / 2
     k = row / quads
     qr = row - k * quads
-    # Lane setup: segment (t_min, t_max, facing, valid), world and local directions.
+    # Lane setup (`pair_eye_ray`): segment (t_min, t_max, facing, valid), world and local directions.
     seg = mat84()
     dw = mat83()
     dl = mat83()
-    # Cube k-buffer cursor per lane: texel pixel (row, col, layers), segment base index and the open segment.
+    # Cube k-buffer cursor per lane: texel pixel (row, col, layers), segment base index; where the next segment
+    # closes (INF: no layer ahead, or no texel).
     cursor = mat84i()
     next_t = vec8()
-    o0 = wp.transform_point(vol.to_local, cam0.origin)
-    o1 = wp.transform_point(vol.to_local, cam1.origin)
-    for lane in range(LANES):
-        q = quad_lane_texel(tiles, tile, apron, size, k, qr, c, lane % 4)
-        if q[0] >= 0 and lane / 4 < eyes:
-            x = wp.transform_point(vol.to_world, texel_point(q, size))
-            texel = texel_index(q[0], q[1], q[2], size)
-            pix = wp.vec3i(0)
-            if lane < 4:
-                seg[lane] = eye_segment(cam0, vol, x, buffers0)
-                dw[lane] = wp.normalize(x - cam0.origin)
-                pix = texel_layers(mesh0, cam0, x, target0.segments)
-                cursor[lane, 3] = (target0.offset + texel) * target0.segments
-            else:
-                seg[lane] = eye_segment(cam1, vol, x, buffers1)
-                dw[lane] = wp.normalize(x - cam1.origin)
-                pix = texel_layers(mesh1, cam1, x, target1.segments)
-                cursor[lane, 3] = (target1.offset + texel) * target1.segments
-            cursor[lane, 0] = pix[0]
-            cursor[lane, 1] = pix[1]
-            cursor[lane, 2] = pix[2]
-            dl[lane] = wp.transform_vector(vol.to_local, dw[lane])
-    # Where a lane closes its next cube k-buffer segment (INF: no layer ahead, or no texel).
+    # Per eye: the eye (world, local).
+    eye_w = wp.matrix_from_rows(job.cam0.origin, job.cam1.origin)
+    eye_l = wp.matrix_from_rows(wp.transform_point(vol.to_local, job.cam0.origin),
+                                wp.transform_point(vol.to_local, job.cam1.origin))
     for lane in range(LANES):
         next_t[lane] = INF
-        if lane < 4:
-            next_t[lane] = next_layer_t(mesh0, wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2]), 0,
-                                        seg[lane])
-        elif lane / 4 < eyes:
-            next_t[lane] = next_layer_t(mesh1, wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2]), 0,
-                                        seg[lane])
-    dt = vol.diagonal / float(params.samples)
+        q = quad_lane_texel(job.tiles, tile, job.apron, job.size, k, qr, c, lane % 4)
+        if q[0] >= 0 and lane / 4 < eyes:
+            ray = pair_eye_ray(job, lane / 4, vol, wp.transform_point(vol.to_world, texel_point(q, job.size)),
+                               texel_index(q[0], q[1], q[2], job.size), dt)
+            seg[lane] = ray.seg
+            dw[lane] = ray.d
+            dl[lane] = ray.dl
+            cursor[lane] = wp.vec4i(ray.pix[0], ray.pix[1], ray.pix[2], ray.base)
+            next_t[lane] = ray.next_t
     # Per eye: the shared lattice anchor (farthest texel), the nearest segment start, and t_s, the distance up to
     # which the quad's rays stay within half a voxel of each other.
     anchor = wp.vec2(0.0)
@@ -247,14 +204,12 @@ def quad_march_kernel(
                 t = lo[e] + (float(lane % 4) + 0.5) * 0.25 * (hi[e] - lo[e])
                 if inter[e] == 0.0:
                     t = 0.5 * (wp.max(lo[e], seg[lane, 0]) + wp.min(hi[e], seg[lane, 1]))
-                p = o0 + t * dl[lane]
-                if e == 1:
-                    p = o1 + t * dl[lane]
+                p = eye_l[e] + t * dl[lane]
                 f = grid_coords(vol.res, p)
                 cell = grid_cell(vol.res, f)
                 origin = wp.vec3(float(cell[0]), float(cell[1]), float(cell[2]))
                 mate = lane % 4
-                if e == 1 and share != 0 and fetched[mate] > 0.0 and origins[mate] == origin:
+                if e == 1 and job.share != 0 and fetched[mate] > 0.0 and origins[mate] == origin:
                     cells[lane] = cells[mate]
                     shared += 1
                 else:
@@ -286,11 +241,8 @@ def quad_march_kernel(
                     sub_hi = wp.min(sub_hi, seg[lane, 1])
                     if sub_hi > sub_lo and fetched[source] > 0.0:
                         t = 0.5 * (sub_lo + sub_hi)
-                        p = o0 + t * dl[lane]
-                        x = cam0.origin + t * dw[lane]
-                        if e == 1:
-                            p = o1 + t * dl[lane]
-                            x = cam1.origin + t * dw[lane]
+                        p = eye_l[e] + t * dl[lane]
+                        x = eye_w[e] + t * dw[lane]
                         rho = own[lane]
                         if source != lane:
                             fraction = lane_fraction(origins[source], vol.res, p)
@@ -300,16 +252,10 @@ def quad_march_kernel(
                             shaded += 1
                             if t > next_t[lane]:
                                 pix = wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2])
-                                j = open_seg[lane]
-                                sn = snap[lane]
-                                if e == 0:
-                                    j, sn = segment_advance(mesh0, pix, target0, cursor[lane, 3], seg[lane], j, sn, a,
-                                                            t)
-                                    next_t[lane] = next_layer_t(mesh0, pix, j, seg[lane])
-                                else:
-                                    j, sn = segment_advance(mesh1, pix, target1, cursor[lane, 3], seg[lane], j, sn, a,
-                                                            t)
-                                    next_t[lane] = next_layer_t(mesh1, pix, j, seg[lane])
+                                mesh = pair_mesh(job, e)
+                                j, sn = segment_advance(mesh, pix, pair_target(job, e), cursor[lane, 3], seg[lane],
+                                                        open_seg[lane], snap[lane], a, t)
+                                next_t[lane] = next_layer_t(mesh, pix, j, seg[lane])
                                 open_seg[lane] = j
                                 snap[lane] = sn
                             b = a
@@ -319,10 +265,8 @@ def quad_march_kernel(
                 half[lane] = h
                 if vp.enabled != 0:
                     t = own_t[lane]
-                    drho = float(0.0)
-                    if prev[lane] >= 0.0:
-                        drho = (own[lane] - prev[lane]) * dt / wp.max(t - prev_t[lane], 1.0e-9)
-                    quad_m[e] = wp.min(quad_m[e], vsa_amplification(vp, t, seg[lane, 1], own[lane], drho, a[3], absorb))
+                    quad_m[e] = wp.min(quad_m[e], vsa_proposal(vp, t, seg[lane, 1], own[lane], prev[lane], prev_t[lane],
+                                                               a[3], dt, absorb))
                     prev[lane] = own[lane]
                     prev_t[lane] = t
         pos = pos - m
@@ -331,20 +275,11 @@ def quad_march_kernel(
             if quad_m[e] < INF:
                 m = wp.max(m, quad_m[e])
     for lane in range(LANES):
-        q = quad_lane_texel(tiles, tile, apron, size, k, qr, c, lane % 4)
+        q = quad_lane_texel(job.tiles, tile, job.apron, job.size, k, qr, c, lane % 4)
         if q[0] >= 0 and lane / 4 < eyes:
-            texel = texel_index(q[0], q[1], q[2], size)
-            pix = wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2])
-            if lane < 4:
-                store_texel(target0, texel, acc[lane], half[lane], seg[lane, 1] * seg[lane, 2])
-                if seg[lane, 3] > 0.0:
-                    segment_finish(mesh0, pix, target0, cursor[lane, 3], seg[lane], open_seg[lane], snap[lane],
-                                   acc[lane])
-            else:
-                store_texel(target1, texel, acc[lane], half[lane], seg[lane, 1] * seg[lane, 2])
-                if seg[lane, 3] > 0.0:
-                    segment_finish(mesh1, pix, target1, cursor[lane, 3], seg[lane], open_seg[lane], snap[lane],
-                                   acc[lane])
+            pair_finish(job, lane / 4, texel_index(q[0], q[1], q[2], job.size), seg[lane], acc[lane], half[lane],
+                        wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2]), cursor[lane, 3], open_seg[lane],
+                        snap[lane])
             count(counters, RAYS, int(seg[lane, 3]))
     count(counters, DENSITY_SAMPLES, samples)
     count(counters, SHARED_SAMPLES, shared)

@@ -79,8 +79,31 @@ def vsa_amplification(vp: VSAParams, t: float, t_max: float, rho: float, drho: f
     of the medium amplify (f_A = 1 where rho = rho' = 0 and T = 1; 94-97% of the smoke's and cloud's voxels are
     empty) cut gathers by 40-60% but lost 0.4-13 dB at equal gathers: the long step that enters the medium misses or
     over-weights its front."""
+    return vsa_ramp(vp, t, t_max, vsa_product(vp, rho, drho, trans, absorb))
+
+
+@wp.func
+def vsa_product(vp: VSAParams, rho: float, drho: float, trans: float, absorb: float) -> float:
+    """Eq. 4's product f_lambda^w_lambda f_T^w_T f_A^w_A (Eq. 5-6); constant along a run of zero samples (rho =
+    rho' = 0, T unchanged), which the coupled march walks through with `vsa_ramp` alone."""
     f_lambda = wave_length_factor(vp, drho)
     f_t = transparency_factor(rho, drho, absorb)
     f_a = attenuation_factor(trans)
-    product = weighted(f_lambda, vp.w_lambda) * weighted(f_t, vp.w_t) * weighted(f_a, vp.w_a)
+    return weighted(f_lambda, vp.w_lambda) * weighted(f_t, vp.w_t) * weighted(f_a, vp.w_a)
+
+
+@wp.func
+def vsa_ramp(vp: VSAParams, t: float, t_max: float, product: float) -> float:
+    """Eq. 4's outer max(k_a t / t_max, product, 1)."""
     return wp.max(wp.max(vp.k_a * t / t_max, product), 1.0)
+
+
+@wp.func
+def vsa_proposal(vp: VSAParams, t: float, t_max: float, rho: float, prev: float, prev_t: float, trans: float,
+                 dt: float, absorb: float) -> float:
+    """`vsa_amplification` after a sample of density rho at distance t, rho' per base step from the ray's previous
+    sample (density prev at prev_t; prev < 0: none yet, rho' = 0)."""
+    drho = float(0.0)
+    if prev >= 0.0:
+        drho = (rho - prev) * dt / wp.max(t - prev_t, 1.0e-9)
+    return vsa_amplification(vp, t, t_max, rho, drho, trans, absorb)

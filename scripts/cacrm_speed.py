@@ -1,0 +1,69 @@
+"""CMSRM against CACRM per stereo frame, measured interleaved in one process (issue 24, first item).
+
+Both methods render the same scene and stereo pair (the CLI's default eye, 0, 0.4, 3.2) with their defaults; after a
+warm-up each is timed ``--repeats`` times, alternating, and the minimum frame time is kept (the machine is shared, so
+the minimum is the least-disturbed run). Prints per scene and size: ms per frame and per pass, the counters, the
+ratio CMSRM / CACRM frame time (> 1: CACRM faster), and a checksum of CACRM's images (to pin them across changes)."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import time
+
+import numpy as np
+
+from volren.camera import Camera, make_views
+from volren.data import builtin_scene
+from volren.render import CACRM, CMSRM
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--scenes", default="smoke,cloud,phantom")
+    ap.add_argument("--sizes", default="480x270,960x540")
+    ap.add_argument("--resolution", type=int, default=128)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--save", help="write CACRM's images per case to this .npz (to compare across changes)")
+    ap.add_argument("--compare", help="a .npz from --save: print CACRM's PSNR against it per case")
+    args = ap.parse_args()
+    saved: dict[str, np.ndarray] = {}
+    old = np.load(args.compare) if args.compare else None
+    for name in args.scenes.split(","):
+        scene = builtin_scene(name, args.resolution)
+        for size in args.sizes.split(","):
+            w, h = (int(s) for s in size.split("x"))
+            views = make_views(Camera(position=(0.0, 0.4, 3.2), width=w, height=h), "stereo")
+            renderers = {"cmsrm": CMSRM(), "cacrm": CACRM()}
+            best: dict[str, tuple[float, object]] = {}
+            for r in renderers.values():
+                r.render(scene, views)
+            for _ in range(args.repeats):
+                for key, r in renderers.items():
+                    start = time.perf_counter()
+                    frame = r.render(scene, views)
+                    ms = 1e3 * (time.perf_counter() - start)
+                    if key not in best or ms < best[key][0]:
+                        best[key] = (ms, frame)
+            case = f"{name}-{size}"
+            images = np.stack([np.asarray(im) for im in best["cacrm"][1].images])
+            saved[case] = images
+            row = {"case": case, "ratio": round(best["cmsrm"][0] / best["cacrm"][0], 3),
+                   "sha": hashlib.sha1(images.tobytes()).hexdigest()[:12]}
+            if old is not None:
+                ref = old[case]
+                mse = float(np.mean((images - ref) ** 2))
+                row["psnr_vs_old"] = "inf" if mse == 0 else round(10 * np.log10(1.0 / mse), 2)
+            for key, (ms, frame) in best.items():
+                c = frame.stats.counters
+                row[key] = {"ms": round(ms, 1),
+                            "passes": {k: round(v, 1) for k, v in frame.stats.times_ms.items()},
+                            "counters": {k: int(v) for k, v in c.items()}}
+            print(json.dumps(row), flush=True)
+    if args.save:
+        np.savez_compressed(args.save, **saved)
+
+
+if __name__ == "__main__":
+    main()
