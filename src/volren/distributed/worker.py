@@ -64,11 +64,14 @@ class UnitWorker:
             self._plan, self._argv, self._next = cli.plan_render(args, args.method), argv, -1
         return self._plan, time.perf_counter() - start
 
-    def run(self, argv: tuple[str, ...], unit: Unit) -> dict[str, Any]:
-        """Render ``unit`` of the job ``argv``: its files' bytes, its frames' stats and where the time went."""
+    def run(self, argv: tuple[str, ...], unit: Unit, cwd: str | None = None) -> dict[str, Any]:
+        """Render ``unit`` of the job ``argv``: its files' bytes, its frames' stats and where the time went. ``cwd``:
+        the driver's folder, which relative paths (``--volume``, ``--mesh``) name, where this machine has it."""
         from volren import cli
 
         start = time.perf_counter()
+        if cwd is not None and os.path.isdir(cwd):
+            os.chdir(cwd)
         continues = argv == self._argv and self._next == unit.start
         # a temporal renderer whose history belongs elsewhere starts afresh, as the single-machine run did
         plan, setup = self._planned(argv, fresh=unit.temporal and not continues)
