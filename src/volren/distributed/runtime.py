@@ -10,9 +10,6 @@ from volren.errors import VolrenError
 
 RAY_MISSING = "Ray is not installed: pip install 'volren[ray]'"
 LOOPBACK_ONLY = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
-LOCAL_START_ATTEMPTS = 3
-"""a local start that times out is tried again: on 2 busy cores Ray's agents can take longer to start than its raylet
-waits for them (~15 s here), and a later try may meet a quieter machine"""
 
 
 def import_ray(flag: str) -> ModuleType:
@@ -38,16 +35,14 @@ def connect(flag: str, address: str | None = None, num_cpus: int | None = None,
     if ray.is_initialized():
         return ray
     options = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
-    for _ in range(1 if address else LOCAL_START_ATTEMPTS):
-        try:
-            if address:
-                ray.init(address=address, **options)
-            else:
-                ray.init(num_cpus=num_cpus, num_gpus=num_gpus, _node_ip_address="127.0.0.1", **options)
-            return ray
-        # a bare Exception: the raylet gave up waiting for its agents (their Python start-up on a loaded machine)
-        except Exception as exc:
-            ray.shutdown()
-            error = exc
-    where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
-    raise VolrenError(f"{flag}: cannot start or reach {where}: {str(error).splitlines()[0]}") from None
+    try:
+        if address:
+            ray.init(address=address, **options)
+        else:
+            ray.init(num_cpus=num_cpus, num_gpus=num_gpus, _node_ip_address="127.0.0.1", **options)
+    # Exception too: Ray raises a bare one when its raylet gives up waiting (~15 s) for its agents to start, as on 2
+    # busy cores. Not retried: the half-started node's processes stay behind, and each try would add a node's load.
+    except Exception as exc:
+        where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
+        raise VolrenError(f"{flag}: cannot start or reach {where}: {str(exc).splitlines()[0]}") from None
+    return ray
