@@ -9,6 +9,7 @@ import asyncio
 import json
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -155,8 +156,8 @@ def unsharded(msg: dict, stereo: bool, tick: int) -> bytes:
     return unpack_frame(payload)[1]
 
 
-@pytest.mark.xdist_group("ray")
-def test_two_shards_place_serve_and_survive_a_killed_shard(ray_cluster):
+def two_shards_scenario(kill) -> None:
+    """Two shards serving four clients (``kill(actor)`` kills a shard's actor), as the module docstring says."""
     from volren.serve.shards import ShardedLoop
 
     async def main_() -> None:
@@ -191,7 +192,7 @@ def test_two_shards_place_serve_and_survive_a_killed_shard(ray_cluster):
             assert after != before, "shard 1 renders under the light a viewer of shard 0 set"
 
             # shard 1 killed: its viewers get a notice and frames from shard 0; shard 0's viewers never stop
-            ray_cluster.kill(loop.shards[1].actor)
+            kill(loop.shards[1].actor)
             texts: dict = {ws: [] for ws in rigs}
             for step in range(3):
                 for k, (ws, x) in enumerate(rigs.items()):
@@ -206,7 +207,7 @@ def test_two_shards_place_serve_and_survive_a_killed_shard(ray_cluster):
             assert health["shards"][0]["viewers"] == [1, 2, 3, 4] and health["shards"][1]["viewers"] == []
 
             # the last shard killed: every viewer is told, /health says no shard is up
-            ray_cluster.kill(loop.shards[0].actor)
+            kill(loop.shards[0].actor)
             await a1.send_json(cam_msg(90, -APART))  # a1 acknowledges what it holds (next_text): due, a tick
             notice = await next_text(a1)
             assert notice["type"] == "notice" and "no render shard is left" in notice["message"]
@@ -216,3 +217,39 @@ def test_two_shards_place_serve_and_survive_a_killed_shard(ray_cluster):
                 await ws.close()
 
     asyncio.run(main_())
+
+
+@pytest.mark.xdist_group("ray")
+def test_two_shards_place_serve_and_survive_a_killed_shard(ray_cluster):
+    two_shards_scenario(ray_cluster.kill)
+
+
+class InThreadWorker:
+    """A `ShardWorker` in this process behind the actor interface the front end uses (``tick.remote(...)``,
+    awaitable; after `kill` it raises Ray's ActorDiedError as a killed actor's call does)."""
+
+    def __init__(self, spec) -> None:
+        from volren.serve.shards import ShardWorker
+
+        self.worker, self.dead = ShardWorker(spec), False
+        self.tick = SimpleNamespace(remote=self._tick)
+
+    def _tick(self, *args):
+        if self.dead:
+            from ray.exceptions import ActorDiedError
+
+            raise ActorDiedError()
+        return asyncio.to_thread(self.worker.tick, *args)
+
+
+def test_two_shards_front_end_with_in_thread_workers(monkeypatch):
+    """The same scenario with each shard's `ShardWorker` in a thread of this process instead of a Ray actor: the
+    front end's placement, moves, notices and /health without a cluster's start-up."""
+    import volren.serve.shards as shards
+
+    def start_workers(spec, count, address):
+        workers = [InThreadWorker(spec) for _ in range(count)]
+        return SimpleNamespace(kill=lambda w: None, shutdown=lambda: None), False, workers, False
+
+    monkeypatch.setattr(shards, "start_workers", start_workers)
+    two_shards_scenario(lambda worker: setattr(worker, "dead", True))
