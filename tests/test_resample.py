@@ -11,6 +11,7 @@ import pytest
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.render import CMSRM, CMSRMConfig
+from volren.scene import Environment, Scene, Volume, scale_translate
 
 W, H = 96, 64
 CAM = Camera(position=(0.9, 0.7, 2.4), width=W, height=H)
@@ -67,3 +68,23 @@ def test_progress_reports_every_row_once(cloud, kw):
     renderer.on_rows = reported.append
     renderer.render(cloud, [CAM])
     assert sum(reported) == H
+
+
+def test_a_direct_box_beside_a_cube_box_is_marched():
+    """Hybrid: a near box read from its cube map and a far one marched directly, side by side on screen. The one-box
+    pass leaves the direct box's pixels to the layered kernel (it has no map to read): the same bits as pixel-rt."""
+    n = 16
+    z, y, x = np.meshgrid(*[np.linspace(-1, 1, n)] * 3, indexing="ij")
+    density = np.clip(1.2 - np.sqrt(x * x + y * y + z * z), 0.0, 1.0).astype(np.float32)
+    near = Volume(density, scale_translate(0.5, (-0.5, 0.0, 0.5)), density_scale=4.0, emission=(3.0, 0.2, 0.2))
+    far = Volume(density, scale_translate(0.2, (1.2, 0.3, -1.5)), density_scale=4.0, emission=(0.2, 0.2, 3.0))
+    scene = Scene((near, far), (), Environment(0.0))
+    cam = Camera(position=(0.0, 0.0, 3.0), width=W, height=H)
+    frames = {oit: CMSRM(CMSRMConfig(samples=64, light_samples=16, light_grid=16, cube_size=8, oit=oit),
+                         "cpu").render(scene, [cam]) for oit in ("tiled", "pixel-rt")}
+    assert [p["scheme"] for p in frames["tiled"].stats.info["volumes"][0]] == ["cube", "direct"]
+    assert frames["tiled"].stats.info["deferred_pixels"][0] < W * H // 4
+    np.testing.assert_array_equal(frames["tiled"].images[0], frames["pixel-rt"].images[0])
+    np.testing.assert_array_equal(frames["tiled"].depths[0], frames["pixel-rt"].depths[0])
+    far_pixels = frames["tiled"].images[0][..., 2] > 0.05
+    assert far_pixels.sum() > 20  # the far box is in view

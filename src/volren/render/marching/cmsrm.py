@@ -7,6 +7,14 @@ pixel's ray, finds where it leaves the box and samples the cube map there biline
 The march is DSSRM's (`march_volume_light_map`), lit by the same light map. Cost follows the cube-map size, not the
 viewport: S x S texels per visible face.
 
+The resampling pass is the paper's "simple cube mapping" per pixel (§3, §3.2's 2x2 bilateral gather) where that is all
+a pixel needs: `cube_resample_kernel` finishes each pixel whose ray meets no box, or one cube-scheme box with no
+translucent mesh layer and no rim to march, with one box test and one 2x2 lookup, and defers the others (several boxes
+along the ray, mesh layers, a direct-scheme box, a rim, pixel-rt's ray queries) to `layered_resample_kernel`, which runs
+over the list of deferred pixels only. On the CPU each thread takes a span of pixels (`RESAMPLE_SPAN`), since Warp
+copies a kernel's arguments per thread. Measured (cloud 128^3, 960x540, one core, thread time): 126 ms for the former
+single per-pixel kernel, 46 ms now, against a cube march of 45 ms; the images are the same to the bit.
+
 Adaptive LOD (§3.3) picks per volume and view the cube-map/density mip level and the sample count N from the box's
 projected size, and (without a given S0) raises the face size to what the screen needs where the box is near,
 elongated, coarse-gridded or around the eye (`cubemap.screen_texels`, at most `cubemap.face_size_cap` = max(S0, 64):
