@@ -11,7 +11,8 @@ the runs go from the most workers down and none starts cold; paid once per sessi
 time minus the in-process time of its frames (the same frames rendered and encoded by the worker's own code in this
 process on one thread), mean and max, the engine's own measure (wall minus the worker's setup, warm-up and frame
 time: scheduling, transfer, writing), the worker's setup (the job's scene built and uploaded, its renderer made:
-once per actor and job, inside the wall time), and whether every file equals the in-process run's. Goals (issue 23):
+once per actor and job, inside the wall time), the driver's serial share of a unit (`driver_seconds`: what bounds
+the units per second however many workers), and whether every file equals the in-process run's. Goals (issue 23):
 per-unit overhead < 50 ms; local Ray within 1.15x of the in-process time on the same cores (1 worker against one
 thread, 2 workers against all threads), start-up aside.
 
@@ -68,6 +69,26 @@ def frame_seconds(argv: tuple[str, ...], frames: int) -> float:
     return result["render_seconds"] / frames
 
 
+def driver_seconds(out: Path, repeats: int = 5) -> float:
+    """[s] the driver's own share of one unit, serial however many workers there are: its files hashed and written
+    (temporary name, then ``os.replace``) and the manifest serialised and written, as `JobState.commit` does, at the
+    manifest's final size (it holds every unit of the job: it grows with the units)."""
+    import hashlib
+    import json
+
+    from volren.distributed.engine import MANIFEST, write_atomically
+
+    manifest = json.loads((out / MANIFEST).read_text())
+    files = {name: (out / name).read_bytes() for name in next(iter(manifest["units"].values()))["files"]}
+    start = time.perf_counter()
+    for _ in range(repeats):
+        for name, data in files.items():
+            hashlib.sha256(data).hexdigest()
+            write_atomically(out / name, data)
+        write_atomically(out / MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode())
+    return (time.perf_counter() - start) / repeats
+
+
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     from volren.distributed.engine import Job, run_jobs
     from volren.distributed.runtime import connect, import_ray
@@ -117,7 +138,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
                 "engine_overhead_ms": 1e3 * statistics.mean(u.overhead_seconds for u in units),
                 "setup_ms": 1e3 * max(u.setup_seconds for u in units),
                 "retried": report.units_retried, "files": report.files_written,
-                "same_files": _pngs(out) == reference})
+                "same_files": _pngs(out) == reference, "driver_ms": 1e3 * driver_seconds(out)})
             case_done(f"local Ray, {workers} worker(s)")
         if not was_up:
             ray.shutdown()
@@ -138,7 +159,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("ray_start_s", "Ray start-up [s]", ".1f"), ("actors_s", "actors [s]", ".2f"), ("unit_ms", "unit [ms]", ".1f"),
         ("frame_in_process_ms", "its frame in process [ms]", ".1f"), ("overhead_ms", "overhead/unit [ms]", ".1f"),
         ("overhead_max_ms", "max overhead [ms]", ".1f"), ("engine_overhead_ms", "engine's overhead [ms]", ".1f"),
-        ("setup_ms", "worker setup [ms]", ".0f"), ("same_files", "files = in process", ""),
+        ("setup_ms", "worker setup [ms]", ".0f"), ("driver_ms", "driver per unit [ms]", ".2f"),
+        ("same_files", "files = in process", ""),
     ]
     summary_columns = [("workers", "Ray workers", ""), ("against", "against", "s"),
                        ("ratio", "wall / in-process wall", ".3f"), ("overhead_ms", "overhead/unit [ms]", ".1f"),

@@ -27,6 +27,11 @@ table axis (a table without ``name``: ``<flag>-<value>`` of its flags), joined b
 A file without ``[sweep]`` is one job written into ``<out>`` itself. ``<out>/jobs.json`` maps each folder to its
 settings and command line.
 
+A job renders frames 0 to N - 1 (``frames = N``) as ``volren render --frames N`` would. Without ``--workers`` or
+``--ray-address`` the jobs run in this process one after another; on Ray the engine splits each into work units (a
+frame each; a temporal method one frame range per worker) and every job's folder also holds its ``batch.json``
+manifest, so running the file again resumes where it stopped. The files are the same either way.
+
 Everything is checked before any Ray start or render, each problem one `VolrenError` naming the file and the key:
 unknown keys (with the closest flag), wrong types, empty axes, a flag two axes set, two jobs in one folder, and every
 expanded command line through the CLI's own parser and checks (`volren.cli.plan_render`, as ``volren render`` would
@@ -88,6 +93,7 @@ class Batch:
     units: tuple[int, ...]
     """per job: the work units the engine splits it into (`engine.plan_job`); in process a job is one run"""
     devices: tuple[str, ...]
+    """per job: where it renders (``--gpus-per-worker`` needs CUDA)"""
 
 
 class Flags:
