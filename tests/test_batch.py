@@ -17,6 +17,7 @@ import pytest
 from volren import cli
 from volren.distributed import engine
 from volren.distributed.engine import DENOISE_WARMUP, MANIFEST, Job, run_jobs
+from volren.distributed.worker import UnitWorker
 from volren.errors import VolrenError
 
 SMALL = ("--width", "64", "--height", "48", "--resolution", "64", "--device", "cpu")
@@ -55,6 +56,99 @@ def reference(tmp_path_factory) -> Path:
 
 def job(out: Path, *extra: str) -> Job:
     return Job((*ANIMATE, *extra, "--out", str(out)), out)
+
+
+class InThreadRay:
+    """What the engine uses of Ray, with each actor an object in this process whose calls run one at a time (one
+    lock: renders never overlap), so the engine's scheduling, manifest, retries and failures are tested without a
+    cluster's start-up; `kill(pid)` makes an actor die as a killed process does (its call fails, it takes no more).
+    The same tests on the session's real cluster follow."""
+
+    class exceptions:  # as ray.exceptions
+        class RayActorError(Exception):
+            pass
+
+        class RayTaskError(Exception):
+            def __init__(self, cause: BaseException) -> None:
+                super().__init__(str(cause))
+                self.cause = cause
+
+    def __init__(self, cpus: int = 2) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.cpus, self.lock, self.pool = cpus, __import__("threading").Lock(), ThreadPoolExecutor(4)
+        self.dead: set[int] = set()
+        self.started = 0
+
+    def cluster_resources(self) -> dict[str, float]:
+        return {"CPU": float(self.cpus)}
+
+    def get_runtime_context(self):
+        return type("Context", (), {"get_job_id": staticmethod(lambda: "in-thread")})()
+
+    def remote(self, **_):
+        fake = self
+
+        class Handle:
+            def __init__(self, *args) -> None:
+                fake.started += 1
+                self._pid, self._worker, self._args = 10_000 + fake.started, None, args
+
+            def __getattr__(self, name: str):
+                def call(*args):
+                    def run():
+                        with fake.lock:
+                            if self._pid in fake.dead:
+                                raise fake.exceptions.RayActorError(self._pid)
+                            if name == "pid":
+                                return self._pid
+                            self._worker = self._worker or UnitWorker(*self._args)
+                            try:
+                                result = getattr(self._worker, name)(*args)
+                            except Exception as exc:
+                                raise fake.exceptions.RayTaskError(exc) from exc
+                            if self._pid in fake.dead:  # killed while it ran: its result is lost
+                                raise fake.exceptions.RayActorError(self._pid)
+                            return result
+                    return fake.pool.submit(run)
+                return type("Method", (), {"remote": staticmethod(call)})()
+
+        factory = type("Factory", (), {"remote": staticmethod(lambda *a: Handle(*a))})()
+        return lambda cls: type("Remote", (), {"options": staticmethod(lambda **_: factory)})()
+
+    def get(self, ref):
+        return [self.get(r) for r in ref] if isinstance(ref, list) else ref.result()
+
+    def wait(self, refs, num_returns=1, timeout=None):
+        from concurrent.futures import FIRST_COMPLETED
+        from concurrent.futures import wait as wait_futures
+
+        done, rest = wait_futures(refs, timeout=timeout, return_when=FIRST_COMPLETED)
+        return list(done)[:num_returns], list(rest)
+
+    def kill(self, actor, no_restart=True):
+        self.dead.add(actor._pid)
+
+
+@pytest.fixture
+def in_thread_ray(monkeypatch):
+    from volren.distributed import runtime
+
+    fake = InThreadRay()
+    monkeypatch.setattr(runtime, "connect", lambda *args, **kwargs: fake)
+    monkeypatch.setattr(engine, "_POOL", [])
+    monkeypatch.setenv("VOLREN_CPU_THREADS", os.environ.get("VOLREN_CPU_THREADS", ""))  # the workers set it
+    return fake
+
+
+@pytest.fixture(params=["in-thread", pytest.param("ray", marks=pytest.mark.xdist_group("ray"))])
+def backend(request):
+    """Each engine test twice: on `InThreadRay`, and on the session's Ray cluster. Yields ``kill(pid)``, what a
+    test does to a worker's process."""
+    if request.param == "ray":
+        request.getfixturevalue("ray_cluster")
+        return lambda pid: os.kill(pid, signal.SIGKILL)
+    return request.getfixturevalue("in_thread_ray").dead.add
 
 
 # --- the default path and the flags' refusals: no Ray started ---
@@ -98,10 +192,9 @@ def test_a_plain_render_into_a_batch_folder_replaces_the_batch(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "stats.json", "view0.png"]
 
 
-# --- on the session's Ray cluster ---
+# --- the engine, in-thread and on the session's Ray cluster ---
 
-@pytest.mark.xdist_group("ray")
-def test_workers_write_what_animate_writes_in_process(ray_cluster, reference, tmp_path):
+def test_workers_write_what_animate_writes_in_process(backend, reference, tmp_path):
     """Two workers, a unit per frame: every PNG, .npy and the MP4 byte for byte as in process, the same counters;
     stats.json adds each unit's worker and times."""
     out = tmp_path / "out"
@@ -114,8 +207,7 @@ def test_workers_write_what_animate_writes_in_process(ray_cluster, reference, tm
     assert all(u["worker"] and u["attempts"] == 1 for u in units)
 
 
-@pytest.mark.xdist_group("ray")
-def test_ctrl_c_leaves_complete_units_and_a_rerun_resumes(ray_cluster, reference, tmp_path, capsys, monkeypatch):
+def test_ctrl_c_leaves_complete_units_and_a_rerun_resumes(backend, reference, tmp_path, capsys):
     """Ctrl-C while the third unit's files are being written (after 2 of its 5): only the first two units' files
     stay, listed in the manifest; the same command again skips the second (checked against its files: one changed
     makes the first incomplete) and renders the rest; another command into that folder starts clean."""
@@ -129,10 +221,9 @@ def test_ctrl_c_leaves_complete_units_and_a_rerun_resumes(ray_cluster, reference
             raise KeyboardInterrupt
         write(path, data)
 
-    monkeypatch.setattr(engine, "write_atomically", interrupted)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.MonkeyPatch.context() as patch, pytest.raises(KeyboardInterrupt):
+        patch.setattr(engine, "write_atomically", interrupted)
         run_jobs([job(out)], workers=1, address=None, flag="--workers")
-    monkeypatch.undo()
     manifest = json.loads((out / MANIFEST).read_text())
     done = manifest["units"]
     assert list(done) == ["frames 0-0", "frames 1-1"]
@@ -150,8 +241,7 @@ def test_ctrl_c_leaves_complete_units_and_a_rerun_resumes(ray_cluster, reference
     assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "stats.json", "view0.png"]
 
 
-@pytest.mark.xdist_group("ray")
-def test_a_killed_worker_costs_a_retry_of_its_unit_only(ray_cluster, reference, tmp_path):
+def test_a_killed_worker_costs_a_retry_of_its_unit_only(backend, reference, tmp_path):
     """The worker given frame 1 is killed (SIGKILL) as the unit goes to it: a fresh worker renders that unit again,
     nothing else is rendered twice, nothing written twice, and the output is the in-process run's."""
     out = tmp_path / "out"
@@ -160,7 +250,7 @@ def test_a_killed_worker_costs_a_retry_of_its_unit_only(ray_cluster, reference, 
     def kill(unit, pid):
         if unit.start == 1 and not killed:
             killed.append(pid)
-            os.kill(pid, signal.SIGKILL)
+            backend(pid)
 
     report = run_jobs([job(out)], workers=2, address=None, flag="--workers", on_dispatch=kill)
     assert killed and (report.units_run, report.units_retried) == (4, 1)
@@ -169,8 +259,7 @@ def test_a_killed_worker_costs_a_retry_of_its_unit_only(ray_cluster, reference, 
     assert_same_run(reference, out)
 
 
-@pytest.mark.xdist_group("ray")
-def test_a_temporal_method_warms_up_to_the_single_machine_sequence(ray_cluster, tmp_path):
+def test_a_temporal_method_warms_up_to_the_single_machine_sequence(backend, tmp_path):
     """vpt with the spatiotemporal denoiser keeps history: the worker given frames 5-9 renders frames 1-4 first
     (`DENOISE_WARMUP`), and its frames match one in-process run's to over 55 dB (measured 65.4 dB; without
     the warm-up NOWARM), well under one 8-bit step. The first worker's frames continue from frame 0: identical."""
@@ -191,8 +280,7 @@ def test_a_temporal_method_warms_up_to_the_single_machine_sequence(ray_cluster, 
     assert 55 < worst < float("inf")
 
 
-@pytest.mark.xdist_group("ray")
-def test_a_unit_failing_with_a_volren_error_fails_the_job_with_that_line(ray_cluster, tmp_path, monkeypatch):
+def test_a_unit_failing_with_a_volren_error_fails_the_job_with_that_line(backend, tmp_path, monkeypatch):
     """Frame 2 of a volume sequence is not a volume: the driver's checks read frames 0 and 1 only, so the unit of
     frame 2 fails in its worker (which found frames 0 and 1 by the driver's relative path); the job fails with the
     loader's line, the unit is not retried, and the complete units stay for a resume."""
@@ -213,8 +301,7 @@ def test_a_unit_failing_with_a_volren_error_fails_the_job_with_that_line(ray_clu
     assert set(json.loads((out / MANIFEST).read_text())["units"]) == {"frames 0-0", "frames 1-1"}
 
 
-@pytest.mark.xdist_group("ray")
-def test_more_workers_than_the_cluster_holds_is_refused(ray_cluster, tmp_path):
+def test_more_workers_than_the_cluster_holds_is_refused(backend, tmp_path):
     """Three one-CPU workers on the session's 2-CPU cluster: the third would wait for ever; refused in one line."""
     out = tmp_path / "out"
     refusal = r"^--workers: 3 worker\(s\) need 3 CPU\(s\), Ray has 2: give fewer --workers$"
