@@ -13,12 +13,14 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from conftest import DEVICE
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig
+from volren.scene import Scene
 
 VIEWS = make_views(Camera(position=(0.3, 0.5, 2.4), width=48, height=32), "stereo")
 BASE = {"samples": 128, "light_samples": 16, "light_grid": 16, "hybrid": False, "adaptive_lod": False,
@@ -41,3 +43,41 @@ def test_coupled_pair_equals_each_eye_alone_with_skipping_and_jumps():
     cmsrm = CMSRM(CMSRMConfig(**{k: v for k, v in BASE.items() if k != "interleave"}), DEVICE).render(scene, VIEWS)
     worst = min(psnr(b, a) for a, b in zip(coupled.images, cmsrm.images, strict=True))
     assert worst > 50.0, worst
+
+
+def half_smoke() -> Scene:
+    """The smoke with its front half (towards +z, the camera) emptied: long empty runs in front of the medium that
+    cross t = t_max / k_a, where VSA's ramp starts to lengthen the steps."""
+    scene = builtin_scene("smoke", 64)
+    density = scene.volumes[0].density.copy()
+    density[density.shape[0] // 2:] = 0.0
+    return dataclasses.replace(scene, volumes=(dataclasses.replace(scene.volumes[0], density=density),))
+
+
+def slabs() -> Scene:
+    """A dense slab, empty space, a thin slab: runs behind a medium (T < 1, f_A large), whose first sample in the
+    thin slab is dense at once and smooth enough that VSA's product (not the ramp or 1) decides the step there, so
+    that rho', taken from the run's last distance, matters."""
+    scene = builtin_scene("smoke", 64)
+    density = np.zeros_like(scene.volumes[0].density)
+    density[40:52] = 0.6
+    density[8:20] = 0.01
+    return dataclasses.replace(scene, volumes=(dataclasses.replace(scene.volumes[0], density=density),))
+
+
+@pytest.mark.parametrize("name", ["half-smoke", "slabs"])
+def test_idle_runs_walk_the_lattice_of_the_steps(name):
+    """With the fitted VSA, the idle runs (unit steps jumped, ramp steps walked) give the image and counts of the
+    loop that fetches every step: the same image with skipping on and off, fetched + skipped = fetched without
+    skipping. The half-emptied smoke's runs cross the ramp's start; the slabs put runs between media, where VSA's
+    product and previous distance matter."""
+    scene = half_smoke() if name == "half-smoke" else slabs()
+    views = make_views(Camera(position=(0.2, 0.4, 2.2), width=48, height=32), "stereo")
+    config = CACRMConfig(**BASE)
+    on = CACRM(config, DEVICE).render(scene, views)
+    off = CACRM(dataclasses.replace(config, skip_empty=False), DEVICE).render(scene, views)
+    for a, b in zip(on.images, off.images, strict=True):
+        np.testing.assert_array_equal(a, b)
+    c_on, c_off = on.stats.counters, off.stats.counters
+    assert c_on["density_samples"] + c_on["skipped_steps"] == c_off["density_samples"]
+    assert c_on["skipped_steps"] > 0.5 * c_on["density_samples"], (c_on, c_off)  # slabs: 0.68
