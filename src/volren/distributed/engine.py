@@ -434,7 +434,6 @@ def run_command_on_ray(args: argparse.Namespace) -> int:
     from volren.distributed.runtime import import_ray
 
     flag = "--workers" if args.workers is not None else "--ray-address"
-    import_ray(flag)  # missing: one line before the checks' seconds of work
     argv = getattr(args, "argv", None)
     if argv is None:
         raise VolrenError(f"{flag}: runs from the volren command line only (Python: volren.distributed.engine)")
@@ -443,6 +442,7 @@ def run_command_on_ray(args: argparse.Namespace) -> int:
 
         if not resolve_device(args.device).startswith("cuda"):
             raise VolrenError("--gpus-per-worker shares a GPU among workers: the workers render on the CPU here")
+    import_ray(flag)  # missing: one line before the checks' seconds of work
     report = run_jobs([Job(tuple(argv), Path(args.out))], workers=args.workers, address=args.ray_address, flag=flag,
                       gpus_per_worker=args.gpus_per_worker or 1.0)
     doc = json.loads((Path(args.out) / "stats.json").read_text())
