@@ -261,8 +261,9 @@ def test_a_killed_worker_costs_a_retry_of_its_unit_only(backend, reference, tmp_
 
 def test_a_temporal_method_warms_up_to_the_single_machine_sequence(backend, tmp_path):
     """vpt with the spatiotemporal denoiser keeps history: the worker given frames 5-9 renders frames 1-4 first
-    (`DENOISE_WARMUP`), and its frames match one in-process run's to over 55 dB (measured 65.4 dB; without
-    the warm-up NOWARM), well under one 8-bit step. The first worker's frames continue from frame 0: identical."""
+    (`DENOISE_WARMUP`), and its frames match one in-process run's to over 55 dB (measured 65.4 dB; with no warm-up
+    scripts/batch_warmup.py measures 40 dB), well under one 8-bit step. The first worker's continue from frame 0:
+    identical."""
     argv = ("animate", "--width", "48", "--height", "32", "--resolution", "64", "--device", "cpu", "--views", "mono",
             "--method", "vpt", "--denoise", "ours", "--spp", "2", "--frames", "10", "--orbit", "30", "--save-linear")
     assert cli.main([*argv, "--out", str(tmp_path / "ref")]) == 0
