@@ -5,6 +5,7 @@ Ray, and ``volren bench batch`` at a toy size."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -205,8 +206,24 @@ def test_the_example_job_file_runs_its_four_jobs_tiny(tmp_path, capfd):
         assert names == sorted(["animation.mp4", "stats.json", *pngs]), names
 
 
-@pytest.mark.xdist_group("ray")
-def test_a_job_file_on_ray_writes_the_files_of_the_in_process_run(tmp_path, ray_cluster, capfd):
+@pytest.fixture(params=["in-thread", pytest.param("ray", marks=pytest.mark.xdist_group("ray"))])
+def ray_backend(request, monkeypatch):
+    """Each Ray test twice: on tests/test_batch.py's `InThreadRay` (the engine's calls into Ray answered in this
+    process: no cluster start-up), and on the session's Ray cluster."""
+    if request.param == "ray":
+        return request.getfixturevalue("ray_cluster")
+    from test_batch import InThreadRay
+    from volren.distributed import engine, runtime
+
+    fake = InThreadRay()
+    fake.shutdown = lambda: None
+    monkeypatch.setattr(runtime, "connect", lambda *args, **kwargs: fake)
+    monkeypatch.setattr(engine, "_POOL", [])
+    monkeypatch.setenv("VOLREN_CPU_THREADS", os.environ.get("VOLREN_CPU_THREADS", ""))  # the workers set it
+    return fake
+
+
+def test_a_job_file_on_ray_writes_the_files_of_the_in_process_run(tmp_path, ray_backend, capfd):
     body = "[sweep]\nviews = [\"mono\", \"stereo\"]\n[[sweep.look]]\nname = \"dim\"\nlight-irradiance = 1\n"
     runs = {}
     for where, extra in (("here", []), ("ray", ["--workers", "2"])):
@@ -225,8 +242,7 @@ def test_a_job_file_on_ray_writes_the_files_of_the_in_process_run(tmp_path, ray_
         job["settings"] for job in index["here"]["jobs"].values()]
 
 
-@pytest.mark.xdist_group("ray")
-def test_bench_batch_counts_every_unit_and_frame(ray_cluster):
+def test_bench_batch_counts_every_unit_and_frame(ray_backend):
     from volren.bench.batch import GOAL_OVERHEAD_MS, GOAL_RAY_RATIO, run_config
 
     cfg = {"frames": 3, "size": (40, 24), "resolution": 64, "workers": [1, 2],
