@@ -3,13 +3,17 @@ existing one at ``--ray-address``. Every Ray entry point of volren goes through 
 
 from __future__ import annotations
 
+import contextlib
 import os
+import time
 from types import ModuleType
 
 from volren.errors import VolrenError
 
 RAY_MISSING = "Ray is not installed: pip install 'volren[ray]'"
 LOOPBACK_ONLY = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+LOCAL_STARTS = 2
+"""tries of a local start: on 2 busy cores Ray's raylet can give up waiting (15 s, fixed) for its agents' port files"""
 
 
 def import_ray(flag: str) -> ModuleType:
@@ -35,14 +39,30 @@ def connect(flag: str, address: str | None = None, num_cpus: int | None = None,
     if ray.is_initialized():
         return ray
     options = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
-    try:
-        if address:
-            ray.init(address=address, **options)
-        else:
-            ray.init(num_cpus=num_cpus, num_gpus=num_gpus, _node_ip_address="127.0.0.1", **options)
-    # Exception too: Ray raises a bare one when its raylet gives up waiting (~15 s) for its agents to start, as on 2
-    # busy cores. Not retried: the half-started node's processes stay behind, and each try would add a node's load.
-    except Exception as exc:
-        where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
-        raise VolrenError(f"{flag}: cannot start or reach {where}: {str(exc).splitlines()[0]}") from None
-    return ray
+    where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
+    tries = 1 if address else LOCAL_STARTS
+    for attempt in range(1, tries + 1):
+        started = time.time()
+        try:
+            if address:
+                ray.init(address=address, **options)
+            else:
+                ray.init(num_cpus=num_cpus, num_gpus=num_gpus, _node_ip_address="127.0.0.1", **options)
+            return ray
+        except Exception as exc:  # Exception too: Ray raises a bare one when its node does not come up in time
+            if not address:
+                stop_failed_start(started)
+                ray.shutdown()
+            if attempt == tries:
+                raise VolrenError(f"{flag}: cannot start or reach {where}: {str(exc).splitlines()[0]}") from None
+    raise AssertionError("unreachable")
+
+def stop_failed_start(started: float) -> None:
+    """Stop what a failed local start left running: Ray started its GCS, raylet, agents and workers as this process's
+    descendants and leaves them behind when its node does not come up; each would add to the load that made it fail."""
+    import psutil  # Ray's own copy (ray/thirdparty_files) when psutil is not installed
+
+    for child in psutil.Process().children(recursive=True):
+        with contextlib.suppress(psutil.Error):
+            if child.create_time() >= started - 1.0:  # create_time is rounded; nothing else forks during ray.init
+                child.kill()
