@@ -161,7 +161,8 @@ def test_a_bench_suite_reports_each_measured_case(capfd) -> None:
     from volren.progress import case_done, cases
 
     stats = SimpleNamespace(times_ms={"march": 2.0}, counters={"rays": 1})
-    renderer = SimpleNamespace(name="dssrm", render=lambda scene, views, frame=0: SimpleNamespace(stats=stats))
+    renderer = SimpleNamespace(name="dssrm", config=None,
+                               render=lambda scene, views, frame=0: SimpleNamespace(stats=stats))
     view = SimpleNamespace(width=96, height=64)
     with cases("bench dssrm"):
         measure(renderer, None, [view, view], repeats=2)
