@@ -3,9 +3,10 @@
 Reads `tests/mutations.toml` (one ``[[mutant]]`` table per part: ``name``, ``part``, ``file``, ``find`` (source text
 that occurs exactly once), ``replace``, ``tests`` (pytest node ids or files)). For each mutant it copies the tracked
 and untracked-but-not-ignored files into a scratch folder, applies the edit, and runs the listed tests there against
-the scratch copy's sources. A mutant is *killed* when pytest reports failing tests (exit status 1); it *survives*
-when they pass, and it is *invalid* when the edit does not apply or pytest cannot even collect (an import or syntax
-error proves nothing about the tests). Exit status 0 only when every mutant selected is killed.
+the scratch copy's sources. A mutant is *killed* when pytest reports failing tests (exit status 1, "failed" in its
+summary); it *survives* when they pass, and it is *invalid* when the edit does not apply, pytest cannot even collect
+(an import or syntax error proves nothing about the tests) or only errors in set-up (a fixture's cluster that did not
+start). Exit status 0 only when every mutant selected is killed.
 
     python scripts/mutations.py                   # the whole catalogue, 2 mutants at a time
     python scripts/mutations.py --only fog- -j 1  # names starting with "fog-"
@@ -109,6 +110,9 @@ def run_one(m: Mutant, files: list[str], timeout: float) -> Outcome:
             return Outcome(m, "invalid", time.perf_counter() - start, f"tests ran past {timeout:.0f} s")
         tail = (proc.stdout + proc.stderr).strip().splitlines()[-1:] or [""]
         verdict = {0: "survived", 1: "killed"}.get(proc.returncode, "invalid")
+        summary = proc.stdout.strip().splitlines()[-1:] or [""]  # pytest's "1 failed, 2 passed in 3.0s"
+        if verdict == "killed" and " failed" not in summary[0]:  # only errors: a fixture's Ray start that timed out
+            verdict = "invalid"
         return Outcome(m, verdict, time.perf_counter() - start, f"pytest exit {proc.returncode}: {tail[0]}")
 
 
