@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -79,6 +80,7 @@ def stand_ins(folder: Path, width: int = 640, height: int = 360) -> None:
                     scale={"c": 1.0, "z": 2.0, "y": 0.5, "x": 0.5}, axes_units={a: "micrometer" for a in "zyx"})
     soot, temperature = (f[::2, ::2, ::2] for f in fire_fields(64))
     voxel = np.diag([2 / 32, 2 / 32, 2 / 32, 1.0]).tolist()
+    shutil.copytree(ROOT / "examples", folder / "examples", dirs_exist_ok=True)  # the job files, as in a checkout
     write_with_openvdb({"fire.vdb": [{"name": "density", "array": soot, "matrix": voxel},
                                      {"name": "temperature", "array": 2000.0 * temperature, "matrix": voxel}],
                         "explosion.vdb": [{"name": "density", "array": head, "matrix": voxel}]}, folder)

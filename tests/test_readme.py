@@ -51,8 +51,24 @@ def readme_commands() -> list[list[str]]:
     return [words for words in EXAMPLES.readme_examples(README) if words[0] == "volren"]
 
 
+RAY_FLAGS = ("--workers", "--ray-address", "--shards")
+"""run here without them, in process: tests/test_batch*.py and test_serve_shards.py run the Ray paths on the test
+session's one cluster (each README line would start another, and `--ray-address` names a cluster that is not here)"""
+
+
+def in_process(args: list[str]) -> list[str]:
+    out, value_of_flag = [], False
+    for a in args:
+        if not value_of_flag and a.split("=", 1)[0] not in RAY_FLAGS:
+            out.append(a)
+        value_of_flag = a in RAY_FLAGS  # "--workers 2": skip the 2 as well
+    return out
+
+
 def reduced(words: list[str]) -> list[str]:
-    args = words[1:]
+    args = in_process(words[1:])
+    if args[0] == "batch":  # the example job's renders run tiny in tests/test_batch_job.py
+        return args if "--dry-run" in args else [*args, "--dry-run"]
     if args[0] not in ("render", "animate", "demo"):
         return args
     method = "dssrm" if args[0] == "demo" else args[args.index("--method") + 1] if "--method" in args else "dssrm"
@@ -107,6 +123,17 @@ def test_every_readme_render_is_sized_to_finish_in_about_a_minute():
             work["reference steps"] = (pixel_frames * steps, EXAMPLE_REFERENCE_STEPS)
         over += [f"{shlex.join(words)}: {n:.2e} {what}" for what, (n, most) in work.items() if n > most]
     assert not over, "README examples too large to finish in about a minute:\n" + "\n".join(over)
+
+
+def test_every_readme_line_parses_as_written():
+    """The lines `reduced` changes (Ray flags dropped, batch jobs dry-run) still parse whole: a flag renamed fails."""
+    from volren.cli import build_parser
+
+    parser = build_parser()
+    lines = [w for w in readme_commands() if any(a.split("=", 1)[0] in RAY_FLAGS for a in w) or w[1] == "batch"]
+    assert len(lines) >= 5
+    for words in lines:
+        parser.parse_args(words[1:])
 
 
 def test_every_readme_bench_line_names_a_suite():
