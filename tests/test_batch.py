@@ -84,7 +84,8 @@ class InThreadRay:
         return {"CPU": float(self.cpus)}
 
     def get_runtime_context(self):
-        return type("Context", (), {"get_job_id": staticmethod(lambda: "in-thread")})()
+        return type("Context", (), {"get_job_id": staticmethod(lambda: "in-thread"),
+                                    "get_node_id": staticmethod(lambda: f"node-{id(self)}")})()
 
     def remote(self, **_):
         fake = self
@@ -309,3 +310,30 @@ def test_more_workers_than_the_cluster_holds_is_refused(backend, tmp_path):
     with pytest.raises(VolrenError, match=refusal):
         run_jobs([Job(("render", *SMALL, "--views", "mono", "--frames", "3", "--out", str(out)), out)], workers=3,
                  address=None, flag="--workers")
+
+
+def test_a_new_cluster_in_the_same_process_starts_fresh_workers(monkeypatch, tmp_path):
+    """The warm workers kept between runs in one process belong to their cluster: after a shutdown and a new
+    connection (whose first job id repeats, 01000000), the next run starts its own instead of calling dead ones."""
+    from volren.distributed import runtime
+
+    monkeypatch.setattr(engine, "_POOL", [])
+    for i, fake in enumerate((InThreadRay(), InThreadRay())):
+        monkeypatch.setattr(runtime, "connect", lambda *args, fake=fake, **kwargs: fake)
+        argv = ("render", *SMALL, "--views", "mono", "--out", str(tmp_path / f"o{i}"))
+        report = run_jobs([Job(argv, tmp_path / f"o{i}")], workers=1, address=None, flag="--workers")
+        assert (report.units_run, fake.started) == (1, 1)
+
+
+def test_the_manifest_is_rewritten_at_most_once_a_second_and_at_the_end(in_thread_ray, monkeypatch, tmp_path):
+    """The manifest is rewritten whole: after every unit that is O(units^2) (0.24 ms per recorded unit); with the
+    interval longer than the run, it is written at the first unit and at the end, and still lists all four."""
+    writes = []
+    real = engine.write_atomically
+    monkeypatch.setattr(engine, "MANIFEST_EVERY_S", 1e9)
+    monkeypatch.setattr(engine, "write_atomically",
+                        lambda path, data: (writes.append(path.name), real(path, data))[1])
+    out = tmp_path / "out"
+    run_jobs([job(out)], workers=2, address=None, flag="--workers")
+    assert writes.count(engine.MANIFEST) == 2
+    assert len(json.loads((out / engine.MANIFEST).read_text())["units"]) == 4
