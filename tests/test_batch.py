@@ -321,8 +321,20 @@ def test_a_new_cluster_in_the_same_process_starts_fresh_workers(monkeypatch, tmp
     for i, fake in enumerate((InThreadRay(), InThreadRay())):
         monkeypatch.setattr(runtime, "connect", lambda *args, fake=fake, **kwargs: fake)
         argv = ("render", *SMALL, "--views", "mono", "--out", str(tmp_path / f"o{i}"))
-        report = run_jobs([Job(argv, tmp_path / f"o{i}")], workers=1, address=None, flag="--workers")
+        report = run_jobs([Job(argv, tmp_path / f"o{i}")], workers=1, address=None, flag="--workers",
+                          keep_workers=True)
         assert (report.units_run, fake.started) == (1, 1)
+
+
+def test_idle_workers_are_stopped_unless_kept(in_thread_ray, tmp_path):
+    """An idle actor holds its CPU (or GPU) of the cluster: left running, it kept a sharded server's actors waiting
+    for ever in one process. Stopped at the end by default; kept (warm) only when asked."""
+    argv = ("render", *SMALL, "--views", "mono", "--frames", "2")  # a unit for each of the 2 workers
+    run_jobs([Job((*argv, "--out", str(tmp_path / "a")), tmp_path / "a")], workers=2, address=None, flag="--workers")
+    assert in_thread_ray.dead == {10_001, 10_002} and engine._POOL == []
+    run_jobs([Job((*argv, "--out", str(tmp_path / "b")), tmp_path / "b")], workers=2, address=None,
+             flag="--workers", keep_workers=True)
+    assert len(engine._POOL) == 2 and in_thread_ray.dead == {10_001, 10_002}
 
 
 def test_the_manifest_is_rewritten_at_most_once_a_second_and_at_the_end(in_thread_ray, monkeypatch, tmp_path):

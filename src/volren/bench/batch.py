@@ -115,7 +115,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             share = min(1.0, gpus / workers) if device.startswith("cuda") and gpus else 1.0
             cfg_run = {**cfg, "frames": frames}
             return run_jobs([Job(turntable(cfg_run, device, out), out)], workers=workers, address=None,
-                            flag="bench batch", gpus_per_worker=share)
+                            flag="bench batch", gpus_per_worker=share, keep_workers=True)
 
         # start-up: the cluster, then the most workers started and warmed (Python, Warp, kernels loaded) on a
         # frame each; the engine keeps them for the runs below, the most workers first so that none starts cold

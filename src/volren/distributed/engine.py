@@ -308,11 +308,12 @@ def _actor_options(cuda: bool, gpus_per_worker: float) -> dict[str, Any]:
 
 def run_jobs(jobs: Sequence[Job], *, workers: int | None, address: str | None, flag: str,
              gpus_per_worker: float = 1.0, unit_frames: int | None = None,
-             on_dispatch: Callable[[Unit, int], None] | None = None) -> BatchReport:
+             on_dispatch: Callable[[Unit, int], None] | None = None, keep_workers: bool = False) -> BatchReport:
     """Run ``jobs`` on ``workers`` Ray actors (a local Ray when ``address`` is None; default on a cluster: one per
     GPU or CPU it has); ``flag`` names the option in errors. ``unit_frames``: frames per unit (default: 1, or for a
     temporal method one range per worker). ``on_dispatch(unit, pid)`` is called as a unit goes to the actor with
-    that process id (the tests' fault injection). Returns what ran (`BatchReport`)."""
+    that process id (the tests' fault injection). ``keep_workers``: keep the idle actors, warm, for the next call in
+    this process (`volren bench batch`); otherwise they are stopped at the end. Returns what ran (`BatchReport`)."""
     if workers is not None and workers < 1:
         raise VolrenError(f"{flag}: the workers must be >= 1, got {workers}")
     if not 0 < gpus_per_worker <= 1:
@@ -332,7 +333,7 @@ def run_jobs(jobs: Sequence[Job], *, workers: int | None, address: str | None, f
     try:
         if queue:
             ray_start = _run_units(states, queue, reports, counts, workers, address, flag, cuda, gpus_per_worker,
-                                   on_dispatch)
+                                   on_dispatch, keep_workers)
     except BaseException:
         for s in states:
             s.prune()
@@ -346,7 +347,7 @@ def run_jobs(jobs: Sequence[Job], *, workers: int | None, address: str | None, f
 
 def _run_units(states: list[JobState], queue: deque[Unit], reports: list[UnitReport], counts: dict[str, int],
                workers: int | None, address: str | None, flag: str, cuda: bool, gpus_per_worker: float,
-               on_dispatch: Callable[[Unit, int], None] | None) -> float:
+               on_dispatch: Callable[[Unit, int], None] | None, keep_workers: bool) -> float:
     """Hand the queued units to the actors until all are written; returns Ray's start-up seconds."""
     from volren.distributed.runtime import connect
     from volren.progress import progress
@@ -437,7 +438,11 @@ def _run_units(states: list[JobState], queue: deque[Unit], reports: list[UnitRep
         for actor in pids:
             ray.kill(actor, no_restart=True)
         raise
-    _POOL.extend((actor, pids[actor], key) for actor in idle)  # warm for the next call in this process
+    if keep_workers:  # warm for the next call in this process; meanwhile they hold their CPUs or GPUs of the cluster
+        _POOL.extend((actor, pids[actor], key) for actor in idle)
+    else:  # released: an idle actor's resources would keep another user's actors (a shard, say) waiting
+        for actor in idle:
+            ray.kill(actor, no_restart=True)
     rates = [f"{w} {sum(v[::2]) / max(sum(v[1::2]), 1e-9):.2f} frames/s" for w, v in per_worker.items()]
     print(f"  per worker: {', '.join(rates)}", file=sys.stderr)
     return ray_start
