@@ -244,10 +244,12 @@ def test_a_job_file_on_ray_writes_the_files_of_the_in_process_run(tmp_path, ray_
 
 def test_bench_batch_counts_every_unit_and_frame(ray_backend):
     from volren.bench.batch import GOAL_OVERHEAD_MS, GOAL_RAY_RATIO, run_config
+    from volren.distributed import engine
 
     cfg = {"frames": 3, "size": (40, 24), "resolution": 64, "workers": [1, 2],
            "overrides": ["--samples", "24", "--light-samples", "6", "--light-grid", "8"]}
     result = run_config(cfg, "cpu")
+    assert engine._POOL == []  # the workers kept warm between its runs are stopped: they held the cluster's CPUs
     rows = result["rows"]
     assert [(r["case"], r["workers"], r["threads"]) for r in rows] == [
         ("in process", None, 1), ("in process", None, "all"), ("local Ray", 1, 1), ("local Ray", 2, 1)]

@@ -90,7 +90,7 @@ def driver_seconds(out: Path, repeats: int = 5) -> float:
 
 
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
-    from volren.distributed.engine import Job, run_jobs
+    from volren.distributed.engine import Job, release_workers, run_jobs
     from volren.distributed.runtime import connect, import_ray
 
     frames, rows = cfg["frames"], []
@@ -117,29 +117,32 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             return run_jobs([Job(turntable(cfg_run, device, out), out)], workers=workers, address=None,
                             flag="bench batch", gpus_per_worker=share, keep_workers=True)
 
-        # start-up: the cluster, then the most workers started and warmed (Python, Warp, kernels loaded) on a
-        # frame each; the engine keeps them for the runs below, the most workers first so that none starts cold
-        most = max(cfg["workers"])
-        on_ray(most, base / "ray-warm-up", most)
-        start_up = time.perf_counter() - started
-        for workers in sorted(cfg["workers"], reverse=True):
-            out = base / f"ray-{workers}"
-            report = on_ray(workers, out, frames)
-            wall = report.wall_seconds - report.ray_start_seconds
-            units = report.units
-            overhead = [u.seconds - (u.stop - u.start) * per_frame for u in units]
-            rows.append({
-                "case": "local Ray", "threads": 1 if not device.startswith("cuda") else "all", "workers": workers,
-                "frames": report.frames_rendered, "units": report.units_run, "wall_s": wall,
-                "fps": report.frames_rendered / wall, "ray_start_s": start_up, "actors_s": report.ray_start_seconds,
-                "unit_ms": 1e3 * statistics.mean(u.seconds for u in units),
-                "frame_in_process_ms": 1e3 * per_frame,
-                "overhead_ms": 1e3 * statistics.mean(overhead), "overhead_max_ms": 1e3 * max(overhead),
-                "engine_overhead_ms": 1e3 * statistics.mean(u.overhead_seconds for u in units),
-                "setup_ms": 1e3 * max(u.setup_seconds for u in units),
-                "retried": report.units_retried, "files": report.files_written,
-                "same_files": _pngs(out) == reference, "driver_ms": 1e3 * driver_seconds(out)})
-            case_done(f"local Ray, {workers} worker(s)")
+        try:
+            # start-up: the cluster, then the most workers started and warmed (Python, Warp, kernels loaded) on a
+            # frame each; the engine keeps them for the runs below, the most workers first so that none starts cold
+            most = max(cfg["workers"])
+            on_ray(most, base / "ray-warm-up", most)
+            start_up = time.perf_counter() - started
+            for workers in sorted(cfg["workers"], reverse=True):
+                out = base / f"ray-{workers}"
+                report = on_ray(workers, out, frames)
+                wall = report.wall_seconds - report.ray_start_seconds
+                units = report.units
+                overhead = [u.seconds - (u.stop - u.start) * per_frame for u in units]
+                rows.append({
+                    "case": "local Ray", "threads": 1 if not device.startswith("cuda") else "all", "workers": workers,
+                    "frames": report.frames_rendered, "units": report.units_run, "wall_s": wall,
+                    "fps": report.frames_rendered / wall, "ray_start_s": start_up, "actors_s": report.ray_start_seconds,
+                    "unit_ms": 1e3 * statistics.mean(u.seconds for u in units),
+                    "frame_in_process_ms": 1e3 * per_frame,
+                    "overhead_ms": 1e3 * statistics.mean(overhead), "overhead_max_ms": 1e3 * max(overhead),
+                    "engine_overhead_ms": 1e3 * statistics.mean(u.overhead_seconds for u in units),
+                    "setup_ms": 1e3 * max(u.setup_seconds for u in units),
+                    "retried": report.units_retried, "files": report.files_written,
+                    "same_files": _pngs(out) == reference, "driver_ms": 1e3 * driver_seconds(out)})
+                case_done(f"local Ray, {workers} worker(s)")
+        finally:
+            release_workers(ray)  # kept warm between the runs above only
         if not was_up:
             ray.shutdown()
     rows.sort(key=lambda r: (r["case"] == "local Ray", r["workers"] or 0))

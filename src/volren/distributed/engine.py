@@ -306,6 +306,13 @@ def _actor_options(cuda: bool, gpus_per_worker: float) -> dict[str, Any]:
     return {"num_cpus": 0, "num_gpus": gpus_per_worker} if cuda else {"num_cpus": 1, "num_gpus": 0}
 
 
+def release_workers(ray: Any) -> None:
+    """Stop the idle workers that ``keep_workers`` kept: they hold their share of the cluster meanwhile."""
+    for actor, _, _ in _POOL:
+        ray.kill(actor, no_restart=True)
+    _POOL.clear()
+
+
 def run_jobs(jobs: Sequence[Job], *, workers: int | None, address: str | None, flag: str,
              gpus_per_worker: float = 1.0, unit_frames: int | None = None,
              on_dispatch: Callable[[Unit, int], None] | None = None, keep_workers: bool = False) -> BatchReport:
