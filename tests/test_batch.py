@@ -349,3 +349,17 @@ def test_the_manifest_is_rewritten_at_most_once_a_second_and_at_the_end(in_threa
     run_jobs([job(out)], workers=2, address=None, flag="--workers")
     assert writes.count(engine.MANIFEST) == 2
     assert len(json.loads((out / engine.MANIFEST).read_text())["units"]) == 4
+
+
+def test_a_unit_is_committed_once(tmp_path):
+    """A second result for a unit already complete (a retry whose first attempt finished after all) writes nothing:
+    the files and the manifest keep the first."""
+    out = tmp_path / "out"
+    state = engine.plan_job(0, job(out), 2, None)
+    state.open_output()
+    unit = state.units[0]
+    result = {"files": {"frame0000_view0.png": b"first"}, "scene": "smoke", "stats": []}
+    report = engine.UnitReport(0, unit.key, unit.start, unit.stop, unit.warmup, "w", 1, 0.1, 0.0, 0.0, 0.1)
+    assert state.commit(unit, result, report) == 1
+    assert state.commit(unit, {**result, "files": {"frame0000_view0.png": b"second"}}, report) == 0
+    assert (out / "frame0000_view0.png").read_bytes() == b"first"
