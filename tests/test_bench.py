@@ -333,3 +333,47 @@ def test_load_suite_omezarr_reads_the_level_zarr_reads(tmp_path, monkeypatch):
     coarse = load.zarr_open(path)
     assert coarse.shape == (25, 25, 25)
     np.testing.assert_array_equal(load.volren_open(path), coarse)
+
+
+class CountingRenderer:
+    """A renderer stand-in for `measure`: counts its frames."""
+
+    name = "counting"
+    config = None
+
+    def __init__(self) -> None:
+        self.frames = 0
+
+    def render(self, scene, views, frame=0):
+        from types import SimpleNamespace
+
+        self.frames += 1
+        return SimpleNamespace(stats=SimpleNamespace(times_ms={"march": 1.0}, counters={}))
+
+
+def test_repeats_cut_the_timed_frames_of_measure_and_are_recorded(tmp_path):
+    """``bench --repeats N``: every `measure` of the run times N frames (after its warm-up) instead of the suite's
+    own, the JSON's settings say so and the run's wall time is recorded; a suite not timed by `measure` refuses the
+    flag before any work, and so does a count below 1."""
+    from volren.bench import Suite, measure
+    from volren.camera import Camera
+    from volren.errors import VolrenError
+
+    renderer = CountingRenderer()
+
+    def run(quick, device):
+        measure(renderer, None, [Camera(width=8, height=8)], 5)
+        return {"settings": {"repeats": 5}, "rows": [{"frames": renderer.frames}], "columns": [("frames", "n", "d")]}
+
+    json_path, _, _ = run_suite("toy", quick=True, device="cpu", out=tmp_path, suite=Suite("toy", "", run, True),
+                                repeats=2)
+    doc = json.loads(json_path.read_text())
+    assert doc["rows"] == [{"frames": 3}]  # warm-up + 2, not + 5
+    assert doc["settings"]["repeats"] == 2 and doc["settings"]["repeats_cut_from_suite"]
+    assert doc["elapsed_s"] >= 0
+    run_suite("toy", quick=True, device="cpu", out=tmp_path, suite=Suite("toy", "", run, True))
+    assert renderer.frames == 3 + 6
+    with pytest.raises(VolrenError, match="--repeats: bench gi"):
+        run_suite("gi", quick=True, device="cpu", out=tmp_path, repeats=1)
+    with pytest.raises(VolrenError, match="at least 1"):
+        run_suite("toy", quick=True, device="cpu", out=tmp_path, suite=Suite("toy", "", run, True), repeats=0)

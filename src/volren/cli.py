@@ -480,6 +480,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", type=Path, default=None,
                    help="folder for the JSON and Markdown (default out/bench; --out docs/bench updates the committed "
                         "tables)")
+    b.add_argument("--repeats", type=int, help="timed frames per case instead of the suite's own (at least 1; the "
+                   "frame-timed suites: a full-size run on a CPU cuts repeats, not sizes) (default: the suite's)")
     b.add_argument("--shards", help="bench serve: COUNTS, comma-separated (e.g. 1,2): the sharded server on a local "
                    "Ray with each count of shards, against the loop in process (default: no shards)")
     add_device(b)
@@ -1212,7 +1214,7 @@ def run_bench(args: argparse.Namespace) -> int:
         except ValueError:
             raise CliError(f"--shards must be comma-separated shard counts like 1,2, got {args.shards}") from None
     json_path, md_path, table = run_suite(suite.name if suite else args.suite, quick=args.quick, device=args.device,
-                                          out=args.out, suite=suite)
+                                          out=args.out, suite=suite, repeats=args.repeats)
     print(table)
     print(f"wrote {json_path} and {md_path}")
     return 0

@@ -7,8 +7,10 @@ import json
 import os
 import platform
 import statistics
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -35,6 +37,8 @@ class Suite:
     run: Callable[[bool, str], dict[str, Any]]
     """(quick, device) -> {"settings": ..., "rows": [dict, ...], "columns": [(key, header, format), ...]}, plus
     optionally "summary": (rows, columns) for a second table (ratios against a paper's goals)"""
+    repeats: bool = False
+    """its frames are timed by `measure` (so ``--repeats`` can cut their count)"""
 
 
 def all_suites() -> dict[str, Suite]:
@@ -58,6 +62,10 @@ def all_suites() -> dict[str, Suite]:
                                 BATCH_SUITE)}
 
 
+REPEATS: ContextVar[int | None] = ContextVar("bench_repeats", default=None)
+"""timed frames per case for every `measure` of a run (``volren bench --repeats``), None: each suite's own: a full
+size run on a CPU cuts repeats, not sizes"""
+
 NOT_PASSES = ("upload", "readback", "fog_bake")
 """Times that are not the method's per-frame work (one-off upload, copying images to the host)."""
 
@@ -68,6 +76,7 @@ def measure(renderer: Renderer, scene: Scene, views: list[Camera], repeats: int)
     disturbed run, the one ratios are taken from), the last frame's counters, and the last frame itself. Every pass
     runs in every frame, as in the papers' tables (whose scenes move): a light-map renderer recomputes its map though
     the scene stands still here (no light-map cache)."""
+    repeats = REPEATS.get() or repeats
     if isinstance(renderer.config, LightMapMarchConfig):
         renderer.config = replace(renderer.config, reuse_light_map=False)
     renderer.render(scene, views)
@@ -124,26 +133,43 @@ def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, str
 
 
 def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None,
-              suite: Suite | None = None) -> tuple[Path, Path, str]:
+              suite: Suite | None = None, repeats: int | None = None) -> tuple[Path, Path, str]:
     """Run suite ``name`` and write ``<name>-<cpu|cuda>-<quick|full>.{json,md}`` into ``out`` (default
     :data:`DEFAULT_OUT`); each file is written beside its name and renamed over it, so a failure leaves the old one.
-    ``suite``: run that one under ``name`` (a suite with options bound: ``bench serve --shards``)."""
+    ``suite``: run that one under ``name`` (a suite with options bound: ``bench serve --shards``). ``repeats``: timed
+    frames per case instead of the suite's own (suites timed by `measure` only; recorded in the JSON's settings)."""
     out = DEFAULT_OUT if out is None else out
     suites = all_suites() if suite is None else {name: suite}
     if name not in suites:
         raise VolrenError(f"unknown bench suite '{name}': choose from {', '.join(suites)}")
+    if repeats is not None:
+        takes = [n for n, s in all_suites().items() if s.repeats]
+        if not suites[name].repeats:
+            raise VolrenError(f"--repeats: bench {name} times its work its own way; it applies to "
+                              f"{', '.join(takes)}")
+        if repeats < 1:
+            raise VolrenError(f"--repeats must be at least 1, got {repeats}")
     device = resolve_device(device)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise VolrenError(f"cannot create '{out}': {exc.strerror}") from exc
-    with cases(f"bench {name}"):  # a line per measured case on stderr: a suite takes minutes
-        result = suites[name].run(quick, device)
+    start = time.perf_counter()
+    token = REPEATS.set(repeats)
+    try:
+        with cases(f"bench {name}"):  # a line per measured case on stderr: a suite takes minutes
+            result = suites[name].run(quick, device)
+    finally:
+        REPEATS.reset(token)
+    elapsed = time.perf_counter() - start
+    if repeats is not None:
+        result["settings"] = {**result.get("settings", {}), "repeats": repeats, "repeats_cut_from_suite": True}
     table = markdown_table(result["rows"], result["columns"])
     summary_rows, summary_columns = result.pop("summary", ([], []))
     if summary_rows:
         table += "\n\n" + markdown_table(summary_rows, summary_columns)
-    doc = {"suite": name, "quick": quick, "machine": machine_info(device), **result, "summary": summary_rows}
+    doc = {"suite": name, "quick": quick, "machine": machine_info(device), "elapsed_s": round(elapsed, 1), **result,
+           "summary": summary_rows}
     tag = f"{name}-{'cpu' if device == 'cpu' else 'cuda'}-{'quick' if quick else 'full'}"
     json_path, md_path = out / f"{tag}.json", out / f"{tag}.md"
     m = doc["machine"]
@@ -154,7 +180,9 @@ def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None,
         table += f"\n\n![{file}]({tag}-{file})"
     _write_replace(json_path, json.dumps(doc, indent=2, default=str) + "\n")
     _write_replace(md_path, f"### {name} ({'quick' if quick else 'full'}) on {m['device_name']} ({m['cpu']}, "
-                            f"{m['cpu_threads_used']} CPU threads), warp {m['warp']}, {m['date']}\n\n{table}\n")
+                            f"{m['cpu_threads_used']} CPU threads), warp {m['warp']}, {m['date']}, "
+                            f"{elapsed / 60:.1f} min"
+                            f"{f', {repeats} timed frame(s) per case' if repeats else ''}\n\n{table}\n")
     return json_path, md_path, table
 
 

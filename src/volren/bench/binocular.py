@@ -290,4 +290,4 @@ def run(quick: bool, device: str) -> dict[str, Any]:
 
 
 SUITE = Suite("binocular", "DSSRM, CMSRM and CACRM (with ablations) on a stereo camera path: quality against the "
-              "reference and time per stereo frame (paper 000 Fig. 7, Table 1)", run)
+              "reference and time per stereo frame (paper 000 Fig. 7, Table 1)", run, repeats=True)

@@ -60,4 +60,5 @@ def run(quick: bool, device: str) -> dict[str, Any]:
     return {"settings": settings, "rows": rows, "columns": columns}
 
 
-SUITE = Suite("dssrm", "DSSRM stereo frame time at several sizes and V:L (paper 000 Table 1 columns)", run)
+SUITE = Suite("dssrm", "DSSRM stereo frame time at several sizes and V:L (paper 000 Table 1 columns)", run,
+              repeats=True)

@@ -72,4 +72,4 @@ def run(quick: bool, device: str) -> dict[str, Any]:
 
 
 SUITE = Suite("integrated", "the whole pipeline at 4, 16, 36 instances: DSSRM + strict ReSTIR + per-pixel k-buffer "
-              "against CACRM + SReSIR + tiled OIT, time per pass (paper 000 Table 4)", run)
+              "against CACRM + SReSIR + tiled OIT, time per pass (paper 000 Table 4)", run, repeats=True)

@@ -206,4 +206,5 @@ def run(quick: bool, device: str) -> dict[str, Any]:
 
 
 SUITE = Suite("oit", "multi-volume OIT: per-pixel k-buffer sorting, per-pixel ray tracing and the tiled k-buffer "
-              "at 4, 16, 36 instances, time, counters and PSNR against the reference (paper 000 Table 3)", run)
+              "at 4, 16, 36 instances, time, counters and PSNR against the reference (paper 000 Table 3)", run,
+              repeats=True)

@@ -95,4 +95,4 @@ def run(quick: bool, device: str) -> dict[str, Any]:
 
 
 SUITE = Suite("resolution", "DSSRM vs CMSRM over viewport sizes, with PSNR against the reference (paper 001 "
-              "Table 1)", run)
+              "Table 1)", run, repeats=True)

@@ -140,4 +140,4 @@ def run(quick: bool, device: str) -> dict[str, Any]:
 
 
 SUITE = Suite("viewers", "froxel fog for 1-16 viewers: per-viewer reference against the shared shadow grid, per "
-              "stage, shadow rays, memory, FLIP (paper 003 Tables 1-3)", run)
+              "stage, shadow rays, memory, FLIP (paper 003 Tables 1-3)", run, repeats=True)

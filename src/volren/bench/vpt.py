@@ -209,4 +209,4 @@ def run(quick: bool, device: str) -> dict[str, Any]:
 
 
 SUITE = Suite("vpt", "volumetric path tracing: time and paths/s against spp, macrocell octree vs global majorant, "
-              "coexistence vs Exposure Render variance (paper 002 Fig. 3, 9)", run)
+              "coexistence vs Exposure Render variance (paper 002 Fig. 3, 9)", run, repeats=True)
