@@ -61,17 +61,18 @@ def test_one_launch_for_every_volume_matches_each_volume_alone(multi) -> None:
 
 
 @pytest.mark.parametrize("vsa", [False, True], ids=["uniform", "vsa"])
-def test_cacrm_coupled_march_skipping_is_bit_identical_with_exact_counters(multi, vsa: bool) -> None:
+def test_cacrm_coupled_march_skipping_keeps_the_image_with_exact_counters(multi, vsa: bool) -> None:
     """CACRM's coupled march (both eyes per texel, shared cells) skips empty cells per eye: the same stereo images
     with skipping on and off, uniform or VSA steps (a skipped step reads the 0 a fetch would read, so VSA's proposals
-    are unchanged), and the steps fetched plus skipped are the fetches without skipping."""
+    are unchanged; VSA's runs of empty steps are jumped in closed form, `ramp_jump`, which moves the lattice by float
+    rounding: images within 1e-6 there), and the steps fetched plus skipped are the fetches without skipping."""
     views = make_views(Camera(position=(0.3, 0.5, 2.2), width=64, height=40), "stereo")
     # hybrid off: every pixel through the cube map (hybrid marches some pixels directly, DSSRM's march)
     config = CACRMConfig(samples=160, light_samples=16, light_grid=16, vsa=vsa, interleave=False, hybrid=False)
     on = CACRM(config, DEVICE).render(multi, views)
     off = CACRM(dataclasses.replace(config, skip_empty=False), DEVICE).render(multi, views)
     for a, b in zip(on.images, off.images, strict=True):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6 if vsa else 0)
     c_on, c_off = on.stats.counters, off.stats.counters
     assert c_off["skipped_steps"] == 0 and c_off["shared_samples"] > 0  # the coupled kernel ran
     assert c_on["density_samples"] + c_on["skipped_steps"] == c_off["density_samples"]

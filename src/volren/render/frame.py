@@ -17,7 +17,7 @@ from volren.device import counter_rows_for, synchronize
 
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
             "shadow_rays", "shadow_voxels", "box_tests", "tile_box_tests", "bvh_queries", "ao_bvh_queries",
-            "joint_rays", "skipped_steps", "light_skipped")
+            "joint_rays", "skipped_steps", "light_skipped", "jumped_steps")
 """Work counters gathered by the kernels (wp.atomic_add into one int64 array, indexed by position here):
 density_samples: trilinear density fetches on view rays; light_samples: density fetches on rays towards lights
 (light-map pass or the reference's per-sample shadow rays); lightmap_lookups: light-map fetches while shading;
@@ -34,10 +34,11 @@ Warp's query does not report the nodes it visits); ao_bvh_queries: the surfaces'
 (`volren.render.compositing.surface_light`); joint_rays: pixel rays that marched overlapping boxes jointly;
 skipped_steps: view-ray steps of the light-map march left unsampled by empty-space skipping (with it off they would
 be density_samples); light_skipped: steps of the light-map pass's rays towards lights left unsampled by empty-space
-skipping (with it off they would be light_samples)."""
+skipping (with it off they would be light_samples); jumped_steps: those of the skipped_steps that CACRM's idle runs
+took in closed form under VSA (`volren.render.marching.cacrm.ramp_jump`) instead of one by one."""
 (DENSITY_SAMPLES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, INTERLEAVED_SAMPLES, SHADOW_RAYS,
  SHADOW_VOXELS, BOX_TESTS, TILE_BOX_TESTS, BVH_QUERIES, AO_BVH_QUERIES, JOINT_RAYS, SKIPPED_STEPS,
- LIGHT_SKIPPED) = range(len(COUNTERS))
+ LIGHT_SKIPPED, JUMPED_STEPS) = range(len(COUNTERS))
 
 
 @dataclass

@@ -61,14 +61,31 @@ from volren.kernels.common import (
     skip_lookup,
 )
 from volren.render.compositing.mesh_layers import next_layer_t, segment_advance
-from volren.render.frame import DENSITY_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, SKIPPED_STEPS, PassClock
+from volren.render.frame import (
+    DENSITY_SAMPLES,
+    JUMPED_STEPS,
+    LIGHTMAP_LOOKUPS,
+    RAYS,
+    SHARED_SAMPLES,
+    SKIPPED_STEPS,
+    PassClock,
+)
 from volren.render.marching.cmsrm import CMSRM, CMSRMConfig, TileGroup
 from volren.render.marching.coupled import CoupledJob, job_constants, pair_eye_ray, pair_finish, pair_mesh, pair_target
 from volren.render.marching.cubemap import CubeLOD, CubeTarget, texel_index, texel_point, tile_texel
 from volren.render.marching.interleave import interleave_tiles, quad_march_kernel
 from volren.render.marching.march import lit_step, mode_step
 from volren.render.marching.modes import MODE_DVR, MODE_MIP, skippable
-from volren.render.marching.vsa import END, VSA_FIT, VSAParams, vsa_product, vsa_proposal, vsa_ramp
+from volren.render.marching.vsa import (
+    END,
+    VSA_FIT,
+    VSAParams,
+    lambda_cap,
+    ramp_slope,
+    vsa_proposal,
+    vsa_ramp,
+    zero_product,
+)
 from volren.upload import DeviceScene, camera_struct
 
 mat22 = wp.types.matrix(shape=(2, 2), dtype=wp.float32)
@@ -117,19 +134,151 @@ def lattice_step(seg: wp.vec4, pos: float, m: float, dt: float) -> wp.vec2:
     return wp.vec2(0.5 * (lo + hi), hi - lo)
 
 
+JUMP_MIN = wp.constant(6.0)
+"""[steps] `ramp_jump` runs its closed form when at least this many steps remain to the nearest event (fewer: the
+loop walks them; the closed form costs about as much as a few steps)"""
+JUMP_MARGIN = wp.constant(2)
+"""[steps] `ramp_jump` stops this many steps short of the event its closed form predicts: the loop takes the last
+steps and decides the event by its own float32 test"""
+JUMP_BITS = 10
+"""`ramp_jump` finds the event step by bisection over powers lambda_1^(2^i), i < JUMP_BITS (runs of up to
+2^JUMP_BITS - 1 steps; a longer run jumps again)"""
+vec_bits = wp.types.vector(length=JUMP_BITS, dtype=wp.float64)
+JUMP_SPAN = wp.constant(float(2 ** (JUMP_BITS - 1)))
+
+
 @wp.func
-def idle_run(pos: float, m: float, seg: mat24, live: wp.vec2i, n: wp.vec2i, trans: wp.vec2, check: wp.vec2,
-             next_t: wp.vec2, product: wp.vec2, vp: VSAParams, dt: float, min_t: float):
+def ramp_jump(pos: float, m: float, seg: mat24, slope: wp.vec2, live: wp.vec2i, n: wp.vec2i, trans: wp.vec2,
+              check: wp.vec2, next_t: wp.vec2, product: wp.vec2, vp: VSAParams, dt: float, min_t: float):
+    """`idle_run`'s steps from (pos, m) in closed form, up to JUMP_MARGIN steps before the first event (a live eye's
+    skip-cell lookup or mesh layer, an eye entering its segment, the ray's end): (pos, m, steps k, each live eye's
+    last step midpoint), k = 0 where the loop should walk.
+
+    In an idle run every live eye proposes max(k_a t / t_max, P, 1) over a constant product P (`vsa_ramp`); the pair
+    steps by the largest, C = max(1, P_e) while the ramp stays below C and then the ramp of the eye with the longest
+    ray (k_a t / t_max = k_a (1 - s dt / t_max) at a step midpoint s base steps before the texel: largest for the
+    largest t_max). Constant steps are pos - k C. Ramp steps are a linear recurrence: with X the step's start and M
+    its length in base steps from that eye, X' = X + M and M' = kappa (X + M / 2), kappa = k_a dt / t_max, so (X, M)
+    is a sum of two geometric sequences (the eigenvalues of [[1, 1], [kappa, kappa / 2]]: lambda_1 > 1 and
+    -1 < lambda_2 < 0); the event's step is found by bisection over powers of lambda_1 (no logarithms: libm's
+    float64 log and pow made a jump cost more than the steps it saved). In float64; the loop iterates in float32, so
+    a jump moves the lattice by float rounding only (`tests/test_cacrm_speed.py`)."""
+    c = float(1.0)
+    far = float(0.0)
+    stop = float(-INF)
+    floor_ = float(0.0)
+    clipped = int(0)
+    ramp = float(0.0)
+    last = wp.vec2(0.0)
+    for e in range(2):
+        if live[e] != 0:
+            c = wp.max(c, product[e])
+            far = wp.max(far, seg[e, 1])
+            ramp = wp.max(ramp, slope[e] * (seg[e, 1] - (pos - 0.5 * m) * dt))
+            # a live eye stops at the step whose midpoint t reaches its next lookup or mesh layer: s <= stop
+            stop = wp.max(stop, (seg[e, 1] - wp.min(check[e], next_t[e])) / dt)
+            clipped = clipped + int(pos * dt > seg[e, 1] - seg[e, 0])
+        elif trans[e] >= min_t and n[e] > 0:
+            floor_ = wp.max(floor_, float(n[e]))
+    # unit steps with the ramp at most 1 are `idle_run`'s exact jump
+    if clipped != 0 or (m == 1.0 and c <= 1.0 and ramp <= 1.0):
+        return pos, m, 0.0, last
+    if wp.min(pos - 0.5 * m - stop, pos - floor_) < JUMP_MIN * wp.max(wp.max(m, c), ramp):
+        return pos, m, 0.0, last
+    p = wp.float64(pos)
+    mm = wp.float64(m)
+    cc = wp.float64(c)
+    ka = wp.float64(vp.k_a)
+    eye = wp.float64(far) / wp.float64(dt)
+    s_stop = wp.float64(stop)
+    s_floor = wp.float64(floor_)
+    one = wp.float64(1.0)
+    half = wp.float64(0.5)
+    margin = wp.float64(float(JUMP_MARGIN))
+    k = wp.float64(0.0)
+    mid = wp.float64(0.0)
+    if ka * (one - (p - half * mm) / eye) <= cc:
+        if mm != cc:
+            return pos, m, 0.0, last
+        # Constant steps of C: step j's midpoint is p - (j + 1/2) C. Events: the stop, the floor (p - (j + 1) C
+        # below it), the ramp passing C after step j (the steps up to it are still C).
+        j_evt = wp.min(wp.ceil((p - half * cc - s_stop) / cc), wp.floor((p - s_floor) / cc))
+        if ka > wp.float64(0.0):
+            j_evt = wp.min(j_evt, wp.floor((p - half * cc - eye * (one - cc / ka)) / cc) + one)
+        k = j_evt - margin
+        if k < one:
+            return pos, m, 0.0, last
+        mid = p - (k - half) * cc
+        pos = float(p - k * cc)
+    else:
+        x0 = eye - p
+        kappa = ka / eye
+        b = one + half * kappa
+        root = wp.sqrt(b * b + wp.float64(2.0) * kappa)
+        l1 = half * (b + root)
+        l2 = half * (b - root)
+        c1 = (mm + (one - l2) * x0) / (l1 - l2)
+        c2 = x0 - c1
+        # Step k's midpoint in X is c1 l1^k (1 + l1) / 2 + c2 l2^k (1 + l2) / 2 (|l2|^k: gone after a step); no
+        # event at step k while it is below eye - s_stop and X_(k+1) = c1 l1^(k+1) + ... <= eye - s_floor. The
+        # largest such k: bisection over l1^(2^i).
+        mid_stop = (eye - s_stop) / (half * c1 * (one + l1))
+        end_stop = (eye - s_floor) / (c1 * l1)
+        pw = vec_bits()
+        pw[0] = l1
+        for i in range(1, JUMP_BITS):
+            pw[i] = pw[i - 1] * pw[i - 1]
+        if one >= mid_stop or one > end_stop:
+            return pos, m, 0.0, last
+        cur = one
+        span = wp.float64(JUMP_SPAN)
+        for i in range(JUMP_BITS):
+            trial = cur * pw[JUMP_BITS - 1 - i]
+            if trial < mid_stop and trial <= end_stop:
+                cur = trial
+                k = k + span
+            span = half * span
+        # k: the last step without an event; jump k + 1 - margin steps (0 .. k - margin), ending at step k - margin
+        k = k + one - margin
+        if k < one:
+            return pos, m, 0.0, last
+        # the last jumped step, k - 1 (l1^(k-1) from l1^k_last / l1^margin, l2^(k-1) by multiplication: |l2| < 0.01,
+        # zero after a few)
+        a1 = cur
+        for _ in range(JUMP_MARGIN):
+            a1 = a1 / l1
+        a2 = one
+        steps = int(float(k)) - 1
+        for _ in range(wp.min(steps, 8)):
+            a2 = a2 * l2
+        if steps > 8:
+            a2 = wp.float64(0.0)
+        x_last = c1 * a1 + c2 * a2
+        m_last = c1 * (l1 - one) * a1 + c2 * (l2 - one) * a2
+        mid = eye - x_last - half * m_last
+        m = float(ka * (one - mid / eye))
+        pos = float(eye - x_last - m_last)
+    for e in range(2):
+        if live[e] != 0:
+            last[e] = float(wp.float64(seg[e, 1]) - mid * wp.float64(dt))
+    return pos, m, float(k), last
+
+
+@wp.func
+def idle_run(pos: float, m: float, seg: mat24, slope: wp.vec2, live: wp.vec2i, n: wp.vec2i, trans: wp.vec2,
+             check: wp.vec2, next_t: wp.vec2, product: wp.vec2, vp: VSAParams, dt: float, min_t: float):
     """The pair's steps from (pos, m) while they stay idle: each live eye's step midpoint before its next skip-cell
     lookup and mesh layer, an eye not yet in its segment still out. Returns (pos, m) of the first step that is not
-    idle (or pos <= END), the eye steps taken and each eye's last step midpoint (VSA's previous distance).
+    idle (or pos <= END), the eye steps taken, those of them `ramp_jump` took, and each eye's last step midpoint
+    (VSA's previous distance).
 
     Every live eye's samples here are 0 after a 0 (rho' = 0, T unchanged), so its proposal is `vsa_ramp` over the
     constant ``product`` (`vsa_product`): the same lattice and counts as the kernel's loop, by the same arithmetic,
     at a fraction of its cost. Runs of unit steps (uniform stepping, or VSA's ramp and product at most 1 up to the
     run's end) are jumped in one go: pos - k is exact, and a step midpoint grows as pos falls, so the last step
-    decides for all."""
+    decides for all. Runs of longer steps are jumped by `ramp_jump` (to float rounding)."""
     steps = float(0.0)
+    jumped = float(0.0)
     last = wp.vec2(0.0)
     if m == 1.0:
         k = wp.floor(pos)
@@ -143,33 +292,45 @@ def idle_run(pos: float, m: float, seg: mat24, live: wp.vec2i, n: wp.vec2i, tran
             if live[e] != 0:
                 end = lattice_step(seg[e], pos - k + 1.0, 1.0, dt)[0]
                 while k >= 1.0 and (end >= check[e] or end > next_t[e]
-                                    or (vp.enabled != 0 and vsa_ramp(vp, end, seg[e, 1], product[e]) > 1.0)):
+                                    or (vp.enabled != 0 and vsa_ramp(end, slope[e], product[e]) > 1.0)):
                     k = k - 1.0
                     end = lattice_step(seg[e], pos - k + 1.0, 1.0, dt)[0]
                 last[e] = end
         if k >= 1.0:
             steps = k * float(live[0] + live[1])
             pos = pos - k
+    tries = int(0)
     while pos > END:
+        # Runs of VSA steps longer than a few: `ramp_jump` (tried again two steps after a jump, where constant steps
+        # behind a medium turn into the ramp's).
+        if vp.enabled != 0 and tries % 3 == 0 and tries < 9:
+            pos, m, k, at = ramp_jump(pos, m, seg, slope, live, n, trans, check, next_t, product, vp, dt, min_t)
+            if k > 0.0:
+                steps += k * float(live[0] + live[1])
+                jumped += k * float(live[0] + live[1])
+                for e in range(2):
+                    if live[e] != 0:
+                        last[e] = at[e]
+        tries += 1
         step = wp.min(m, pos)
         t = wp.vec2(0.0)
         for e in range(2):
             if live[e] != 0:
                 t[e] = lattice_step(seg[e], pos, step, dt)[0]
                 if t[e] >= check[e] or t[e] > next_t[e]:
-                    return pos, m, steps, last
+                    return pos, m, steps, jumped, last
             elif trans[e] >= min_t and pos - step < float(n[e]):
-                return pos, m, steps, last
+                return pos, m, steps, jumped, last
         next_m = float(1.0)
         for e in range(2):
             if live[e] != 0:
                 steps += 1.0
                 last[e] = t[e]
                 if vp.enabled != 0:
-                    next_m = wp.max(next_m, vsa_ramp(vp, t[e], seg[e, 1], product[e]))
+                    next_m = wp.max(next_m, vsa_ramp(t[e], slope[e], product[e]))
         pos = pos - step
         m = next_m
-    return pos, m, steps, last
+    return pos, m, steps, jumped, last
 
 
 @wp.kernel
@@ -221,6 +382,9 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
     peak = wp.vec2(0.0)
     prev = wp.vec2(-1.0)
     prev_t = wp.vec2(0.0)
+    # VSA: each eye's ramp per unit distance (`ramp_slope`) and the (T, product) of its last zero sample
+    slope = wp.vec2(ramp_slope(vp, seg[0, 1]), ramp_slope(vp, seg[1, 1]))
+    zero = mat22(-1.0, 0.0, -1.0, 0.0)
     check = wp.vec2(first_skip_check(vol, medium.skip))
     empty = wp.vec2i(0)
     j = wp.vec2i(0)
@@ -228,6 +392,7 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
         acc[e] = wp.vec4(0.0, 0.0, 0.0, 1.0)
         snap[e] = acc[e]
     samples = int(0)
+    jumped = int(0)
     shared = int(0)
     skipped = int(0)
     shaded = int(0)
@@ -279,8 +444,8 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
                 # too, without a fetch (a coupled saving the eyes alone cannot make: the other eye's skip cell is
                 # not empty). Iso skips cells below V, where reading 0 decides the same; MIP skips cells below the
                 # eye's own max.
-                zero = empty[1]
-                cell[zero] = grid_cell(vol.res, grid_coords(vol.res, p[zero]))
+                blank = empty[1]
+                cell[blank] = grid_cell(vol.res, grid_coords(vol.res, p[blank]))
             same = both and share != 0 and cell[0] == cell[1]
             get = wp.vec2i(0)
             for e in range(2):
@@ -327,11 +492,17 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
         else:
             skipped += live[0] + live[1]
         # VSA (Eq. 4-6): each live eye proposes the next step after its sample; the pair takes the larger.
+        # A zero after a zero (rho' = 0) proposes the ramp over the product of a zero sample at the eye's T, kept
+        # in ``zero`` until T changes (`zero_product`): the same proposal as `vsa_proposal`'s, bit for bit.
         next_m = float(1.0)
         for e in range(2):
             if vp.enabled != 0 and live[e] != 0:
-                next_m = wp.max(next_m, vsa_proposal(vp, s[e, 0], seg[e, 1], rho[e], prev[e], prev_t[e], acc[e, 3],
-                                                     dt, absorb))
+                if rho[e] == 0.0 and prev[e] == 0.0:
+                    zero[e] = zero_product(vp, zero[e], acc[e, 3], absorb)
+                    next_m = wp.max(next_m, vsa_ramp(s[e, 0], slope[e], zero[e, 1]))
+                else:
+                    next_m = wp.max(next_m, vsa_proposal(vp, s[e, 0], slope[e], rho[e], prev[e], prev_t[e],
+                                                         acc[e, 3], dt, absorb))
                 prev[e] = rho[e]
                 prev_t[e] = s[e, 0]
         pos = pos - m
@@ -343,10 +514,12 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
             product = wp.vec2(1.0)
             for e in range(2):
                 if vp.enabled != 0 and live[e] != 0:
-                    product[e] = vsa_product(vp, 0.0, 0.0, acc[e, 3], absorb)
-            pos, m, ran, last = idle_run(pos, m, seg, live, n, wp.vec2(acc[0, 3], acc[1, 3]), check, next_t, product,
-                                         vp, dt, params.min_transmittance)
+                    zero[e] = zero_product(vp, zero[e], acc[e, 3], absorb)
+                    product[e] = zero[e, 1]
+            pos, m, ran, by_jumps, last = idle_run(pos, m, seg, slope, live, n, wp.vec2(acc[0, 3], acc[1, 3]), check,
+                                                   next_t, product, vp, dt, params.min_transmittance)
             skipped += int(ran)
+            jumped += int(by_jumps)
             for e in range(2):
                 if live[e] != 0 and vp.enabled != 0 and ran > 0.0:
                     prev_t[e] = last[e]
@@ -355,6 +528,7 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
     count(counters, DENSITY_SAMPLES, samples)
     count(counters, SHARED_SAMPLES, shared)
     count(counters, SKIPPED_STEPS, skipped)
+    count(counters, JUMPED_STEPS, jumped)
     count(counters, LIGHTMAP_LOOKUPS, shaded * medium.lights.shape[0])
     count(counters, RAYS, int(seg[0, 3] + seg[1, 3]))
 
@@ -386,6 +560,7 @@ class CACRM(CMSRM):
         vp.enabled = int(vsa)
         vp.k_a, vp.k_b, vp.f_lambda_max = (c.k_a, c.k_b, c.f_lambda_max) if vsa else (0.0, 1.0, 1.0)
         vp.w_lambda, vp.w_t, vp.w_a = (c.w_lambda, c.w_t, c.w_a) if vsa else (0.0, 0.0, 0.0)
+        vp.lambda_cap = lambda_cap(vp.f_lambda_max, vp.w_lambda)
         return vp
 
     def _plan_views(self, ds: DeviceScene, views: list[Camera]) -> list[list[dict]]:

@@ -54,7 +54,7 @@ from volren.render.frame import DENSITY_SAMPLES, INTERLEAVED_SAMPLES, LIGHTMAP_L
 from volren.render.marching.coupled import CoupledJob, job_constants, pair_eye_ray, pair_finish, pair_mesh, pair_target
 from volren.render.marching.cubemap import texel_index, texel_point, tile_texel
 from volren.render.marching.march import lit_step
-from volren.render.marching.vsa import END, vsa_proposal
+from volren.render.marching.vsa import END, ramp_slope, vsa_proposal
 
 LANES = 8
 """2 eyes x 2 x 2 texels"""
@@ -265,8 +265,8 @@ def quad_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64),
                 half[lane] = h
                 if vp.enabled != 0:
                     t = own_t[lane]
-                    quad_m[e] = wp.min(quad_m[e], vsa_proposal(vp, t, seg[lane, 1], own[lane], prev[lane], prev_t[lane],
-                                                               a[3], dt, absorb))
+                    quad_m[e] = wp.min(quad_m[e], vsa_proposal(vp, t, ramp_slope(vp, seg[lane, 1]), own[lane],
+                                                               prev[lane], prev_t[lane], a[3], dt, absorb))
                     prev[lane] = own[lane]
                     prev_t[lane] = t
         pos = pos - m
