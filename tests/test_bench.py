@@ -377,3 +377,28 @@ def test_repeats_cut_the_timed_frames_of_measure_and_are_recorded(tmp_path):
         run_suite("gi", quick=True, device="cpu", out=tmp_path, repeats=1)
     with pytest.raises(VolrenError, match="at least 1"):
         run_suite("toy", quick=True, device="cpu", out=tmp_path, suite=Suite("toy", "", run, True), repeats=0)
+
+
+def test_set_replaces_suite_settings_and_refuses_unknown_keys(tmp_path):
+    """``bench --set KEY=VALUE``: `sized` hands the suite its configuration with the entry replaced (recorded in the
+    JSON's settings); a key the suite does not have, or a suite that takes no settings, is refused with the flag
+    named, before the suite's work."""
+    from volren.bench import Suite, sized
+    from volren.cli import bench_overrides
+    from volren.errors import VolrenError
+
+    def run(quick, device):
+        cfg = sized({"frames": 12, "size": [96, 64]}, {"frames": 60, "size": [480, 270]}, quick)
+        return {"settings": cfg, "rows": [cfg], "columns": [("frames", "frames", "d")]}
+
+    toy = Suite("toy", "", run, settable=True)
+    json_path, md_path, _ = run_suite("toy", quick=False, device="cpu", out=tmp_path, suite=toy,
+                                      overrides=bench_overrides(["frames=6"]))
+    doc = json.loads(json_path.read_text())
+    assert doc["rows"] == [{"frames": 6, "size": [480, 270]}] and doc["settings"]["overridden"] == ["frames"]
+    assert "frames = 6" in md_path.read_text()
+    with pytest.raises(VolrenError, match="--set sizes: not a setting of this suite; it has frames, size"):
+        run_suite("toy", quick=True, device="cpu", out=tmp_path, suite=toy, overrides={"sizes": 1})
+    with pytest.raises(VolrenError, match="--set: bench dssrm has no settings"):
+        run_suite("dssrm", quick=True, device="cpu", out=tmp_path, overrides={"frames": 1})
+    assert bench_overrides(["sizes=[[8, 8]]", "scene=smoke"]) == {"sizes": [[8, 8]], "scene": "smoke"}

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import json
 import math
 import os
 import re
@@ -16,6 +17,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from volren.errors import VolrenError
 
@@ -482,6 +484,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "tables)")
     b.add_argument("--repeats", type=int, help="timed frames per case instead of the suite's own (at least 1; the "
                    "frame-timed suites: a full-size run on a CPU cuts repeats, not sizes) (default: the suite's)")
+    b.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                   help="replace an entry of the suite's configuration (repeatable; VALUE as JSON, e.g. frames=12: "
+                   "a full-size run on a CPU cuts a camera path's frames, not its sizes) (default: none)")
     b.add_argument("--shards", help="bench serve: COUNTS, comma-separated (e.g. 1,2): the sharded server on a local "
                    "Ray with each count of shards, against the loop in process (default: no shards)")
     add_device(b)
@@ -1196,6 +1201,20 @@ def run_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def bench_overrides(settings: list[str]) -> dict[str, Any]:
+    """``--set KEY=VALUE`` entries: VALUE read as JSON (numbers, lists), else as a string."""
+    out: dict[str, Any] = {}
+    for item in settings:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise CliError(f"--set takes KEY=VALUE, got '{item}'")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
 def run_bench(args: argparse.Namespace) -> int:
     from volren.bench import all_suites, run_suite
 
@@ -1214,7 +1233,8 @@ def run_bench(args: argparse.Namespace) -> int:
         except ValueError:
             raise CliError(f"--shards must be comma-separated shard counts like 1,2, got {args.shards}") from None
     json_path, md_path, table = run_suite(suite.name if suite else args.suite, quick=args.quick, device=args.device,
-                                          out=args.out, suite=suite, repeats=args.repeats)
+                                          out=args.out, suite=suite, repeats=args.repeats,
+                                          overrides=bench_overrides(args.settings))
     print(table)
     print(f"wrote {json_path} and {md_path}")
     return 0

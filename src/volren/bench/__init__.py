@@ -39,6 +39,8 @@ class Suite:
     optionally "summary": (rows, columns) for a second table (ratios against a paper's goals)"""
     repeats: bool = False
     """its frames are timed by `measure` (so ``--repeats`` can cut their count)"""
+    settable: bool = False
+    """it takes its sizes and counts through `sized` (so ``--set KEY=VALUE`` can change them)"""
 
 
 def all_suites() -> dict[str, Suite]:
@@ -65,6 +67,21 @@ def all_suites() -> dict[str, Suite]:
 REPEATS: ContextVar[int | None] = ContextVar("bench_repeats", default=None)
 """timed frames per case for every `measure` of a run (``volren bench --repeats``), None: each suite's own: a full
 size run on a CPU cuts repeats, not sizes"""
+
+OVERRIDES: ContextVar[dict[str, Any] | None] = ContextVar("bench_overrides", default=None)
+"""``volren bench --set KEY=VALUE``: entries of a suite's configuration replaced for a run (a full-size run on a CPU
+cuts the frames of a camera path, not the sizes)"""
+
+
+def sized(quick_cfg: dict[str, Any], full_cfg: dict[str, Any], quick: bool) -> dict[str, Any]:
+    """The suite configuration a run uses: ``quick_cfg`` or ``full_cfg`` with `OVERRIDES` applied; an override of a
+    key the configuration does not have is refused, naming the keys it has."""
+    cfg, overrides = dict(quick_cfg if quick else full_cfg), OVERRIDES.get() or {}
+    unknown = sorted(set(overrides) - set(cfg))
+    if unknown:
+        raise VolrenError(f"--set {unknown[0]}: not a setting of this suite; it has {', '.join(cfg)}")
+    return cfg | overrides
+
 
 NOT_PASSES = ("upload", "readback", "fog_bake")
 """Times that are not the method's per-frame work (one-off upload, copying images to the host)."""
@@ -133,11 +150,13 @@ def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, str
 
 
 def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None,
-              suite: Suite | None = None, repeats: int | None = None) -> tuple[Path, Path, str]:
+              suite: Suite | None = None, repeats: int | None = None,
+              overrides: dict[str, Any] | None = None) -> tuple[Path, Path, str]:
     """Run suite ``name`` and write ``<name>-<cpu|cuda>-<quick|full>.{json,md}`` into ``out`` (default
     :data:`DEFAULT_OUT`); each file is written beside its name and renamed over it, so a failure leaves the old one.
     ``suite``: run that one under ``name`` (a suite with options bound: ``bench serve --shards``). ``repeats``: timed
-    frames per case instead of the suite's own (suites timed by `measure` only; recorded in the JSON's settings)."""
+    frames per case instead of the suite's own (suites timed by `measure` only; recorded in the JSON's settings).
+    ``overrides``: configuration entries replaced (`sized`; recorded as the settings' "overridden" keys)."""
     out = DEFAULT_OUT if out is None else out
     suites = all_suites() if suite is None else {name: suite}
     if name not in suites:
@@ -149,21 +168,27 @@ def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None,
                               f"{', '.join(takes)}")
         if repeats < 1:
             raise VolrenError(f"--repeats must be at least 1, got {repeats}")
+    if overrides and not suites[name].settable:
+        takes = [n for n, s in all_suites().items() if s.settable]
+        raise VolrenError(f"--set: bench {name} has no settings to change; it applies to {', '.join(takes)}")
     device = resolve_device(device)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise VolrenError(f"cannot create '{out}': {exc.strerror}") from exc
     start = time.perf_counter()
-    token = REPEATS.set(repeats)
+    token, changed = REPEATS.set(repeats), OVERRIDES.set(dict(overrides or {}))
     try:
         with cases(f"bench {name}"):  # a line per measured case on stderr: a suite takes minutes
             result = suites[name].run(quick, device)
     finally:
         REPEATS.reset(token)
+        OVERRIDES.reset(changed)
     elapsed = time.perf_counter() - start
     if repeats is not None:
         result["settings"] = {**result.get("settings", {}), "repeats": repeats, "repeats_cut_from_suite": True}
+    if overrides:
+        result["settings"] = {**result.get("settings", {}), "overridden": sorted(overrides)}
     table = markdown_table(result["rows"], result["columns"])
     summary_rows, summary_columns = result.pop("summary", ([], []))
     if summary_rows:
@@ -182,7 +207,8 @@ def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None,
     _write_replace(md_path, f"### {name} ({'quick' if quick else 'full'}) on {m['device_name']} ({m['cpu']}, "
                             f"{m['cpu_threads_used']} CPU threads), warp {m['warp']}, {m['date']}, "
                             f"{elapsed / 60:.1f} min"
-                            f"{f', {repeats} timed frame(s) per case' if repeats else ''}\n\n{table}\n")
+                            f"{f', {repeats} timed frame(s) per case' if repeats else ''}"
+                            f"{''.join(f', {k} = {v}' for k, v in (overrides or {}).items())}\n\n{table}\n")
     return json_path, md_path, table
 
 

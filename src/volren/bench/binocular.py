@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from volren.bench import Suite, measure
+from volren.bench import Suite, measure, sized
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr, ssim
@@ -286,8 +286,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
 
 
 def run(quick: bool, device: str) -> dict[str, Any]:
-    return run_config(QUICK if quick else FULL, device)
+    return run_config(sized(QUICK, FULL, quick), device)
 
 
 SUITE = Suite("binocular", "DSSRM, CMSRM and CACRM (with ablations) on a stereo camera path: quality against the "
-              "reference and time per stereo frame (paper 000 Fig. 7, Table 1)", run, repeats=True)
+              "reference and time per stereo frame (paper 000 Fig. 7, Table 1)", run, repeats=True, settable=True)

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from volren.bench import Suite
+from volren.bench import Suite, sized
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.data.environments import sky_environment
@@ -155,7 +155,7 @@ def resampling_rows(name: str, scene: Scene, truth: dict[str, Any], cfg: dict[st
 
 
 def run(quick: bool, device: str) -> dict[str, Any]:
-    return run_config(QUICK if quick else FULL, device)
+    return run_config(sized(QUICK, FULL, quick), device)
 
 
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
@@ -215,4 +215,4 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
 
 
 SUITE = Suite("gi", "ambient GI: M, PRT, strict ReSTIR and ours against brute force (paper 000 Fig. 10-11, "
-              "Table 2)", run)
+              "Table 2)", run, settable=True)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from volren.bench import Suite, measure
+from volren.bench import Suite, measure, sized
 from volren.bench.oit import stereo
 from volren.data import builtin_scene
 from volren.data.environments import sky_environment
@@ -68,8 +68,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
 
 
 def run(quick: bool, device: str) -> dict[str, Any]:
-    return run_config(QUICK if quick else FULL, device)
+    return run_config(sized(QUICK, FULL, quick), device)
 
 
 SUITE = Suite("integrated", "the whole pipeline at 4, 16, 36 instances: DSSRM + strict ReSTIR + per-pixel k-buffer "
-              "against CACRM + SReSIR + tiled OIT, time per pass (paper 000 Table 4)", run, repeats=True)
+              "against CACRM + SReSIR + tiled OIT, time per pass (paper 000 Table 4)", run, repeats=True, settable=True)

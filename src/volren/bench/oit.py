@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from volren.bench import Suite, measure
+from volren.bench import Suite, measure, sized
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.render import DSSRM, DSSRMConfig, Reference, ReferenceConfig
@@ -202,9 +202,9 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
 
 
 def run(quick: bool, device: str) -> dict[str, Any]:
-    return run_config(QUICK if quick else FULL, device)
+    return run_config(sized(QUICK, FULL, quick), device)
 
 
 SUITE = Suite("oit", "multi-volume OIT: per-pixel k-buffer sorting, per-pixel ray tracing and the tiled k-buffer "
               "at 4, 16, 36 instances, time, counters and PSNR against the reference (paper 000 Table 3)", run,
-              repeats=True)
+              repeats=True, settable=True)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from volren.bench import Suite, measure
+from volren.bench import Suite, measure, sized
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr, ssim
@@ -91,8 +91,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
 
 
 def run(quick: bool, device: str) -> dict[str, Any]:
-    return run_config(QUICK if quick else FULL, device)
+    return run_config(sized(QUICK, FULL, quick), device)
 
 
 SUITE = Suite("resolution", "DSSRM vs CMSRM over viewport sizes, with PSNR against the reference (paper 001 "
-              "Table 1)", run, repeats=True)
+              "Table 1)", run, repeats=True, settable=True)

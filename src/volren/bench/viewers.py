@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from volren.bench import Suite, measure
+from volren.bench import Suite, measure, sized
 from volren.camera import Camera
 from volren.data.fog_scenes import fog_scene, fog_scene_camera, fog_scene_walk_area
 from volren.metrics import flip, psnr
@@ -136,8 +136,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
 
 
 def run(quick: bool, device: str) -> dict[str, Any]:
-    return run_config(QUICK if quick else FULL, device)
+    return run_config(sized(QUICK, FULL, quick), device)
 
 
 SUITE = Suite("viewers", "froxel fog for 1-16 viewers: per-viewer reference against the shared shadow grid, per "
-              "stage, shadow rays, memory, FLIP (paper 003 Tables 1-3)", run, repeats=True)
+              "stage, shadow rays, memory, FLIP (paper 003 Tables 1-3)", run, repeats=True, settable=True)

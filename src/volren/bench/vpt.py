@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from volren.bench import Suite, measure
+from volren.bench import Suite, measure, sized
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.render import VPT, VPTConfig
@@ -205,8 +205,8 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
 
 
 def run(quick: bool, device: str) -> dict[str, Any]:
-    return run_config(QUICK if quick else FULL, device)
+    return run_config(sized(QUICK, FULL, quick), device)
 
 
 SUITE = Suite("vpt", "volumetric path tracing: time and paths/s against spp, macrocell octree vs global majorant, "
-              "coexistence vs Exposure Render variance (paper 002 Fig. 3, 9)", run, repeats=True)
+              "coexistence vs Exposure Render variance (paper 002 Fig. 3, 9)", run, repeats=True, settable=True)
