@@ -373,8 +373,11 @@ def test_repeats_cut_the_timed_frames_of_measure_and_are_recorded(tmp_path):
     assert doc["elapsed_s"] >= 0
     run_suite("toy", quick=True, device="cpu", out=tmp_path, suite=Suite("toy", "", run, True))
     assert renderer.frames == 3 + 6
-    with pytest.raises(VolrenError, match="--repeats: bench gi"):
-        run_suite("gi", quick=True, device="cpu", out=tmp_path, repeats=1)
+    def untimed(quick, device):
+        raise AssertionError("a suite that refuses --repeats ran")
+
+    with pytest.raises(VolrenError, match="--repeats: bench untimed times its work its own way"):
+        run_suite("untimed", quick=True, device="cpu", out=tmp_path, suite=Suite("untimed", "", untimed), repeats=1)
     with pytest.raises(VolrenError, match="at least 1"):
         run_suite("toy", quick=True, device="cpu", out=tmp_path, suite=Suite("toy", "", run, True), repeats=0)
 
@@ -399,6 +402,9 @@ def test_set_replaces_suite_settings_and_refuses_unknown_keys(tmp_path):
     assert "frames = 6" in md_path.read_text()
     with pytest.raises(VolrenError, match="--set sizes: not a setting of this suite; it has frames, size"):
         run_suite("toy", quick=True, device="cpu", out=tmp_path, suite=toy, overrides={"sizes": 1})
-    with pytest.raises(VolrenError, match="--set: bench dssrm has no settings"):
-        run_suite("dssrm", quick=True, device="cpu", out=tmp_path, overrides={"frames": 1})
+    def fixed(quick, device):
+        raise AssertionError("a suite without settings ran")
+
+    with pytest.raises(VolrenError, match="--set: bench fixed has no settings"):
+        run_suite("fixed", quick=True, device="cpu", out=tmp_path, suite=Suite("fixed", "", fixed), overrides={"a": 1})
     assert bench_overrides(["sizes=[[8, 8]]", "scene=smoke"]) == {"sizes": [[8, 8]], "scene": "smoke"}

@@ -134,13 +134,13 @@ def lattice_step(seg: wp.vec4, pos: float, m: float, dt: float) -> wp.vec2:
     return wp.vec2(0.5 * (lo + hi), hi - lo)
 
 
-JUMP_MIN = wp.constant(6.0)
+JUMP_MIN = wp.constant(4.0)
 """[steps] `ramp_jump` runs its closed form when at least this many steps remain to the nearest event (fewer: the
 loop walks them; the closed form costs about as much as a few steps)"""
 JUMP_MARGIN = wp.constant(2)
 """[steps] `ramp_jump` stops this many steps short of the event its closed form predicts: the loop takes the last
 steps and decides the event by its own float32 test"""
-JUMP_BITS = 10
+JUMP_BITS = 7
 """`ramp_jump` finds the event step by bisection over powers lambda_1^(2^i), i < JUMP_BITS (runs of up to
 2^JUMP_BITS - 1 steps; a longer run jumps again)"""
 vec_bits = wp.types.vector(length=JUMP_BITS, dtype=wp.float64)
@@ -190,6 +190,7 @@ def ramp_jump(pos: float, m: float, seg: mat24, slope: wp.vec2, live: wp.vec2i, 
     cc = wp.float64(c)
     ka = wp.float64(vp.k_a)
     eye = wp.float64(far) / wp.float64(dt)
+    to_eye = wp.float64(dt) / wp.float64(far)
     s_stop = wp.float64(stop)
     s_floor = wp.float64(floor_)
     one = wp.float64(1.0)
@@ -197,7 +198,7 @@ def ramp_jump(pos: float, m: float, seg: mat24, slope: wp.vec2, live: wp.vec2i, 
     margin = wp.float64(float(JUMP_MARGIN))
     k = wp.float64(0.0)
     mid = wp.float64(0.0)
-    if ka * (one - (p - half * mm) / eye) <= cc:
+    if ka * (one - (p - half * mm) * to_eye) <= cc:
         if mm != cc:
             return pos, m, 0.0, last
         # Constant steps of C: step j's midpoint is p - (j + 1/2) C. Events: the stop, the floor (p - (j + 1) C
@@ -212,51 +213,53 @@ def ramp_jump(pos: float, m: float, seg: mat24, slope: wp.vec2, live: wp.vec2i, 
         pos = float(p - k * cc)
     else:
         x0 = eye - p
-        kappa = ka / eye
+        kappa = ka * to_eye
         b = one + half * kappa
         root = wp.sqrt(b * b + wp.float64(2.0) * kappa)
         l1 = half * (b + root)
         l2 = half * (b - root)
-        c1 = (mm + (one - l2) * x0) / (l1 - l2)
+        c1 = (mm + (one - l2) * x0) / root
         c2 = x0 - c1
         # Step k's midpoint in X is c1 l1^k (1 + l1) / 2 + c2 l2^k (1 + l2) / 2 (|l2|^k: gone after a step); no
         # event at step k while it is below eye - s_stop and X_(k+1) = c1 l1^(k+1) + ... <= eye - s_floor. The
         # largest such k: bisection over l1^(2^i).
-        mid_stop = (eye - s_stop) / (half * c1 * (one + l1))
-        end_stop = (eye - s_floor) / (c1 * l1)
+        mid_scale = half * c1 * (one + l1)
+        end_scale = c1 * l1
         pw = vec_bits()
         pw[0] = l1
         for i in range(1, JUMP_BITS):
             pw[i] = pw[i - 1] * pw[i - 1]
-        if one >= mid_stop or one > end_stop:
+        if mid_scale >= eye - s_stop or end_scale > eye - s_floor:
             return pos, m, 0.0, last
         cur = one
         span = wp.float64(JUMP_SPAN)
         for i in range(JUMP_BITS):
+            # branch-free: the outcome is data, and a mispredicted branch per bit cost more than the bit's work
             trial = cur * pw[JUMP_BITS - 1 - i]
-            if trial < mid_stop and trial <= end_stop:
-                cur = trial
-                k = k + span
+            ok = trial * mid_scale < eye - s_stop and trial * end_scale <= eye - s_floor
+            cur = wp.where(ok, trial, cur)
+            k = k + wp.where(ok, span, wp.float64(0.0))
             span = half * span
         # k: the last step without an event; jump k + 1 - margin steps (0 .. k - margin), ending at step k - margin
         k = k + one - margin
         if k < one:
             return pos, m, 0.0, last
         # the last jumped step, k - 1 (l1^(k-1) from l1^k_last / l1^margin, l2^(k-1) by multiplication: |l2| < 0.01,
-        # zero after a few)
+        # below float64's rounding of X after four)
         a1 = cur
+        back = one / l1
         for _ in range(JUMP_MARGIN):
-            a1 = a1 / l1
-        a2 = one
+            a1 = a1 * back
+        a2 = wp.float64(0.0)
         steps = int(float(k)) - 1
-        for _ in range(wp.min(steps, 8)):
-            a2 = a2 * l2
-        if steps > 8:
-            a2 = wp.float64(0.0)
+        if steps <= 3:
+            a2 = one
+            for _ in range(steps):
+                a2 = a2 * l2
         x_last = c1 * a1 + c2 * a2
         m_last = c1 * (l1 - one) * a1 + c2 * (l2 - one) * a2
         mid = eye - x_last - half * m_last
-        m = float(ka * (one - mid / eye))
+        m = float(ka * (one - mid * to_eye))
         pos = float(eye - x_last - m_last)
     for e in range(2):
         if live[e] != 0:
