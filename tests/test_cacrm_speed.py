@@ -23,7 +23,7 @@ from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig
 from volren.render.marching.cacrm import JUMP_MARGIN, mat24, ramp_jump
-from volren.render.marching.vsa import VSAParams, lambda_cap, ramp_slope
+from volren.render.marching.vsa import VSAParams, lambda_cap, ramp_slope, vsa_proposal, zero_product
 from volren.scene import Scene
 
 VIEWS = make_views(Camera(position=(0.3, 0.5, 2.4), width=48, height=32), "stereo")
@@ -165,3 +165,44 @@ def test_vsa_idle_runs_are_jumped_and_counted():
     uniform = CACRM(CACRMConfig(**BASE, vsa=False), DEVICE).render(scene, views).stats.counters
     assert uniform["jumped_steps"] == 0 < uniform["skipped_steps"]
     assert vsa["jumped_steps"] > 0.2 * vsa["skipped_steps"], vsa  # measured 0.31
+
+
+@wp.kernel
+def proposal_kernel(cases: wp.array(dtype=wp.vec4), vp: VSAParams, out: wp.array(dtype=wp.vec2)):
+    """Per case (rho, prev, T, t): `vsa_proposal` at t (ramp slope k_a / 4, prev at t - 0.01), and the product of a
+    zero sample at T through `zero_product`, its cache carried from the case before."""
+    cached = wp.vec2(-1.0, 0.0)
+    for i in range(cases.shape[0]):
+        c = cases[i]
+        cached = zero_product(vp, cached, c[2], 0.05)
+        out[i] = wp.vec2(vsa_proposal(vp, c[3], ramp_slope(vp, 4.0), c[0], c[1], c[3] - 0.01, c[2], 0.01, 0.05),
+                         cached[1])
+
+
+def test_vsa_proposals_follow_eq_4_to_6():
+    """The proposal (with its shortcut: where lambda_cap f_A cannot beat the ramp, Eq. 5-6 are not evaluated) and the
+    cached product of a zero sample against Eq. 4-6 in float64, over media in front of and behind, thin and dense,
+    smooth and steep, with T repeated and changed between cases (the cache must follow T)."""
+    k_a, k_b, cap, w = 1.5, 0.01, 4.0, (1.0, 4.0, 1.0)
+    vp = VSAParams()
+    vp.enabled, vp.k_a, vp.k_b, vp.f_lambda_max, vp.w_lambda, vp.w_t, vp.w_a = 1, k_a, k_b, cap, *w
+    vp.lambda_cap = lambda_cap(cap, w[0])
+    rng = np.random.default_rng(3)
+    cases = np.column_stack([rng.choice([0.0, 0.001, 0.02, 0.3, 1.0], 400), rng.choice([0.0, 0.001, 0.25], 400),
+                             np.repeat(rng.choice([1.0, 0.9, 0.7, 0.4, 0.1], 100), 4), rng.uniform(0.5, 4.0, 400)])
+    out = wp.zeros(len(cases), dtype=wp.vec2, device="cpu")
+    wp.launch(proposal_kernel, dim=1, inputs=[wp.array(cases.astype(np.float32), dtype=wp.vec4, device="cpu"), vp,
+                                              out], device="cpu")
+    got = out.numpy()
+    rho, prev, trans, t = cases.astype(np.float32).astype(np.float64).T
+
+    def product(rho, drho, trans):
+        f_l = np.where(np.abs(drho) * cap > k_b, k_b / np.maximum(np.abs(drho), 1e-30), cap)
+        f_t = np.clip(1 - 0.05 * (rho + drho), 0, 1)
+        return f_l ** w[0] * f_t ** w[1] * np.clip(1 - trans, 0, 1) ** w[2]
+
+    drho = (rho - prev) * 0.01 / 0.01
+    want = np.maximum(np.maximum(k_a * t / 4.0, product(rho, drho, trans)), 1.0)
+    np.testing.assert_allclose(got[:, 0], want, rtol=2e-5)
+    np.testing.assert_allclose(got[:, 1], product(0.0, 0.0, trans), rtol=2e-5)
+    assert (want > np.maximum(k_a * t / 4.0, 1.0)).mean() > 0.1  # the product decides 14.5% of the cases
