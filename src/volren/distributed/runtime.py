@@ -40,8 +40,8 @@ def connect(flag: str, address: str | None = None, num_cpus: int | None = None,
         return ray
     options = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
     where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
-    tries = 1 if address else LOCAL_STARTS
-    for attempt in range(1, tries + 1):
+    failure = ""
+    for _ in range(1 if address else LOCAL_STARTS):
         started = time.time()
         try:
             if address:
@@ -50,12 +50,11 @@ def connect(flag: str, address: str | None = None, num_cpus: int | None = None,
                 ray.init(num_cpus=num_cpus, num_gpus=num_gpus, _node_ip_address="127.0.0.1", **options)
             return ray
         except Exception as exc:  # Exception too: Ray raises a bare one when its node does not come up in time
+            failure = (str(exc).splitlines() or [type(exc).__name__])[0]
             if not address:
                 stop_failed_start(started)
                 ray.shutdown()
-            if attempt == tries:
-                raise VolrenError(f"{flag}: cannot start or reach {where}: {str(exc).splitlines()[0]}") from None
-    raise AssertionError("unreachable")
+    raise VolrenError(f"{flag}: cannot start or reach {where}: {failure}")
 
 def stop_failed_start(started: float) -> None:
     """Stop what a failed local start left running: Ray started its GCS, raylet, agents and workers as this process's
