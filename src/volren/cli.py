@@ -1134,13 +1134,14 @@ def write_plan_frame(plan: RenderPlan, frame, out: Path) -> list[Path]:
                        linear=args.save_linear, prefix=frame_prefix(args, frame.index))
 
 
-def run_render(args: argparse.Namespace, method: str, command: str) -> int:
+def run_render(args: argparse.Namespace, method: str, command: str, plan: RenderPlan | None = None) -> int:
+    """``volren render``/``animate`` (``plan``: already made from ``args``, by `volren batch`'s checks)."""
     check_render_args(args, method)  # before the imports of either path
     if getattr(args, "workers", None) is not None or getattr(args, "ray_address", None) is not None:
         from volren.distributed.engine import run_command_on_ray
 
         return run_command_on_ray(args)
-    plan = plan_render(args, method)
+    plan = plan or plan_render(args, method)
     from volren.animate import write_mp4
     from volren.imageio import composite, to_srgb8
     from volren.output import contact_sheet, run_output, write_stats

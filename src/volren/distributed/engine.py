@@ -315,18 +315,22 @@ def release_workers(ray: Any) -> None:
 
 def run_jobs(jobs: Sequence[Job], *, workers: int | None, address: str | None, flag: str,
              gpus_per_worker: float = 1.0, unit_frames: int | None = None,
-             on_dispatch: Callable[[Unit, int], None] | None = None, keep_workers: bool = False) -> BatchReport:
+             on_dispatch: Callable[[Unit, int], None] | None = None, keep_workers: bool = False,
+             planned: Sequence[JobState] | None = None) -> BatchReport:
     """Run ``jobs`` on ``workers`` Ray actors (a local Ray when ``address`` is None; default on a cluster: one per
     GPU or CPU it has); ``flag`` names the option in errors. ``unit_frames``: frames per unit (default: 1, or for a
     temporal method one range per worker). ``on_dispatch(unit, pid)`` is called as a unit goes to the actor with
     that process id (the tests' fault injection). ``keep_workers``: keep the idle actors, warm, for the next call in
-    this process (`volren bench batch`); otherwise they are stopped at the end. Returns what ran (`BatchReport`)."""
+    this process (`volren bench batch`); otherwise they are stopped at the end. ``planned``: the jobs' `plan_job`
+    states when the caller has them (`volren batch` planned them checking the job file). Returns what ran
+    (`BatchReport`)."""
     if workers is not None and workers < 1:
         raise VolrenError(f"{flag}: the workers must be >= 1, got {workers}")
     if not 0 < gpus_per_worker <= 1:
         raise VolrenError(f"--gpus-per-worker must lie in (0, 1], got {gpus_per_worker:g}")
     start = time.perf_counter()
-    states = [plan_job(i, job, workers, unit_frames) for i, job in enumerate(jobs)]
+    states = list(planned) if planned is not None else [plan_job(i, job, workers, unit_frames)
+                                                          for i, job in enumerate(jobs)]
     cuda = any(s.plan.renderer.device.startswith("cuda") for s in states)
     for s in states:
         s.open_output()

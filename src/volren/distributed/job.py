@@ -53,7 +53,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from volren.distributed.engine import Job, plan_job
+from volren.distributed.engine import Job, JobState, plan_job
 from volren.errors import VolrenError
 
 COMMANDS = ("render", "animate")
@@ -94,6 +94,8 @@ class Batch:
     """per job: the work units the engine splits it into (`engine.plan_job`); in process a job is one run"""
     devices: tuple[str, ...]
     """per job: where it renders (``--gpus-per-worker`` needs CUDA)"""
+    states: tuple[JobState, ...]
+    """per job: the engine's plan of it (`engine.plan_job`), which the run uses: a job is planned once"""
 
 
 class Flags:
@@ -166,7 +168,7 @@ def load_batch(path: Path, workers: int | None = None) -> Batch:
         fail("out", f"'{out}' is a file, not a folder")
     return Batch(path, out, command, tuple(jobs), tuple(folders), tuple(varies),
                  tuple(s.plan.args.frames for s in states), tuple(len(s.plan.views) for s in states),
-                 tuple(len(s.units) for s in states), tuple(s.plan.renderer.device for s in states))
+                 tuple(len(s.units) for s in states), tuple(s.plan.renderer.device for s in states), tuple(states))
 
 
 def _failer(path: Path):
@@ -356,15 +358,15 @@ def run_batch(args: argparse.Namespace) -> int:
         from volren.distributed.engine import run_jobs
 
         report = run_jobs(batch.jobs, workers=args.workers, address=args.ray_address, flag=flag,
-                          gpus_per_worker=args.gpus_per_worker or 1.0)
+                          gpus_per_worker=args.gpus_per_worker or 1.0, planned=batch.states)
         print(f"{len(batch.jobs)} job(s) into {batch.out} in {report.wall_seconds:.2f} s on {report.workers} "
               f"worker(s) (Ray start-up {report.ray_start_seconds:.1f} s): {report.units_run} unit(s) run, "
               f"{report.units_skipped} skipped, {report.units_retried} retried; index {index}")
         return 0
-    from volren.cli import build_parser, run_command
+    from volren.cli import run_render
 
-    for i, (folder, job) in enumerate(zip(batch.folders, batch.jobs, strict=True)):
+    for i, (folder, state) in enumerate(zip(batch.folders, batch.states, strict=True)):
         print(f"job {i + 1}/{len(batch.jobs)}: {folder}", file=sys.stderr)
-        run_command(build_parser().parse_args(list(job.argv)), "volren " + shlex.join(job.argv))
+        run_render(state.plan.args, state.plan.args.method, "volren " + shlex.join(state.job.argv), plan=state.plan)
     print(f"{len(batch.jobs)} job(s) into {batch.out}; index {index}")
     return 0
