@@ -104,8 +104,11 @@ def test_ctrl_c_stops_a_long_render_at_once_and_leaves_nothing(tmp_path: Path) -
     out = tmp_path / "out"
     argv = [sys.executable, "-m", "volren.cli", "render", "--method", "reference", "--scene", "cloud", "--width",
             "320", "--height", "180", "--views", "mono", "--max-minutes", "0", "--out", str(out)]
+    # SIGINT back to its default in the child: a test run started as a background job (`make test &`) has it
+    # ignored, which the child would inherit, and Python then installs no KeyboardInterrupt handler
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
-                            env={**os.environ, "VOLREN_CPU_THREADS": "1"})
+                            env={**os.environ, "VOLREN_CPU_THREADS": "1"},
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     first = proc.stderr.readline()  # rendering for >= 2 s (volren.progress.QUIET_SECONDS) with far to go
     assert PROGRESS_LINE.fullmatch(first.strip()), first + proc.stderr.read()
     sent = time.perf_counter()
