@@ -10,6 +10,7 @@ swallow them, but a real ``volren`` run prints them on stderr, so a warning is a
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import math
 import re
@@ -65,6 +66,9 @@ class Result:
 def run(capfd: pytest.CaptureFixture[str], *argv: object) -> Result:
     """``main(argv)``; an exception escaping it (a traceback for the user) fails the test with its type and text."""
     capfd.readouterr()
+    # what earlier tests left for the garbage collector (a socket of a server test: a ResourceWarning) is collected
+    # here, not during the call, whose own warnings are recorded
+    gc.collect()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
