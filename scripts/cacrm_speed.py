@@ -3,7 +3,9 @@
 Both methods render the same scene and stereo pair (the CLI's default eye, 0, 0.4, 3.2) with their defaults; after a
 warm-up each is timed ``--repeats`` times, alternating, and the minimum frame time is kept (the machine is shared, so
 the minimum is the least-disturbed run). Prints per scene and size: ms per frame and per pass, the counters, the
-ratio CMSRM / CACRM frame time (> 1: CACRM faster), and a checksum of CACRM's images (to pin them across changes)."""
+ratio CMSRM / CACRM frame time (> 1: CACRM faster), each method's cube march as a ratio to CMSRM's, and a checksum of
+CACRM's images (to pin them across changes). ``--ablation`` adds CACRM with uniform steps and with k_a = 0 (VSA's
+product, no ramp; paper 000 Eq. 4-6) to the same interleaved loop."""
 
 from __future__ import annotations
 
@@ -16,7 +18,17 @@ import numpy as np
 
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
-from volren.render import CACRM, CMSRM
+from volren.render import CACRM, CMSRM, CACRMConfig
+
+
+def renderers(ablation: bool) -> dict[str, CMSRM | CACRM]:
+    """The methods one case times, CMSRM first (the ratios' base)."""
+    methods: dict[str, CMSRM | CACRM] = {"cmsrm": CMSRM()}
+    if ablation:
+        methods["cacrm uniform"] = CACRM(CACRMConfig(vsa=False))
+        methods["cacrm k_a 0"] = CACRM(CACRMConfig(k_a=0.0))
+    methods["cacrm"] = CACRM()
+    return methods
 
 
 def main() -> None:
@@ -25,6 +37,7 @@ def main() -> None:
     ap.add_argument("--sizes", default="480x270,960x540")
     ap.add_argument("--resolution", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--ablation", action="store_true", help="also time CACRM with uniform steps and with k_a = 0")
     ap.add_argument("--save", help="write CACRM's images per case to this .npz (to compare across changes)")
     ap.add_argument("--compare", help="a .npz from --save: print CACRM's PSNR against it per case")
     args = ap.parse_args()
@@ -35,12 +48,12 @@ def main() -> None:
         for size in args.sizes.split(","):
             w, h = (int(s) for s in size.split("x"))
             views = make_views(Camera(position=(0.0, 0.4, 3.2), width=w, height=h), "stereo")
-            renderers = {"cmsrm": CMSRM(), "cacrm": CACRM()}
+            methods = renderers(args.ablation)
             best: dict[str, tuple[float, object]] = {}
-            for r in renderers.values():
+            for r in methods.values():
                 r.render(scene, views)
             for _ in range(args.repeats):
-                for key, r in renderers.items():
+                for key, r in methods.items():
                     start = time.perf_counter()
                     frame = r.render(scene, views)
                     ms = 1e3 * (time.perf_counter() - start)
@@ -55,10 +68,13 @@ def main() -> None:
                 ref = old[case]
                 mse = float(np.mean((images - ref) ** 2))
                 row["psnr_vs_old"] = "inf" if mse == 0 else round(10 * np.log10(1.0 / mse), 2)
+            base_march = best["cmsrm"][1].stats.times_ms["cube_march"]
             for key, (ms, frame) in best.items():
                 c = frame.stats.counters
                 row[key] = {"ms": round(ms, 1),
                             "passes": {k: round(v, 1) for k, v in frame.stats.times_ms.items()},
+                            "cube_march_ratio": round(frame.stats.times_ms["cube_march"] / base_march, 3)
+                            if base_march > 0 else None,
                             "counters": {k: int(v) for k, v in c.items()}}
             print(json.dumps(row), flush=True)
     if args.save:
