@@ -182,6 +182,27 @@ class CubeMaps:
         return t
 
 
+@wp.struct
+class CubeLookup:
+    """What the resampling kernels read of one view's cube maps (`CubeMaps`) and of the config: per volume its scheme
+    and where its faces start and their size, the texels, the cube k-buffer and the bilateral filter's settings."""
+
+    scheme: wp.array(dtype=int)
+    offset: wp.array(dtype=int)
+    size: wp.array(dtype=int)
+    color: wp.array(dtype=wp.vec4)
+    t_half: wp.array(dtype=float)
+    z_end: wp.array(dtype=float)
+    seg: wp.array(dtype=wp.vec4)
+    seg_z: wp.array(dtype=float)
+    segments: int
+    exterior: int
+    """1: the exterior faces (`CMSRMConfig.cube_faces`)"""
+    rim_direct: int
+    k_z: float
+    k_z_layers: float
+
+
 @dataclass(frozen=True)
 class TileGroup:
     """The live tiles of one tile level, as the fine pass launches them."""
@@ -348,15 +369,7 @@ def resample_lone_box(
     cam: CameraGPU,
     volumes: wp.array(dtype=VolumeGPU),
     oit: OITParams,
-    scheme: wp.array(dtype=int),
-    cube_offset: wp.array(dtype=int),
-    cube_size: wp.array(dtype=int),
-    exterior: int,
-    rim_direct: int,
-    k_z: float,
-    cube: wp.array(dtype=wp.vec4),
-    cube_t: wp.array(dtype=float),
-    cube_z: wp.array(dtype=float),
+    cubes: CubeLookup,
     mode: int,
     mesh_count: wp.array2d(dtype=int),
     buffers: ViewBuffers,
@@ -383,16 +396,18 @@ def resample_lone_box(
         h = box_hit(o_l, d_l)
         t_out = wp.min(h[1], planes[1])
         if t_out > wp.max(h[0], planes[0]):
-            if scheme[v] != SCHEME_CUBE:
+            if cubes.scheme[v] != SCHEME_CUBE:
                 return 0
-            p = ray_face_point(o_l, d_l, h, exterior)
-            if rim_direct != 0 and rim_needs_march(cube, cube_offset[v], cube_size[v], p) != 0:
+            offset = cubes.offset[v]
+            size = cubes.size[v]
+            p = ray_face_point(o_l, d_l, h, cubes.exterior)
+            if cubes.rim_direct != 0 and rim_needs_march(cubes.color, offset, size, p) != 0:
                 return 0
             acc = combine_segment(mode, state_accumulator(s),
-                                  cube_sample(cube, cube_z, cube_offset[v], cube_size[v], p,
-                                              t_out * wp.dot(d, cam.forward), k_z))
+                                  cube_sample(cubes.color, cubes.z_end, offset, size, p,
+                                              t_out * wp.dot(d, cam.forward), cubes.k_z))
             if acc[3] <= 0.5:
-                s.depth_t = cube_nearest_t(cube_t, cube_offset[v], cube_size[v], p)
+                s.depth_t = cube_nearest_t(cubes.t_half, offset, size, p)
             s = with_accumulator(s, acc)
         count(counters, BOX_TESTS, 1)
     write_pixel(s, cam, d, row, col, buffers, counters, DENSITY_SAMPLES)
@@ -404,15 +419,7 @@ def cube_resample_kernel(
     cam: CameraGPU,
     volumes: wp.array(dtype=VolumeGPU),
     oit: OITParams,
-    scheme: wp.array(dtype=int),
-    cube_offset: wp.array(dtype=int),
-    cube_size: wp.array(dtype=int),
-    exterior: int,
-    rim_direct: int,
-    k_z: float,
-    cube: wp.array(dtype=wp.vec4),
-    cube_t: wp.array(dtype=float),
-    cube_z: wp.array(dtype=float),
+    cubes: CubeLookup,
     mode: int,
     mesh_count: wp.array2d(dtype=int),
     span: int,
@@ -427,8 +434,7 @@ def cube_resample_kernel(
     counters = counter_row(counter_rows, r, c)
     row = r + row0
     for col in range(c * span, wp.min(c * span + span, cam.width)):
-        if resample_lone_box(cam, volumes, oit, scheme, cube_offset, cube_size, exterior, rim_direct, k_z, cube,
-                             cube_t, cube_z, mode, mesh_count, buffers, counters, row, col) == 0:
+        if resample_lone_box(cam, volumes, oit, cubes, mode, mesh_count, buffers, counters, row, col) == 0:
             deferred[row, col] = 1
 
 
@@ -437,19 +443,7 @@ def layered_resample_kernel(
     cam: CameraGPU,
     volumes: wp.array(dtype=VolumeGPU),
     oit: OITParams,
-    scheme: wp.array(dtype=int),
-    cube_offset: wp.array(dtype=int),
-    cube_size: wp.array(dtype=int),
-    exterior: int,
-    rim_direct: int,
-    k_z: float,
-    k_z_layers: float,
-    cube: wp.array(dtype=wp.vec4),
-    cube_t: wp.array(dtype=float),
-    cube_z: wp.array(dtype=float),
-    seg: wp.array(dtype=wp.vec4),
-    seg_z: wp.array(dtype=float),
-    segments: int,
+    cubes: CubeLookup,
     medium: Medium,
     params: MarchParams,
     mesh: MeshLayers,
@@ -492,23 +486,25 @@ def layered_resample_kernel(
             # A cube-scheme box: its cube map, or with layers inside it the cube k-buffer's segments between them;
             # marched directly where neither applies (a direct-scheme box, a segment without Eq. 13 weight).
             done = int(0)
-            p = cube_face_point(volumes[v], cam.origin, d, exterior)
+            p = cube_face_point(volumes[v], cam.origin, d, cubes.exterior)
+            offset = cubes.offset[v]
+            size = cubes.size[v]
             # only a cube-scheme box has texels to read (a direct or culled box's cube size may be 0)
             rim = int(0)
-            if scheme[v] == SCHEME_CUBE and rim_direct != 0:
-                rim = rim_needs_march(cube, cube_offset[v], cube_size[v], p)
-            if scheme[v] == SCHEME_CUBE and rim == 0:
+            if cubes.scheme[v] == SCHEME_CUBE and cubes.rim_direct != 0:
+                rim = rim_needs_march(cubes.color, offset, size, p)
+            if cubes.scheme[v] == SCHEME_CUBE and rim == 0:
                 if not layer_before(mesh, row, col, next_mesh, facing, layers.t_out[i]):
-                    c = cube_sample(cube, cube_z, cube_offset[v], cube_size[v], p, layers.t_out[i] * facing, k_z)
+                    c = cube_sample(cubes.color, cubes.z_end, offset, size, p, layers.t_out[i] * facing, cubes.k_z)
                     acc = combine_segment(params.mode, state_accumulator(s), c)
                     if s.transmittance > 0.5 and acc[3] <= 0.5:
-                        s.depth_t = cube_nearest_t(cube_t, cube_offset[v], cube_size[v], p)
+                        s.depth_t = cube_nearest_t(cubes.t_half, offset, size, p)
                     s = with_accumulator(s, acc)
                     done = 1
                 else:
-                    s, next_mesh, done = blend_cube_segments(s, next_mesh, mesh, row, col, facing, seg, seg_z,
-                                                             segments, cube_offset[v], cube_size[v], p,
-                                                             layers.t_in[i], layers.t_out[i], k_z_layers)
+                    s, next_mesh, done = blend_cube_segments(s, next_mesh, mesh, row, col, facing, cubes.seg,
+                                                             cubes.seg_z, cubes.segments, offset, size, p,
+                                                             layers.t_in[i], layers.t_out[i], cubes.k_z_layers)
                     if done == 0:
                         mesh.direct[row, col] = 1
             if done == 0:
@@ -787,23 +783,31 @@ class CMSRM(LightMapRenderer):
                 for i in group[1:]:
                     plans[i][v].update({k: plan[k] for k in ("tiles", "live_tiles", "tile_levels")})
 
+    def _lookup(self, plans: list[dict], cubes: CubeMaps) -> CubeLookup:
+        """One view's cube maps and the filter's settings as the resampling kernels read them."""
+        c = self.config
+        look = CubeLookup()
+        look.scheme, look.offset, look.size = (wp.array(a, dtype=int, device=self.device)
+                                               for a in ([p["scheme"] for p in plans], cubes.offsets, cubes.sizes))
+        look.color, look.t_half, look.z_end = cubes.color, cubes.t_half, cubes.z_end
+        look.seg, look.seg_z, look.segments = cubes.seg, cubes.seg_z, cubes.segments
+        look.exterior, look.rim_direct = int(c.cube_faces == "exterior"), int(c.rim_direct)
+        look.k_z, look.k_z_layers = c.k_z, c.k_z_layers
+        return look
+
     def _resample(self, ds: DeviceScene, cam: Camera, view: int, plans: list[dict], cubes: CubeMaps, oit: OITParams,
                   mesh: MeshLayers, target: ViewBuffers, clock: PassClock) -> None:
         """The cube resampling pass of one view: `cube_resample_kernel` in spans of `RESAMPLE_SPAN` pixels (one on a
         GPU) where a cube-scheme volume gives it something to read and the layer finder needs no ray query, then
         `layered_resample_kernel` over the pixels it deferred (over every pixel without it)."""
         c = self.config
-        per_volume = [wp.array(a, dtype=int, device=self.device)
-                      for a in ([p["scheme"] for p in plans], cubes.offsets, cubes.sizes)]
-        shared = [camera_struct(cam), ds.volumes, oit, *per_volume, int(c.cube_faces == "exterior"),
-                  int(c.rim_direct), c.k_z]
+        shared = [camera_struct(cam), ds.volumes, oit, self._lookup(plans, cubes)]
         params = self._params(ds, view, c.samples)
         if c.oit != "pixel-rt" and any(p["scheme"] == SCHEME_CUBE for p in plans):
             span = RESAMPLE_SPAN if self.device.startswith("cpu") else 1
             deferred = wp.zeros((cam.height, cam.width), dtype=int, device=self.device)
             launch_rows(cube_resample_kernel, cam.height, -(-cam.width // span),
-                        [*shared, cubes.color, cubes.t_half, cubes.z_end, params.mode, mesh.count, span, target,
-                         deferred], self.device, clock.counters)
+                        [*shared, params.mode, mesh.count, span, target, deferred], self.device, clock.counters)
             pixels = np.flatnonzero(deferred.numpy()).astype(np.int32)
         else:
             pixels = np.arange(cam.height * cam.width, dtype=np.int32)
@@ -813,8 +817,7 @@ class CMSRM(LightMapRenderer):
             layered_resample_kernel,
             len(pixels),
             1,
-            [*shared, c.k_z_layers, cubes.color, cubes.t_half, cubes.z_end, cubes.seg, cubes.seg_z, cubes.segments,
-             ds.medium(), params, mesh, target, wp.array(pixels, dtype=int, device=self.device)],
+            [*shared, ds.medium(), params, mesh, target, wp.array(pixels, dtype=int, device=self.device)],
             self.device,
             clock.counters,
             self._pixel_progress(cam.height, len(pixels)),
