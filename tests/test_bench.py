@@ -422,3 +422,30 @@ def test_viewer_rigs_are_nested():
     assert [len(v) for v in rigs.values()] == [1, 2, 16]
     assert rigs[1] == rigs[16][:1] and rigs[2] == rigs[16][:2]
     assert len({v.position for v in rigs[16]}) == 16
+
+
+def test_gi_suite_times_without_ground_truth():
+    """gt_rays = 0 times the chosen methods with no brute-force grid: no quality, the time ratio kept."""
+    from volren.bench.gi import run_config
+
+    cfg = {"scenes": ["smoke"], "resolution": 64, "light_grid": 8, "size": (24, 16), "frames": 3, "warmup": 1,
+           "gt_rays": 0, "prt_rays": 32, "dynamic_frames": 2, "gt_every": 1, "methods": ["restir", "sresir"]}
+    result = run_config(cfg, "cpu")
+    rows = result["rows"]
+    assert [r["method"] for r in rows] == ["restir", "sresir"] * 3
+    assert all(r["psnr"] is None and r["ssim"] is None and r["gi_ms"] > 0 and r["gi_rays"] > 0 for r in rows)
+    assert all(r["settle_frame"] is None for r in rows[2:]) and result["resampling"] == []
+    summary, _ = result["summary"]
+    assert summary[0]["time_vs_restir"] == pytest.approx(rows[1]["gi_ms"] / rows[0]["gi_ms"])
+    assert summary[0]["db_vs_restir"] is None and summary[0]["db_vs_major"] is None
+
+
+@pytest.mark.parametrize("setting", [{"methods": ["sresir", "bogus"]}, {"methods": []}, {"gt_rays": -1}])
+def test_gi_suite_refuses_bad_settings(setting):
+    from volren.bench.gi import run_config
+    from volren.errors import VolrenError
+
+    cfg = {"scenes": ["smoke"], "resolution": 64, "light_grid": 8, "size": (24, 16), "frames": 3, "warmup": 1,
+           "gt_rays": 0, "prt_rays": 32, "dynamic_frames": 2, "gt_every": 1} | setting
+    with pytest.raises(VolrenError, match=f"--set {next(iter(setting))}"):
+        run_config(cfg, "cpu")

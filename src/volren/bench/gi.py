@@ -11,6 +11,11 @@ the ambient error stays within 25% of its final level ("settles"). On the cloud 
 (``resampling`` in the JSON) runs ours with each resampling -- as printed, own directions, RIS -- and reports the
 image and ambient-grid PSNR after 1, 8 and 32 frames and the first frame's largest ambient in a constant
 environment of radiance 1.
+
+``--set gt_rays=0`` times the methods without the ground truth (no PSNR, SSIM, ambient error, settling frame or
+Eq. 12 study): the paper's Table 2 at its sizes on a machine where brute force is out of reach (a 128^3 x 2048-ray
+grid takes hours on a CPU); ``--set 'methods=[...]'`` runs some of M, PRT, strict ReSTIR and ours (PRT's
+precomputation is 1024 rays a voxel). The summary's ratios need the methods they compare.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from volren.bench import Suite, sized
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.data.environments import sky_environment
+from volren.errors import VolrenError
 from volren.metrics import psnr, ssim
 from volren.render import DSSRM, DSSRMConfig
 from volren.render.gi.ambient import RESAMPLING as RESAMPLING_MODES
@@ -38,10 +44,12 @@ RESAMPLING = {"scenes": ["cloud", "smoke"], "frames": [1, 8, 32], "seeds": 3}
 32 frames, mean of 3 seeds"""
 FULL = {"scenes": ["smoke", "cloud", "phantom", "multi"],
         "resolution": 256, "light_grid": 128, "size": (1280, 720), "frames": 60, "warmup": 30, "gt_rays": 2048,
-        "prt_rays": 1024, "dynamic_frames": 60, "gt_every": 10, "resampling": RESAMPLING}
+        "prt_rays": 1024, "dynamic_frames": 60, "gt_every": 10, "resampling": RESAMPLING,
+        "methods": ["major", "prt", "restir", "sresir"]}
 QUICK = {"scenes": ["smoke", "cloud", "phantom", "multi"],
          "resolution": 64, "light_grid": 32, "size": (96, 64), "frames": 40, "warmup": 24, "gt_rays": 1024,
-         "prt_rays": 256, "dynamic_frames": 36, "gt_every": 4, "resampling": RESAMPLING}
+         "prt_rays": 256, "dynamic_frames": 36, "gt_every": 4, "resampling": RESAMPLING,
+         "methods": ["major", "prt", "restir", "sresir"]}
 METHODS = ("major", "prt", "restir", "sresir")
 LIGHT_SAMPLES = 96
 SETTLE = 1.25
@@ -99,18 +107,20 @@ def ground_truth(scenes: list[Scene], frames: list[int], cfg: dict[str, Any], de
     return {i: run_sequence([scenes[i]], gi, cfg, device, camera)[0] for i in frames}
 
 
-def method_row(name: str, method: str, seq: list[dict[str, Any]], scores: dict[str, list[float]],
+def method_row(name: str, method: str, seq: list[dict[str, Any]], scores: dict[str, list[float]] | None,
                cfg: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    """One method's row: GI time per frame (median), work counters and, with ``scores`` (None: no ground truth),
+    its quality averaged over the scored frames."""
     steady = seq[1:] if method == "prt" and not extra.get("dynamic") else seq
+    quality = ({k: float(np.mean(v)) for k, v in scores.items()} if scores is not None
+               else dict.fromkeys(("psnr", "ssim", "ambient_rel_rmse")))
     return {
         "scene": name, "method": method, **extra,
         "gi_ms": statistics.median(s["gi_ms"] for s in steady),
         "precompute_ms": max(s["precompute_ms"] for s in seq) if method == "prt" else None,
         "gi_rays": seq[-1]["rays"],
         "light_samples": seq[-1]["light_samples"],
-        "psnr": float(np.mean(scores["psnr"])),
-        "ssim": float(np.mean(scores["ssim"])),
-        "ambient_rel_rmse": float(np.mean(scores["ambient_rel_rmse"])),
+        **quality,
     }
 
 
@@ -158,44 +168,63 @@ def run(quick: bool, device: str) -> dict[str, Any]:
     return run_config(sized(QUICK, FULL, quick), device)
 
 
+def checked_methods(cfg: dict[str, Any]) -> list[str]:
+    """The configuration's GI methods (all four unless ``methods`` names some), refused unless known and distinct."""
+    methods = list(cfg.get("methods", METHODS))
+    unknown = [m for m in methods if m not in METHODS]
+    if not methods or unknown or len(set(methods)) != len(methods):
+        raise VolrenError(f"--set methods: {methods!r} is not a list of distinct methods of {', '.join(METHODS)}")
+    return methods
+
+
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
+    methods = checked_methods(cfg)
+    if cfg["gt_rays"] < 0:
+        raise VolrenError(f"--set gt_rays: {cfg['gt_rays']} rays; give 0 (no ground truth) or more")
+    truthful = cfg["gt_rays"] > 0
     w, h = cfg["size"]
     camera = Camera(position=(0.0, 0.4, 3.2), width=w, height=h)
     rows = []
     resampling: list[dict[str, Any]] = []
     measured = list(range(cfg["warmup"], cfg["frames"]))
+    kept = set(measured) if truthful else set()
     for name in cfg["scenes"]:
         scene = gi_scene(name, cfg["resolution"])
-        truth_frame = ground_truth([scene], [0], cfg, device, camera)[0]
-        truth = dict.fromkeys(measured, truth_frame)
-        for method in METHODS:
+        truth_frame = ground_truth([scene], [0], cfg, device, camera)[0] if truthful else None
+        for method in methods:
             gi = GIConfig(method=method, rays=cfg["prt_rays"])
-            seq = run_sequence([scene] * cfg["frames"], gi, cfg, device, camera, set(measured))
-            rows.append(method_row(name, method, seq, score(seq, truth), cfg))
-        if name in cfg.get("resampling", {}).get("scenes", ()):
+            seq = run_sequence([scene] * cfg["frames"], gi, cfg, device, camera, kept)
+            scores = score(seq, dict.fromkeys(measured, truth_frame)) if truthful else None
+            rows.append(method_row(name, method, seq, scores, cfg))
+        if truthful and name in cfg.get("resampling", {}).get("scenes", ()):
             resampling += resampling_rows(name, scene, truth_frame, cfg, device, camera)
     for fps in (60, 30):
         scenes = list(advected_frames(gi_scene("smoke", cfg["resolution"]), cfg["dynamic_frames"], fps,
                                       device=device))
         frames = list(range(0, cfg["dynamic_frames"], cfg["gt_every"]))
-        truth = ground_truth(scenes, frames, cfg, device, camera)
-        for method in METHODS:
+        truth = ground_truth(scenes, frames, cfg, device, camera) if truthful else None
+        for method in methods:
             gi = GIConfig(method=method, rays=cfg["prt_rays"])
-            seq = run_sequence(scenes, gi, cfg, device, camera, set(frames))
-            scores = score(seq, truth)
-            late = {i: truth[i] for i in frames if i >= cfg["dynamic_frames"] // 2}
-            row = method_row(f"smoke advected {fps} fps", method, seq, score(seq, late), cfg, dynamic=True)
-            row["settle_frame"] = settle_frame(scores["ambient_rel_rmse"], frames)
+            seq = run_sequence(scenes, gi, cfg, device, camera, set(frames) if truthful else set())
+            late = None
+            if truth is not None:
+                late = score(seq, {i: truth[i] for i in frames if i >= cfg["dynamic_frames"] // 2})
+            row = method_row(f"smoke advected {fps} fps", method, seq, late, cfg, dynamic=True)
+            row["settle_frame"] = (settle_frame(score(seq, truth)["ambient_rel_rmse"], frames)
+                                   if truth is not None else None)
             rows.append(row)
     summary = []
     for name in sorted({r["scene"] for r in rows}, key=[r["scene"] for r in rows].index):
         by = {r["method"]: r for r in rows if r["scene"] == name}
-        ours, restir, major = by["sresir"], by["restir"], by["major"]
+        ours = by.get("sresir")
+        if ours is None:
+            continue
+        restir, major = by.get("restir"), by.get("major")
         summary.append({
             "scene": name,
-            "time_vs_restir": ours["gi_ms"] / restir["gi_ms"],
-            "db_vs_restir": ours["psnr"] - restir["psnr"],
-            "db_vs_major": ours["psnr"] - major["psnr"],
+            "time_vs_restir": ours["gi_ms"] / restir["gi_ms"] if restir else None,
+            "db_vs_restir": ours["psnr"] - restir["psnr"] if restir and truthful else None,
+            "db_vs_major": ours["psnr"] - major["psnr"] if major and truthful else None,
             "settle_frame": ours.get("settle_frame"),
         })
     return {
