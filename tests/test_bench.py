@@ -424,13 +424,18 @@ def test_viewer_rigs_are_nested():
     assert len({v.position for v in rigs[16]}) == 16
 
 
-def test_gi_suite_times_without_ground_truth():
-    """gt_rays = 0 times the chosen methods with no brute-force grid: no quality, the time ratio kept."""
+def test_gi_suite_times_without_ground_truth(capfd):
+    """gt_rays = 0 times the chosen methods with no brute-force grid: no quality, the time ratio kept; each
+    method's sequence is reported as a case done (a full-size run takes an hour)."""
     from volren.bench.gi import run_config
+    from volren.progress import cases
 
     cfg = {"scenes": ["smoke"], "resolution": 64, "light_grid": 8, "size": (24, 16), "frames": 3, "warmup": 1,
            "gt_rays": 0, "prt_rays": 32, "dynamic_frames": 2, "gt_every": 1, "methods": ["restir", "sresir"]}
-    result = run_config(cfg, "cpu")
+    with cases("bench gi"):
+        result = run_config(cfg, "cpu")
+    done = [line for line in capfd.readouterr().err.splitlines() if line.startswith("volren: bench gi: case")]
+    assert len(done) == 6 and "(sresir GI, 3 frame(s) of 24x16)" in done[1] and "2 frame(s)" in done[-1]
     rows = result["rows"]
     assert [r["method"] for r in rows] == ["restir", "sresir"] * 3
     assert all(r["psnr"] is None and r["ssim"] is None and r["gi_ms"] > 0 and r["gi_rays"] > 0 for r in rows)

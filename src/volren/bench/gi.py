@@ -33,6 +33,7 @@ from volren.data import builtin_scene
 from volren.data.environments import sky_environment
 from volren.errors import VolrenError
 from volren.metrics import psnr, ssim
+from volren.progress import case_done
 from volren.render import DSSRM, DSSRMConfig
 from volren.render.gi.ambient import RESAMPLING as RESAMPLING_MODES
 from volren.render.gi.ambient import GIConfig
@@ -82,6 +83,7 @@ def run_sequence(scenes: Iterable[Scene], gi: GIConfig, cfg: dict[str, Any], dev
             "light_samples": frame.stats.counters["light_samples"],
             "rays": frame.stats.counters["rays"],
         })
+    case_done(f"{gi.method} GI, {len(out)} frame(s) of {camera.width}x{camera.height}")
     return out
 
 
