@@ -40,18 +40,18 @@ from volren.render.gi.ambient import GIConfig
 from volren.scene import Environment, Scene
 from volren.simulate import advected_frames
 
+METHODS = ("major", "prt", "restir", "sresir")
 RESAMPLING = {"scenes": ["cloud", "smoke"], "frames": [1, 8, 32], "seeds": 3}
 """Eq. 12's study (a config's ``resampling``; none: skipped): ours with each ``GIConfig.resampling`` after 1, 8 and
 32 frames, mean of 3 seeds"""
 FULL = {"scenes": ["smoke", "cloud", "phantom", "multi"],
         "resolution": 256, "light_grid": 128, "size": (1280, 720), "frames": 60, "warmup": 30, "gt_rays": 2048,
         "prt_rays": 1024, "dynamic_frames": 60, "gt_every": 10, "resampling": RESAMPLING,
-        "methods": ["major", "prt", "restir", "sresir"]}
+        "methods": list(METHODS)}
 QUICK = {"scenes": ["smoke", "cloud", "phantom", "multi"],
          "resolution": 64, "light_grid": 32, "size": (96, 64), "frames": 40, "warmup": 24, "gt_rays": 1024,
          "prt_rays": 256, "dynamic_frames": 36, "gt_every": 4, "resampling": RESAMPLING,
-         "methods": ["major", "prt", "restir", "sresir"]}
-METHODS = ("major", "prt", "restir", "sresir")
+         "methods": list(METHODS)}
 LIGHT_SAMPLES = 96
 SETTLE = 1.25
 
