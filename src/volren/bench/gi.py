@@ -208,12 +208,12 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         for method in methods:
             gi = GIConfig(method=method, rays=cfg["prt_rays"])
             seq = run_sequence(scenes, gi, cfg, device, camera, set(frames) if truthful else set())
-            late = None
-            if truth is not None:
-                late = score(seq, {i: truth[i] for i in frames if i >= cfg["dynamic_frames"] // 2})
+            scores = score(seq, truth) if truth is not None else None
+            # the quality row averages the second half's frames; `score` lists them in frame order
+            late_from = sum(f < cfg["dynamic_frames"] // 2 for f in frames)
+            late = {k: v[late_from:] for k, v in scores.items()} if scores is not None else None
             row = method_row(f"smoke advected {fps} fps", method, seq, late, cfg, dynamic=True)
-            row["settle_frame"] = (settle_frame(score(seq, truth)["ambient_rel_rmse"], frames)
-                                   if truth is not None else None)
+            row["settle_frame"] = settle_frame(scores["ambient_rel_rmse"], frames) if scores is not None else None
             rows.append(row)
     summary = []
     for name in sorted({r["scene"] for r in rows}, key=[r["scene"] for r in rows].index):
