@@ -22,7 +22,7 @@ from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig
-from volren.render.marching.cacrm import JUMP_MARGIN, mat24, ramp_jump
+from volren.render.marching.cacrm import mat24, ramp_jump
 from volren.render.marching.vsa import VSAParams, lambda_cap, ramp_slope, vsa_proposal, zero_product
 from volren.scene import Scene
 
@@ -126,15 +126,12 @@ JUMPS = {
 }
 
 
-@pytest.mark.parametrize("case", list(JUMPS))
-def test_ramp_jump_lands_where_the_loop_walks_two_steps_short_of_the_stop(case):
-    """`ramp_jump`'s closed form (constant steps, Eq. 4's ramp as two geometric sequences, the step of the event by
-    bisection) against `idle_run`'s float32 loop: it jumps all but JUMP_MARGIN of the steps the loop walks to the
-    next skip-cell lookup, landing on the loop's (pos, m) to float rounding, with the last step's midpoint."""
-    (pos, m), seg, product, check, k_a = JUMPS[case]
-    dt = 0.0096
-    steps, states = walk(pos, m, seg, product, check, dt, k_a)
-    assert steps > 20, steps
+DT = 0.0096
+
+
+def jump(pos, m, seg, product, check, k_a):
+    """`ramp_jump` from (pos, m) for both eyes live (no mesh layers, no eye left to enter): (pos, m, steps k, eye 0's
+    last step midpoint)."""
     vp = VSAParams()
     vp.enabled, vp.k_a, vp.k_b, vp.f_lambda_max, vp.w_lambda, vp.w_t, vp.w_a = 1, k_a, 0.01, 4.0, 1.0, 4.0, 1.0
     vp.lambda_cap = lambda_cap(4.0, 1.0)
@@ -144,15 +141,43 @@ def test_ramp_jump_lands_where_the_loop_walks_two_steps_short_of_the_stop(case):
         wp.array([wp.vec4(pos, m, 0.0, 0.0)], dtype=wp.vec4, device=device),
         wp.array([mat24(*seg[0], 1.0, 1.0, *seg[1], 1.0, 1.0)], dtype=mat24, device=device),
         wp.array([wp.vec2(*product)], dtype=wp.vec2, device=device),
-        wp.array([wp.vec2(*check)], dtype=wp.vec2, device=device), vp, dt, out])
-    got_pos, got_m, k, last = out.numpy()[0]
+        wp.array([wp.vec2(*check)], dtype=wp.vec2, device=device), vp, DT, out])
+    return out.numpy()[0]
+
+
+@pytest.mark.parametrize("case", list(JUMPS))
+def test_ramp_jump_lands_on_the_step_where_the_loop_stops(case):
+    """`ramp_jump`'s closed form (constant steps, Eq. 4's ramp as two geometric sequences, the step of the event by
+    bisection) against `idle_run`'s float32 loop: it jumps every step the loop walks before the next skip-cell
+    lookup, landing on the loop's (pos, m) to float rounding, with the last step's midpoint."""
+    (pos, m), seg, product, check, k_a = JUMPS[case]
+    steps, states = walk(pos, m, seg, product, check, DT, k_a)
+    assert steps > 20, steps
+    got_pos, got_m, k, last = jump(pos, m, seg, product, check, k_a)
     # The event: the lookup, or (constant steps) the step after which the ramp's proposal passes C, where the steps
-    # turn into the ramp's and `idle_run` jumps again after walking the margin.
+    # turn into the ramp's and `idle_run` jumps again.
     turn = next((i - 1 for i, (_, mi, _) in enumerate(states) if i and product[0] > 0 and mi > max(product)), steps)
-    assert k == turn - JUMP_MARGIN, (k, turn, steps)
+    assert k == turn, (k, turn, steps)
     want_pos, want_m, want_last = states[int(k)]
     assert got_pos == pytest.approx(want_pos, abs=1e-3) and got_m == pytest.approx(want_m, abs=1e-5)
     assert last == pytest.approx(want_last, abs=1e-5)
+
+
+@pytest.mark.parametrize("case", list(JUMPS))
+def test_ramp_jump_leaves_a_lookup_on_a_step_midpoint_to_the_loop(case):
+    """A skip-cell lookup exactly at the float32 midpoint of step j (the loop's event: t >= check there): the jump
+    takes steps 0 .. j - 1 and never step j, which the float64 closed form puts a hair before the lookup as often
+    as after (JUMP_SLACK: without it the ramp's and the constant steps' jumps took the event's step for most of
+    these lookups)."""
+    (pos, m), seg, product, _, k_a = JUMPS[case]
+    _, states = walk(pos, m, seg, product, (1.0e9, 1.0e9), DT, k_a, limit=60)
+    for j in range(15, 45):
+        check = (float(states[j + 1][2]), 1.0e9)
+        steps, _ = walk(pos, m, seg, product, check, DT, k_a)
+        k = jump(pos, m, seg, product, check, k_a)[2]
+        assert k <= steps, (j, k, steps)
+        if product[0] == 0:  # the ramp: no turn before the lookup
+            assert k == steps, (j, k, steps)
 
 
 def test_vsa_idle_runs_are_jumped_and_counted():
