@@ -48,7 +48,7 @@ LISTED_SCENES = (*SCENES, "instances", "instances-overlap", "smoke-floor", "fire
 FOG_SCENE_NAMES = ("hall", "courtyard", "dynamic")
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
             "shadow_rays", "shadow_voxels", "box_tests", "tile_box_tests", "bvh_queries", "ao_bvh_queries",
-            "joint_rays", "skipped_steps", "light_skipped", "jumped_steps")
+            "joint_rays", "skipped_steps", "light_skipped", "jumped_steps", "idle_runs")
 GARBAGE = b"this is not a volume \x00\x01\x02\xff" * 8
 
 

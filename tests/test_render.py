@@ -105,7 +105,7 @@ def test_counters_counted_by_hand():
                                     "light_skipped": 0,  # a homogeneous cube: no empty cell to skip
                                     # the tiled OIT: one tile ray (one BVH query, one box test), one box per pixel
                                     "box_tests": 1, "tile_box_tests": 1, "bvh_queries": 1, "ao_bvh_queries": 0,
-                                    "joint_rays": 0, "jumped_steps": 0}
+                                    "joint_rays": 0, "jumped_steps": 0, "idle_runs": 0}
 
 
 def test_counters_match_host_count_per_pixel(method):

@@ -17,7 +17,7 @@ from volren.device import counter_rows_for, synchronize
 
 COUNTERS = ("density_samples", "light_samples", "lightmap_lookups", "rays", "shared_samples", "interleaved_samples",
             "shadow_rays", "shadow_voxels", "box_tests", "tile_box_tests", "bvh_queries", "ao_bvh_queries",
-            "joint_rays", "skipped_steps", "light_skipped", "jumped_steps")
+            "joint_rays", "skipped_steps", "light_skipped", "jumped_steps", "idle_runs")
 """Work counters gathered by the kernels (wp.atomic_add into one int64 array, indexed by position here):
 density_samples: trilinear density fetches on view rays; light_samples: density fetches on rays towards lights
 (light-map pass or the reference's per-sample shadow rays); lightmap_lookups: light-map fetches while shading;
@@ -35,10 +35,12 @@ Warp's query does not report the nodes it visits); ao_bvh_queries: the surfaces'
 skipped_steps: view-ray steps of the light-map march left unsampled by empty-space skipping (with it off they would
 be density_samples); light_skipped: steps of the light-map pass's rays towards lights left unsampled by empty-space
 skipping (with it off they would be light_samples); jumped_steps: those of the skipped_steps that CACRM's idle runs
-took in closed form under VSA (`volren.render.marching.cacrm.ramp_jump`) instead of one by one."""
+took in closed form under VSA (`volren.render.marching.cacrm.ramp_jump`) instead of one by one; idle_runs: the
+runs of steps CACRM's coupled pair took with every live eye in empty space (`volren.render.marching.cacrm.idle_run`),
+each a return to its full loop."""
 (DENSITY_SAMPLES, LIGHT_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES, INTERLEAVED_SAMPLES, SHADOW_RAYS,
  SHADOW_VOXELS, BOX_TESTS, TILE_BOX_TESTS, BVH_QUERIES, AO_BVH_QUERIES, JOINT_RAYS, SKIPPED_STEPS,
- LIGHT_SKIPPED, JUMPED_STEPS) = range(len(COUNTERS))
+ LIGHT_SKIPPED, JUMPED_STEPS, IDLE_RUNS) = range(len(COUNTERS))
 
 
 @dataclass

@@ -63,6 +63,7 @@ from volren.kernels.common import (
 from volren.render.compositing.mesh_layers import next_layer_t, segment_advance
 from volren.render.frame import (
     DENSITY_SAMPLES,
+    IDLE_RUNS,
     JUMPED_STEPS,
     LIGHTMAP_LOOKUPS,
     RAYS,
@@ -335,6 +336,38 @@ def idle_run(pos: float, m: float, seg: mat24, slope: wp.vec2, live: wp.vec2i, n
     return pos, m, steps, jumped, last
 
 
+HORIZON_LOOKUPS = 32
+"""`empty_horizon` follows at most this many empty cubes per call (a longer run is followed again at its end)"""
+HORIZON_NUDGE = wp.constant(1.0e-2)
+"""[skip cells] how far past an empty cube's exit `empty_horizon` looks up the next cell: far enough for float
+rounding to land in the next cell, and well inside the half voxel beyond an empty cell that still reads zero
+(`volren.upload.skip_grid`), so a step whose midpoint falls in that sliver is rightly taken as empty"""
+
+
+@wp.func
+def empty_horizon(vol: VolumeGPU, max_density: wp.array(dtype=float), o: wp.vec3, d: wp.vec3, inv: wp.vec3,
+                  t: float, t_end: float, mode: int, acc: wp.vec4, inv_max: float, iso_value: float) -> float:
+    """From the exit t of a skippable skip cell (or empty cube) of the ray ``o + t d`` (skip-cell coordinates),
+    the ray distance up to which the cells that follow are skippable too: each next cell is looked up just past the
+    last one's exit, until one that is not skippable, the segment's end t_end or HORIZON_LOOKUPS lookups.
+
+    The coupled pair's idle run ends wherever either eye's next lookup falls due (`idle_run`); following an eye's
+    empty cubes ahead of the lattice makes the run end only where an eye reaches a cell that is not empty, so the
+    pair re-enters its loop and `ramp_jump` once per run of empty space instead of once per cube of either eye:
+    idle runs per pair 8.2 -> 1.6 (smoke 128^3, 480x270 stereo). Which steps read 0 is unchanged (a step is
+    skipped iff its midpoint lies in a skippable cube, as when each lookup waited for a step midpoint); in
+    ``mode`` MIP the running max acc[0] cannot grow over the skipped steps, so the cells stay skippable."""
+    nudge = HORIZON_NUDGE / wp.length(d)
+    for _ in range(HORIZON_LOOKUPS):
+        if t >= t_end:
+            return t
+        found = skip_lookup(vol, max_density, o + (t + nudge) * d, o, inv)
+        if found[1] <= t + nudge or not skippable(mode, found[0], acc, inv_max, iso_value):
+            return t
+        t = found[1]
+    return t
+
+
 @wp.kernel
 def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64), row0: int):
     """One texel, both eyes (eye 1 only when job.eyes == 2): synchronised anchored steps, shared cell fetches; with
@@ -397,6 +430,7 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
     jumped = int(0)
     shared = int(0)
     skipped = int(0)
+    idle_runs = int(0)
     shaded = int(0)
     share = job.share
     # VSA: the optical depth of a base step per unit density (Eq. 6's a).
@@ -410,7 +444,8 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
         # Each eye's step while it is inside its segment (eye 1 is absent when marching one view alone), and its
         # trilinear cell (-1: none: not live, or in an empty skip cell). Empty-space skipping per eye (as
         # `march_volume_light_map`): the skip cell holding a step's midpoint is looked up when the step leaves the
-        # last cell (or empty cube) looked up; a step in an empty one reads density 0 without a fetch, exactly what
+        # last cell (or empty cube) looked up, and an empty one's successors are followed along the ray up to the
+        # first that is not (`empty_horizon`); a step in an empty one reads density 0 without a fetch, exactly what
         # the fetch would read, so the lattice, VSA's proposals and the image are unchanged.
         live = wp.vec2i(0)
         s = mat22()
@@ -427,6 +462,9 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
                     found = skip_lookup(vol, medium.max_density, oc[e] + s[e, 0] * dc[e], oc[e], inv[e])
                     check[e] = found[1]
                     empty[e] = int(skippable(params.mode, found[0], acc[e], params.inv_max, params.iso_value))
+                    if empty[e] != 0:
+                        check[e] = empty_horizon(vol, medium.max_density, oc[e], dc[e], inv[e], check[e], seg[e, 1],
+                                                 params.mode, acc[e], params.inv_max, params.iso_value)
                 p[e] = o[e] + s[e, 0] * dl[e]
                 if empty[e] == 0:
                     f[e] = grid_coords(vol.res, p[e])
@@ -513,6 +551,7 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
             # The steps after an idle one are mostly idle too: walk them without the rest of the loop
             # (`idle_run`); every live eye's last sample was 0, so its next proposals are Eq. 4's ramp over a
             # constant product.
+            idle_runs += 1
             product = wp.vec2(1.0)
             for e in range(2):
                 if vp.enabled != 0 and live[e] != 0:
@@ -531,6 +570,7 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
     count(counters, SHARED_SAMPLES, shared)
     count(counters, SKIPPED_STEPS, skipped)
     count(counters, JUMPED_STEPS, jumped)
+    count(counters, IDLE_RUNS, idle_runs)
     count(counters, LIGHTMAP_LOOKUPS, shaded * medium.lights.shape[0])
     count(counters, RAYS, int(seg[0, 3] + seg[1, 3]))
 
