@@ -24,7 +24,7 @@ from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig
-from volren.render.marching.cacrm import mat24, ramp_jump
+from volren.render.marching.cacrm import mat24, ramp_jump, unit_run
 from volren.render.marching.vsa import VSAParams, lambda_cap, ramp_slope, vsa_proposal, zero_product
 from volren.scene import Scene
 
@@ -180,6 +180,44 @@ def test_ramp_jump_leaves_a_lookup_on_a_step_midpoint_to_the_loop(case):
         assert k <= steps, (j, k, steps)
         if product[0] == 0:  # the ramp: no turn before the lookup
             assert k == steps, (j, k, steps)
+
+
+@wp.kernel
+def unit_run_kernel(pos: float, seg: mat24, product: wp.vec2, check: wp.vec2, vp: VSAParams, dt: float,
+                    out: wp.array(dtype=float)):
+    slope = wp.vec2(ramp_slope(vp, seg[0, 1]), ramp_slope(vp, seg[1, 1]))
+    out[0] = unit_run(pos, seg, slope, wp.vec2i(1, 1), wp.vec2i(100000), wp.vec2(1.0), check, wp.vec2(1.0e30),
+                      product, vp, dt, 0.01)
+
+
+# pos, products, next lookups, k_a (both eyes' segments as in JUMPS): where the ramp passes 1 first, where the
+# lookup comes first, a product above 1 (no unit step), and no ramp (k_a = 0).
+UNIT_RUNS = {
+    "ramp": (200.0, (0.0, 0.0), (4.15, 4.16), 1.5),
+    "lookup": (200.0, (0.5, 0.0), (2.5, 4.16), 1.5),
+    "product": (200.0, (1.2, 0.0), (4.15, 4.16), 1.5),
+    "no-ramp": (150.0, (0.0, 1.0), (4.15, 3.9), 0.0),
+}
+
+
+@pytest.mark.parametrize("case", list(UNIT_RUNS))
+def test_unit_runs_end_in_closed_form_where_the_loop_leaves_unit_steps(case):
+    """`unit_run`'s closed form for a run of unit steps (m = 1) against `idle_run`'s float32 loop: it ends where
+    the loop's proposal leaves 1 (Eq. 4's ramp k_a t / t_max passing 1, or a product above 1) or a lookup comes,
+    at most one step past by rounding (which `idle_run` checks step by step: without the ramp's bound it walked
+    back one step at a time from the lookup, ~15% of the smoke's coupled march)."""
+    pos, product, check, k_a = UNIT_RUNS[case]
+    seg = ((2.2, 4.2), (2.21, 4.21))
+    _, states = walk(pos, 1.0, seg, product, check, DT, k_a)
+    exact = next((i - 1 for i, (_, mi, _) in enumerate(states) if i and mi > 1.0), len(states) - 1)
+    vp = VSAParams()
+    vp.enabled, vp.k_a, vp.k_b, vp.f_lambda_max, vp.w_lambda, vp.w_t, vp.w_a = 1, k_a, 0.01, 4.0, 1.0, 4.0, 1.0
+    out = wp.zeros(1, dtype=float, device="cpu")
+    wp.launch(unit_run_kernel, dim=1, device="cpu", inputs=[
+        pos, mat24(*seg[0], 1.0, 1.0, *seg[1], 1.0, 1.0), wp.vec2(*product), wp.vec2(*check), vp, DT, out])
+    k = out.numpy()[0]
+    assert exact <= k <= exact + 1, (k, exact, len(states) - 1)
+    assert (exact == 0) == (case == "product") and (case != "ramp" or exact < len(states) - 10), (exact, states)
 
 
 def test_vsa_idle_runs_are_jumped_and_counted():

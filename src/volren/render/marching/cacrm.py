@@ -268,6 +268,28 @@ def ramp_jump(pos: float, m: float, seg: mat24, slope: wp.vec2, live: wp.vec2i, 
 
 
 @wp.func
+def unit_run(pos: float, seg: mat24, slope: wp.vec2, live: wp.vec2i, n: wp.vec2i, trans: wp.vec2, check: wp.vec2,
+             next_t: wp.vec2, product: wp.vec2, vp: VSAParams, dt: float, min_t: float) -> float:
+    """`idle_run`'s unit steps from pos (m = 1) in closed form: each live eye's last step midpoint before its next
+    skip-cell lookup, mesh layer and (VSA) the ramp's passing 1, an eye not yet in its segment still out. Float
+    rounding can put it one step past the exact count, which `idle_run` then checks step by step."""
+    k = wp.floor(pos)
+    for e in range(2):
+        if live[e] != 0:
+            bound = wp.min(check[e], next_t[e])
+            if vp.enabled != 0:
+                # Eq. 4's ramp passes 1 beyond t = t_max / k_a, and a product above 1 leaves no unit step
+                if product[e] > 1.0:
+                    k = 0.0
+                elif slope[e] > 0.0:
+                    bound = wp.min(bound, 1.0 / slope[e])
+            k = wp.min(k, wp.floor(pos + 0.5 - wp.max((seg[e, 1] - bound) / dt, -pos)))
+        elif trans[e] >= min_t and n[e] > 0:
+            k = wp.min(k, wp.floor(pos - float(n[e])))
+    return k
+
+
+@wp.func
 def idle_run(pos: float, m: float, seg: mat24, slope: wp.vec2, live: wp.vec2i, n: wp.vec2i, trans: wp.vec2,
              check: wp.vec2, next_t: wp.vec2, product: wp.vec2, vp: VSAParams, dt: float, min_t: float):
     """The pair's steps from (pos, m) while they stay idle: each live eye's step midpoint before its next skip-cell
@@ -284,13 +306,7 @@ def idle_run(pos: float, m: float, seg: mat24, slope: wp.vec2, live: wp.vec2i, n
     jumped = float(0.0)
     last = wp.vec2(0.0)
     if m == 1.0:
-        k = wp.floor(pos)
-        for e in range(2):
-            if live[e] != 0:
-                bound = wp.min(check[e], next_t[e])
-                k = wp.min(k, wp.floor(pos + 0.5 - wp.max((seg[e, 1] - bound) / dt, -pos)))
-            elif trans[e] >= min_t and n[e] > 0:
-                k = wp.min(k, wp.floor(pos - float(n[e])))
+        k = unit_run(pos, seg, slope, live, n, trans, check, next_t, product, vp, dt, min_t)
         for e in range(2):
             if live[e] != 0:
                 end = lattice_step(seg[e], pos - k + 1.0, 1.0, dt)[0]
