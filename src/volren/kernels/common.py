@@ -225,9 +225,15 @@ def grid_cell(res: wp.vec3i, f: wp.vec3) -> wp.vec3i:
 
 
 @wp.func
+def cell_index(res: wp.vec3i, cell: wp.vec3i) -> int:
+    """The index of ``cell``'s lowest corner voxel in a packed [z, y, x] grid of resolution res."""
+    return (cell[2] * res[1] + cell[1]) * res[0] + cell[0]
+
+
+@wp.func
 def gather_cell(data: wp.array(dtype=float), offset: int, res: wp.vec3i, cell: wp.vec3i) -> vec8:
     """The 8 voxels of a packed [z, y, x] grid around ``cell``."""
-    i = offset + (cell[2] * res[1] + cell[1]) * res[0] + cell[0]
+    i = offset + cell_index(res, cell)
     sy = res[0]
     sz = res[0] * res[1]
     return vec8(data[i], data[i + 1], data[i + sy], data[i + sy + 1],

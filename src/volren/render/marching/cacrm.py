@@ -50,6 +50,7 @@ from volren.kernels.common import (
     ViewBuffers,
     VolumeGPU,
     cell_fraction,
+    cell_index,
     count,
     counter_row,
     first_skip_check,
@@ -468,9 +469,11 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
         p = mat23()
         f = mat23()
         cell = mat23i()
+        # each eye's cell as one index (-1: none), compared for sharing: comparing the cells' rows read each back
+        # from memory wider than it was written (a stalled store forward, 3% of the phantom's march)
+        key = wp.vec2i(-1)
         idle = params.mode == MODE_DVR
         for e in range(2):
-            cell[e] = wp.vec3i(-1)
             if pos - m < float(n[e]) and acc[e, 3] >= params.min_transmittance:
                 live[e] = 1
                 s[e] = lattice_step(seg[e], pos, m, dt)
@@ -481,10 +484,15 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
                     if empty[e] != 0:
                         check[e] = empty_horizon(vol, medium.max_density, oc[e], dc[e], inv[e], check[e], seg[e, 1],
                                                  params.mode, acc[e], params.inv_max, params.iso_value)
-                p[e] = o[e] + s[e, 0] * dl[e]
+                # the point and coordinates from registers, not read back from p's and f's rows (as for ``key``)
+                pe = o[e] + s[e, 0] * dl[e]
+                p[e] = pe
                 if empty[e] == 0:
-                    f[e] = grid_coords(vol.res, p[e])
-                    cell[e] = grid_cell(vol.res, f[e])
+                    fe = grid_coords(vol.res, pe)
+                    f[e] = fe
+                    ce = grid_cell(vol.res, fe)
+                    cell[e] = ce
+                    key[e] = cell_index(vol.res, ce)
                 # Idle: in an empty cell before the next mesh layer, DVR composites nothing for its density 0.
                 idle = idle and empty[e] != 0 and s[e, 0] <= next_t[e]
         if live[0] + live[1] == 0:
@@ -501,8 +509,8 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
                 # not empty). Iso skips cells below V, where reading 0 decides the same; MIP skips cells below the
                 # eye's own max.
                 blank = empty[1]
-                cell[blank] = grid_cell(vol.res, grid_coords(vol.res, p[blank]))
-            same = both and share != 0 and cell[0] == cell[1]
+                key[blank] = cell_index(vol.res, grid_cell(vol.res, grid_coords(vol.res, p[blank])))
+            same = both and share != 0 and key[0] == key[1]
             get = wp.vec2i(0)
             for e in range(2):
                 get[e] = int(live[e] != 0 and empty[e] == 0 and not (same and empty[1 - e] != 0))
