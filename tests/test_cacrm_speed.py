@@ -2,13 +2,13 @@
 
 Most of a coupled pair's steps cross empty space together (smoke 128^3, 480x270 stereo, defaults: 11.3 M eye steps
 skipped for 0.62 M density fetches). The texel kernel walks a run of steps where every live eye sits in an empty skip
-cell in `idle_run` (VSA's ramp over a constant product, unit steps jumped in one go, longer runs of VSA steps in
-closed form by `ramp_jump`) instead of its full loop, and follows each eye's empty skip cubes ahead of the lattice
-(`empty_horizon`) so that a run ends only where an eye meets the medium. What that must not change: the lattice and
-the counts (skipping on and off give the same image, to float rounding under VSA, and fetched + skipped = fetched
-without skipping: `test_skipping`), and each eye's march (below; the images agree with the kernel's before
-`ramp_jump` to 125-163 dB PSNR with the same counters, smoke, cloud and phantom at 128^3, 480x270 stereo,
-`scripts/cacrm_speed.py --compare`; before `empty_horizon`, 123-165 dB).
+cell in `idle_run` (VSA's ramp over a constant product, unit steps jumped in one go up to where the ramp passes 1,
+`unit_run`; longer runs of VSA steps in closed form by `ramp_jump`) instead of its full loop, and follows each eye's
+empty skip cubes ahead of the lattice (`empty_horizon`) so that a run ends only where an eye meets the medium. What
+that must not change: the lattice and the counts (skipping on and off give the same image, to float rounding under
+VSA, and fetched + skipped = fetched without skipping: `test_skipping`), and each eye's march (below; the images
+agree with the kernel's before `ramp_jump` to 125-163 dB PSNR with the same counters, smoke, cloud and phantom at
+128^3, 480x270 stereo, `scripts/cacrm_speed.py --compare`; before `empty_horizon`, 123-165 dB).
 """
 
 from __future__ import annotations
