@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import math
+import threading
 import time
 from collections.abc import Iterator
 from unittest import mock
@@ -195,22 +196,36 @@ def test_on_the_kernel_thread_frames_are_pushed_and_never_waited_for():
     """In a kernel jupyter_rfb calls get_frame on its event loop: it must return at once, and each frame the loop
     delivers must ask for a draw there."""
 
+    # the loop's deliveries wait for ``release``, so the new camera's frame cannot land before the check below (a
+    # 64x48 frame renders in milliseconds: racing it failed on a fast machine)
+    release = threading.Event()
+    release.set()
+    deliver = Viewer._deliver
+
+    async def gated(self: Viewer, payload: bytes) -> None:
+        await asyncio.get_running_loop().run_in_executor(None, release.wait)
+        await deliver(self, payload)
+
     async def main() -> None:
         drawn = asyncio.Event()
-        with mock.patch.object(Viewer, "request_draw", lambda self: drawn.set()):
+        with mock.patch.object(Viewer, "request_draw", lambda self: drawn.set()), \
+                mock.patch.object(Viewer, "_deliver", gated):
             v = make_viewer()
             try:
                 await asyncio.wait_for(drawn.wait(), 120)
                 first = v.get_frame()
                 assert same(first, direct(sized(START)))
                 drawn.clear()
+                release.clear()
                 drag(v, -30.0, 0.0, steps=1)  # one new camera: one frame
                 start = time.perf_counter()
                 assert v.get_frame() is first  # the new camera's frame is not here yet: the newest one, at once
                 assert time.perf_counter() - start < 0.05
+                release.set()
                 await asyncio.wait_for(drawn.wait(), 60)
                 assert same(v.get_frame(), direct(sized(orbited(START, 30.0 * ORBIT_RAD_PER_PX, 0.0))))
             finally:
+                release.set()
                 v.close()
 
     asyncio.run(main())
