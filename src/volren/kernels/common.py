@@ -226,7 +226,8 @@ def grid_cell(res: wp.vec3i, f: wp.vec3) -> wp.vec3i:
 
 @wp.func
 def cell_index(res: wp.vec3i, cell: wp.vec3i) -> int:
-    """The index of ``cell``'s lowest corner voxel in a packed [z, y, x] grid of resolution res."""
+    """The index of ``cell`` (a voxel, or a trilinear cell's lowest corner) in a packed [z, y, x] grid of resolution
+    res."""
     return (cell[2] * res[1] + cell[1]) * res[0] + cell[0]
 
 
@@ -276,7 +277,7 @@ def sample_grid_rgb(data: wp.array(dtype=wp.vec3), offset: int, res: wp.vec3i, p
     f = grid_coords(res, p)
     cell = grid_cell(res, f)
     a = cell_fraction(f, cell)
-    i = offset + (cell[2] * res[1] + cell[1]) * res[0] + cell[0]
+    i = offset + cell_index(res, cell)
     out = wp.vec3(0.0)
     for n in range(8):
         out += corner_weight(n, a) * data[i + (n / 4) * res[0] * res[1] + ((n / 2) % 2) * res[0] + n % 2]
@@ -423,7 +424,7 @@ def skip_lookup(vol: VolumeGPU, max_density: wp.array(dtype=float), q: wp.vec3, 
     cells = vol.skip_res
     c = wp.vec3i(wp.clamp(int(wp.floor(q[0])), 0, cells[0] - 1), wp.clamp(int(wp.floor(q[1])), 0, cells[1] - 1),
                  wp.clamp(int(wp.floor(q[2])), 0, cells[2] - 1))
-    value = max_density[vol.skip_offset + (c[2] * cells[1] + c[1]) * cells[0] + c[0]]
+    value = max_density[vol.skip_offset + cell_index(cells, c)]
     r = wp.max(-value, 0.0)
     t = float(1.0e30)
     for a in range(3):

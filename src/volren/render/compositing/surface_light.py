@@ -40,6 +40,7 @@ from volren.kernels.common import (
     VolumeGPU,
     box_hit,
     cell_fraction,
+    cell_index,
     corner_weight,
     count,
     grid_cell,
@@ -248,7 +249,7 @@ def sh_cosine_visibility(sl: SurfaceLight, vol: VolumeGPU, p: wp.vec3, n: wp.vec
     f = grid_coords(res, p)
     cell = grid_cell(res, f)
     a = cell_fraction(f, cell)
-    base = vol.ambient_offset + (cell[2] * res[1] + cell[1]) * res[0] + cell[0]
+    base = vol.ambient_offset + cell_index(res, cell)
     total = float(0.0)
     for corner in range(8):
         idx = base + (corner / 4) * res[0] * res[1] + ((corner / 2) % 2) * res[0] + corner % 2
