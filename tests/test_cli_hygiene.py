@@ -121,7 +121,8 @@ def test_ctrl_c_stops_a_long_render_at_once_and_leaves_nothing(tmp_path: Path) -
         if line.strip() == "volren: interrupted":
             break
     said = time.perf_counter()
-    rest += proc.communicate(timeout=60)[1]
+    rest += proc.stderr.read()  # through the same file object: communicate() would bypass what it has buffered
+    proc.wait(timeout=60)
     exited = time.perf_counter()
     assert proc.returncode == 130, rest
     assert rest.splitlines()[-1] == "volren: interrupted" and "Traceback" not in rest
