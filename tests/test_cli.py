@@ -1142,6 +1142,29 @@ def test_cacrm_switch_refused_by_other_methods(capfd, tmp_path: Path) -> None:
     render_error(capfd, tmp_path, ["--method", "cmsrm", "--no-coupling"], "--no-coupling")
 
 
+def test_k_a_option_reaches_the_ramp(capfd, tmp_path: Path) -> None:
+    """--k-a sets Eq. 4's ramp: the paper's 3 lengthens the steps (fewer samples than the default 1.5, more with 0)."""
+    samples = {}
+    for k_a in ("0", None, "3"):
+        out = tmp_path / f"k{k_a}"
+        render(capfd, out, "--no-hybrid", "--no-lod", *(["--k-a", k_a] if k_a else []), method="cacrm")
+        samples[k_a] = stats_of(out)["frames"][0]["counters"]["density_samples"]
+    assert samples["0"] > samples[None] > samples["3"]
+
+
+@pytest.mark.parametrize(
+    ("extra", "fragment"),
+    [
+        (["--method", "cmsrm", "--k-a", "3"], "does not take --k-a"),
+        (["--method", "cacrm", "--k-a", "3", "--no-vsa"], "--k-a sets VSA's ramp"),
+        (["--method", "cacrm", "--k-a", "3", "--mode", "mip"], "--k-a sets VSA's ramp"),
+        (["--method", "cacrm", "--k-a", "-1"], "k_a must be a finite number >= 0"),
+    ],
+)
+def test_k_a_refused_where_it_would_do_nothing(capfd, tmp_path: Path, extra: list[str], fragment: str) -> None:
+    render_error(capfd, tmp_path, extra, fragment)
+
+
 @pytest.mark.parametrize("method", ["cmsrm", "cacrm"])
 def test_tile_lod_option(capfd, tmp_path: Path, method: str) -> None:
     out = tmp_path / "t"

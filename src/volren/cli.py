@@ -302,6 +302,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--no-coupling", action="store_true", help="cacrm: march each eye alone (same steps)")
     r.add_argument("--no-share", action="store_true", help="cacrm: couple the eyes but fetch voxels per ray")
     r.add_argument("--no-vsa", action="store_true", help="cacrm: uniform steps (no variable step amplification)")
+    r.add_argument("--k-a", type=float, help="cacrm: Eq. 4's ramp k_a t / t_max, >= 0 (default 1.5, fitted; the "
+                   "paper's 3 takes about half the samples at the default N = 360 for 0.3-0.7 dB less PSNR)")
     r.add_argument("--no-interleave", action="store_true", help="cacrm: no interleaved spatial reuse of 2x2 quads")
     r.add_argument("--mode", choices=("dvr", "mip", "mida", "iso"), help="dssrm/cmsrm/cacrm: dvr (volume rendering, "
                    "default), mip (maximum intensity projection), mida (maximum intensity difference accumulation) "
@@ -868,6 +870,7 @@ def renderer_from_args(args: argparse.Namespace, method: str):
         "coupling": (False if args.no_coupling else None, "--no-coupling"),
         "share_voxels": (False if args.no_share else None, "--no-share"),
         "vsa": (False if args.no_vsa else None, "--no-vsa"),
+        "k_a": (args.k_a, "--k-a"),
         "interleave": (False if args.no_interleave else None, "--no-interleave"),
         "mode": (None if args.mode in (None, "dvr") else args.mode, "--mode"),
         "iso_value": (args.iso_value, "--iso-value"),
@@ -890,6 +893,8 @@ def renderer_from_args(args: argparse.Namespace, method: str):
     }
     if args.iso_value is not None and args.mode != "iso":
         raise CliError("--iso-value needs --mode iso")
+    if args.k_a is not None and (args.no_vsa or args.mode not in (None, "dvr")):
+        raise CliError("--k-a sets VSA's ramp, which marches in --mode dvr only and not with --no-vsa")
     gi = {"method": (args.gi, "--gi"), "order": (args.gi_order, "--gi-order"), "rays": (args.gi_rays, "--gi-rays"),
           "volumes_per_frame": (args.gi_volumes, "--gi-volumes")}
     gi_options = {k: v for k, (v, _) in gi.items() if v is not None}
