@@ -5,7 +5,8 @@ warm-up each is timed ``--repeats`` times, alternating, and the minimum frame ti
 the minimum is the least-disturbed run). Prints per scene and size: ms per frame and per pass, the counters, the
 ratio CMSRM / CACRM frame time (> 1: CACRM faster), each method's cube march as a ratio to CMSRM's, and a checksum of
 CACRM's images (to pin them across changes). ``--ablation`` adds CACRM with uniform steps and with k_a = 0 (VSA's
-product, no ramp; paper 000 Eq. 4-6) to the same interleaved loop."""
+product, no ramp; paper 000 Eq. 4-6) to the same interleaved loop; ``--k-a 2,3`` adds CACRM at each of those ramps
+(quality: `scripts/k_a_sweep.py`)."""
 
 from __future__ import annotations
 
@@ -21,12 +22,14 @@ from volren.data import builtin_scene
 from volren.render import CACRM, CMSRM, CACRMConfig
 
 
-def renderers(ablation: bool) -> dict[str, CMSRM | CACRM]:
+def renderers(ablation: bool, k_as: list[float]) -> dict[str, CMSRM | CACRM]:
     """The methods one case times, CMSRM first (the ratios' base)."""
     methods: dict[str, CMSRM | CACRM] = {"cmsrm": CMSRM()}
     if ablation:
         methods["cacrm uniform"] = CACRM(CACRMConfig(vsa=False))
         methods["cacrm k_a 0"] = CACRM(CACRMConfig(k_a=0.0))
+    for k_a in k_as:
+        methods[f"cacrm k_a {k_a:g}"] = CACRM(CACRMConfig(k_a=k_a))
     methods["cacrm"] = CACRM()
     return methods
 
@@ -38,6 +41,7 @@ def main() -> None:
     ap.add_argument("--resolution", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--ablation", action="store_true", help="also time CACRM with uniform steps and with k_a = 0")
+    ap.add_argument("--k-a", default="", help="comma-separated k_a values: also time CACRM with each ramp")
     ap.add_argument("--save", help="write CACRM's images per case to this .npz (to compare across changes)")
     ap.add_argument("--compare", help="a .npz from --save: print CACRM's PSNR against it per case")
     args = ap.parse_args()
@@ -48,7 +52,7 @@ def main() -> None:
         for size in args.sizes.split(","):
             w, h = (int(s) for s in size.split("x"))
             views = make_views(Camera(position=(0.0, 0.4, 3.2), width=w, height=h), "stereo")
-            methods = renderers(args.ablation)
+            methods = renderers(args.ablation, [float(k) for k in args.k_a.split(",") if k])
             best: dict[str, tuple[float, object]] = {}
             for r in methods.values():
                 r.render(scene, views)
