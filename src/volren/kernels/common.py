@@ -434,6 +434,18 @@ def skip_lookup(vol: VolumeGPU, max_density: wp.array(dtype=float), q: wp.vec3, 
 
 
 @wp.func
+def skip_value(vol: VolumeGPU, max_density: wp.array(dtype=float), p: wp.vec3) -> float:
+    """The `skip_grid` value of the skip cell holding local point p (clamped to the grid; the cells of
+    `skip_cell_ray`): <= 0 where every voxel a trilinear sample at p reads is 0."""
+    cells = vol.skip_res
+    to_cell = 0.5 / float(wp.max(vol.skip_cell, 1))
+    c = wp.vec3i(wp.clamp(int(wp.floor((p[0] + 1.0) * float(vol.res[0]) * to_cell)), 0, cells[0] - 1),
+                 wp.clamp(int(wp.floor((p[1] + 1.0) * float(vol.res[1]) * to_cell)), 0, cells[1] - 1),
+                 wp.clamp(int(wp.floor((p[2] + 1.0) * float(vol.res[2]) * to_cell)), 0, cells[2] - 1))
+    return max_density[vol.skip_offset + cell_index(cells, c)]
+
+
+@wp.func
 def skip_cell_ray(vol: VolumeGPU, o_l: wp.vec3, d_l: wp.vec3):
     """The local ray ``o_l + t d_l`` in skip-cell coordinates (cell c spans [c, c + 1) on each axis:
     q = (p + 1) res / (2 skip_cell)): its origin, direction and the direction's inverse (for `skip_lookup`)."""

@@ -30,6 +30,13 @@ smooth at this step, and the re-interpolation error is all InS adds; clamping th
 57.9, cloud 58.5 dB). Since the quad work item costs about twice a texel work item on the CPU, `interleave_tiles`
 routes only the tiles where some quad can interleave to this kernel (a conservative test from the tile's corners)
 and the rest to the texel kernel.
+
+Empty space: a lane whose sample lies in an empty skip cell reads 8 zero voxels (`volren.upload.skip_grid`), so the
+kernel takes its cell as zero without the fetch, and the lanes that re-interpolate it read 0 too: the same image bit
+for bit with fewer gathers (smoke 64^3 at the close-up, N = 100: 1,244,432 -> 395,895; smoke 256^3 at N = 64 with
+the adaptive LOD's coarse level, where every tile is routed here: 8.1 M -> 0.80 M). The steps are still walked one
+by one (the texel kernel jumps idle runs), which is what the kernel costs in empty space: its march there is 1.4-7x
+the texel kernel's (docs/BENCHMARKS.md, issue 24's fifth session).
 """
 
 from __future__ import annotations
@@ -47,10 +54,18 @@ from volren.kernels.common import (
     grid_coords,
     half_depth,
     interpolate_cell,
+    skip_value,
     vec8,
 )
 from volren.render.compositing.mesh_layers import next_layer_t, segment_advance
-from volren.render.frame import DENSITY_SAMPLES, INTERLEAVED_SAMPLES, LIGHTMAP_LOOKUPS, RAYS, SHARED_SAMPLES
+from volren.render.frame import (
+    DENSITY_SAMPLES,
+    INTERLEAVED_SAMPLES,
+    LIGHTMAP_LOOKUPS,
+    RAYS,
+    SHARED_SAMPLES,
+    SKIPPED_STEPS,
+)
 from volren.render.marching.coupled import CoupledJob, job_constants, pair_eye_ray, pair_finish, pair_mesh, pair_target
 from volren.render.marching.cubemap import texel_index, texel_point, tile_texel
 from volren.render.marching.march import lit_step
@@ -170,6 +185,12 @@ def quad_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64),
     extra = int(0)
     shared = int(0)
     shaded = int(0)
+    skipped = int(0)
+    # Empty-space skipping (DVR: the quad kernel runs with VSA only): a lane whose sample lies in an empty skip cell
+    # reads 8 zero voxels (`volren.upload.skip_grid`), so its cell is zero without a fetch, and so are the other
+    # lanes' re-interpolations of it: the same samples, lattice and image.
+    skipping = medium.skip != 0 and vol.skip_cell != 0
+    blank = vec8i()
     absorb = vol.density_scale * dt
     pos = float(wp.max(n0, n1))
     m = float(1.0)
@@ -209,16 +230,25 @@ def quad_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64),
                 cell = grid_cell(vol.res, f)
                 origin = wp.vec3(float(cell[0]), float(cell[1]), float(cell[2]))
                 mate = lane % 4
+                blank[lane] = 0
                 if e == 1 and job.share != 0 and fetched[mate] > 0.0 and origins[mate] == origin:
                     cells[lane] = cells[mate]
-                    shared += 1
+                    blank[lane] = blank[mate]
+                    shared += int(blank[mate] == 0)
+                elif skipping and skip_value(vol, medium.max_density, p) <= 0.0:
+                    cells[lane] = vec8()
+                    blank[lane] = 1
                 else:
                     cells[lane] = gather_cell(medium.density, vol.offset, vol.res, cell)
                 origins[lane] = origin
-                own[lane] = interpolate_cell(cells[lane], cell_fraction(f, cell))
+                own[lane] = float(0.0)
+                if blank[lane] == 0:
+                    own[lane] = interpolate_cell(cells[lane], cell_fraction(f, cell))
+                    samples += 1
+                else:
+                    skipped += 1
                 own_t[lane] = t
                 fetched[lane] = 1.0
-                samples += 1
         # Composite: four quarter steps from the quad's samples, or the lane's own step.
         quad_m = wp.vec2(INF)
         for lane in range(LANES):
@@ -245,9 +275,11 @@ def quad_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64),
                         x = eye_w[e] + t * dw[lane]
                         rho = own[lane]
                         if source != lane:
-                            fraction = lane_fraction(origins[source], vol.res, p)
-                            rho = wp.max(interpolate_cell(cells[source], fraction), 0.0)
-                            extra += 1
+                            rho = float(0.0)
+                            if blank[source] == 0:
+                                fraction = lane_fraction(origins[source], vol.res, p)
+                                rho = wp.max(interpolate_cell(cells[source], fraction), 0.0)
+                                extra += 1
                         if rho > 0.0:
                             shaded += 1
                             if t > next_t[lane]:
@@ -284,6 +316,7 @@ def quad_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64),
     count(counters, DENSITY_SAMPLES, samples)
     count(counters, SHARED_SAMPLES, shared)
     count(counters, INTERLEAVED_SAMPLES, extra)
+    count(counters, SKIPPED_STEPS, skipped)
     count(counters, LIGHTMAP_LOOKUPS, shaded * medium.lights.shape[0])
 
 
