@@ -9,7 +9,7 @@ them (light grid, 96 light samples, no hybrid). One JSON line per scene.
 
     python scripts/k_a_sweep.py --resolution 64 --frames 0 --size 96x54 --reference 128   # a quick look (~30 s)
     python scripts/k_a_sweep.py                      # the papers' 256^3 at 480x270, three frames (~10 min, 2 cores)
-    python scripts/k_a_sweep.py --samples 64 --k-a 1.5,3 --uniform 64   # the fit's N = 64, where the ramp costs
+    python scripts/k_a_sweep.py --samples 64 --no-lod --k-a 1.5,3 --uniform 56,64   # the fit's N = 64
 """
 
 from __future__ import annotations
@@ -25,13 +25,13 @@ from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig, Reference, ReferenceConfig
 
 
-def methods(k_as: list[float], samples: int, uniform: list[int], light_grid: int) -> dict[str, CMSRM]:
-    """CMSRM at N = 360, CACRM at N = ``samples`` per k_a, uniform CACRM per N (adaptive LOD off, as
-    `equal_gathers`)."""
+def methods(k_as: list[float], samples: int, lod: bool, uniform: list[int], light_grid: int) -> dict[str, CMSRM]:
+    """CMSRM at N = 360, CACRM at N = ``samples`` per k_a (adaptive LOD ``lod``), uniform CACRM per N (adaptive LOD
+    off, as `equal_gathers`: with it a low N also picks a coarser density level)."""
     base = {"light_samples": 96, "light_grid": light_grid, "hybrid": False}
     out: dict[str, CMSRM] = {"CMSRM:360:96": CMSRM(CMSRMConfig(samples=360, **base))}
     for k_a in k_as:
-        out[f"CACRM:{samples} k_a {k_a:g}"] = CACRM(CACRMConfig(samples=samples, k_a=k_a, **base))
+        out[f"CACRM:{samples} k_a {k_a:g}"] = CACRM(CACRMConfig(samples=samples, k_a=k_a, adaptive_lod=lod, **base))
     for n in uniform:
         out[f"CACRM:{n} uniform"] = CACRM(CACRMConfig(samples=n, vsa=False, adaptive_lod=False, **base))
     return out
@@ -46,6 +46,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", default="0,4,8", help="frames of the 12-frame orbit")
     ap.add_argument("--k-a", default="1.5,2,2.25,3", help="comma-separated k_a values")
     ap.add_argument("--samples", type=int, default=360, help="CACRM's base step count N for the k_a rows")
+    ap.add_argument("--no-lod", action="store_true", help="the k_a rows without the adaptive LOD (as the uniform rows)")
     ap.add_argument("--uniform", default="64,96,128,160", help="uniform-step counts N (empty: none)")
     ap.add_argument("--reference", type=int, default=1024, help="reference samples and light samples")
     args = ap.parse_args(argv)
@@ -56,7 +57,7 @@ def main(argv: list[str] | None = None) -> None:
     for name in args.scenes.split(","):
         start = time.perf_counter()
         scene = builtin_scene(name, args.resolution)
-        renderers = methods(k_as, args.samples, uniform, args.light_grid or args.resolution // 2)
+        renderers = methods(k_as, args.samples, not args.no_lod, uniform, args.light_grid or args.resolution // 2)
         reference = Reference(ReferenceConfig(samples=args.reference, light_samples=args.reference))
         totals = {key: {"psnr": 0.0, "gathers": 0} for key in renderers}
         for f in frames:
