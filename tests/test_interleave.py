@@ -110,12 +110,27 @@ def test_fitted_vsa_interleaves_near_the_eye_and_gains_on_the_cloud():
         assert psnr(d, a) > psnr(d, b) + 3.0
 
 
-def test_quad_steps_by_the_smallest_lane_proposal():
+def test_ins_runs_only_where_a_base_step_reaches_a_voxel():
+    """At N = 360 on 64^3 (0.31 voxels a base step) every tile takes the texel kernel, eyes inside the box included
+    (`base_step_reaches_a_voxel`); at N = 100 (1.1 voxels) the quads interleave."""
+    scene = builtin_scene("cloud", 64)
+    fitted = {"light_grid": 32, "hybrid": False}
+    fine = CACRM(CACRMConfig(samples=360, **fitted), device=DEVICE).render(scene, INSIDE)
+    plain = CACRM(CACRMConfig(samples=360, interleave=False, **fitted), device=DEVICE).render(scene, INSIDE)
+    coarse = CACRM(CACRMConfig(samples=100, **fitted), device=DEVICE).render(scene, INSIDE)
+    assert fine.stats.counters["interleaved_samples"] == 0 and coarse.stats.counters["interleaved_samples"] > 0
+    for a, b in zip(fine.images, plain.images, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_quad_steps_by_the_smallest_lane_proposal(monkeypatch):
     """A quad shares one step: the smallest of its lanes' Eq. 4 proposals (the largest of the two eyes). Phantom 64^3
     at the close-up, N = 360 (no quad interleaves: steps stay below a voxel), fitted VSA, against 2048 uniform steps:
     quads 63.65 / 63.04 dB, texel kernel 63.21 / 62.68 dB; with the largest of all eight lanes the quads lost
     1.7 dB (61.2 against 62.9, mean of the eyes at 160x90). Floor: the quads within 0.3 dB of the texel kernel. The
-    hard-edged phantom: with issue 13's smooth skull the eight-lane rule lost too little to fail the floor."""
+    hard-edged phantom: with issue 13's smooth skull the eight-lane rule lost too little to fail the floor. The
+    quads are forced: at this N the routing sends every tile to the texel kernel."""
+    monkeypatch.setattr(cacrm_module, "base_step_reaches_a_voxel", lambda *args: True)
     scene = hard_phantom(64)
     fitted = {"light_grid": 32, "hybrid": False, "skip_empty": False}
     dense = CACRM(CACRMConfig(samples=2048, vsa=False, interleave=False, **fitted), device=DEVICE).render(scene, INSIDE)

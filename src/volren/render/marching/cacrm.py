@@ -75,7 +75,7 @@ from volren.render.frame import (
 from volren.render.marching.cmsrm import CMSRM, CMSRMConfig, TileGroup
 from volren.render.marching.coupled import CoupledJob, job_constants, pair_eye_ray, pair_finish, pair_mesh, pair_target
 from volren.render.marching.cubemap import CubeLOD, CubeTarget, texel_index, texel_point, tile_texel
-from volren.render.marching.interleave import interleave_tiles, quad_march_kernel
+from volren.render.marching.interleave import base_step_reaches_a_voxel, interleave_tiles, quad_march_kernel
 from volren.render.marching.march import lit_step, mode_step
 from volren.render.marching.modes import MODE_DVR, MODE_MIP, skippable
 from volren.render.marching.vsa import (
@@ -106,7 +106,8 @@ class CACRMConfig(CMSRMConfig):
     """variable step amplification (Eq. 4-6); off = uniform steps"""
     interleave: bool = True
     """interleaved spatial reuse (§3.1.3): 2x2 texel quads share their samples where their rays run < 1/2 voxel
-    apart (`volren.render.marching.interleave`)"""
+    apart (`volren.render.marching.interleave`), where a base step is at least a voxel
+    (`base_step_reaches_a_voxel`: N up to the grid's diagonal in voxels, 221 at 128^3)"""
     k_a: float = VSA_FIT["k_a"]
     """Eq. 4: ray-length amplification k_a t / t_max (paper: 3; fitted: 1.5, see vsa_fit.json)"""
     k_b: float = VSA_FIT["k_b"]
@@ -656,10 +657,10 @@ class CACRM(CMSRM):
         first, last = group[0], group[-1]
         # InS: one work item per 2x2 quad in the tiles where some quad can interleave; one per texel elsewhere.
         routes = [(coupled_march_kernel, tiles.origins, tiles.rows)]
-        if self.config.interleave and self._vsa_on():
+        res = (level.res[0], level.res[1], level.res[2])
+        if self.config.interleave and self._vsa_on() and base_step_reaches_a_voxel(samples, res):
             vol = ds.scene.volumes[v]
             origins = tiles.origins.numpy()
-            res = np.array([level.res[0], level.res[1], level.res[2]], dtype=float)
             quad = interleave_tiles(vol.to_world, [views[i].position for i in group], views[first].near, origins,
                                     tiles.rows, tiles.size, vol.diagonal / float(np.linalg.norm(res)))
             routes = [(kernel, wp.array(origins[mask], dtype=wp.vec3i, device=self.device), cols)
