@@ -7,7 +7,7 @@ This measures that regime: per scene, orbit frames of ``bench binocular`` (stere
 against the reference (``bench binocular``'s: 1024 samples and light samples), as ``bench binocular`` configures
 them (light grid, 96 light samples, no hybrid). One JSON line per scene.
 
-    python scripts/k_a_sweep.py --resolution 64 --frames 0 --size 96x54 --reference 128   # a quick look (~30 s)
+    python scripts/k_a_sweep.py --resolution 64 --frames 0 --size 96x54 --reference 128   # a quick look (~5 s)
     python scripts/k_a_sweep.py                      # the papers' 256^3 at 480x270, three frames (~10 min, 2 cores)
     python scripts/k_a_sweep.py --samples 64 --no-lod --k-a 1.5,3 --uniform 56,64   # the fit's N = 64
 """

@@ -304,7 +304,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     r.add_argument("--no-vsa", action="store_true", help="cacrm: uniform steps (no variable step amplification)")
     r.add_argument("--k-a", type=float, help="cacrm: Eq. 4's ramp k_a t / t_max, >= 0 (default 1.5, fitted; the "
                    "paper's 3 takes about half the samples at the default N = 360 for 0.3-0.7 dB less PSNR)")
-    r.add_argument("--no-interleave", action="store_true", help="cacrm: no interleaved spatial reuse of 2x2 quads")
+    r.add_argument("--no-interleave", action="store_true", help="cacrm: no interleaved spatial reuse of 2x2 quads "
+                   "(it runs where a base step reaches a voxel: N up to the grid's diagonal in voxels, 221 at 128^3)")
     r.add_argument("--mode", choices=("dvr", "mip", "mida", "iso"), help="dssrm/cmsrm/cacrm: dvr (volume rendering, "
                    "default), mip (maximum intensity projection), mida (maximum intensity difference accumulation) "
                    "or iso (shaded isosurface at --iso-value)")
