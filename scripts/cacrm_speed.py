@@ -6,7 +6,8 @@ the minimum is the least-disturbed run). Prints per scene and size: ms per frame
 ratio CMSRM / CACRM frame time (> 1: CACRM faster), each method's cube march as a ratio to CMSRM's, and a checksum of
 CACRM's images (to pin them across changes). ``--ablation`` adds CACRM with uniform steps and with k_a = 0 (VSA's
 product, no ramp; paper 000 Eq. 4-6) to the same interleaved loop; ``--k-a 2,3`` adds CACRM at each of those ramps
-(quality: `scripts/k_a_sweep.py`)."""
+(quality: `scripts/k_a_sweep.py`); ``--no-ins`` adds CACRM without interleaved spatial reuse (the quad kernel),
+``--camera-pos 0.1,0,0.5`` puts the eyes inside the box."""
 
 from __future__ import annotations
 
@@ -19,18 +20,20 @@ import numpy as np
 
 from volren.camera import Camera, make_views
 from volren.data import builtin_scene
-from volren.render import CACRM, CMSRM, CACRMConfig
+from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig
 
 
-def renderers(ablation: bool, k_as: list[float]) -> dict[str, CMSRM | CACRM]:
-    """The methods one case times, CMSRM first (the ratios' base)."""
-    methods: dict[str, CMSRM | CACRM] = {"cmsrm": CMSRM()}
+def renderers(ablation: bool, k_as: list[float], no_ins: bool, samples: int) -> dict[str, CMSRM | CACRM]:
+    """The methods one case times, CMSRM first (the ratios' base), every one at N = ``samples``."""
+    methods: dict[str, CMSRM | CACRM] = {"cmsrm": CMSRM(CMSRMConfig(samples=samples))}
     if ablation:
-        methods["cacrm uniform"] = CACRM(CACRMConfig(vsa=False))
-        methods["cacrm k_a 0"] = CACRM(CACRMConfig(k_a=0.0))
+        methods["cacrm uniform"] = CACRM(CACRMConfig(samples=samples, vsa=False))
+        methods["cacrm k_a 0"] = CACRM(CACRMConfig(samples=samples, k_a=0.0))
     for k_a in k_as:
-        methods[f"cacrm k_a {k_a:g}"] = CACRM(CACRMConfig(k_a=k_a))
-    methods["cacrm"] = CACRM()
+        methods[f"cacrm k_a {k_a:g}"] = CACRM(CACRMConfig(samples=samples, k_a=k_a))
+    if no_ins:
+        methods["cacrm no InS"] = CACRM(CACRMConfig(samples=samples, interleave=False))
+    methods["cacrm"] = CACRM(CACRMConfig(samples=samples))
     return methods
 
 
@@ -42,6 +45,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--ablation", action="store_true", help="also time CACRM with uniform steps and with k_a = 0")
     ap.add_argument("--k-a", default="", help="comma-separated k_a values: also time CACRM with each ramp")
+    ap.add_argument("--no-ins", action="store_true", help="also time CACRM without interleaved spatial reuse")
+    ap.add_argument("--samples", type=int, default=360, help="N for every method")
+    ap.add_argument("--camera-pos", default="0,0.4,3.2", help="x,y,z of the stereo pair's centre (0.1,0,0.5: inside)")
     ap.add_argument("--save", help="write CACRM's images per case to this .npz (to compare across changes)")
     ap.add_argument("--compare", help="a .npz from --save: print CACRM's PSNR against it per case")
     args = ap.parse_args()
@@ -51,8 +57,9 @@ def main() -> None:
         scene = builtin_scene(name, args.resolution)
         for size in args.sizes.split(","):
             w, h = (int(s) for s in size.split("x"))
-            views = make_views(Camera(position=(0.0, 0.4, 3.2), width=w, height=h), "stereo")
-            methods = renderers(args.ablation, [float(k) for k in args.k_a.split(",") if k])
+            eye = tuple(float(x) for x in args.camera_pos.split(","))
+            views = make_views(Camera(position=eye, width=w, height=h), "stereo")
+            methods = renderers(args.ablation, [float(k) for k in args.k_a.split(",") if k], args.no_ins, args.samples)
             best: dict[str, tuple[float, object]] = {}
             for r in methods.values():
                 r.render(scene, views)
