@@ -19,19 +19,23 @@ import json
 import time
 
 from volren.bench.binocular import gathers, path_camera
-from volren.camera import make_views
+from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig, Reference, ReferenceConfig
 
 
-def methods(k_as: list[float], samples: int, lod: bool, uniform: list[int], light_grid: int) -> dict[str, CMSRM]:
+def methods(k_as: list[float], samples: int, lod: bool, uniform: list[int], light_grid: int, no_ins: bool
+            ) -> dict[str, CMSRM]:
     """CMSRM at N = 360, CACRM at N = ``samples`` per k_a (adaptive LOD ``lod``), uniform CACRM per N (adaptive LOD
     off, as `equal_gathers`: with it a low N also picks a coarser density level)."""
     base = {"light_samples": 96, "light_grid": light_grid, "hybrid": False}
     out: dict[str, CMSRM] = {"CMSRM:360:96": CMSRM(CMSRMConfig(samples=360, **base))}
     for k_a in k_as:
         out[f"CACRM:{samples} k_a {k_a:g}"] = CACRM(CACRMConfig(samples=samples, k_a=k_a, adaptive_lod=lod, **base))
+        if no_ins:
+            out[f"CACRM:{samples} k_a {k_a:g} no InS"] = CACRM(CACRMConfig(samples=samples, k_a=k_a, adaptive_lod=lod,
+                                                                          interleave=False, **base))
     for n in uniform:
         out[f"CACRM:{n} uniform"] = CACRM(CACRMConfig(samples=n, vsa=False, adaptive_lod=False, **base))
     return out
@@ -47,6 +51,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--k-a", default="1.5,2,2.25,3", help="comma-separated k_a values")
     ap.add_argument("--samples", type=int, default=360, help="CACRM's base step count N for the k_a rows")
     ap.add_argument("--no-lod", action="store_true", help="the k_a rows without the adaptive LOD (as the uniform rows)")
+    ap.add_argument("--no-ins", action="store_true", help="each k_a row also without interleaved spatial reuse")
+    ap.add_argument("--camera-pos", help="x,y,z: one stereo pair there (0.1,0,0.5: inside) instead of orbit frames")
     ap.add_argument("--uniform", default="64,96,128,160", help="uniform-step counts N (empty: none)")
     ap.add_argument("--reference", type=int, default=1024, help="reference samples and light samples")
     args = ap.parse_args(argv)
@@ -57,19 +63,23 @@ def main(argv: list[str] | None = None) -> None:
     for name in args.scenes.split(","):
         start = time.perf_counter()
         scene = builtin_scene(name, args.resolution)
-        renderers = methods(k_as, args.samples, not args.no_lod, uniform, args.light_grid or args.resolution // 2)
+        renderers = methods(k_as, args.samples, not args.no_lod, uniform, args.light_grid or args.resolution // 2,
+                            args.no_ins)
         reference = Reference(ReferenceConfig(samples=args.reference, light_samples=args.reference))
         totals = {key: {"psnr": 0.0, "gathers": 0} for key in renderers}
-        for f in frames:
-            views = make_views(path_camera(f, 12, (w, h)), "stereo")
+        eye = tuple(float(x) for x in args.camera_pos.split(",")) if args.camera_pos else None
+        for f in [0] if eye else frames:
+            views = make_views(Camera(position=eye, width=w, height=h) if eye else path_camera(f, 12, (w, h)), "stereo")
             truth = reference.render(scene, views).images
             for key, r in renderers.items():
                 frame = r.render(scene, views)
                 totals[key]["psnr"] += sum(psnr(a, b) for a, b in zip(truth, frame.images, strict=True)) / 2
                 totals[key]["gathers"] += gathers(frame.stats.counters)
-        row = {"scene": name, "resolution": args.resolution, "size": args.size, "frames": frames,
+        shots = 1 if eye else len(frames)
+        row = {"scene": name, "resolution": args.resolution, "size": args.size,
+               **({"camera_pos": list(eye)} if eye else {"frames": frames}),
                "reference": args.reference, "seconds": round(time.perf_counter() - start, 1)}
-        row |= {key: {"psnr": round(t["psnr"] / len(frames), 2), "gathers": t["gathers"]} for key, t in totals.items()}
+        row |= {key: {"psnr": round(t["psnr"] / shots, 2), "gathers": t["gathers"]} for key, t in totals.items()}
         print(json.dumps(row), flush=True)
 
 
