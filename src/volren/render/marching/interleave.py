@@ -325,7 +325,8 @@ def base_step_reaches_a_voxel(samples: int, res: tuple[int, int, int]) -> bool:
     own floor for interleaving), i.e. N <= the grid's diagonal in voxels. Below it the quads interleave only on
     amplified steps and pay their kernel for nothing measurable: eyes inside the box (0.1, 0, 0.5), 128^3, 480x270
     stereo, N = 360 (0.62 voxels a base step), against the 1024-sample reference: InS -0.04 / +0.05 / -0.02 dB
-    (smoke / cloud / phantom) for 2.6 / 2.7 / 1.5x the frame time of the texel kernel."""
+    (smoke / cloud / phantom) for 3.0 / 3.4 / 1.4x the frame time of the texel kernel (before the quad kernel
+    skipped empty cells; docs/bench/cacrm-inside-cpu-2026-12-04.jsonl)."""
     return samples <= float(np.linalg.norm(np.asarray(res, dtype=float)))
 
 
