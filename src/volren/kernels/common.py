@@ -421,10 +421,8 @@ def skip_lookup(vol: VolumeGPU, max_density: wp.array(dtype=float), q: wp.vec3, 
     """(value, exit) of the skip cell holding ``q`` (skip-cell coordinates, clamped to the grid) for the ray
     ``o + t d`` in those coordinates: its `skip_grid` value (> 0: not empty; -r <= 0: the cube of radius r around it
     is empty) and the ray distance where the ray leaves that cell (not empty) or that cube (empty)."""
-    cells = vol.skip_res
-    c = wp.vec3i(wp.clamp(int(wp.floor(q[0])), 0, cells[0] - 1), wp.clamp(int(wp.floor(q[1])), 0, cells[1] - 1),
-                 wp.clamp(int(wp.floor(q[2])), 0, cells[2] - 1))
-    value = max_density[vol.skip_offset + cell_index(cells, c)]
+    c = skip_cell_at(vol, q)
+    value = max_density[vol.skip_offset + cell_index(vol.skip_res, c)]
     r = wp.max(-value, 0.0)
     t = float(1.0e30)
     for a in range(3):
@@ -434,22 +432,32 @@ def skip_lookup(vol: VolumeGPU, max_density: wp.array(dtype=float), q: wp.vec3, 
 
 
 @wp.func
-def skip_value(vol: VolumeGPU, max_density: wp.array(dtype=float), p: wp.vec3) -> float:
-    """The `skip_grid` value of the skip cell holding local point p (clamped to the grid; the cells of
-    `skip_cell_ray`): <= 0 where every voxel a trilinear sample at p reads is 0."""
+def skip_cell_at(vol: VolumeGPU, q: wp.vec3) -> wp.vec3i:
+    """The skip cell holding skip-cell coordinates q (`skip_cell_ray`), clamped to the grid."""
     cells = vol.skip_res
-    to_cell = 0.5 / float(wp.max(vol.skip_cell, 1))
-    c = wp.vec3i(wp.clamp(int(wp.floor((p[0] + 1.0) * float(vol.res[0]) * to_cell)), 0, cells[0] - 1),
-                 wp.clamp(int(wp.floor((p[1] + 1.0) * float(vol.res[1]) * to_cell)), 0, cells[1] - 1),
-                 wp.clamp(int(wp.floor((p[2] + 1.0) * float(vol.res[2]) * to_cell)), 0, cells[2] - 1))
-    return max_density[vol.skip_offset + cell_index(cells, c)]
+    return wp.vec3i(wp.clamp(int(wp.floor(q[0])), 0, cells[0] - 1), wp.clamp(int(wp.floor(q[1])), 0, cells[1] - 1),
+                    wp.clamp(int(wp.floor(q[2])), 0, cells[2] - 1))
+
+
+@wp.func
+def skip_cell_scale(vol: VolumeGPU) -> wp.vec3:
+    """Local units to skip-cell coordinates per axis: q = (p + 1) res / (2 skip_cell)."""
+    return wp.vec3(float(vol.res[0]), float(vol.res[1]), float(vol.res[2])) * (0.5 / float(wp.max(vol.skip_cell, 1)))
+
+
+@wp.func
+def skip_value(vol: VolumeGPU, max_density: wp.array(dtype=float), p: wp.vec3) -> float:
+    """The `skip_grid` value of the skip cell holding local point p: <= 0 where every voxel a trilinear sample at p
+    reads is 0."""
+    c = skip_cell_at(vol, wp.cw_mul(p + wp.vec3(1.0), skip_cell_scale(vol)))
+    return max_density[vol.skip_offset + cell_index(vol.skip_res, c)]
 
 
 @wp.func
 def skip_cell_ray(vol: VolumeGPU, o_l: wp.vec3, d_l: wp.vec3):
     """The local ray ``o_l + t d_l`` in skip-cell coordinates (cell c spans [c, c + 1) on each axis:
     q = (p + 1) res / (2 skip_cell)): its origin, direction and the direction's inverse (for `skip_lookup`)."""
-    to_cell = wp.vec3(float(vol.res[0]), float(vol.res[1]), float(vol.res[2])) * (0.5 / float(wp.max(vol.skip_cell, 1)))
+    to_cell = skip_cell_scale(vol)
     o_c = wp.cw_mul(o_l + wp.vec3(1.0), to_cell)
     d_c = wp.cw_mul(d_l, to_cell)
     return o_c, d_c, wp.vec3(safe_inverse(d_c[0]), safe_inverse(d_c[1]), safe_inverse(d_c[2]))
