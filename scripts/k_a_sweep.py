@@ -32,10 +32,9 @@ def methods(k_as: list[float], samples: int, lod: bool, uniform: list[int], ligh
     base = {"light_samples": 96, "light_grid": light_grid, "hybrid": False}
     out: dict[str, CMSRM] = {"CMSRM:360:96": CMSRM(CMSRMConfig(samples=360, **base))}
     for k_a in k_as:
-        out[f"CACRM:{samples} k_a {k_a:g}"] = CACRM(CACRMConfig(samples=samples, k_a=k_a, adaptive_lod=lod, **base))
-        if no_ins:
-            out[f"CACRM:{samples} k_a {k_a:g} no InS"] = CACRM(CACRMConfig(samples=samples, k_a=k_a, adaptive_lod=lod,
-                                                                          interleave=False, **base))
+        for ins in (True, False) if no_ins else (True,):
+            out[f"CACRM:{samples} k_a {k_a:g}" + ("" if ins else " no InS")] = CACRM(
+                CACRMConfig(samples=samples, k_a=k_a, adaptive_lod=lod, interleave=ins, **base))
     for n in uniform:
         out[f"CACRM:{n} uniform"] = CACRM(CACRMConfig(samples=n, vsa=False, adaptive_lod=False, **base))
     return out
@@ -60,6 +59,8 @@ def main(argv: list[str] | None = None) -> None:
     frames = [int(f) for f in args.frames.split(",")]
     k_as = [float(k) for k in args.k_a.split(",")]
     uniform = [int(n) for n in args.uniform.split(",") if n]
+    eye = tuple(float(x) for x in args.camera_pos.split(",")) if args.camera_pos else None
+    shots = [0] if eye else frames  # one stereo pair at --camera-pos, else the orbit frames
     for name in args.scenes.split(","):
         start = time.perf_counter()
         scene = builtin_scene(name, args.resolution)
@@ -67,19 +68,17 @@ def main(argv: list[str] | None = None) -> None:
                             args.no_ins)
         reference = Reference(ReferenceConfig(samples=args.reference, light_samples=args.reference))
         totals = {key: {"psnr": 0.0, "gathers": 0} for key in renderers}
-        eye = tuple(float(x) for x in args.camera_pos.split(",")) if args.camera_pos else None
-        for f in [0] if eye else frames:
+        for f in shots:
             views = make_views(Camera(position=eye, width=w, height=h) if eye else path_camera(f, 12, (w, h)), "stereo")
             truth = reference.render(scene, views).images
             for key, r in renderers.items():
                 frame = r.render(scene, views)
                 totals[key]["psnr"] += sum(psnr(a, b) for a, b in zip(truth, frame.images, strict=True)) / 2
                 totals[key]["gathers"] += gathers(frame.stats.counters)
-        shots = 1 if eye else len(frames)
         row = {"scene": name, "resolution": args.resolution, "size": args.size,
                **({"camera_pos": list(eye)} if eye else {"frames": frames}),
                "reference": args.reference, "seconds": round(time.perf_counter() - start, 1)}
-        row |= {key: {"psnr": round(t["psnr"] / shots, 2), "gathers": t["gathers"]} for key, t in totals.items()}
+        row |= {key: {"psnr": round(t["psnr"] / len(shots), 2), "gathers": t["gathers"]} for key, t in totals.items()}
         print(json.dumps(row), flush=True)
 
 
