@@ -53,11 +53,11 @@ def main() -> None:
     args = ap.parse_args()
     saved: dict[str, np.ndarray] = {}
     old = np.load(args.compare) if args.compare else None
+    eye = tuple(float(x) for x in args.camera_pos.split(","))
     for name in args.scenes.split(","):
         scene = builtin_scene(name, args.resolution)
         for size in args.sizes.split(","):
             w, h = (int(s) for s in size.split("x"))
-            eye = tuple(float(x) for x in args.camera_pos.split(","))
             views = make_views(Camera(position=eye, width=w, height=h), "stereo")
             methods = renderers(args.ablation, [float(k) for k in args.k_a.split(",") if k], args.no_ins, args.samples)
             best: dict[str, tuple[float, object]] = {}
