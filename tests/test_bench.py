@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -81,9 +82,10 @@ def test_viewers_suite_rows_and_goals():
 
 
 def test_vpt_suite_rows_and_goals():
-    from volren.bench.vpt import run_config
+    from volren.bench.vpt import CASES, run_config
 
-    cfg = {"resolution": 64, "size": (24, 20), "spp": [1, 2], "variance_frames": 3, "variance_spp": 1, "repeats": 1,
+    cfg = {"cases": CASES, "denoiser_table": True, "score_every": 1, "resolution": 64, "size": (24, 20),
+           "spp": [1, 2], "variance_frames": 3, "variance_spp": 1, "repeats": 1,
            "denoise_size": (24, 20), "denoise_spp": 2, "rotation_frames": 3, "reference_spp": 8, "variance_at": 2,
            "variance_sequences": 3, "orbit_frames": 2, "settle_frames": 3}
     result = run_config(cfg, "cpu")
@@ -92,6 +94,45 @@ def test_vpt_suite_rows_and_goals():
     summary, _ = result["summary"]
     assert len(summary) == 4 and all(s["variance_ratio"] > 0 for s in summary[:3])
     assert summary[3]["variance_ours_over_svgf"] > 0
+
+
+def test_vpt_suite_splits_by_case_and_scores_every_kth_frame(monkeypatch):
+    """A full-size CPU run is split across cores (`--set cases`, `denoiser_table`) and its 1024-spp references cut
+    to every k-th orbit frame (`score_every`): each part holds only its tables, and the denoisers are scored on
+    frames 0, k, 2k, ... (counted through the metric) while every frame is still rendered."""
+    import volren.metrics
+    from volren.bench.vpt import run_config
+
+    scored = []
+    real_psnr = volren.metrics.psnr
+    monkeypatch.setattr(volren.metrics, "psnr", lambda a, b: scored.append(a.shape) or real_psnr(a, b))
+    cfg = {"cases": [], "denoiser_table": True, "score_every": 2, "resolution": 64, "size": (16, 12), "spp": [1],
+           "variance_frames": 2, "variance_spp": 1, "repeats": 1, "denoise_size": (16, 12), "denoise_spp": 1,
+           "rotation_frames": 5, "reference_spp": 4, "variance_at": 1, "variance_sequences": 2, "orbit_frames": 1,
+           "settle_frames": 1}
+    result = run_config(cfg, "cpu")
+    assert {r["table"] for r in result["rows"]} == {"denoiser"}
+    assert len(scored) == 4 * (3 + 3)  # per denoiser: orbit frames 0, 2, 4 and the 3 frames after the TF switch
+    summary, _ = result["summary"]
+    assert [s["scene"] for s in summary] == ["phantom (ct-muscle), denoisers"]
+    cases = run_config(cfg | {"cases": [["smoke", None]], "denoiser_table": False}, "cpu")
+    assert {r["scene"] for r in cases["rows"]} == {"smoke (density)"} and "denoiser" not in {
+        r["table"] for r in cases["rows"]}
+    assert cases["settings"]["cases"] == ["smoke (density)"]
+
+
+@pytest.mark.parametrize("setting, message", [
+    ({"cases": [["phantom", "nope"]]}, "--set cases: [\"phantom\", \"nope\"] is not [scene"),
+    ({"cases": [], "denoiser_table": False}, "leaves bench vpt nothing to measure"),
+    ({"denoiser_table": 1}, "--set denoiser_table: true or false, got 1"),
+    ({"score_every": 0}, "--set score_every: a whole number of frames >= 1, got 0"),
+])
+def test_vpt_suite_refuses_settings_before_any_work(setting, message):
+    from volren.bench.vpt import QUICK, run_config
+    from volren.errors import VolrenError
+
+    with pytest.raises(VolrenError, match=re.escape(message)):
+        run_config(QUICK | setting, "nonexistent-device")  # refused before the device is touched
 
 
 def test_gi_suite_rows_and_goals():

@@ -18,26 +18,45 @@ Full (GPU): 256^3, 1440x1190 (the paper's viewport), spp 1-32. Quick (CPU): 64^3
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import numpy as np
 
 from volren.bench import Suite, measure, sized
 from volren.camera import Camera
-from volren.data import builtin_scene
+from volren.data import BUILTIN_SCENES, builtin_scene
+from volren.errors import VolrenError
 from volren.render import VPT, VPTConfig
+from volren.transfer import PRESETS
 
-FULL = {"resolution": 256, "size": (1440, 1190), "spp": [1, 2, 4, 8, 16, 32], "variance_frames": 32,
-        "variance_spp": 4, "repeats": 3, "denoise_size": (480, 396), "denoise_spp": 8, "rotation_frames": 60,
-        "reference_spp": 1024, "variance_at": 30, "variance_sequences": 50, "orbit_frames": 10,
-        "settle_frames": 60}
-QUICK = {"resolution": 64, "size": (128, 106), "spp": [1, 2, 4, 8], "variance_frames": 16, "variance_spp": 2,
-         "repeats": 2, "denoise_size": (96, 80), "denoise_spp": 4, "rotation_frames": 12, "reference_spp": 256,
-         "variance_at": 8, "variance_sequences": 8, "orbit_frames": 6, "settle_frames": 30}
+CASES = [["phantom", "ct-muscle"], ["phantom", "ct-bone"], ["smoke", None]]
+FULL = {"cases": CASES, "denoiser_table": True, "score_every": 1, "resolution": 256, "size": (1440, 1190),
+        "spp": [1, 2, 4, 8, 16, 32], "variance_frames": 32, "variance_spp": 4, "repeats": 3, "denoise_size": (480, 396),
+        "denoise_spp": 8, "rotation_frames": 60, "reference_spp": 1024, "variance_at": 30, "variance_sequences": 50,
+        "orbit_frames": 10, "settle_frames": 60}
+QUICK = {"cases": CASES, "denoiser_table": True, "score_every": 1, "resolution": 64, "size": (128, 106),
+         "spp": [1, 2, 4, 8], "variance_frames": 16, "variance_spp": 2, "repeats": 2, "denoise_size": (96, 80),
+         "denoise_spp": 4, "rotation_frames": 12, "reference_spp": 256, "variance_at": 8, "variance_sequences": 8,
+         "orbit_frames": 6, "settle_frames": 30}
+"""``cases``: [scene, transfer preset or null] per row group of tables (a)-(c); ``denoiser_table``: table (d), the
+phantom's denoisers, scored against a reference every ``score_every``-th frame of the orbit from the first. Settable
+(`--set`), so that a full-size CPU run can be split across cores and its references cut to a subset of frames."""
 DENOISERS = ("none", "ours", "svgf", "wrls")
 HOLE_ALPHA = 0.25
 """a pixel without hits counts as a hole where the reference's alpha is at least this"""
-CASES = [("phantom", "ct-muscle"), ("phantom", "ct-bone"), ("smoke", None)]
+
+
+def cases_of(cfg: dict[str, Any]) -> list[tuple[str, str | None]]:
+    """The configuration's cases, each checked to name a built-in scene and a transfer function (or null)."""
+    cases = []
+    for case in cfg["cases"]:
+        if (not isinstance(case, (list, tuple)) or len(case) != 2 or case[0] not in BUILTIN_SCENES
+                or (case[1] is not None and case[1] not in PRESETS)):
+            raise VolrenError(f"--set cases: {json.dumps(case)} is not [scene, transfer or null] with a built-in "
+                              f"scene ({', '.join(BUILTIN_SCENES)}) and a preset ({', '.join(PRESETS)})")
+        cases.append((case[0], case[1]))
+    return cases
 
 
 def case_name(scene: str, transfer: str | None) -> str:
@@ -69,25 +88,28 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
     cam = Camera(position=(1.6, 1.2, 2.4), width=cfg["denoise_size"][0], height=cfg["denoise_size"][1], fov_y=40.0)
     seq = Sequence(frames=cfg["rotation_frames"], orbit=90.0, light_orbit=180.0)
     reference = VPT(VPTConfig(spp=cfg["reference_spp"], transfer="ct-muscle"), device)
-    refs = [reference.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
-            for i in range(seq.frames)]
+    every = cfg["score_every"]
+    # Every frame is rendered (the denoisers see the paper's motion per frame); every `every`-th, from the first, is
+    # scored against its reference: the references are the cost at full size (1024 spp each).
+    refs = {i: reference.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
+            for i in range(0, seq.frames, every)}
     switched_ref = VPT(VPTConfig(spp=cfg["reference_spp"], transfer="ct-bone"), device).render(scene, [cam]).images[0]
-    rows, result, raw_alpha = [], {}, []
+    rows, result, raw_alpha = [], {}, {}
     for name in DENOISERS:
         config = VPTConfig(spp=cfg["denoise_spp"], transfer="ct-muscle", denoise=name)
         r = VPT(config, device)
-        images = [r.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
+        frames = [r.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
                   for i in range(seq.frames)]
-        scores = [psnr(refs[i], images[i]) for i in range(seq.frames)]
-        flips = [flip(refs[i], images[i]) for i in range(seq.frames)]
-        kept = [detail_kept(refs[i], images[i]) for i in range(seq.frames)]
+        images = {i: frames[i] for i in refs}
+        scores = [psnr(refs[i], images[i]) for i in refs]
+        flips = [flip(refs[i], images[i]) for i in refs]
+        kept = [detail_kept(refs[i], images[i]) for i in refs]
         if name == "none":  # the same seeds: these frames' alphas are every denoiser's raw input
-            raw_alpha = [image[..., 3] for image in images]
-        holes = [(raw_alpha[i] == 0) & (refs[i][..., 3] >= HOLE_ALPHA) for i in range(seq.frames)]
-        filled = sum(int((images[i][..., 3][holes[i]] >= 0.5 * refs[i][..., 3][holes[i]]).sum())
-                     for i in range(seq.frames))
+            raw_alpha = {i: image[..., 3] for i, image in images.items()}
+        holes = {i: (raw_alpha[i] == 0) & (refs[i][..., 3] >= HOLE_ALPHA) for i in refs}
+        filled = sum(int((images[i][..., 3][holes[i]] >= 0.5 * refs[i][..., 3][holes[i]]).sum()) for i in refs)
         hole_error = float(np.mean(np.concatenate([np.abs(images[i][..., :3] - refs[i][..., :3])[holes[i]].ravel()
-                                                    for i in range(seq.frames)])))
+                                                    for i in refs])))
         # (c): the same history, different random sequences for one more frame.
         r = VPT(config, device)
         for i in range(cfg["variance_at"]):
@@ -123,16 +145,24 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
                         "settle": settle, "switch": float(np.mean(after))}
         rows.append({"table": "denoiser", "scene": "phantom (ct-muscle)", "spp": cfg["denoise_spp"], "method": name,
                      "psnr": float(np.mean(scores)), "psnr_min": float(np.min(scores)), "flip": float(np.mean(flips)),
-                     "detail_kept": float(np.mean(kept)), "holes": sum(int(h.sum()) for h in holes),
+                     "detail_kept": float(np.mean(kept)), "holes": sum(int(h.sum()) for h in holes.values()),
                      "holes_filled": filled, "hole_error": hole_error,
                      "output_variance": variance, "settle_frames": settle, "switch_psnr": result[name]["switch"]})
     return rows, result
 
 
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
+    cases = cases_of(cfg)
+    if not isinstance(cfg["denoiser_table"], bool):
+        raise VolrenError(f"--set denoiser_table: true or false, got {json.dumps(cfg['denoiser_table'])}")
+    if not cases and not cfg["denoiser_table"]:
+        raise VolrenError("--set cases=[] with denoiser_table=false leaves bench vpt nothing to measure")
+    every = cfg["score_every"]
+    if not isinstance(every, int) or isinstance(every, bool) or every < 1:
+        raise VolrenError(f"--set score_every: a whole number of frames >= 1, got {json.dumps(every)}")
     rows, summary = [], []
     cam = Camera(position=(1.6, 1.2, 2.4), width=cfg["size"][0], height=cfg["size"][1], fov_y=40.0)
-    for scene_name, transfer in CASES:
+    for scene_name, transfer in cases:
         scene = builtin_scene(scene_name, cfg["resolution"])
         name = case_name(scene_name, transfer)
         for spp in cfg["spp"]:
@@ -162,17 +192,18 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             "octree_speedup": flat["frame_ms"] / octree["frame_ms"],
             "lookup_ratio": octree["density_lookups"] / max(flat["density_lookups"], 1),
         })
-    denoise_rows, denoisers = denoiser_rows(cfg, device)
-    rows += denoise_rows
-    summary.append({"scene": "phantom (ct-muscle), denoisers",
-                    "psnr_ours_minus_svgf": denoisers["ours"]["psnr"] - denoisers["svgf"]["psnr"],
-                    "psnr_ours_minus_wrls": denoisers["ours"]["psnr"] - denoisers["wrls"]["psnr"],
-                    "flip_ours_minus_best_baseline": denoisers["ours"]["flip"] - min(
-                        denoisers["svgf"]["flip"], denoisers["wrls"]["flip"]),
-                    "psnr_ours_minus_raw": denoisers["ours"]["psnr"] - denoisers["none"]["psnr"],
-                    "variance_ours_over_svgf": denoisers["ours"]["variance"] / denoisers["svgf"]["variance"],
-                    "settle_ours": denoisers["ours"]["settle"], "settle_svgf": denoisers["svgf"]["settle"],
-                    "switch_ours_minus_raw": denoisers["ours"]["switch"] - denoisers["none"]["switch"]})
+    if cfg["denoiser_table"]:
+        denoise_rows, denoisers = denoiser_rows(cfg, device)
+        rows += denoise_rows
+        summary.append({"scene": "phantom (ct-muscle), denoisers",
+                        "psnr_ours_minus_svgf": denoisers["ours"]["psnr"] - denoisers["svgf"]["psnr"],
+                        "psnr_ours_minus_wrls": denoisers["ours"]["psnr"] - denoisers["wrls"]["psnr"],
+                        "flip_ours_minus_best_baseline": denoisers["ours"]["flip"] - min(
+                            denoisers["svgf"]["flip"], denoisers["wrls"]["flip"]),
+                        "psnr_ours_minus_raw": denoisers["ours"]["psnr"] - denoisers["none"]["psnr"],
+                        "variance_ours_over_svgf": denoisers["ours"]["variance"] / denoisers["svgf"]["variance"],
+                        "settle_ours": denoisers["ours"]["settle"], "settle_svgf": denoisers["svgf"]["settle"],
+                        "switch_ours_minus_raw": denoisers["ours"]["switch"] - denoisers["none"]["switch"]})
     columns = [
         ("table", "table", "s"), ("scene", "scene", "s"), ("spp", "spp", "d"), ("method", "shading / denoiser", "s"),
         ("frame_ms", "frame [ms]", ".1f"), ("paths_per_s", "paths/s", ",.0f"),
@@ -200,7 +231,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     ]
     settings = {k: v for k, v in cfg.items() if k not in ("size", "denoise_size")} | {
                 "size": "x".join(map(str, cfg["size"])), "denoise_size": "x".join(map(str, cfg["denoise_size"])),
-                                                                 "cases": [case_name(*c) for c in CASES]}
+                                                                 "cases": [case_name(*c) for c in cases]}
     return {"settings": settings, "rows": rows, "columns": columns, "summary": (summary, summary_columns)}
 
 
