@@ -96,12 +96,14 @@ def test_vpt_suite_rows_and_goals():
     assert summary[3]["variance_ours_over_svgf"] > 0
 
 
-def test_vpt_suite_splits_by_case_and_scores_every_kth_frame(monkeypatch):
+def test_vpt_suite_splits_by_case_and_scores_every_kth_frame(monkeypatch, capsys):
     """A full-size CPU run is split across cores (`--set cases`, `denoiser_table`) and its 1024-spp references cut
     to every k-th orbit frame (`score_every`): each part holds only its tables, and the denoisers are scored on
-    frames 0, k, 2k, ... (counted through the metric) while every frame is still rendered."""
+    frames 0, k, 2k, ... (counted through the metric) while every frame is still rendered. The denoiser table (an
+    hour at full size on a CPU) reports a line per step, as the timed cases do."""
     import volren.metrics
     from volren.bench.vpt import run_config
+    from volren.progress import cases
 
     scored = []
     real_psnr = volren.metrics.psnr
@@ -110,7 +112,11 @@ def test_vpt_suite_splits_by_case_and_scores_every_kth_frame(monkeypatch):
            "variance_frames": 2, "variance_spp": 1, "repeats": 1, "denoise_size": (16, 12), "denoise_spp": 1,
            "rotation_frames": 5, "reference_spp": 4, "variance_at": 1, "variance_sequences": 2, "orbit_frames": 1,
            "settle_frames": 1}
-    result = run_config(cfg, "cpu")
+    with cases("bench vpt"):
+        result = run_config(cfg, "cpu")
+    lines = capsys.readouterr().err.splitlines()
+    assert [line.split(" (")[1].split(",")[0] for line in lines] == [
+        "4 reference frame(s) at 4 spp", "denoiser none", "denoiser ours", "denoiser svgf", "denoiser wrls"]
     assert {r["table"] for r in result["rows"]} == {"denoiser"}
     assert len(scored) == 4 * (3 + 3)  # per denoiser: orbit frames 0, 2, 4 and the 3 frames after the TF switch
     summary, _ = result["summary"]

@@ -27,6 +27,7 @@ from volren.bench import Suite, measure, sized
 from volren.camera import Camera
 from volren.data import BUILTIN_SCENES, builtin_scene
 from volren.errors import VolrenError
+from volren.progress import case_done
 from volren.render import VPT, VPTConfig
 from volren.transfer import PRESETS
 
@@ -94,6 +95,7 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
     refs = {i: reference.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
             for i in range(0, seq.frames, every)}
     switched_ref = VPT(VPTConfig(spp=cfg["reference_spp"], transfer="ct-bone"), device).render(scene, [cam]).images[0]
+    case_done(f"{len(refs) + 1} reference frame(s) at {cfg['reference_spp']} spp, {cam.width}x{cam.height}")
     rows, result, raw_alpha = [], {}, {}
     for name in DENOISERS:
         config = VPTConfig(spp=cfg["denoise_spp"], transfer="ct-muscle", denoise=name)
@@ -141,6 +143,7 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
             r.render(scene, [cam], i)
         r.config = dataclasses.replace(config, transfer="ct-bone")
         after = [psnr(switched_ref, r.render(scene, [cam], cfg["variance_at"] + k).images[0]) for k in range(3)]
+        case_done(f"denoiser {name}, {seq.frames} orbit frames at {cfg['denoise_spp']} spp and its history tests")
         result[name] = {"psnr": float(np.mean(scores)), "flip": float(np.mean(flips)), "variance": variance,
                         "settle": settle, "switch": float(np.mean(after))}
         rows.append({"table": "denoiser", "scene": "phantom (ct-muscle)", "spp": cfg["denoise_spp"], "method": name,
@@ -181,6 +184,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             r = VPT(VPTConfig(spp=cfg["variance_spp"], transfer=transfer, shading=shading, max_bounces=1), device)
             stack = np.stack([r.render(scene, [cam], f).images[0][..., :3] for f in range(cfg["variance_frames"])])
             means[shading], variances[shading] = stack.mean(0), stack.var(0, ddof=1).sum()
+            case_done(f"{shading} shading, {cfg['variance_frames']} frames at {cfg['variance_spp']} spp")
             rows.append({"table": "shading", "scene": name, "spp": cfg["variance_spp"], "method": shading,
                          "image_mean": float(stack.mean()), "pixel_variance_sum": float(variances[shading])})
         octree = next(r for r in rows if r["table"] == "spp" and r["scene"] == name and r["spp"] == cfg["spp"][0])
