@@ -260,6 +260,25 @@ def test_tracking_through_a_sheet_on_a_macrocell_face(ratio):
     assert abs(survived.mean() - expected) < 4 * np.sqrt(expected * (1 - expected) / RAYS)
 
 
+@pytest.mark.parametrize("shape, cell", [((37, 20, 9), (8, 8, 8)), ((5, 70, 33), (4, 8, 16)), ((9, 9, 9), (9, 9, 9)),
+                                         ((1, 12, 17), (8, 8, 8))])
+def test_scalar_ranges_are_each_cells_min_and_max_over_its_trilinear_support(shape, cell):
+    """Per macrocell the min and max over its voxels and the one-voxel border around them, clamped at the grid
+    (a 3x3x3 min / max filter, then each cell's block): on grids that no cell size divides, anisotropic cells, a
+    single cell and a one-voxel-thick slab."""
+    from volren.render.vpt.majorants import scalar_ranges
+
+    density = np.random.default_rng(7).random(shape, dtype=np.float32)
+    lo, hi = scalar_ranges(density, cell)
+    low, high = (f(density, size=3, mode="nearest") for f in (ndimage.minimum_filter, ndimage.maximum_filter))
+    cz, cy, cx = cell[::-1]
+    cells = tuple(-(-n // c) for n, c in zip(shape, (cz, cy, cx), strict=True))
+    assert lo.shape == hi.shape == cells
+    for k in np.ndindex(*cells):
+        box = tuple(slice(i * c, (i + 1) * c) for i, c in zip(k, (cz, cy, cx), strict=True))
+        assert lo[k] == low[box].min() and hi[k] == high[box].max()
+
+
 @wp.kernel
 def direction_kernel(d: wp.vec3, g: float, out_hg: wp.array(dtype=wp.vec3), out_cos: wp.array(dtype=wp.vec3)):
     i = wp.tid()
