@@ -100,9 +100,11 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
     for name in DENOISERS:
         config = VPTConfig(spp=cfg["denoise_spp"], transfer="ct-muscle", denoise=name)
         r = VPT(config, device)
-        frames = [r.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
-                  for i in range(seq.frames)]
-        images = {i: frames[i] for i in refs}
+        images = {}
+        for i in range(seq.frames):
+            image = r.render(frame_scene(seq, scene, i), frame_views(seq, [cam], i), i).images[0]
+            if i in refs:
+                images[i] = image
         scores = [psnr(refs[i], images[i]) for i in refs]
         flips = [flip(refs[i], images[i]) for i in refs]
         kept = [detail_kept(refs[i], images[i]) for i in refs]
