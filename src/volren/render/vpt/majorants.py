@@ -46,9 +46,9 @@ def scalar_ranges(density: np.ndarray, cell: tuple[int, int, int]) -> tuple[np.n
 
     A cell's box with its border is a product of index ranges, so its min (max) is taken one axis at a time: each
     cell's block of voxels along the axis (`ufunc.reduceat`) with the voxel before and the one after it (clamped at the
-    grid's ends). One pass over the grid and a few over the shrinking results: 256^3 in 0.1 s, where the 27 shifted
-    full-grid passes of a 3x3x3 min filter took 1.2 s (one thread), the first frame's and every transfer-function
-    switch's wait."""
+    grid's ends). One pass over the grid and a few over the shrinking results: 256^3 in 0.19 s, where the 27 shifted
+    full-grid passes of a 3x3x3 min / max filter took 1.48 s (one thread), the first frame's and every
+    transfer-function switch's wait."""
     lo, hi = density, density
     for axis, c in enumerate(cell[::-1]):
         lo = _axis_range(lo, axis, c, np.minimum)
