@@ -121,10 +121,10 @@ def test_vpt_suite_splits_by_case_and_scores_every_kth_frame(monkeypatch, capsys
     assert len(scored) == 4 * (3 + 3)  # per denoiser: orbit frames 0, 2, 4 and the 3 frames after the TF switch
     summary, _ = result["summary"]
     assert [s["scene"] for s in summary] == ["phantom (ct-muscle), denoisers"]
-    cases = run_config(cfg | {"cases": [["smoke", None]], "denoiser_table": False}, "cpu")
-    assert {r["scene"] for r in cases["rows"]} == {"smoke (density)"} and "denoiser" not in {
-        r["table"] for r in cases["rows"]}
-    assert cases["settings"]["cases"] == ["smoke (density)"]
+    part = run_config(cfg | {"cases": [["smoke", None]], "denoiser_table": False}, "cpu")
+    assert {r["scene"] for r in part["rows"]} == {"smoke (density)"} and "denoiser" not in {
+        r["table"] for r in part["rows"]}
+    assert part["settings"]["cases"] == ["smoke (density)"]
 
 
 @pytest.mark.parametrize("setting, message", [

@@ -4,15 +4,15 @@ surface-medium coexistence model's per-pixel variance against Exposure Render's 
 
 Scenes: the phantom with the CT muscle/skin transfer function, the phantom with the bone preset (CT-like, mostly
 empty: where skipping pays), and the smoke plume with extinction proportional to density.
-Denoisers (phantom, ct-muscle; none, ours, SVGF, WRLS): (b) PSNR and FLIP against a high-spp reference per frame
-along a rotation with a rotating light (Fig. 12; the paper's LPIPS needs network weights that cannot be fetched
-offline, so FLIP stands in as the perceptual metric), the detail kept (`detail_kept`), the holes filled (pixels
-none of whose paths hit although the reference's alpha is >= 0.25, filled when the output's alpha reaches half the
-reference's) and their mean absolute RGB error against the reference; (c) §6.4.3's variance test: frame
-``variance_at`` rendered with ``variance_sequences`` random sequences on the same history, the summed per-pixel
-variance of the outputs; (d)
-§6.4.4's convergence: after an orbit stops, the frames until the RMSE between consecutive frames falls below 0.01;
-(e) ghosting: the mean PSNR of the 3 frames right after the transfer function switches from ct-muscle to ct-bone.
+Denoisers (phantom, ct-muscle; none, ours, SVGF, WRLS): (b) PSNR and FLIP against a high-spp reference on every
+``score_every``-th frame along a rotation with a rotating light (Fig. 12; the paper's LPIPS needs network weights
+that cannot be fetched offline, so FLIP stands in as the perceptual metric), the detail kept (`detail_kept`), the
+holes filled (pixels none of whose paths hit although the reference's alpha is >= 0.25, filled when the output's
+alpha reaches half the reference's) and their mean absolute RGB error against the reference; (c) §6.4.3's variance
+test: frame ``variance_at`` rendered with ``variance_sequences`` random sequences on the same history, the summed
+per-pixel variance of the outputs; (d) §6.4.4's convergence: after an orbit stops, the frames until the RMSE between
+consecutive frames falls below 0.01; (e) ghosting: the mean PSNR of the 3 frames right after the transfer function
+switches from ct-muscle to ct-bone.
 Full (GPU): 256^3, 1440x1190 (the paper's viewport), spp 1-32. Quick (CPU): 64^3, 128x106, spp 1-8.
 """
 
