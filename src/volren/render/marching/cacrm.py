@@ -73,7 +73,15 @@ from volren.render.frame import (
     PassClock,
 )
 from volren.render.marching.cmsrm import CMSRM, CMSRMConfig, TileGroup
-from volren.render.marching.coupled import CoupledJob, job_constants, pair_eye_ray, pair_finish, pair_mesh, pair_target
+from volren.render.marching.coupled import (
+    CoupledJob,
+    job_constants,
+    pair_eye_ray,
+    pair_finish,
+    pair_mesh,
+    pair_target,
+    tile_views,
+)
 from volren.render.marching.cubemap import CubeLOD, CubeTarget, texel_index, texel_point, tile_texel
 from volren.render.marching.interleave import base_step_reaches_a_voxel, interleave_tiles, quad_march_kernel
 from volren.render.marching.march import lit_step, mode_step
@@ -398,6 +406,7 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
     if q[0] < 0:
         return
     vol, medium, params, vp, dt = job_constants(job)
+    views = tile_views(job, (r + row0) / job.tile)
     texel = texel_index(q[0], q[1], q[2], job.size)
     x = wp.transform_point(vol.to_world, texel_point(q, job.size))
     # Per eye (row e): the ray (`pair_eye_ray`), and its state: accumulator, half-transmittance distance, MIDA's
@@ -416,7 +425,7 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
     base = wp.vec2i()
     next_t = wp.vec2()
     for e in range(2):
-        ray = pair_eye_ray(job, e, vol, x, texel, dt)
+        ray = pair_eye_ray(job, e, views, vol, x, texel, dt)
         seg[e] = ray.seg
         origin[e] = ray.origin
         d[e] = ray.d
@@ -590,7 +599,7 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
                 if live[e] != 0 and vp.enabled != 0 and ran > 0.0:
                     prev_t[e] = last[e]
     for e in range(2):
-        pair_finish(job, e, texel, seg[e], acc[e], half[e], pix[e], base[e], j[e], snap[e])
+        pair_finish(job, e, views, texel, seg[e], acc[e], half[e], pix[e], base[e], j[e], snap[e])
     count(counters, DENSITY_SAMPLES, samples)
     count(counters, SHARED_SAMPLES, shared)
     count(counters, SKIPPED_STEPS, skipped)
@@ -656,14 +665,16 @@ class CACRM(CMSRM):
                       clock: PassClock) -> None:
         first, last = group[0], group[-1]
         # InS: one work item per 2x2 quad in the tiles where some quad can interleave; one per texel elsewhere.
-        routes = [(coupled_march_kernel, tiles.origins, tiles.rows)]
+        routes = [(coupled_march_kernel, tiles.origins, tiles.eyes, tiles.rows)]
         res = (level.res[0], level.res[1], level.res[2])
         if self.config.interleave and self._vsa_on() and base_step_reaches_a_voxel(samples, res):
             vol = ds.scene.volumes[v]
             origins = tiles.origins.numpy()
             quad = interleave_tiles(vol.to_world, [views[i].position for i in group], views[first].near, origins,
                                     tiles.rows, tiles.size, vol.diagonal / float(np.linalg.norm(res)))
-            routes = [(kernel, wp.array(origins[mask], dtype=wp.vec3i, device=self.device), cols)
+            eyes = tiles.eyes.numpy()
+            routes = [(kernel, wp.array(origins[mask], dtype=wp.vec3i, device=self.device),
+                       wp.array(eyes[mask], dtype=int, device=self.device), cols)
                       for kernel, mask, cols in ((coupled_march_kernel, ~quad, tiles.rows),
                                                  (quad_march_kernel, quad, (tiles.rows + 1) // 2))
                       if mask.any()]
@@ -675,6 +686,6 @@ class CACRM(CMSRM):
         job.eyes, job.share = len(group), int(self.config.share_voxels)
         job.vol, job.tile, job.apron, job.size = level, tiles.rows, tiles.apron, tiles.size
         job.medium, job.params, job.vp = ds.medium(), self._params(ds, first, samples), self._vsa_params()
-        for kernel, origins, cols in routes:
-            job.tiles = origins
+        for kernel, origins, eyes, cols in routes:
+            job.tiles, job.tile_eyes = origins, eyes
             launch_rows(kernel, len(origins) * cols, cols, [job], self.device, clock.counters)

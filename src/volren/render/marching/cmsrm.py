@@ -220,6 +220,8 @@ class TileGroup:
     """face size at level l"""
     fine_rows: int
     """level-0 texels per tile side"""
+    eyes: wp.array
+    """per tile, the views of the group that march it: bit e for the group's view e (`tile_occupancy_kernel`)"""
 
 
 @dataclass(frozen=True)
@@ -687,7 +689,7 @@ class CMSRM(LightMapRenderer):
                 wp.launch(tile_lod_kernel, dim=len(tiles),
                           inputs=[device_tiles, tile, lod.size, ds.levels[v][0], camera_struct(cams[0]),
                                   camera_struct(cams[-1]), c.k_u, top, levels], device=self.device)
-        live = np.ones(len(tiles), dtype=bool)
+        eyes = np.full(len(tiles), 3, dtype=np.int32)
         if c.cull_tiles and len(tiles):
             vol = ds.scene.volumes[v]
             eyes = [(vol.to_local @ np.r_[cam.position, 1.0])[:3] for cam in cams]
@@ -700,22 +702,25 @@ class CMSRM(LightMapRenderer):
                           inputs=[device_tiles, tile, lod.size, wp.vec3(*eyes[0]), wp.vec3(*eyes[-1]),
                                   int(c.cube_faces == "exterior"), margin, levels,
                                   ds.max_density, offset, wp.vec3i(*res), occupied], device=self.device)
-            live = occupied.numpy() > 0
+            eyes = occupied.numpy()
+        live = eyes > 0
         plan["live_tiles"] = int(live.sum())
         tile_levels = levels.numpy()
         plan["tile_levels"] = [int(np.sum(live & (tile_levels == level))) for level in range(MAX_TILE_LEVEL + 1)]
         groups = []
         for level in range(top + 1):
-            chosen = tiles[live & (tile_levels == level)]
+            kept = live & (tile_levels == level)
+            chosen = tiles[kept]
             if not len(chosen):
                 continue
             fine = wp.array(chosen, dtype=wp.vec3i, device=self.device)
+            views = wp.array(eyes[kept], dtype=int, device=self.device)
             if level == 0:
-                groups.append(TileGroup(0, fine, fine, tile, 0, lod.size, tile))
+                groups.append(TileGroup(0, fine, fine, tile, 0, lod.size, tile, views))
             else:
                 origins, width, size = coarse_tiles(chosen, tile, lod.size, level)
                 groups.append(TileGroup(level, wp.array(origins, dtype=wp.vec3i, device=self.device), fine, width, 1,
-                                        size, tile))
+                                        size, tile, views))
         return groups
 
     def _compose(self, ds: DeviceScene, v: int, cam: Camera, tiles: TileGroup, size: int, coarse: CubeTarget,

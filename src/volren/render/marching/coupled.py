@@ -4,13 +4,18 @@ ray with its march state, and the end of an eye's march (its cube texel and cube
 Both kernels start each eye's ray by `pair_eye_ray` and end it by `pair_finish`; in between they keep each eye's
 state in a row of small vectors and matrices and loop over the eyes (or lanes), so eye 0 and eye 1 run the same code.
 Warp passes structs to functions by value: a function called every step with the launch's structs (volume, medium,
-buffers) copies them every step, so the per-eye code of a step stays in the kernel's loop over eyes."""
+buffers) copies them every step, so the per-eye code of a step stays in the kernel's loop over eyes.
+
+An eye marches a tile only where the coarse pass found density on its own rays there (`tile_eyes`, as CMSRM culls
+each eye alone): the pair's tile is live where either eye's is, and the other eye's texels keep the transparent fill
+there, with no ray. Culling the pair's tiles jointly marched 7.5% more eye rays than CMSRM on the smoke 256^3 at
+1080p stereo, and its empty texels stored a finite end depth where CMSRM's keep the fill's."""
 
 from __future__ import annotations
 
 import warp as wp
 
-from volren.kernels.common import CameraGPU, Medium, ViewBuffers, VolumeGPU, skip_cell_ray
+from volren.kernels.common import INF, CameraGPU, Medium, ViewBuffers, VolumeGPU, skip_cell_ray
 from volren.render.compositing.mesh_layers import MeshLayers, next_layer_t, segment_finish, texel_layers
 from volren.render.marching.cubemap import CubeTarget, eye_segment, store_texel
 from volren.render.marching.march import MarchParams
@@ -21,7 +26,8 @@ from volren.render.marching.vsa import VSAParams
 class CoupledJob:
     """One coupled march launch: the pair's cameras, z-buffers, mesh k-buffers and cube maps (eye 1's only read when
     ``eyes`` == 2), voxel sharing on/off, the density level, the tiles ((face, row, col) origins of ``tile`` rows,
-    ``apron`` texels of margin, face size ``size``) and the march constants."""
+    ``apron`` texels of margin, face size ``size``; per tile, bit e set where eye e marches it) and the march
+    constants."""
 
     cam0: CameraGPU
     cam1: CameraGPU
@@ -35,6 +41,7 @@ class CoupledJob:
     share: int
     vol: VolumeGPU
     tiles: wp.array(dtype=wp.vec3i)
+    tile_eyes: wp.array(dtype=int)
     tile: int
     apron: int
     size: int
@@ -101,15 +108,24 @@ def eye_ray(cam: CameraGPU, buffers: ViewBuffers, mesh: MeshLayers, target: Cube
 
 
 @wp.func
-def pair_eye_ray(job: CoupledJob, e: int, vol: VolumeGPU, x: wp.vec3, texel: int, dt: float) -> EyeRay:
-    """`eye_ray` of eye e of the pair; eye 1 of a single view has no segment."""
+def tile_views(job: CoupledJob, k: int) -> int:
+    """The eyes that march tile k: bit e for eye e (never eye 1 of a single view)."""
+    if job.eyes < 2:
+        return job.tile_eyes[k] & 1
+    return job.tile_eyes[k]
+
+
+@wp.func
+def pair_eye_ray(job: CoupledJob, e: int, views: int, vol: VolumeGPU, x: wp.vec3, texel: int, dt: float) -> EyeRay:
+    """`eye_ray` of eye e of the pair; an eye that does not march the tile (``views``, `tile_views`) has no
+    segment."""
+    if (views >> e) & 1 == 0:
+        r = EyeRay()
+        r.next_t = INF
+        return r
     if e == 0:
         return eye_ray(job.cam0, job.buffers0, job.mesh0, job.target0, vol, x, texel, dt)
-    r = eye_ray(job.cam1, job.buffers1, job.mesh1, job.target1, vol, x, texel, dt)
-    if job.eyes < 2:
-        r.seg = wp.vec4(0.0)
-        r.n = 0
-    return r
+    return eye_ray(job.cam1, job.buffers1, job.mesh1, job.target1, vol, x, texel, dt)
 
 
 @wp.func
@@ -146,10 +162,13 @@ def finish_eye(mesh: MeshLayers, target: CubeTarget, texel: int, seg: wp.vec4, a
 
 
 @wp.func
-def pair_finish(job: CoupledJob, e: int, texel: int, seg: wp.vec4, acc: wp.vec4, half: float, pix: wp.vec3i,
-                base: int, j: int, snap: wp.vec4):
-    """`finish_eye` for eye e of the pair (nothing for eye 1 of a single view)."""
+def pair_finish(job: CoupledJob, e: int, views: int, texel: int, seg: wp.vec4, acc: wp.vec4, half: float,
+                pix: wp.vec3i, base: int, j: int, snap: wp.vec4):
+    """`finish_eye` for eye e of the pair where it marches the tile (``views``); elsewhere its texel keeps the
+    fill."""
+    if (views >> e) & 1 == 0:
+        return
     if e == 0:
         finish_eye(job.mesh0, job.target0, texel, seg, acc, half, pix, base, j, snap)
-    elif job.eyes == 2:
+    else:
         finish_eye(job.mesh1, job.target1, texel, seg, acc, half, pix, base, j, snap)

@@ -500,6 +500,23 @@ def pyramid_bounds(eye: wp.vec3, q00: wp.vec3, q10: wp.vec3, q01: wp.vec3, q11: 
     return wp.mat33(lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], 0.0, 0.0, 0.0)
 
 
+@wp.func
+def box_peak(lo: wp.vec3, hi: wp.vec3, max_density: wp.array(dtype=float), offset: int, res: wp.vec3i) -> float:
+    """The largest max-pyramid value over the cells that the local box [lo, hi] (clamped to [-1, 1]^3) touches."""
+    a = wp.vec3i(0)
+    b = wp.vec3i(0)
+    for axis in range(3):
+        n = float(res[axis])
+        a[axis] = wp.clamp(int(wp.floor((wp.max(lo[axis], -1.0) + 1.0) * 0.5 * n)), 0, res[axis] - 1)
+        b[axis] = wp.clamp(int(wp.floor((wp.min(hi[axis], 1.0) + 1.0) * 0.5 * n)), 0, res[axis] - 1)
+    peak = float(0.0)
+    for z in range(a[2], b[2] + 1):
+        for y in range(a[1], b[1] + 1):
+            for x in range(a[0], b[0] + 1):
+                peak = wp.max(peak, max_density[offset + (z * res[1] + y) * res[0] + x])
+    return peak
+
+
 @wp.kernel
 def tile_occupancy_kernel(
     tiles: wp.array(dtype=wp.vec3i),
@@ -519,7 +536,9 @@ def tile_occupancy_kernel(
     from the quad on to the box exit (``exterior`` faces), so inside the box it stays in the box-clamped bounding box
     of the quad and the rays' other ends (`pyramid_bounds`), widened for the trilinear support of a coarser
     density level (``margin`` at the volume's level, times 2^l at tile level l; the tile's apron ring adds a texel).
-    The tile is live when the conservative max-density pyramid is non-zero anywhere there."""
+    Per eye, bit e of ``live`` is set when the conservative max-density pyramid is non-zero anywhere in that eye's
+    box: a coupled pair marches the tile where either bit is set, each eye only where its own is (as CMSRM culls
+    each eye alone)."""
     k = wp.tid()
     t = tiles[k]
     level = tile_level[k]
@@ -533,33 +552,27 @@ def tile_occupancy_kernel(
     u1 = wp.min(-1.0 + float(t[1] + tile) * h + apron, 1.0)
     v0 = wp.max(-1.0 + float(t[2]) * h - apron, -1.0)
     v1 = wp.min(-1.0 + float(t[2] + tile) * h + apron, 1.0)
-    one = wp.vec3(1.0)
     q00 = face_point(f, u0, v0)
     q10 = face_point(f, u1, v0)
     q01 = face_point(f, u0, v1)
     q11 = face_point(f, u1, v1)
-    lo = wp.min(wp.min(q00, q10), wp.min(q01, q11))
-    hi = wp.max(wp.max(q00, q10), wp.max(q01, q11))
-    b0 = pyramid_bounds(eye0, q00, q10, q01, q11, exterior)
-    b1 = pyramid_bounds(eye1, q00, q10, q01, q11, exterior)
-    lo = wp.min(lo, wp.min(wp.vec3(b0[0, 0], b0[0, 1], b0[0, 2]), wp.vec3(b1[0, 0], b1[0, 1], b1[0, 2])))
-    hi = wp.max(hi, wp.max(wp.vec3(b0[1, 0], b0[1, 1], b0[1, 2]), wp.vec3(b1[1, 0], b1[1, 1], b1[1, 2])))
+    quad_lo = wp.min(wp.min(q00, q10), wp.min(q01, q11))
+    quad_hi = wp.max(wp.max(q00, q10), wp.max(q01, q11))
     # An apron texel wrapped onto the adjacent face lies up to half a coarse texel off this face's plane.
-    widen = margin * scale + apron
-    lo = wp.max(lo - wp.vec3(widen), -one)
-    hi = wp.min(hi + wp.vec3(widen), one)
-    a = wp.vec3i(0)
-    b = wp.vec3i(0)
-    for axis in range(3):
-        n = float(res[axis])
-        a[axis] = wp.clamp(int(wp.floor((lo[axis] + 1.0) * 0.5 * n)), 0, res[axis] - 1)
-        b[axis] = wp.clamp(int(wp.floor((hi[axis] + 1.0) * 0.5 * n)), 0, res[axis] - 1)
-    peak = float(0.0)
-    for z in range(a[2], b[2] + 1):
-        for y in range(a[1], b[1] + 1):
-            for x in range(a[0], b[0] + 1):
-                peak = wp.max(peak, max_density[offset + (z * res[1] + y) * res[0] + x])
-    live[k] = int(peak > 0.0)
+    widen = wp.vec3(margin * scale + apron)
+    bits = int(0)
+    for e in range(2):
+        eye = eye0
+        if e == 1:
+            eye = eye1
+        b = pyramid_bounds(eye, q00, q10, q01, q11, exterior)
+        lo = wp.min(quad_lo, wp.vec3(b[0, 0], b[0, 1], b[0, 2])) - widen
+        hi = wp.max(quad_hi, wp.vec3(b[1, 0], b[1, 1], b[1, 2])) + widen
+        if e == 1 and eye1 == eye0:
+            bits = bits * 3
+        elif box_peak(lo, hi, max_density, offset, res) > 0.0:
+            bits = bits | (1 << e)
+    live[k] = bits
 
 
 def max_tile_level(tile: int) -> int:

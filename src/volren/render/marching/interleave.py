@@ -66,7 +66,15 @@ from volren.render.frame import (
     SHARED_SAMPLES,
     SKIPPED_STEPS,
 )
-from volren.render.marching.coupled import CoupledJob, job_constants, pair_eye_ray, pair_finish, pair_mesh, pair_target
+from volren.render.marching.coupled import (
+    CoupledJob,
+    job_constants,
+    pair_eye_ray,
+    pair_finish,
+    pair_mesh,
+    pair_target,
+    tile_views,
+)
 from volren.render.marching.cubemap import texel_index, texel_point, tile_texel
 from volren.render.marching.march import lit_step
 from volren.render.marching.vsa import END, ramp_slope, vsa_proposal
@@ -107,10 +115,10 @@ def quad_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64),
     counters = counter_row(counter_rows, r, c)
     vol, medium, params, vp, dt = job_constants(job)
     tile = job.tile
-    eyes = job.eyes
     row = r + row0
     quads = (tile + 1) / 2
     k = row / quads
+    views = tile_views(job, k)
     qr = row - k * quads
     # Lane setup (`pair_eye_ray`): segment (t_min, t_max, facing, valid), world and local directions.
     seg = mat84()
@@ -127,8 +135,8 @@ def quad_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64),
     for lane in range(LANES):
         next_t[lane] = INF
         q = quad_lane_texel(job.tiles, tile, job.apron, job.size, k, qr, c, lane % 4)
-        if q[0] >= 0 and lane / 4 < eyes:
-            ray = pair_eye_ray(job, lane / 4, vol, wp.transform_point(vol.to_world, texel_point(q, job.size)),
+        if q[0] >= 0:
+            ray = pair_eye_ray(job, lane / 4, views, vol, wp.transform_point(vol.to_world, texel_point(q, job.size)),
                                texel_index(q[0], q[1], q[2], job.size), dt)
             seg[lane] = ray.seg
             dw[lane] = ray.d
@@ -308,8 +316,8 @@ def quad_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64),
                 m = wp.max(m, quad_m[e])
     for lane in range(LANES):
         q = quad_lane_texel(job.tiles, tile, job.apron, job.size, k, qr, c, lane % 4)
-        if q[0] >= 0 and lane / 4 < eyes:
-            pair_finish(job, lane / 4, texel_index(q[0], q[1], q[2], job.size), seg[lane], acc[lane], half[lane],
+        if q[0] >= 0:
+            pair_finish(job, lane / 4, views, texel_index(q[0], q[1], q[2], job.size), seg[lane], acc[lane], half[lane],
                         wp.vec3i(cursor[lane, 0], cursor[lane, 1], cursor[lane, 2]), cursor[lane, 3], open_seg[lane],
                         snap[lane])
             count(counters, RAYS, int(seg[lane, 3]))
