@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import warp as wp
 
+from conftest import DEVICE
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.render import CMSRM, CMSRMConfig
+from volren.render.marching.cubemap import cube_quad, cube_sample
 from volren.scene import Environment, Scene, Volume, scale_translate
 
 W, H = 96, 64
@@ -88,3 +91,46 @@ def test_a_direct_box_beside_a_cube_box_is_marched():
     np.testing.assert_array_equal(frames["tiled"].depths[0], frames["pixel-rt"].depths[0])
     far_pixels = frames["tiled"].images[0][..., 2] > 0.05
     assert far_pixels.sum() > 20  # the far box is in view
+
+
+@wp.kernel
+def sample_quad_kernel(color: wp.array(dtype=wp.vec4), z_end: wp.array(dtype=float), p: wp.vec3, size: int,
+                       z_pixel: float, k_z: float, out: wp.array(dtype=wp.vec4), rim: wp.array(dtype=int)):
+    idx, b, r = cube_quad(0, size, p)
+    out[0] = cube_sample(color, z_end, idx, b, z_pixel, k_z)
+    rim[0] = r
+
+
+def test_cube_sample_edge_stops_and_falls_back_to_plain_bilinear():
+    """Paper 001 §3.2's filter on one 2x2 quad of face +z (4 x 4 texels, the lookup between texels (1, 1)-(2, 2)):
+    bilinear weights times w_z; a texel whose ray ends at the pixel's depth keeps the lookup alone where the others
+    end 1 m away (k_z = 5: w_z = 0), and where every w_z is 0 the plain bilinear weights are used, not a blank; a
+lookup within half a texel of any of the face's four edges is a rim lookup."""
+    size = 4
+    color = np.zeros((6 * size * size, 4), np.float32)
+    z_end = np.full(6 * size * size, 9.0, np.float32)
+    texels = {(1, 1): 0.1, (2, 1): 0.2, (1, 2): 0.3, (2, 2): 0.4}  # (i, j) of face 4 (+z) -> red
+    for (i, j), red in texels.items():
+        color[(4 * size + j) * size + i] = (red, 0.0, 0.0, 1.0 - red)
+    fx, fy = 0.25, 0.75
+    p = wp.vec3(-1.0 + (1.5 + fx) * 2.0 / size, -1.0 + (1.5 + fy) * 2.0 / size, 1.0)
+    weights = {(1, 1): (1 - fx) * (1 - fy), (2, 1): fx * (1 - fy), (1, 2): (1 - fx) * fy, (2, 2): fx * fy}
+    plain = sum(w * texels[k] for k, w in weights.items())
+
+    def sample(z_pixel: float, p: wp.vec3 = p) -> tuple[float, int]:
+        out = wp.zeros(1, dtype=wp.vec4, device=DEVICE)
+        rim = wp.zeros(1, dtype=int, device=DEVICE)
+        wp.launch(sample_quad_kernel, dim=1, inputs=[wp.array(color, dtype=wp.vec4, device=DEVICE),
+                  wp.array(z_end, dtype=float, device=DEVICE), p, size, z_pixel, 5.0, out, rim], device=DEVICE)
+        return float(out.numpy()[0, 0]), int(rim.numpy()[0])
+
+    z_end[(4 * size + 2) * size + 1] = 8.0  # texel (1, 2) ends 1 m nearer than the others
+    np.testing.assert_allclose(sample(8.0)[0], 0.3, rtol=1e-6)
+    np.testing.assert_allclose(sample(9.0)[0], (plain - weights[(1, 2)] * 0.3) / (1 - weights[(1, 2)]), rtol=1e-6)
+    value, rim = sample(3.0)
+    np.testing.assert_allclose(value, plain, rtol=1e-6)
+    assert rim == 0
+    # within half a texel of a face edge, on every side, the quad straddles it (`rim_needs_march` then decides)
+    h = 2.0 / size
+    for x, y in ((-1 + 0.2 * h, 0.1), (1 - 0.2 * h, 0.1), (0.1, -1 + 0.2 * h), (0.1, 1 - 0.2 * h)):
+        assert sample(9.0, wp.vec3(x, y, 1.0))[1] == 1, (x, y)

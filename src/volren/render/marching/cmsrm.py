@@ -115,6 +115,7 @@ from volren.render.marching.cubemap import (
     coarse_tiles,
     cube_face_point,
     cube_lod,
+    cube_quad,
     cube_sample,
     face_size_cap,
     face_tiles,
@@ -361,8 +362,8 @@ def cube_compose_kernel(
     z = dist * facing
     if facing > 0.0:
         z = occluded_end(cam, buffers, x, dist, facing) * facing
-    store_texel(target, texel_index(q[0], q[1], q[2], size),
-                cube_sample(coarse.color, coarse.z_end, coarse.offset, coarse_size, p, z, k_z),
+    idx, b, _rim = cube_quad(coarse.offset, coarse_size, p)
+    store_texel(target, texel_index(q[0], q[1], q[2], size), cube_sample(coarse.color, coarse.z_end, idx, b, z, k_z),
                 cube_nearest_t(coarse.t_half, coarse.offset, coarse_size, p), z)
 
 
@@ -403,11 +404,12 @@ def resample_lone_box(
             offset = cubes.offset[v]
             size = cubes.size[v]
             p = ray_face_point(o_l, d_l, h, cubes.exterior)
-            if cubes.rim_direct != 0 and rim_needs_march(cubes.color, offset, size, p) != 0:
+            idx, b, rim = cube_quad(offset, size, p)
+            if cubes.rim_direct != 0 and rim_needs_march(cubes.color, idx, rim) != 0:
                 return 0
             acc = combine_segment(mode, state_accumulator(s),
-                                  cube_sample(cubes.color, cubes.z_end, offset, size, p,
-                                              t_out * wp.dot(d, cam.forward), cubes.k_z))
+                                  cube_sample(cubes.color, cubes.z_end, idx, b, t_out * wp.dot(d, cam.forward),
+                                              cubes.k_z))
             if acc[3] <= 0.5:
                 s.depth_t = cube_nearest_t(cubes.t_half, offset, size, p)
             s = with_accumulator(s, acc)
@@ -492,12 +494,16 @@ def layered_resample_kernel(
             offset = cubes.offset[v]
             size = cubes.size[v]
             # only a cube-scheme box has texels to read (a direct or culled box's cube size may be 0)
-            rim = int(0)
-            if cubes.scheme[v] == SCHEME_CUBE and cubes.rim_direct != 0:
-                rim = rim_needs_march(cubes.color, offset, size, p)
-            if cubes.scheme[v] == SCHEME_CUBE and rim == 0:
+            march = int(0)
+            idx = wp.vec4i(0)
+            b = wp.vec4(0.0)
+            if cubes.scheme[v] == SCHEME_CUBE:
+                idx, b, rim = cube_quad(offset, size, p)
+                if cubes.rim_direct != 0:
+                    march = rim_needs_march(cubes.color, idx, rim)
+            if cubes.scheme[v] == SCHEME_CUBE and march == 0:
                 if not layer_before(mesh, row, col, next_mesh, facing, layers.t_out[i]):
-                    c = cube_sample(cubes.color, cubes.z_end, offset, size, p, layers.t_out[i] * facing, cubes.k_z)
+                    c = cube_sample(cubes.color, cubes.z_end, idx, b, layers.t_out[i] * facing, cubes.k_z)
                     acc = combine_segment(params.mode, state_accumulator(s), c)
                     if s.transmittance > 0.5 and acc[3] <= 0.5:
                         s.depth_t = cube_nearest_t(cubes.t_half, offset, size, p)
