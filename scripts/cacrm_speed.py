@@ -4,8 +4,9 @@ Both methods render the same scene and stereo pair (the CLI's default eye, 0, 0.
 warm-up each is timed ``--repeats`` times, alternating, and the minimum frame time is kept (the machine is shared, so
 the minimum is the least-disturbed run). Prints per scene and size: ms per frame and per pass, the counters, the
 ratio CMSRM / CACRM frame time (> 1: CACRM faster), each method's cube march as a ratio to CMSRM's, and a checksum of
-CACRM's images (to pin them across changes). ``--ablation`` adds CACRM with uniform steps and with k_a = 0 (VSA's
-product, no ramp; paper 000 Eq. 4-6) to the same interleaved loop; ``--k-a 2,3`` adds CACRM at each of those ramps
+CACRM's images (to pin them across changes). ``--ablation`` adds CACRM with uniform steps, with k_a = 0 (VSA's
+product, no ramp; paper 000 Eq. 4-6), with Eq. 4's ramp alone (w = 0: no product) and with each eye marched alone
+(no coupling) to the same interleaved loop; ``--k-a 2,3`` adds CACRM at each of those ramps
 (quality: `scripts/k_a_sweep.py`); ``--no-ins`` adds CACRM without interleaved spatial reuse (the quad kernel),
 ``--camera-pos 0.1,0,0.5`` puts the eyes inside the box."""
 
@@ -29,6 +30,8 @@ def renderers(ablation: bool, k_as: list[float], no_ins: bool, samples: int) -> 
     if ablation:
         methods["cacrm uniform"] = CACRM(CACRMConfig(samples=samples, vsa=False))
         methods["cacrm k_a 0"] = CACRM(CACRMConfig(samples=samples, k_a=0.0))
+        methods["cacrm ramp only"] = CACRM(CACRMConfig(samples=samples, w_lambda=0.0, w_t=0.0, w_a=0.0))
+        methods["cacrm alone"] = CACRM(CACRMConfig(samples=samples, coupling=False))
     for k_a in k_as:
         methods[f"cacrm k_a {k_a:g}"] = CACRM(CACRMConfig(samples=samples, k_a=k_a))
     if no_ins:
@@ -43,7 +46,8 @@ def main() -> None:
     ap.add_argument("--sizes", default="480x270,960x540")
     ap.add_argument("--resolution", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--ablation", action="store_true", help="also time CACRM with uniform steps and with k_a = 0")
+    ap.add_argument("--ablation", action="store_true",
+                    help="also time CACRM with uniform steps, k_a = 0, the ramp alone and without coupling")
     ap.add_argument("--k-a", default="", help="comma-separated k_a values: also time CACRM with each ramp")
     ap.add_argument("--no-ins", action="store_true", help="also time CACRM without interleaved spatial reuse")
     ap.add_argument("--samples", type=int, default=360, help="N for every method")
