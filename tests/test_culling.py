@@ -146,7 +146,7 @@ def test_culling_leaves_the_image_unchanged_and_saves_samples(method, config):
 
 
 def test_cacrm_marches_each_eye_only_in_its_own_live_tiles():
-    """Eyes 0.5 apart, 1.8 m from the smoke: the pair marches 59 of 80 tiles, and each eye there only the tiles
+    """Eyes 0.5 apart, 2.2 m from the smoke's centre: the pair marches 59 of 80 tiles, and each eye there only the tiles
     live for it, so CACRM's eye rays are CMSRM's (joint culling marched 120,832 against 106,496), and the texels an
     eye does not march keep the fill, so the images are --no-cull's."""
     scene = builtin_scene("smoke", 64)

@@ -695,7 +695,7 @@ class CMSRM(LightMapRenderer):
                 wp.launch(tile_lod_kernel, dim=len(tiles),
                           inputs=[device_tiles, tile, lod.size, ds.levels[v][0], camera_struct(cams[0]),
                                   camera_struct(cams[-1]), c.k_u, top, levels], device=self.device)
-        eyes = np.full(len(tiles), 3, dtype=np.int32)
+        marchers = np.full(len(tiles), 3, dtype=np.int32)
         if c.cull_tiles and len(tiles):
             vol = ds.scene.volumes[v]
             eyes = [(vol.to_local @ np.r_[cam.position, 1.0])[:3] for cam in cams]
@@ -708,8 +708,8 @@ class CMSRM(LightMapRenderer):
                           inputs=[device_tiles, tile, lod.size, wp.vec3(*eyes[0]), wp.vec3(*eyes[-1]),
                                   int(c.cube_faces == "exterior"), margin, levels,
                                   ds.max_density, offset, wp.vec3i(*res), occupied], device=self.device)
-            eyes = occupied.numpy()
-        live = eyes > 0
+            marchers = occupied.numpy()
+        live = marchers > 0
         plan["live_tiles"] = int(live.sum())
         tile_levels = levels.numpy()
         plan["tile_levels"] = [int(np.sum(live & (tile_levels == level))) for level in range(MAX_TILE_LEVEL + 1)]
@@ -720,7 +720,7 @@ class CMSRM(LightMapRenderer):
             if not len(chosen):
                 continue
             fine = wp.array(chosen, dtype=wp.vec3i, device=self.device)
-            views = wp.array(eyes[kept], dtype=int, device=self.device)
+            views = wp.array(marchers[kept], dtype=int, device=self.device)
             if level == 0:
                 groups.append(TileGroup(0, fine, fine, tile, 0, lod.size, tile, views))
             else:

@@ -147,7 +147,8 @@ def cube_quad(offset: int, size: int, p: wp.vec3):
     """The 2x2 texels bilinear filtering uses at the box-surface point ``p`` (seamless across face edges): their
     indices (texels ``offset ...``), bilinear weights, and 1 where the quad straddles a face edge (p within half a
     texel of it: a rim lookup, `rim_needs_march`). One call gives a lookup all three: the resampling pass found the
-    face and the texel twice per pixel before (rim test, then filter), 8% of its profile at 1080p."""
+    face and the texel twice per pixel before (rim test, then filter; 204 against 197 ms at 1080p stereo, smoke
+    128^3, one thread)."""
     f = point_face(p)
     a = f / 2
     x = (p[(a + 1) % 3] + 1.0) * 0.5 * float(size) - 0.5
