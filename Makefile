@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 PIP_FLAGS := --disable-pip-version-check --quiet
 
-.PHONY: demo test lint mutations clean
+.PHONY: demo test lint cuda-check wheel-check mutations clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -25,7 +25,16 @@ demo: $(VENV)/.installed
 lint: $(VENV)/.installed-dev
 	$(BIN)/ruff check src tests scripts
 
-test: lint
+# Every Warp kernel module compiled for CUDA sm_80 and sm_90 through NVRTC, no GPU needed (scripts/cuda_check.py):
+# about 140 s on 2 cores the first time, 3 s when Warp's kernel cache already holds the unchanged modules.
+cuda-check: $(VENV)/.installed-dev
+	$(BIN)/python scripts/cuda_check.py
+
+# The sdist and wheel built, the wheel installed into a fresh venv with no source tree beside it, and run there.
+wheel-check: $(VENV)/.installed-dev
+	bash scripts/wheel_check.sh $(BIN)/python
+
+test: lint cuda-check
 	$(BIN)/python -m pytest -n 2 --dist loadgroup -q
 
 # Every paper part's deliberate breakage must fail its tests (tests/mutations.toml); slow, not part of `make test`.
