@@ -15,7 +15,7 @@ from volren.cli import main
 from volren.data.environments import sky_environment
 from volren.errors import VolrenError
 from volren.metrics import psnr
-from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig
+from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
 from volren.render.gi.ambient import GIConfig
 from volren.render.gi.passes import Accumulation, accumulate
 from volren.scene import DirectionalLight, Environment, Scene, Volume, scale_translate
@@ -251,28 +251,52 @@ def test_cross_volume_shadowing_darkens_a_volume_behind_another():
     a_shadow = ambient(shadowed, "brute", rays=64)
     assert a_shadow.mean() < 0.75 * a_alone.mean()
     r, ds = run_gi(shadowed, "brute", rays=16)
-    lit = np.exp(-ds.lightmap.numpy()[: ds.light_voxels[0]])  # the light map holds optical depths
-    assert lit.max() < 0.01
+    n = ds.light_voxels[0]
+    entering = ds.lightmap.numpy()[n : 2 * n]  # the optical depth of the other volumes (render/lightmap.py)
+    assert np.exp(-entering).max() < 0.01  # 60 / m through 0.4 m of slab: e^-24
     r = DSSRM(DSSRMConfig(light_grid=8), device=DEVICE)
     r.render(shadowed, [axis_camera(size=(8, 8))])
-    assert np.exp(-r._device_scene.lightmap.numpy()[: ds.light_voxels[0]]).min() > 0.3
+    assert np.all(r._device_scene.lightmap.numpy()[n : 2 * n] == 0.0)  # GI off: its own density only
 
 
 def test_light_map_crosses_every_volume_on_the_way_to_the_light():
     """GI's light map marches through every box the shadow ray meets (the BVH's any-hit traversal, paper 000
     §3.2.3): a homogeneous box under two slabs of optical depth 2 each, sun overhead, gets
     T = exp(-(sigma d + 2 + 2)) at every light-map node, d its distance to the box's top (exact for homogeneous media;
-    one slab or none would give e^2 or e^4 times more)."""
+    one slab or none would give e^2 or e^4 times more): its own mean extinction sigma and 4 entering."""
     n, sigma = 8, 0.5
     below = homogeneous_volume(sigma, n=n, scale=0.5, translate=(0.0, -0.6, 0.0))
     slabs = [Volume(np.ones((4, 4, 4), np.float32), scale_translate((1.2, 0.1, 1.2), (0.0, y, 0.0)),
                     density_scale=10.0) for y in (0.2, 0.6)]
     sun = (DirectionalLight(direction=(0.0, -1.0, 0.0), irradiance=(2.0, 2.0, 2.0)),)
     _, ds = run_gi(Scene((below, *slabs), sun, SKY), "brute", rays=16, light_grid=n)
-    lit = np.exp(-ds.lightmap.numpy()[: ds.light_voxels[0]].reshape(n, n, n))
-    y = -0.6 + 0.5 * np.linspace(-1.0, 1.0, n)
+    sigma_bar, entering = ds.lightmap.numpy()[: 2 * n**3].reshape(2, n, n, n)
+    y = -0.6 + 0.5 * np.linspace(-1.0, 1.0, n) * (1.0 - 1.0e-5)  # the nodes, marched from just inside the faces
+    lit = np.exp(-(sigma_bar * (-0.1 - y)[None, :, None] + entering))
     expected = np.exp(-(sigma * (-0.1 - y) + 4.0))
     np.testing.assert_allclose(lit, np.broadcast_to(expected[None, :, None], lit.shape), rtol=1e-3)
+    np.testing.assert_allclose(sigma_bar, sigma, rtol=1e-5)
+
+
+def test_a_volume_under_a_dense_slab_is_lit_through_it_as_the_reference_lights_it():
+    """The light map's entering optical depth at work (GI on, no sky: the direct light alone): a box under a slab
+    of optical depth 3 to the sun is lit e^-3 as brightly as without the slab, as the reference (exact shadows
+    between volumes) lights it; without GI each box sees only its own density and the slab casts nothing."""
+    below = homogeneous_volume(0.5, n=8, scale=0.5, albedo=0.8, translate=(0.0, -0.6, 0.0))
+    above = Volume(np.ones((4, 4, 4), np.float32), scale_translate((1.2, 0.1, 1.2), (0.0, 0.4, 0.0)),
+                   density_scale=15.0)
+    sun = (DirectionalLight(direction=(0.0, -1.0, 0.0), irradiance=(2.0, 2.0, 2.0)),)
+    scene = Scene((below, above), sun, Environment(0.0))
+    cam = [axis_camera(position=(0.0, -0.6, 2.5), size=(17, 9))]  # level with the lower box; the slab in rows 0-3
+
+    def lower(r) -> float:
+        return float(r.render(scene, cam).images[0][5:, :, :3].mean())
+
+    ref = lower(Reference(ReferenceConfig(samples=128, light_samples=128), device=DEVICE))
+    with_gi = lower(DSSRM(DSSRMConfig(light_grid=8, gi=GIConfig(method="brute", rays=8)), device=DEVICE))
+    without = lower(DSSRM(DSSRMConfig(light_grid=8), device=DEVICE))
+    assert with_gi == pytest.approx(ref, rel=0.03)
+    assert without == pytest.approx(ref * np.exp(3.0), rel=0.1)
 
 
 def test_amortised_updates_visit_every_volume_in_turn():

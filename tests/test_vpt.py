@@ -17,7 +17,7 @@ from volren.render import VPT, Reference, ReferenceConfig, VPTConfig
 from volren.render.environment import EnvironmentLight, environment_light, sample_environment
 from volren.render.vpt.majorants import MajorantGrid, build_majorants, majorant_struct, track
 from volren.render.vpt.tracer import sample_cosine, sample_hg, scatter_direction
-from volren.scene import DirectionalLight, Environment, Scene, Volume, scale_translate
+from volren.scene import DirectionalLight, Environment, Scene, Sphere, Volume, scale_translate
 from volren.transfer import PRESETS, ControlPoint, TransferFunction, linear, load_transfer_function
 
 CAM = Camera(position=(0.0, 0.3, 3.2), width=48, height=32)
@@ -549,3 +549,54 @@ def test_tf_hounsfield_points_json_round_trip_and_validation(tmp_path) -> None:
         TransferFunction((ControlPoint(0.0, 1.0),), hu_points=(ControlPoint(40.0, 1.0), ControlPoint(-100.0, 0.0)))
     with pytest.raises(VolrenError, match="Hounsfield positions must be finite"):
         TransferFunction((ControlPoint(0.0, 1.0),), hu_points=(ControlPoint(float("nan"), 1.0),))
+
+
+def sphere_coverage(cam: Camera, center, radius: float, sub: int = 32) -> np.ndarray:
+    """Fraction of each pixel's area whose camera ray meets the sphere: ``sub`` x ``sub`` rays per pixel."""
+    right, up, forward = cam.basis()
+    u = (np.arange(cam.width * sub) + 0.5) / (cam.width * sub) * 2 - 1
+    v = 1 - (np.arange(cam.height * sub) + 0.5) / (cam.height * sub) * 2
+    t = cam.tan_half_fov
+    d = (forward[None, None] + u[None, :, None] * t * cam.width / cam.height * right[None, None]
+         + v[:, None, None] * t * up[None, None])
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    oc = np.asarray(cam.position) - np.asarray(center)
+    b = d @ oc
+    hit = (b * b - (oc @ oc - radius * radius)) > 0
+    return hit.reshape(cam.height, sub, cam.width, sub).mean(axis=(1, 3))
+
+
+def test_surface_silhouettes_converge_to_their_coverage():
+    """An opaque sphere lit by the ambient alone (radiance albedo x ambient wherever it is seen) behind a clear
+    volume: each path meets the surface along its own jittered ray, so a silhouette pixel's value converges to its
+    coverage of the disc (issue 47 item 3: shaded at pixel centres only, every pixel was 0 or fully lit, and 82% of
+    VPT's squared error against Mitsuba sat in 10 such pixels). The alpha and the denoiser's background agree."""
+    clear = Volume(np.zeros((4, 4, 4), np.float32), scale_translate(0.2, (0.0, 0.0, -3.0)), density_scale=1.0)
+    ball = Sphere(center=(0.0, 0.0, 0.0), radius=0.7, albedo=(0.5, 0.5, 0.5))
+    scene = Scene((clear,), (), Environment(1.0), opaque=(ball,))
+    cam = Camera(position=(0.0, 0.0, 3.0), width=24, height=20, fov_y=40.0)
+    frame = VPT(VPTConfig(spp=64, max_bounces=1), device=DEVICE).render(scene, [cam])
+    img = frame.images[0]
+    cover = sphere_coverage(cam, ball.center, ball.radius)
+    edge = (cover > 0.05) & (cover < 0.95)
+    assert edge.sum() >= 30
+    # binomial noise at 64 paths: sd sqrt(c (1 - c) / 64) <= 0.0625, a mean |error| of about 0.05; no bias (z of
+    # the summed errors within 4); a pixel-centre surface errs by its coverage or 1 - it (0.29 on average here)
+    a, c = img[..., 3][edge].astype(np.float64), cover[edge]
+    sd = np.sqrt(np.maximum(c * (1 - c), 1e-4) / 64)
+    np.testing.assert_allclose(a, c, atol=0.3)
+    assert np.abs(a - c).mean() < 0.07
+    assert abs((a - c).sum()) < 4.0 * np.sqrt((sd**2).sum())
+    np.testing.assert_allclose(img[..., 0][edge], 0.5 * a, rtol=1e-4)  # each covered path: albedo x ambient
+    fractional = (img[..., 3][edge] > 0.02) & (img[..., 3][edge] < 0.98)
+    assert fractional.mean() > 0.8
+    inside, outside = cover == 1.0, cover == 0.0
+    np.testing.assert_allclose(img[..., 0][inside], 0.5, rtol=1e-5)
+    assert np.all(img[..., 3][outside] == 0.0)
+    # the denoiser composites its volume over the same coverage-weighted surface (Eq. 15's background)
+    denoised = VPT(VPTConfig(spp=16, max_bounces=1, denoise="ours"), device=DEVICE)
+    for f in range(2):
+        out = denoised.render(scene, [cam], frame=f).images[0]
+    a16 = out[..., 3][edge].astype(np.float64)
+    assert abs((a16 - c).sum()) < 4.0 * np.sqrt((np.maximum(c * (1 - c), 1e-4) / 16).sum())
+    assert ((a16 > 0.02) & (a16 < 0.98)).mean() > 0.6

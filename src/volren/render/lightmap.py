@@ -41,15 +41,16 @@ from volren.device import launch_rows
 from volren.kernels.common import (
     LightGPU,
     VolumeGPU,
+    box_hit,
     cell_fraction,
+    count,
     counter_row,
     gather_cell,
     grid_cell,
     interpolate_cell,
     light_distance,
     light_travel_dir,
-    transmittance_bvh_skipping,
-    transmittance_toward_skipping,
+    optical_depth_skipping,
     vec8,
 )
 from volren.render.frame import LIGHT_SAMPLES, LIGHT_SKIPPED, PassClock
@@ -86,21 +87,46 @@ def light_map_cell(data: wp.array(dtype=float), offset: int, res: wp.vec3i, p: w
 
 
 @wp.func
-def sample_light_map(data: wp.array(dtype=float), offset: int, res: wp.vec3i, p: wp.vec3) -> float:
-    """Transmittance to the light of a volume sample at local ``p``: exp of the optical depth interpolated
-    trilinearly (exact along a uniform medium's depth)."""
-    tau, a = light_map_cell(data, offset, res, p)
-    return wp.exp(-interpolate_cell(tau, a))
+def light_path_length(vol: VolumeGPU, p: wp.vec3, toward: wp.vec3, reach: float) -> float:
+    """[m] s: the length of the path from local ``p`` towards the light (world direction ``toward``, the light at
+    distance ``reach``) inside the volume's box: the chord `optical_depth` marches from p."""
+    h = box_hit(p, wp.transform_vector(vol.to_local, toward))
+    return wp.max(wp.min(h[1], reach) - wp.max(h[0], 0.0), 0.0)
 
 
 @wp.func
-def sample_light_map_across(data: wp.array(dtype=float), offset: int, res: wp.vec3i, p: wp.vec3) -> float:
-    """Transmittance to the light at a shadow ray's box entry ``p`` (a surface's lookup): the corners'
-    transmittances interpolated (module docstring)."""
-    tau, a = light_map_cell(data, offset, res, p)
+def optical_depth_at(data: wp.array(dtype=float), offset: int, count: int, res: wp.vec3i, p: wp.vec3, s: float,
+                     gi: int) -> float:
+    """tau = sigma_bar s + tau_in at local ``p`` whose path to the light runs ``s`` inside the box (module docstring:
+    the mean extinction and, with ``gi``, the optical depth of the other volumes, each interpolated trilinearly)."""
+    sigma_bar, a = light_map_cell(data, offset, res, p)
+    tau = interpolate_cell(sigma_bar, a) * s
+    if gi != 0:
+        tau_in, a_in = light_map_cell(data, offset + count, res, p)
+        tau += interpolate_cell(tau_in, a_in)
+    return tau
+
+
+@wp.func
+def sample_light_map(data: wp.array(dtype=float), offset: int, count: int, res: wp.vec3i, p: wp.vec3, s: float,
+                     gi: int) -> float:
+    """Transmittance to the light of a volume sample at local ``p`` (``s``: `light_path_length`): exp(-tau), exact
+    through a uniform medium whatever face the path leaves by."""
+    return wp.exp(-optical_depth_at(data, offset, count, res, p, s, gi))
+
+
+@wp.func
+def sample_light_map_across(data: wp.array(dtype=float), offset: int, count: int, res: wp.vec3i, p: wp.vec3,
+                            s: float, gi: int) -> float:
+    """Transmittance to the light at a shadow ray's box entry ``p`` (a surface's lookup; ``s`` its chord through the
+    box): the corners' transmittances along that chord interpolated (module docstring)."""
+    sigma_bar, a = light_map_cell(data, offset, res, p)
+    tau_in = vec8()
+    if gi != 0:
+        tau_in, a = light_map_cell(data, offset + count, res, p)
     t = vec8()
     for c in range(8):
-        t[c] = wp.exp(-tau[c])
+        t[c] = wp.exp(-wp.min(sigma_bar[c] * s + tau_in[c], MAX_OPTICAL_DEPTH))
     return interpolate_cell(t, a)
 
 
@@ -137,21 +163,37 @@ def light_map_kernel(
         return
     k = (row - row_start[v]) / res[1]
     j = (row - row_start[v]) - k * res[1]
-    x = wp.transform_point(vol.to_world, light_node(i, j, k, res) * NODE_INSET)
-    count = res[0] * res[1] * res[2]
+    p = light_node(i, j, k, res) * NODE_INSET
+    x = wp.transform_point(vol.to_world, p)
+    nodes = res[0] * res[1] * res[2]
+    node = (k * res[1] + j) * res[0] + i
     for li in range(lights.shape[0]):
         light = lights[li]
         toward = -light_travel_dir(light, x)
         reach = light_distance(light, x)
-        t = float(0.0)
+        # tau_own through this volume's box, tau_in through the others (GI on: paper 000 §3.2.3's shadows between
+        # volumes), summed per box as `transmittance_bvh_skipping` sums them
+        own = optical_depth_skipping(vol, x, toward, reach, density, max_density, skip, light_samples)
+        tau_own, fetched, skipped = own[0], own[1], own[2]
+        tau_in = float(0.0)
         if cross_volume != 0:
-            t = transmittance_bvh_skipping(x, toward, reach, bvh, volumes, density, light_samples, counters,
-                                           LIGHT_SAMPLES, max_density, skip, LIGHT_SKIPPED)
-        else:
-            t = transmittance_toward_skipping(x, toward, reach, volumes, v, v + 1, density, light_samples, counters,
-                                              LIGHT_SAMPLES, max_density, skip, LIGHT_SKIPPED)
-        tau = wp.min(-wp.log(t), MAX_OPTICAL_DEPTH)
-        lightmap[vol.light_offset + li * count + (k * res[1] + j) * res[0] + i] = tau
+            query = wp.bvh_query_ray(bvh, x, toward)
+            h = int(0)
+            while wp.bvh_query_next(query, h):
+                if h != v:
+                    q = optical_depth_skipping(volumes[h], x, toward, reach, density, max_density, skip,
+                                               light_samples)
+                    tau_in += q[0]
+                    fetched += q[1]
+                    skipped += q[2]
+        count(counters, LIGHT_SAMPLES, int(fetched))
+        count(counters, LIGHT_SKIPPED, int(skipped))
+        # the node's path length, from the local point the march started at (so tau_own / s is its mean extinction
+        # to the last bit, however short the chord of a node on a lit face)
+        s = wp.max(light_path_length(vol, wp.transform_point(vol.to_local, x), toward, reach), 1.0e-20)
+        base = vol.light_offset + 2 * li * nodes
+        lightmap[base + node] = wp.min(tau_own, MAX_OPTICAL_DEPTH) / s
+        lightmap[base + nodes + node] = wp.min(tau_in, MAX_OPTICAL_DEPTH)
 
 
 def compute_light_map(ds: DeviceScene, light_samples: int, clock: PassClock, cross_volume: bool = False) -> None:

@@ -166,14 +166,16 @@ def unlit(ds: DeviceScene) -> SurfaceLight:
 
 @wp.func
 def light_map_transmittance(sl: SurfaceLight, vol: VolumeGPU, li: int, x: wp.vec3, to_light: wp.vec3, t0: float,
-                            counters: wp.array(dtype=wp.int64)) -> float:
-    """T from x + t0 to_light (the box entry, or x inside the box) to light li: the light map of ``vol`` read there."""
+                            t1: float, counters: wp.array(dtype=wp.int64)) -> float:
+    """T from x + t0 to_light (the box entry, or x inside the box) to light li, the chord running to t1: the light
+    map of ``vol`` read there."""
     o_l = wp.transform_point(vol.to_local, x)
     d_l = wp.transform_vector(vol.to_local, to_light)
     res = vol.light_res
     count(counters, LIGHTMAP_LOOKUPS, 1)
     n = res[0] * res[1] * res[2]
-    return sample_light_map_across(sl.lightmap, vol.light_offset + li * n, res, o_l + t0 * d_l)
+    return sample_light_map_across(sl.lightmap, vol.light_offset + 2 * li * n, n, res, o_l + t0 * d_l, t1 - t0,
+                                   sl.cross_volume)
 
 
 @wp.func
@@ -196,7 +198,7 @@ def volume_shadow(sl: SurfaceLight, li: int, light: LightGPU, x: wp.vec3, to_lig
         t0 = wp.max(h[0], 0.0)
         t1 = wp.min(h[1], dist)
         if t1 > t0:
-            tv = light_map_transmittance(sl, vol, li, x, to_light, t0, counters)
+            tv = light_map_transmittance(sl, vol, li, x, to_light, t0, t1, counters)
             product *= tv
             if t0 < first_t:
                 first_t = t0

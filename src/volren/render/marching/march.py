@@ -20,6 +20,7 @@ from volren.kernels.common import (
     first_skip_check,
     half_depth,
     hg_phase,
+    light_distance,
     light_irradiance,
     light_travel_dir,
     march_step_count,
@@ -30,7 +31,7 @@ from volren.kernels.common import (
     state_accumulator,
     with_accumulator,
 )
-from volren.render.lightmap import sample_light_map
+from volren.render.lightmap import light_path_length, sample_light_map
 from volren.render.marching.modes import (
     ISO_FETCHES,
     MODE_DVR,
@@ -81,8 +82,10 @@ def shade_light_map(
     count = res[0] * res[1] * res[2]
     for li in range(medium.lights.shape[0]):
         light = medium.lights[li]
-        t = sample_light_map(medium.lightmap, vol.light_offset + li * count, res, p)
-        phase = hg_phase(wp.dot(light_travel_dir(light, x), -d), vol.g)
+        travel = light_travel_dir(light, x)
+        s = light_path_length(vol, p, -travel, light_distance(light, x))
+        t = sample_light_map(medium.lightmap, vol.light_offset + 2 * li * count, count, res, p, s, medium.gi)
+        phase = hg_phase(wp.dot(travel, -d), vol.g)
         radiance += phase * t * light_irradiance(light, x)
     return radiance
 

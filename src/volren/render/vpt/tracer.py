@@ -333,10 +333,10 @@ def scatter_direction(d: wp.vec3, normal: wp.vec3, g: float, p_b: float, state: 
 
 @wp.func
 def shadowed_surface(sc: VPTScene, params: VPTParams, x: wp.vec3, normal: wp.vec3, d: wp.vec3, albedo: wp.vec3,
-                     state: wp.uint32):
+                     state: wp.uint32, estimates: int):
     """The surface pass's Lambertian radiance of surface point x seen along d (`surfaces.shade_lit_surface`) with each
-    light's transmittance through the volumes: the mean of ``spp`` ratio-tracked estimates (one per path; 0 where an
-    opaque object blocks the light). (radiance, state, density lookups, shadow rays)."""
+    light's transmittance through the volumes: the mean of ``estimates`` ratio-tracked estimates (0 where an opaque
+    object blocks the light). (radiance, state, density lookups, shadow rays)."""
     n = normal
     if wp.dot(n, d) > 0.0:
         n = -n
@@ -351,13 +351,13 @@ def shadowed_surface(sc: VPTScene, params: VPTParams, x: wp.vec3, normal: wp.vec
         dist = light_distance(light, x)
         if cos > 0.0 and not occluded(lifted, to_light, dist, sc.opaque, sc.mesh_ids):
             tr = float(0.0)
-            for _k in range(params.spp):
+            for _k in range(estimates):
                 tk, _none, s2, nk = track_volumes(sc, params, lifted, to_light, dist, 1, state)
                 state = s2
                 tr += tk
                 lookups += nk
-            rays += params.spp
-            rgb += wp.cw_mul(albedo, light_irradiance(light, x)) * (tr / float(params.spp) * cos / wp.pi)
+            rays += estimates
+            rgb += wp.cw_mul(albedo, light_irradiance(light, x)) * (tr / float(estimates) * cos / wp.pi)
     return rgb, state, lookups, rays
 
 
@@ -384,10 +384,23 @@ def vpt_kernel(
     density_lookups = int(0)
     light_lookups = int(0)
     shadow_rays = int(0)
+    # Opaque objects are hit by each path's own jittered ray, so a silhouette pixel converges to its coverage (issue
+    # 47 item 3; the surface pass shades pixel centres only); a user's depth image clips at its pixel's depth.
+    geometry = sc.opaque.shape[0] + sc.mesh_ids.shape[0] > 0
+    surface_sum = wp.vec3(0.0)
+    covered = int(0)
     for path in range(params.spp):
         d = camera_ray(cam, row, col, wp.randf(state), wp.randf(state))
         x = cam.origin
-        t_max = wp.min(occluder_t(buffers, cam, d, row, col), cam.far / wp.dot(d, cam.forward))
+        t_max = cam.far / wp.dot(d, cam.forward)
+        ts = float(INF)
+        sn = wp.vec3(0.0)
+        s_albedo = wp.vec3(0.0)
+        if geometry:
+            ts, sn, s_albedo = nearest_surface(cam.origin, d, sc.opaque, sc.mesh_ids, sc.mesh_albedo)
+            t_max = wp.min(t_max, ts)
+        if not geometry or buffers.occluder_color[row, col][3] <= 0.0:
+            t_max = wp.min(t_max, occluder_t(buffers, cam, d, row, col))
         if record != 0:
             tr0, _none, s0, n0 = track_volumes(sc, params, x, d, t_max, 1, opacity_state)
             opacity_state = s0
@@ -409,6 +422,15 @@ def vpt_kernel(
             state = s2
             density_lookups += n
             if v < 0:
+                if bounce == 0 and ts < t_max + 1.0e-6 * ts:
+                    # through the volumes to the surface: one shadow-ray estimate per light for this path
+                    rgb_s, s5, n_s, rays_s = shadowed_surface(sc, params, cam.origin + ts * d, sn, d, s_albedo,
+                                                              state, 1)
+                    state = s5
+                    light_lookups += n_s
+                    shadow_rays += rays_s
+                    surface_sum += rgb_s
+                    covered += 1
                 break
             x = x + t * d
             albedo, p_brdf, grad, u, emitted = material(sc, v, x)
@@ -510,14 +532,22 @@ def vpt_kernel(
     inv = 1.0 / float(params.spp)
     alpha = float(hits) * inv
     surface_color = buffers.occluder_color[row, col]
-    if surface_color[3] > 0.0:
-        # An opaque surface (not a user depth image): shadowed by the volumes here (the denoiser reads it too).
-        dc = camera_ray(cam, row, col, 0.5, 0.5)
-        ts, sn, surface_albedo = nearest_surface(cam.origin, dc, sc.opaque, sc.mesh_ids, sc.mesh_albedo)
-        rgb, state, n_s, rays = shadowed_surface(sc, params, cam.origin + ts * dc, sn, dc, surface_albedo, state)
-        light_lookups += n_s
-        shadow_rays += rays
-        surface_color = wp.vec4(rgb[0], rgb[1], rgb[2], 1.0)
+    if geometry:
+        # The surface behind the volumes, premultiplied by its coverage among the paths the volumes let through (the
+        # denoiser composites its output over it: Eq. 15's background); with every path stopped in a volume, the
+        # pixel centre's surface stands in, with as many shadow-ray estimates.
+        misses = params.spp - hits
+        if misses > 0:
+            c = surface_sum / float(misses)
+            surface_color = wp.vec4(c[0], c[1], c[2], float(covered) / float(misses))
+        elif surface_color[3] > 0.0:
+            dc = camera_ray(cam, row, col, 0.5, 0.5)
+            tc, nc, ac = nearest_surface(cam.origin, dc, sc.opaque, sc.mesh_ids, sc.mesh_albedo)
+            rgb_c, state, n_c, rays_c = shadowed_surface(sc, params, cam.origin + tc * dc, nc, dc, ac, state,
+                                                         params.spp)
+            light_lookups += n_c
+            shadow_rays += rays_c
+            surface_color = wp.vec4(rgb_c[0], rgb_c[1], rgb_c[2], 1.0)
         buffers.occluder_color[row, col] = surface_color
     rgb = radiance * inv + (1.0 - alpha) * wp.vec3(surface_color[0], surface_color[1], surface_color[2])
     buffers.image[row, col] = wp.vec4(rgb[0], rgb[1], rgb[2], alpha + (1.0 - alpha) * surface_color[3])
