@@ -92,10 +92,10 @@ def varying_scene(name: str) -> Scene:
 @pytest.mark.parametrize(("name", "low", "high"), [("graded", 0.965, 1.03), ("bumpy", 0.98, 1.015)])
 def test_lit_rows_of_varying_media_match_the_reference(name, low, high):
     """An 8^3 box whose density grows with depth (graded) or varies on every axis (bumpy), lit from above at the
-    default light grid (8^3: the floor of 8 nodes per axis): every lit row of DSSRM within [low, high] of the reference (measured 0.973-1.000
-    and 0.986-1.004). Light-map nodes at voxel centres instead of on the faces give rows up to 1.23 (graded) and
-    0.959 (bumpy), lookups clamped half a light voxel inside 1.14 (graded), and interpolating T instead of the
-    optical depth 1.024 (bumpy)."""
+    default light grid (8^3: the floor of 8 nodes per axis): every lit row of DSSRM within [low, high] of the
+    reference (measured 0.973-1.000 and 0.986-1.004). Light-map nodes at voxel centres instead of on the faces give
+    rows up to 1.23 (graded) and 0.959 (bumpy), lookups clamped half a light voxel inside 1.14 (graded), and
+    interpolating T instead of the optical depth 1.024 (bumpy)."""
     cam = SCENES["box"][2]
     ref = Reference(ReferenceConfig(samples=256, light_samples=256), device=DEVICE).render(
         varying_scene(name), [cam]).images[0]
