@@ -309,3 +309,65 @@ def test_cli_mode_flags(tmp_path, capfd) -> None:
                         (["--mode", "iso", "--iso-value", "-1"], r"iso_value \(--iso-value\) must be")):
         assert main([*base, *extra, "--out", str(tmp_path / "x")]) != 0
         assert re.search(text, capfd.readouterr().err)
+
+
+def test_mida_weighs_by_the_running_maximum_along_rays_through_two_blobs() -> None:
+    """Rays through a bright blob and then a dimmer one behind it (a dip between): at the dimmer blob's rising edge
+    P_i climbs above the previous sample but stays below the running maximum, so beta = 1 there (Bruckner and
+    Groeller's Eq. 5 compares with P_max, not with P_(i-1)); DSSRM equals the numpy recurrence."""
+    n = 24
+    c = -1 + (np.arange(n) + 0.5) * 2 / n
+    z, y, x = np.meshgrid(c, c, c, indexing="ij")
+    rho = np.exp(-(x**2 + y**2 + (z - 0.45) ** 2) / 0.06) + 0.6 * np.exp(-(x**2 + y**2 + (z + 0.45) ** 2) / 0.06)
+    vol = Volume(np.where(rho > 0.02, rho, 0.0).astype(np.float32), density_scale=3.0, albedo=ALBEDO)
+    s = Scene((vol,), lights=(), environment=Environment((0.5, 0.5, 0.5)))
+    cam = Camera(position=(0.05, 0.02, 3.2), width=24, height=24, fov_y=20.0)
+    ref = numpy_mida(vol.density, cam, 3.0, np.asarray(ALBEDO) * 0.5)
+    img = DSSRM(DSSRMConfig(samples=V, mode="mida"), device=DEVICE).render(s, [cam]).images[0]
+    assert ref[12, 12, 3] > 0.3 and ref[..., 3].min() < 0.05  # the blobs in the middle, clear corners
+    np.testing.assert_allclose(img, ref, atol=2e-3)
+
+
+def world_field(shape, to_world: np.ndarray, f) -> np.ndarray:
+    """f evaluated at the world position of every voxel centre of a grid placed by ``to_world``."""
+    axes = np.meshgrid(*[-1 + (np.arange(n) + 0.5) * 2 / n for n in shape], indexing="ij")  # z, y, x
+    local = np.stack([axes[2], axes[1], axes[0], np.ones_like(axes[0])], -1)
+    w = local @ np.asarray(to_world).T
+    return f(w[..., 0], w[..., 1], w[..., 2]).astype(np.float32)
+
+
+def rotation(axis, angle: float) -> np.ndarray:
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    m = np.eye(4)
+    m[:3, :3] = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+    return m
+
+
+def ellipsoid(x, y, z):
+    return np.clip(1.0 - np.sqrt(x**2 + (y / 0.5) ** 2 + z**2) / 0.9, 0.0, 1.0)
+
+
+@pytest.mark.parametrize(("case", "shape", "to_world"), [
+    ("rotated (an oblique DICOM, a VDB affine)", (32, 32, 32), rotation((1.0, 2.0, 0.5), 0.7)),
+    ("squashed box", (32, 32, 32), np.diag([1.0, 0.5, 1.0, 1.0])),
+    ("anisotropic voxel counts (a z-stack)", (12, 40, 32), np.eye(4)),
+    ("all three", (12, 40, 32), rotation((0.3, -1.0, 0.8), 1.1) @ np.diag([1.0, 0.5, 1.0, 1.0])),
+])
+def test_iso_surface_shading_is_the_same_world_shape_however_its_grid_is_placed(case, shape, to_world) -> None:
+    """One world ellipsoid, sampled on a grid placed as the case says and on a plain 32^3 cube: the iso surface
+    is shaded the same (median 0.2%, 90% of pixels within 3%), its normals being the world gradient's
+    (M^-1)^T grad_local with each local axis's own voxel spacing. Before issue 47 a 32 x 40 x 12 grid was 9% off in
+    median (47% at the 90th percentile)."""
+    def iso(shape, m):
+        vol = Volume(world_field(shape, m, ellipsoid), m, density_scale=1.0, albedo=ALBEDO)
+        frame = DSSRM(DSSRMConfig(samples=256, mode="iso", iso_value=0.3), device=DEVICE).render(
+            Scene((vol,), lights=(LIGHT,), environment=Environment(AMBIENT)), [CAM])
+        return frame.images[0][..., :3], frame.depths[0]
+
+    base, base_depth = iso((32, 32, 32), np.eye(4))
+    img, depth = iso(shape, to_world)
+    both = np.isfinite(depth) & np.isfinite(base_depth)
+    assert both.sum() > 150
+    err = np.abs(img[both] - base[both]) / np.maximum(base[both], 1e-3)
+    assert np.median(err) < 0.005 and np.percentile(err, 90) < 0.03, (case, np.median(err), np.percentile(err, 90))
