@@ -224,6 +224,9 @@ def ray_backend(request, monkeypatch):
 
 
 def test_a_job_file_on_ray_writes_the_files_of_the_in_process_run(tmp_path, ray_backend, capfd):
+    """A two-job sweep (mono, stereo) run with ``volren batch --workers 2`` writes every job's files, byte for byte
+    those of the in-process run (the second job included: ``run_jobs`` runs its ``planned`` states, so a batch
+    whose job list and plans disagree is refused rather than half run), and the same index."""
     body = "[sweep]\nviews = [\"mono\", \"stereo\"]\n[[sweep.look]]\nname = \"dim\"\nlight-irradiance = 1\n"
     runs = {}
     for where, extra in (("here", []), ("ray", ["--workers", "2"])):
@@ -234,12 +237,27 @@ def test_a_job_file_on_ray_writes_the_files_of_the_in_process_run(tmp_path, ray_
         runs[where] = folder / "batch"
     assert "2 job(s) into" in capfd.readouterr().out
     for name in ("views-mono_look-dim", "views-stereo_look-dim"):
+        assert (runs["ray"] / name).is_dir(), name  # every job ran, not only the first
         here, ray = _files(runs["here"] / name), _files(runs["ray"] / name)
         assert len(here) == (2 if name.startswith("views-mono") else 6) and ray == here  # stereo: 2 eyes + pair
         assert (runs["ray"] / name / "batch.json").is_file()  # the engine's manifest: a re-run resumes
     index = {w: json.loads((runs[w] / "jobs.json").read_text()) for w in runs}
     assert [job["settings"] for job in index["ray"]["jobs"].values()] == [
         job["settings"] for job in index["here"]["jobs"].values()]
+
+
+def test_run_jobs_refuses_plans_that_are_not_its_jobs(tmp_path):
+    """`volren batch --workers` hands the engine its jobs and their plans (made checking the job file), and the
+    engine runs the plans: a job list the plans do not match one for one is refused before Ray starts, rather than
+    its jobs silently ignored (a batch that ran its first job only, or another's plans)."""
+    from volren.distributed.engine import Job, JobState, run_jobs
+
+    jobs = [Job(("render", "--out", str(tmp_path / name)), tmp_path / name) for name in ("a", "b")]
+    plans = [JobState(job, None, [], {}) for job in jobs]  # never reached: no plan is run
+    for given, planned in ((jobs[:1], plans), (jobs, plans[:1]), (jobs[::-1], plans)):
+        with pytest.raises(ValueError, match=r"planned state\(s\) are not those of the \d job\(s\)"):
+            run_jobs(given, workers=1, address=None, flag="--workers", planned=planned)
+    assert not any(tmp_path.iterdir())  # nothing opened or written
 
 
 def test_bench_batch_counts_every_unit_and_frame(ray_backend):

@@ -24,7 +24,7 @@ from volren.camera import Camera, make_views
 from volren.data import builtin_scene
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, CACRMConfig, CMSRMConfig
-from volren.render.marching.cacrm import mat24, ramp_jump, unit_run
+from volren.render.marching.cacrm import idle_run, mat24, ramp_jump, unit_run
 from volren.render.marching.vsa import VSAParams, lambda_cap, ramp_slope, vsa_proposal, zero_product
 from volren.scene import Scene
 
@@ -218,6 +218,50 @@ def test_unit_runs_end_in_closed_form_where_the_loop_leaves_unit_steps(case):
     k = out.numpy()[0]
     assert exact <= k <= exact + 1, (k, exact, len(states) - 1)
     assert (exact == 0) == (case == "product") and (case != "ramp" or exact < len(states) - 10), (exact, states)
+
+
+@wp.kernel
+def idle_run_kernel(poss: wp.array(dtype=float), seg: mat24, checks: wp.array(dtype=wp.vec2), vp: VSAParams,
+                    dt: float, out: wp.array(dtype=wp.vec4), units: wp.array(dtype=float)):
+    """Per start pos (m = 1, both eyes live, products 0, no mesh layers): `unit_run`'s closed-form unit steps, and
+    what `idle_run` returns: (pos, m, eye steps, eye 0's last step midpoint)."""
+    i = wp.tid()
+    slope = wp.vec2(ramp_slope(vp, seg[0, 1]), ramp_slope(vp, seg[1, 1]))
+    product = wp.vec2(0.0)
+    units[i] = unit_run(poss[i], seg, slope, wp.vec2i(1, 1), wp.vec2i(100000), wp.vec2(1.0), checks[i],
+                        wp.vec2(1.0e30), product, vp, dt, 0.01)
+    pos, m, steps, _, last = idle_run(poss[i], 1.0, seg, slope, wp.vec2i(1, 1), wp.vec2i(100000), wp.vec2(1.0),
+                                      checks[i], wp.vec2(1.0e30), product, vp, dt, 0.01)
+    out[i] = wp.vec4(pos, m, steps, last[0])
+
+
+def test_idle_run_leaves_unit_steps_where_the_ramp_passes_1_in_a_step_clipped_at_t_min():
+    """An idle run that starts with its first step cut at the segment's entry t_min (an eye's step straddling its
+    volume's face) and Eq. 4's ramp k_a t / t_max passing 1 inside that step: `unit_run` bounds unit steps by their
+    unclipped midpoints and counts that step as a unit step, but its clipped midpoint is past t_max / k_a, so VSA
+    proposes the next step longer than 1. `idle_run` must walk it as the loop does: the (pos, m) after it, the eye
+    steps and the last midpoint are the float32 loop's for every start across the step (a unit jump there kept m at
+    1: the next step up to 6e-4 base steps short of VSA's, and the lattice behind it off)."""
+    k_a = 1.5
+    seg = ((2.7985, 4.2), (2.7985, 4.2))  # t_max / k_a = 2.8: just past t_min
+    poss = np.arange(146.0, 147.0, 1.0 / 32.0, dtype=np.float32)  # the first step [pos - 1, pos) starts before t_min
+    ends = np.float32(4.2) - (poss - np.float32(1.0)) * np.float32(DT)  # its far end
+    checks = np.repeat((ends + np.float32(0.25 * DT))[:, None], 2, axis=1)  # a lookup just behind: the run's end
+    vp = VSAParams()
+    vp.enabled, vp.k_a, vp.k_b, vp.f_lambda_max, vp.w_lambda, vp.w_t, vp.w_a = 1, k_a, 0.01, 4.0, 1.0, 4.0, 1.0
+    out = wp.zeros(len(poss), dtype=wp.vec4, device="cpu")
+    units = wp.zeros(len(poss), dtype=float, device="cpu")
+    wp.launch(idle_run_kernel, dim=len(poss), device="cpu", inputs=[
+        wp.array(poss, dtype=float, device="cpu"), mat24(*seg[0], 1.0, 1.0, *seg[1], 1.0, 1.0),
+        wp.array(checks, dtype=wp.vec2, device="cpu"), vp, DT, out, units])
+    ramped = 0
+    for pos, check, got, unit in zip(poss, checks, out.numpy(), units.numpy(), strict=True):
+        steps, states = walk(pos, 1.0, seg, (0.0, 0.0), check, DT, k_a)
+        want_pos, want_m, want_last = states[steps]
+        assert steps == 1, (pos, steps)
+        np.testing.assert_allclose(got, [want_pos, want_m, 2 * steps, want_last], rtol=1e-7, err_msg=str(pos))
+        ramped += int(unit == 1.0 and want_m > 1.0)  # `unit_run` took the step as a unit one; the loop's m > 1
+    assert ramped >= 8, ramped  # 11 of the 32 starts (pos 146.34 - 146.66)
 
 
 def test_vsa_idle_runs_are_jumped_and_counted():

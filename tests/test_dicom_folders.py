@@ -248,3 +248,31 @@ def test_mr_without_rescale_is_no_hounsfield_and_maps_by_bits_stored(tmp_path: P
     assert not loaded.hounsfield and loaded.value_range == (0.0, 4095.0)
     assert loaded.value_mapping.to_dict() == {"source": "uint16", "range": [0.0, 4095.0], "units": "raw"}
     np.testing.assert_allclose(loaded.density[:, 1, 1], [250 / 4095, 500 / 4095], rtol=1e-6)
+
+
+@pytest.mark.parametrize(("modality", "sop_class"), [("CT", CT), ("MR", MR)])
+def test_each_slice_is_rescaled_by_its_own_slope_and_intercept(tmp_path: Path, modality: str, sop_class: str) -> None:
+    """Scanners may change RescaleSlope / RescaleIntercept from slice to slice (PET and Philips MR do per slice):
+    here the first slice has slope 1, intercept 0 and the two later ones slope 2, intercept -1024. Each slice's
+    values are its stored values rescaled by its own pair, in a CT (HU) as in an MR (whose first slice's identity
+    rescale must not make the series read as stored integers): slice 0 holds 40 and 1000, slice 1 -1000 and 1000,
+    slice 2 40 and 0, so the loaded values span -1000..1000."""
+    folder = tmp_path / modality
+    folder.mkdir()
+    series = generate_uid()
+    stored = np.array([[40, 1000], [12, 1012], [532, 512]], np.uint16)  # per slice: its fill and its pixel (0, 0)
+    rescale = [(1, 0), (2, -1024), (2, -1024)]
+    for k, ((fill, corner), (slope, intercept)) in enumerate(zip(stored, rescale, strict=True)):
+        pixels = np.full((4, 5), fill, np.uint16)
+        pixels[0, 0] = corner
+        dataset(sop_class, pixels, Modality=modality, SeriesInstanceUID=series,
+                ImagePositionPatient=[0.0, 0.0, 2.0 * k], ImageOrientationPatient=[1, 0, 0, 0, 1, 0],
+                PixelSpacing=[1.0, 1.0], RescaleSlope=slope, RescaleIntercept=intercept).save_as(
+                    folder / f"{k}.dcm", enforce_file_format=True)
+    loaded = load_volume(folder)
+    assert loaded.value_range == (-1000.0, 1000.0)
+    assert loaded.value_mapping.units == ("HU" if modality == "CT" else "raw")
+    lo, hi = loaded.value_range
+    values = lo + loaded.density * (hi - lo)  # back to the rescaled values
+    np.testing.assert_allclose(values[:, 1, 1], [40.0, -1000.0, 40.0], atol=1e-3)  # each slice's fill
+    np.testing.assert_allclose(values[:, 0, 0], [1000.0, 1000.0, 0.0], atol=1e-3)  # each slice's pixel (0, 0)

@@ -112,6 +112,37 @@ def test_drag_orbits_as_the_serve_page(viewer):
     assert db(frame, before) < DIFFERS_DB
 
 
+def bright_x(image: np.ndarray) -> float:
+    """[px] the mean column of the pixels brighter than half the brightest (over the darkest)."""
+    lum = image.astype(float).sum(axis=2)
+    lum -= lum.min()
+    return float(np.nonzero(lum > 0.5 * lum.max())[1].mean())
+
+
+def test_readme_drag_right_turns_the_scene_right():
+    """The README's example, events as written (40 px right): the scene turns right, as on the serve page (viewer.js
+    `cam.yaw -= dx * k`). A glowing blob in the front half of the box (towards the camera) is seen at the centre
+    first; turned right, its image moves right (measured 31.6 -> 42.2 px at 64 px wide; to the left when the turn is
+    flipped), and the eye swings to -x around the target."""
+    c = -1.0 + (np.arange(32) + 0.5) * 2.0 / 32
+    z, y, x = np.meshgrid(c, c, c, indexing="ij")
+    blob = np.exp(-(x**2 + y**2 + (z - 0.6) ** 2) / (2 * 0.15**2)).astype(np.float32)
+    scene = dataclasses.replace(SCENE, volumes=(Volume(blob, density_scale=10.0, albedo=0.5, emission=(4.0,) * 3),),
+                                name="front-blob")
+    viewer = Viewer(scene, width=W, height=H, camera=START, device=DEVICE, **SMALL)
+    try:
+        before = bright_x(viewer.get_frame())
+        assert abs(before - W / 2) < 3.0, before
+        viewer.handle_event({"type": "pointer_down", "x": 80, "y": 45, "button": 1})  # what a mouse drag sends
+        viewer.handle_event({"type": "pointer_move", "x": 120, "y": 45, "button": 1})  # 40 px right
+        after = bright_x(viewer.get_frame())
+        assert after > before + 5.0, f"the front of the scene moved from x={before:.1f} to {after:.1f}, not right"
+        want = orbited(START, -40.0 * ORBIT_RAD_PER_PX, 0.0)
+        assert viewer.camera.position[0] < -0.5 and np.allclose(viewer.camera.position, want.position, atol=1e-9)
+    finally:
+        viewer.close()
+
+
 def test_a_release_away_from_the_last_move_finishes_the_drag(viewer):
     """jupyter_rfb throttles pointer moves: the drag's last stretch may arrive only with the release (the Voila test
     caught the orbit falling short)."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import io
+import math
 import os
 import socket
 import subprocess
@@ -24,10 +25,12 @@ CHROMIUM = Path("/usr/bin/chromium")
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 TIMEOUT_MS = 120_000
+"""the kernel imports volren and Warp and loads its kernels before the first frame (a cold cache compiles them)"""
 DRAG_STEPS = 8
 """pointer moves of the drag: at most this many intermediate frames can show before the last"""
-"""the kernel imports volren and Warp and loads its kernels before the first frame (a cold cache compiles them)"""
 DRAG_PX = 40
+NEXT_FRAME_MS = 15_000
+"""a frame after the first (kernels loaded: milliseconds to render at 128 x 96)"""
 
 
 def _missing(what: str) -> None:
@@ -110,14 +113,14 @@ def voila_url(tmp_path_factory) -> Iterator[str]:
         log.close()
 
 
-def shown(page, after: str = "") -> tuple[str, np.ndarray]:
-    """(src, pixels) of the widget's image once it shows a frame whose src is not ``after`` and stays for 1 s (the
-    lossless PNG follows a JPEG frame after 0.3 s)."""
+def shown(page, after: str = "", timeout_ms: int = TIMEOUT_MS) -> tuple[str, np.ndarray]:
+    """(src, pixels) of the widget's image once it shows a frame whose src is not ``after`` (within ``timeout_ms``)
+    and stays for 1 s (the lossless PNG follows a JPEG frame after 0.3 s)."""
     from PIL import Image
 
     img = "document.querySelector('img.renderview-view')"
     page.wait_for_function(f"() => {{ const i = {img}; return i && i.complete && i.naturalWidth > 0 && "
-                           f"i.src !== {after!r}; }}", timeout=TIMEOUT_MS)
+                           f"i.src !== {after!r}; }}", timeout=timeout_ms)
     src = page.evaluate(f"{img}.src")
     while True:
         time.sleep(1.0)
@@ -152,7 +155,7 @@ def close_to(a: np.ndarray, b: np.ndarray) -> bool:
 
 def test_viewer_in_voila_shows_and_orbits(voila_url):
     from volren.camera import Camera
-    from volren.notebook import Orbit
+    from volren.notebook import ORBIT_RAD_PER_PX
 
     start = Camera(position=(0.0, 0.2, 1.9))
     with sync_api.sync_playwright() as p:
@@ -169,12 +172,20 @@ def test_viewer_in_voila_shows_and_orbits(voila_url):
             page.mouse.move(x + DRAG_PX, y, steps=DRAG_STEPS)
             page.mouse.up()
             shown_src, dragged = shown(page, after=src)
-            o = Orbit.of(start).dragged(DRAG_PX, 0.0)
-            want = offline(dataclasses.replace(start, position=o.position), dragged.shape[:2])
+            # the camera a drag right must give, worked out here, not by `Orbit.dragged` (the code under test): the
+            # scene turns right as on the serve page, the eye swings about +y to -x by DRAG_PX * ORBIT_RAD_PER_PX
+            yaw = math.atan2(start.position[0], start.position[2]) - DRAG_PX * ORBIT_RAD_PER_PX
+            r = math.hypot(start.position[0], start.position[2])
+            turned = (r * math.sin(yaw), start.position[1], r * math.cos(yaw))
+            assert turned[0] < 0
+            want = offline(dataclasses.replace(start, position=turned), dragged.shape[:2])
+            flipped = offline(dataclasses.replace(start, position=(-turned[0], *turned[1:])), dragged.shape[:2])
+            assert not close_to(want, flipped), "the scene tells a right turn from a left one"
             for _ in range(DRAG_STEPS):  # on a loaded machine a frame of a camera mid-drag can stay 1 s: the next
-                if close_to(dragged, want):  # frame, of the camera the drag ended at, follows (or shown times out)
-                    break
-                shown_src, dragged = shown(page, after=shown_src)
+                if close_to(dragged, want) or close_to(dragged, flipped):  # frame, of the camera the drag ended at,
+                    break  # follows within NEXT_FRAME_MS (a turn the wrong way ends the wait at once)
+                shown_src, dragged = shown(page, after=shown_src, timeout_ms=NEXT_FRAME_MS)
+            assert not close_to(dragged, flipped), "a drag right turned the scene left"
             assert not close_to(dragged, first)
             assert close_to(dragged, want), "the widget does not show the camera orbited by the drag"
         finally:

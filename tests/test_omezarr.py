@@ -184,3 +184,78 @@ def test_omero_channel_colours_are_the_default_and_the_flag_overrides_them(tmp_p
         vols = scene_from_args(build_parser().parse_args(["render", "--volume", str(path), *flags])).volumes
         assert vols[0].emission[2] == pytest.approx(vols[0].density_scale * blue0)  # cyan / green
         assert vols[1].emission[1] == pytest.approx(vols[1].density_scale * green1)  # orange / magenta
+
+
+def test_bioformats2raw_tczyx_with_one_time_point_keeps_its_channels(tmp_path):
+    """A multi-channel z-stack as bioformats2raw writes it (axes t, c, z, y, x with t = 1, here by ome-zarr's own
+    ``write_image``): the single time point is dropped and the 3 channels stay 3 channels, each holding its own
+    marker and nothing else; the time axis' scale (60 s) does not leak into the placement (8 x 8 x 12 um box)."""
+    data = np.zeros((1, 3, 4, 16, 16), np.uint16)
+    markers = [(0, 2, 3), (1, 9, 5), (3, 14, 12)]  # (z, y, x) of channel 0, 1, 2
+    for c, zyx in enumerate(markers):
+        data[(0, c, *zyx)] = 1000 * (c + 1)
+    path = tmp_path / "b2r.zarr"
+    writer.write_image(data, zarr.open_group(str(path), mode="w"), axes="tczyx", scale_factors=(2,),
+                       scale={"t": 60.0, "c": 1.0, "z": 3.0, "y": 0.5, "x": 0.5},
+                       axes_units={"t": "second", "z": "micrometer", "y": "micrometer", "x": "micrometer"})
+    axes = json.loads((path / "zarr.json").read_text())["attributes"]["ome"]["multiscales"][0]["axes"]
+    assert [a["name"] for a in axes] == list("tczyx")
+    loaded = load_volume(path)
+    assert len(loaded.channels) == 3 and loaded.density.shape == (4, 16, 16)
+    for c, zyx in enumerate(markers):
+        assert np.argwhere(loaded.channels[c] > 0).tolist() == [list(zyx)], c  # channel c's marker, in channel c
+        assert loaded.channels[c][zyx] == 1.0
+    size = loaded.corners_world.max(axis=0) - loaded.corners_world.min(axis=0)
+    np.testing.assert_allclose(size, np.array([16 * 0.5, 16 * 0.5, 4 * 3.0]) * UM, rtol=1e-9)
+
+
+def test_multiscale_transformations_apply_after_the_datasets(tmp_path):
+    """NGFF 0.4/0.5: a multiscale's own ``coordinateTransformations`` (here scale 3, 4, 5 and translation 100, 200,
+    300 um for z, y, x) apply after each dataset's scale and translation: coordinate = outer_scale * (scale * index
+    + translation) + outer_translation. The box's corners (voxel edges at index -0.5 and n - 0.5) land there, as
+    world (x, -y, -z) in metres, at level 0 and level 1 alike."""
+    path = tmp_path / "outer.zarr"
+    write_pyramid(path)
+    outer_scale, outer_translation = np.array([3.0, 4.0, 5.0]), np.array([100.0, 200.0, 300.0])  # z, y, x [um]
+    meta = json.loads((path / "zarr.json").read_text())
+    meta["attributes"]["ome"]["multiscales"][0]["coordinateTransformations"] = [
+        {"type": "scale", "scale": [1.0, *outer_scale]},
+        {"type": "translation", "translation": [0.0, *outer_translation]}]
+    (path / "zarr.json").write_text(json.dumps(meta))
+    # dataset coordinates of the box's edges (index -0.5 and n - 0.5): z 9..25, y 3.75..19.75, x -3.25..12.75 um;
+    # after the outer scale and translation: z 127..175, y 215..279, x 283.75..363.75 um
+    expected_lo, expected_hi = np.array([283.75, -279.0, -175.0]) * UM, np.array([363.75, -215.0, -127.0]) * UM
+    for level in (0, 1):
+        corners = load_volume(path, level=level).corners_world
+        np.testing.assert_allclose(corners.min(axis=0), expected_lo, rtol=1e-9, atol=1e-15, err_msg=str(level))
+        np.testing.assert_allclose(corners.max(axis=0), expected_hi, rtol=1e-9, atol=1e-15, err_msg=str(level))
+
+
+@pytest.mark.parametrize(("unit", "metres"), [("angstrom", 1e-10), ("nanometer", 1e-9), ("micrometer", 1e-6),
+                                              ("millimeter", 1e-3)])
+def test_axis_units_from_angstrom_to_millimetre_in_metres(tmp_path, unit, metres):
+    """Electron microscopy states nanometres (cryo-EM angstroms), light microscopy micrometres, CT millimetres: the
+    box of the (8, 32, 32) stack of 2 x 0.5 x 0.5 unit voxels is 16 units on each side, converted by 1 unit = 1e-10,
+    1e-9, 1e-6, 1e-3 m, and starts half a voxel before voxel 0's centre (translation -3, 4, 10 units, x, y, z). An
+    angstrom box was refused as "degenerate" (an absolute determinant threshold of 1e-30 m^3)."""
+    path = tmp_path / f"{unit}.zarr"
+    write_pyramid(path, units=(unit,) * 3)
+    corners = load_volume(path).corners_world
+    np.testing.assert_allclose(corners.max(axis=0) - corners.min(axis=0), [16 * metres] * 3, rtol=1e-9)
+    # the far edges of y and z (index n - 0.5) become the world's lowest -y and -z
+    lowest = np.array([-3.0 - 0.5 * 0.5, -(4.0 + 31.5 * 0.5), -(10.0 + 7.5 * 2.0)])  # x, -y, -z [units]
+    np.testing.assert_allclose(corners.min(axis=0), lowest * metres, rtol=1e-9)
+
+
+def test_a_time_series_is_refused_naming_the_file_and_the_axis(tmp_path):
+    """An OME-Zarr of 3 time points (t, c, z, y, x by ``write_image``) is not silently read as its first one: volren
+    reads one volume per file (sequences are numbered files), so it is refused in one line naming the file, the axis
+    and its length, before any voxel is read."""
+    path = tmp_path / "timelapse.zarr"
+    data = np.zeros((3, 2, 4, 16, 16), np.uint16)
+    data[1:] = 500  # later time points differ: taking t = 0 would show an empty volume
+    writer.write_image(data, zarr.open_group(str(path), mode="w"), axes="tczyx", scale_factors=(2,))
+    with pytest.raises(VolrenError) as info:
+        load_volume(path)
+    assert str(info.value) == (f"{path}: axis 't' has 3 entries; volren reads one volume (a channel axis 'c' and "
+                               "z, y, x)")

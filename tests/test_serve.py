@@ -634,6 +634,40 @@ def test_a_frame_dropped_while_busy_is_rendered_again_when_free():
     run(test)
 
 
+def test_a_resize_alone_gets_a_frame_of_the_new_size():
+    """A window resize sends only {"type": "resize"} (the camera stays): the viewer gets a frame of its unchanged
+    camera at the new size, within a few seconds and without any camera message; a stereo viewer's resize keeps both
+    eyes side by side; a size over the limits is clamped (128 x 96 here)."""
+    def decoded(header, image) -> tuple[int, int]:
+        assert image.shape[:2] == (header["height"], header["width"]), "the header tells the JPEG's size"
+        return image.shape[1], image.shape[0]
+
+    async def test(client, loop):
+        ws, _ = await connect(client)
+        await ws.send_json(cam_msg(1))
+        header, image = await asyncio.wait_for(frame_for(ws, 1), TIMEOUT)
+        assert decoded(header, image) == (W, H)
+        for size, want in (((96, 64), (96, 64)), ((5000, 3), (128, 16)), ((W, H), (W, H))):
+            await ws.send_json({"type": "resize", "width": size[0], "height": size[1]})
+            header, image = await asyncio.wait_for(next_frame(ws), 5.0)
+            assert header["camera_id"] == 1 and decoded(header, image) == want, (size, header)
+        # the new size renders the same camera: the offline render of camera 1 at 96 x 64
+        await ws.send_json({"type": "resize", "width": 96, "height": 64})
+        _, image = await asyncio.wait_for(next_frame(ws), 5.0)
+        cam = Camera(position=cam_msg(1)["position"], look_at=(0, 0, 0), fov_y=45, width=96, height=64)
+        r = DSSRM(quality_config("dssrm", "interactive", **SMALL), device="cpu")
+        assert db(display_image(r.render(SCENE, [cam]).images, SCENE.background), image) > 40.0
+        await ws.send_json({"type": "settings", "stereo": True})
+        header, image = await asyncio.wait_for(next_frame(ws), 5.0)
+        assert header["stereo"] and decoded(header, image) == (96, 64)
+        await ws.send_json({"type": "resize", "width": 80, "height": 40})
+        header, image = await asyncio.wait_for(next_frame(ws), 5.0)
+        assert header["stereo"] and header["camera_id"] == 1 and decoded(header, image) == (80, 40)
+        await ws.close()
+
+    run(test)
+
+
 def test_bench_mixed_run_counts_and_goals():
     """`volren bench serve`'s mixed run (issue 20): small clients and a slow reader with and without a big client;
     the pixel budget (1.5x the small run's pixels) gives the big client a smaller frame than it asked for, the slow

@@ -235,6 +235,85 @@ def test_a_viewer_that_never_acknowledges_is_parked_then_closed(monkeypatch):
     run(test)
 
 
+def test_a_viewer_parked_in_a_background_tab_gets_frames_again_once_it_acks():
+    """Item 5: a page in a background tab stops drawing, so it acknowledges nothing for over PARK_AFTER_S (2 s) and is
+    parked; meanwhile its camera moves once (the page still sends input) and the other viewer is served. Once the tab
+    is back and acknowledges the frame it holds, it gets the frame of its newest camera within a few seconds, with no
+    further message, and then frames of later cameras as before (it is unparked, not served once)."""
+    async def test(client, loop):
+        a, _ = await connect(client)
+        b, _ = await connect(client)
+        await a.send_json(cam_msg(1))
+        msg = await a.receive(timeout=TIMEOUT)
+        held, _ = unpack_frame(msg.data)  # received, never drawn: no acknowledgement
+        assert held["camera_id"] == 1
+        viewer = loop.viewers.viewers[1]
+        start = time.monotonic()
+        await a.send_json(cam_msg(2, 0.3))
+        for i in range(1000):  # B keeps moving, so the loop ticks throughout A's pause
+            await b.send_json(cam_msg(10 + i, 0.001 * i))
+            await asyncio.wait_for(frame_for(b, 10 + i), 5.0)
+            if viewer.parked and loop.views_last == 1:
+                break
+            assert time.monotonic() - start < serve_loop.PARK_AFTER_S + 3.0, "A was never parked"
+            await asyncio.sleep(0.05)
+        assert time.monotonic() - start >= serve_loop.PARK_AFTER_S
+        with pytest.raises(TimeoutError):  # parked: nothing more for A until it acknowledges
+            await a.receive(timeout=0.3)
+        await a.send_json({"type": "ack", "tick": held["tick"]})  # the tab is back: it draws the frame it holds
+        _, image = await asyncio.wait_for(frame_for(a, 2), 5.0)
+        assert image.shape == (H, W, 3) and db(offline(cam_msg(2, 0.3)), image) > 40.0
+        for i in (3, 4):
+            await a.send_json(cam_msg(i, 0.1 * i))
+            await asyncio.wait_for(frame_for(a, i), 5.0)
+        assert not viewer.parked and loop.views_last == 2
+        for ws in (a, b):
+            await ws.close()
+
+    run(test)
+
+
+def test_a_parked_viewer_refines_on_once_it_acks():
+    """Item 5 with progressive refinement (VPT, 16 frames here): a viewer parked mid-refinement while another viewer
+    keeps the loop ticking gets the rest of its still view's refinement once it acknowledges again, more refined than
+    the frame it holds, up to the budget (before: it got nothing more, its still view forgotten while it was left out
+    of the render, and kept a noisy image until it moved)."""
+    budget = 16
+
+    async def test(client, loop):
+        a, _ = await connect(client)
+        await a.send_json({"type": "settings", "method": "vpt"})
+        await a.send_json(cam_msg(1))
+        held = None
+        while held is None or held["refine"] < 3:  # a few refined frames drawn, then the tab goes to the background
+            if held is not None:
+                await a.send_json({"type": "ack", "tick": held["tick"]})
+            held, _ = unpack_frame((await a.receive(timeout=TIMEOUT)).data)
+        b, _ = await connect(client)
+        viewer = loop.viewers.viewers[1]
+        start = time.monotonic()
+        for i in range(1000):  # B moves: the loop ticks while A is parked
+            await b.send_json(cam_msg(10 + i, 0.3 + 0.001 * i))
+            await asyncio.wait_for(frame_for(b, 10 + i), 5.0)
+            if viewer.parked and loop.views_last == 1:
+                break
+            assert time.monotonic() - start < serve_loop.PARK_AFTER_S + 3.0, "A was never parked"
+            await asyncio.sleep(0.05)
+        await a.send_json({"type": "ack", "tick": held["tick"]})
+        refines = []
+        while not refines or refines[-1] < budget:
+            header, _ = await asyncio.wait_for(next_frame(a), 5.0)
+            assert header["camera_id"] == 1
+            refines.append(header["refine"])
+        # (its still view was rendered on, its frames dropped, while it was busy and not yet parked: it may be past
+        # the budget already, then one frame brings it the newest)
+        assert refines[0] > held["refine"] and refines == sorted(set(refines)), (held["refine"], refines)
+        for ws in (a, b):
+            await ws.close()
+
+    run(test, refine=budget)
+
+
 def test_settings_converge_after_a_burst():
     """Item 7: after a burst of 500 light changes from one viewer, the other viewer's last settings message is the
     server's final state (before: 3 of 3 runs ended on a stale one). B's link is slow (each text message takes 5 ms

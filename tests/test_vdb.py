@@ -9,10 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import DEVICE, axis_camera, scene_of
 from volren.bench.load import SYSTEM_PYTHON, openvdb_available, write_with_openvdb
 from volren.data.loaders import load_volume
 from volren.data.vdb import read_vdb_grid_like
 from volren.errors import VolrenError
+from volren.render import METHODS
+from volren.scene import Volume
 
 SCALE = (0.5, 0.25, 2.0)
 """non-uniform voxel size [m] of the placed grids"""
@@ -73,6 +76,46 @@ AMBIENT = [((0, 0, 0), (4095, 4095, 4095), 300.0, True), ((4096, 0, 0), (8191, 4
 an inactive one (its value not the background 0; inactive voxels read as the background)"""
 
 
+FLAME_IJK = (13, 5, 3)
+"""file index (x, y, z) of the smoke's first voxel: its active box is index x 13-35, y 5-22, z 3-22, which the
+reader widens to whole leaves, x 8-39, y 0-23, z 0-23 (4 x 3 x 3 blocks)"""
+FLAME = np.random.default_rng(47).uniform(0.2, 1.0, (20, 18, 23)).astype(np.float32)
+CANVAS_IJK = (-16, -16, -16)
+"""file index of element [0, 0, 0] of the temperature canvases below, which reach index 47 / 31 / 31 (x / y / z)"""
+
+
+def _canvas(*pieces) -> np.ndarray:
+    """A temperature grid as float32 ``[z, y, x]`` over index x -16-47, y -16-31, z -16-31: each piece
+    ``(lo, hi, values)`` (inclusive index (x, y, z); a constant, or random in [1000, 1800]) written into zeros
+    (inactive: the background). A constant 8^3 block is stored as a tile, the rest as leaves."""
+    out, rng = np.zeros((48, 48, 64), np.float32), np.random.default_rng(48)
+    for lo, hi, value in pieces:
+        box = tuple(slice(a - o, b - o + 1) for a, b, o in zip(lo[::-1], hi[::-1], CANVAS_IJK[::-1], strict=True))
+        out[box] = value if value is not None else rng.uniform(1000.0, 1800.0, out[box].shape)
+    return out
+
+
+BELOW = _canvas(
+    ((-16, 8, 8), (-9, 15, 15), 2000.0),  # a tile 3 blocks below the widened box in x (block -3)
+    ((2, 9, 9), (6, 14, 14), None),  # a leaf at index x 0-7, one block below in x (block -1: the last, x 32-39)
+    ((17, -6, 10), (22, -2, 13), None),  # a leaf one block below in y
+    ((24, 8, -8), (31, 15, -1), 1800.0),  # a tile one block below in z
+    ((9, 2, 4), (15, 9, 9), None),  # a leaf inside the widened box, partly below the active box: x 13-15 overlap
+    ((8, 16, 16), (15, 23, 23), 900.0),  # a tile there, likewise
+)
+"""fire at and below the smoke's low corner: only what lies in the smoke's box (x >= 13) may read hot"""
+ABOVE = _canvas(
+    ((40, 8, 8), (47, 15, 15), 2000.0),  # a tile one block above the widened box in x
+    ((33, 10, 15), (38, 20, 21), None),  # leaves across the high corner x 35: x 33-35 overlap
+    ((16, 23, 8), (23, 30, 12), None),  # leaves from y 23 (the box's last row is 22) to 30
+    ((24, 8, 24), (31, 15, 31), 1500.0),  # a tile one block above in z
+)
+"""fire at and above the smoke's high corner"""
+FAR_BELOW = [((-128, 0, 0), (-1, 127, 127), 1500.0, True)]
+"""a 128^3 tile of an upper internal node just below the smoke's widened box in x (it ends at x -1, the box starts
+at x 8), level with it in y and z: a temperature grid with nothing in the smoke's box"""
+
+
 CENTRED = -np.array(SCALE) * (np.array(IJK) + (np.array(SHAPE[::-1]) - 1) / 2)
 """the translation that centres the grid as ``--spacing 0.5,0.25,2 --units m`` centres a .npy"""
 
@@ -108,6 +151,10 @@ def vdb_dir(tmp_path_factory) -> Path:
         "floor.vdb": [{"name": "temperature", "array": FLOOR}],
         "ambient.vdb": [{"name": "density", "array": SMOKE, "ijk": SMOKE_IJK},
                         {"name": "temperature", "array": None, "fills": AMBIENT}],
+        "flame.vdb": [{"name": "density", "array": FLAME, "ijk": FLAME_IJK},
+                      {"name": "below", "array": BELOW, "ijk": CANVAS_IJK},
+                      {"name": "above", "array": ABOVE, "ijk": CANVAS_IJK},
+                      {"name": "far-below", "array": None, "fills": FAR_BELOW}],
         "moved.vdb": [_grid("density", DENSITY), {**_grid("temperature", TEMPERATURE), "matrix": _matrix((0.5,) * 3)}],
     }, folder)
     data = (folder / "two.vdb").read_bytes()
@@ -326,3 +373,55 @@ def test_root_tiles_fill_the_density_box_and_their_own_box_is_8192_wide(vdb_dir)
     np.testing.assert_array_equal(loaded.emission_source, expected)
     with pytest.raises(VolrenError, match=r"ambient\.vdb: a dense copy of 1 grid\(s\) of 8192x4096x4096 voxels"):
         load_volume(vdb_dir / "ambient.vdb", grid="temperature")
+
+
+def _flame_box(canvas: np.ndarray) -> np.ndarray:
+    """The canvas over the smoke's active box (index x 13-35, y 5-22, z 3-22)."""
+    lo = np.subtract(FLAME_IJK, CANVAS_IJK)[::-1]
+    return canvas[tuple(slice(a, a + n) for a, n in zip(lo, FLAME.shape, strict=True))]
+
+
+def test_fire_outside_the_smoke_box_is_cropped_not_wrapped(vdb_dir):
+    """A simulation's temperature grid reaches past the smoke (its leaves, 8^3 tiles and a 128^3 tile below the
+    smoke's low corner in x, y and z, and above its high corner): ``--emission-grid`` reads it over the smoke's box
+    only, the overlap with its own values and zero (unburnt) everywhere else; nothing outside wraps round to the far
+    end of the box (a block index -1 is the last block to numpy)."""
+    import tinyvdb
+
+    path = vdb_dir / "flame.vdb"
+    with tinyvdb.open(str(path)) as f:  # the fixture holds what it means to: tiles of both sizes
+        f.read_grids()
+        tiles = {}  # active tiles of the upper and lower internal nodes
+        for i in range(f.grid_count):
+            tree = f.grid(i).tree
+            nodes = [tree.node(j) for j in range(tree.num_nodes)]
+            tiles[f.grid(i).name] = [sum(n.active_voxel_count for n in nodes if n.level == k) for k in (1, 2)]
+    assert tiles == {"density": [0, 0], "below": [0, 3], "above": [0, 2], "far-below": [1, 0]}
+    for name, canvas in (("below", BELOW), ("above", ABOVE)):
+        loaded = load_volume(path, emission_grid=name)
+        np.testing.assert_array_equal(loaded.density, FLAME)
+        expected = _flame_box(canvas)
+        assert 0 < np.count_nonzero(expected) < expected.size // 10  # a sliver of the box overlaps the fire
+        np.testing.assert_array_equal(loaded.emission_source, expected, err_msg=name)
+    assert not load_volume(path, emission_grid="far-below").emission_source.any()
+
+
+def test_fire_below_the_smoke_does_not_glow_on_its_far_side(vdb_dir):
+    """The user's picture of that smoke (albedo 0, no lights: only the fire shows) seen along z: the overlap at the
+    low-x face glows, the far (high-x) half of the picture is black; with the 128^3 tile below it, all is black."""
+    cls, config = METHODS["dssrm"]
+    renderer = cls(config(samples=64, light_grid=8), device=DEVICE)
+    camera = axis_camera(position=(0.0, 0.0, 20.0), size=(24, 24), fov_y=5.0)  # local x -0.83 to 0.83 at the front
+    path = vdb_dir / "flame.vdb"
+    for name in ("below", "far-below"):
+        loaded = load_volume(path, emission_grid=name)
+        fire = Volume(loaded.density, density_scale=1.0, albedo=0.0, emission_grid=loaded.emission_source,
+                      temperature_range=(1000.0, 2000.0), emission_scale=5.0)
+        image = renderer.render(scene_of(fire), [camera]).images[0]
+        assert image[..., 3].min() > 0.5  # the smoke covers the picture
+        rgb = image[..., :3].sum(axis=-1)
+        assert not rgb[:, 12:].any(), name  # the far half: local x > 0, index x > 24, nothing burns there
+        if name == "below":
+            assert rgb[:, :3].max() > 0.1  # the overlap, index x 13-15: local x < -0.74
+        else:
+            assert not rgb.any()

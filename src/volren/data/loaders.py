@@ -508,7 +508,9 @@ def load_volume(
         file_to_world = np.eye(4)
         file_to_world[:3, :3] = metres * to_world3
         index_to_world = file_to_world @ grid.index_to_file
-    if abs(np.linalg.det(index_to_world[:3, :3])) < 1e-30:
+    # scale-free (as `Volume`'s check): an absolute 1e-30 m^3 refused angstrom voxels (cryo-EM OME-Zarr) as degenerate
+    axes_volume = float(np.prod(np.linalg.norm(index_to_world[:3, :3], axis=0)))
+    if not abs(np.linalg.det(index_to_world[:3, :3])) > 1e-9 * axes_volume:
         raise VolrenError(f"{path}: the stored voxel axes are degenerate (zero spacing or parallel directions)")
     units = grid.units or ("HU" if np.issubdtype(grid.data.dtype, np.signedinteger) else "raw")
     hounsfield = value_range is not None and units == "HU"

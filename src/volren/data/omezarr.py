@@ -6,6 +6,10 @@ type ``space`` / ``channel`` / ``time``, a unit such as ``micrometer``) and ``da
 (coordinate = index * scale + translation), followed by the multiscale's own optional transformations. Only the one
 level chosen is read from disk (zarr reads the chunks of that array only), never the pyramid.
 
+One volume per file: a ``t`` axis of length 1 (bioformats2raw's ``tczyx``) is dropped; a longer one (a time-lapse),
+or any other axis that is neither space nor channel, is refused in one line naming the file, the axis and its length,
+rather than read as its first time point (sequences are numbered files: `volren.data.sequence`).
+
 Orientation: as microscopy viewers show an image (row 0 at the top, x to the right, z away from the viewer), the
 file's x, y, z axes map onto the world's +x, -y, -z (a rotation, nothing mirrored): the default camera, looking down
 -z, sees row 0 at the top of the picture, as TIFF pages.

@@ -328,6 +328,8 @@ def run_jobs(jobs: Sequence[Job], *, workers: int | None, address: str | None, f
         raise VolrenError(f"{flag}: the workers must be >= 1, got {workers}")
     if not 0 < gpus_per_worker <= 1:
         raise VolrenError(f"--gpus-per-worker must lie in (0, 1], got {gpus_per_worker:g}")
+    if planned is not None and [s.job for s in planned] != list(jobs):  # else ``jobs`` would be silently ignored
+        raise ValueError(f"run_jobs: the {len(planned)} planned state(s) are not those of the {len(jobs)} job(s)")
     start = time.perf_counter()
     states = list(planned) if planned is not None else [plan_job(i, job, workers, unit_frames)
                                                           for i, job in enumerate(jobs)]

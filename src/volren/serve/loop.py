@@ -444,7 +444,10 @@ class RenderLoop:
         self._step = step
         self.tick += 1
         self._tick_times.append(time.perf_counter())
-        self._still = {job[0].id: still for job, (_, still) in zip(jobs, frames, strict=True)}
+        # a connected viewer left out of this tick (parked) keeps its still view: once it acknowledges again it refines
+        # on from the frame it holds (before: forgotten, so it got no frame more and kept a noisy image until it moved)
+        kept = {i: s for i, s in self._still.items() if i in self.viewers.viewers}
+        self._still = kept | {job[0].id: still for job, (_, still) in zip(jobs, frames, strict=True)}
         self._sent = {i: n for i, n in self._sent.items() if i in self._still}
         for (v, cam_id, *_), (payload, still) in zip(jobs, frames, strict=True):
             if v.closed:
