@@ -6,16 +6,24 @@ only the volume's own density attenuates (paper 001); with GI on, the march cros
 through the BVH over the volumes' boxes (paper 000 §3.2.3's lighting update: shadows between volumes).
 
 Layout (issue 19 item 3; not in the papers, which leave it open). The n nodes of an axis sit at -1 + 2 i / (n - 1),
-the outermost on the box faces, and each holds the optical depth tau = -ln T to the light; a lookup interpolates tau
-trilinearly and returns exp(-tau). Voxel centres (the density grid's layout) stop half a light voxel inside the
-faces, and lookups clamped there gave a sample on a lit face the transmittance of a deeper point: on a uniform 8^3
-box (4^3 light grid) lit from above, DSSRM's top image rows were 0.62-0.73 of the reference. A volume sample
-interpolates tau: interpolating T between nodes overshoots where T is convex in depth (1.14x the reference on that
-box), while tau is linear in depth through a uniform medium, so its interpolation is exact there and, on the
-built-in scenes (64^3, default 32^3 grid), 2.4-6 dB closer to the reference than T between voxel centres. A
-surface's shadow lookup, at the box entry (a face), interpolates only across the light's direction, over shadow
-edges, where blending T is the closer of the two to point-sampled shadows (smoke over a floor: 45.8 dB for T, 42.2
-for tau, against shadow rays), so it blends the corners' T (`sample_light_map_across`).
+the outermost on the box faces. Voxel centres (the density grid's layout) stop half a light voxel inside the faces,
+and lookups clamped there gave a sample on a lit face the transmittance of a deeper point: on a uniform 8^3 box (4^3
+light grid) lit from above, DSSRM's top image rows were 0.62-0.73 of the reference.
+
+What a node holds (issue 47 item 1). Per light two planes: sigma_bar = tau_own / s, the mean extinction along the
+node's path to the light inside its own box (s that path's length, `light_path_length`), and tau_in, the optical
+depth of the other volumes on the way (GI on; 0 otherwise). A volume sample at p computes its own s(p) and takes
+tau = interp(sigma_bar) s(p) + interp(tau_in), T = exp(-tau). Through a uniform medium sigma_bar is the same at every
+node, so the lookup is exact whichever face the path leaves by. Interpolating tau itself (issues 19 to 46) is exact
+only along the light: tau is the minimum of linear functions, one per exit face, and bends where the exit face
+changes, so across a coarse axis its interpolation falls below it. A 16 x 2 x 1 m slab lit from above at a slant was
+1.18x too bright (uniform; 1.14 with a varying density) where the path leaves by a side within a node spacing; the
+mean extinction gives 0.998 (1.007). Interpolating T instead of the optical depth overshoots where T is convex in
+depth (1.14x on the box above). The price is one path length per sample and light (a slab test): 6-10% of DSSRM's
+march on the CPU (docs/BENCHMARKS.md). A surface's shadow lookup, at the box entry (a face), interpolates only across
+the light's direction, over shadow edges, where blending T is the closer to point-sampled shadows (smoke over a
+floor: 45.8 dB for T, 42.2 for tau, against shadow rays), so it blends the corners' T along its chord
+(`sample_light_map_across`).
 
 Empty-space skipping (not in the papers; on with the renderer's ``skip_empty``): the march towards the light leaves
 out steps in empty cells of each volume's skip grid, as the view march does (`volren.kernels.common.
