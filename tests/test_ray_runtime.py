@@ -3,6 +3,8 @@ again (local), an address is tried once, and the error is one line naming the fl
 
 from __future__ import annotations
 
+import ipaddress
+
 import pytest
 
 from volren.distributed import runtime
@@ -41,3 +43,28 @@ def test_failed_start_is_retried_cleaned_up_and_one_line(monkeypatch, address):
     tries = runtime.LOCAL_STARTS if address is None else 1
     assert fake.inits == tries
     assert (len(stopped), fake.shutdowns) == ((tries, tries) if address is None else (0, 0))
+
+
+@pytest.mark.xdist_group("ray")
+def test_a_local_cluster_listens_on_loopback_only(ray_cluster):
+    """Every listening socket of the local cluster (GCS, raylet, object manager, agents, workers: this process's
+    descendants) and of this process is on loopback: a laptop on a café's network does not offer its Ray
+    cluster to the room. Without Ray's single-machine setting they bind every interface (issue 47 item 6)."""
+    import psutil
+
+    me = psutil.Process()
+    ray_cluster.get(ray_cluster.remote(lambda: 1).remote())  # a worker up, as a render's would be
+    listening = []
+    for proc in [me, *me.children(recursive=True)]:
+        try:
+            conns = proc.net_connections(kind="inet")
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            continue
+        listening += [(proc.name(), c.laddr.ip, c.laddr.port) for c in conns if c.status == psutil.CONN_LISTEN]
+    assert len(listening) >= 3, listening  # the GCS, the raylet and more are there to be checked
+    def loopback(ip: str) -> bool:
+        address = ipaddress.ip_address(ip)
+        return (getattr(address, "ipv4_mapped", None) or address).is_loopback  # ::ffff:127.0.0.1 too
+
+    exposed = [s for s in listening if not loopback(s[1])]
+    assert not exposed, exposed
