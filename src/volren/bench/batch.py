@@ -106,7 +106,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             case_done(f"in process, {threads or 'all'} thread(s)")
         per_frame = frame_seconds(argv, frames)
         reference = _pngs(ref)
-        was_up = import_ray("bench batch").is_initialized()  # a session's cluster (the tests') is kept
+        was_up = import_ray("bench batch", local=True).is_initialized()  # a session's cluster (the tests') is kept
         started = time.perf_counter()
         ray = connect("bench batch", num_cpus=max(cfg["workers"]))
         gpus = ray.cluster_resources().get("GPU", 0)

@@ -474,7 +474,7 @@ def run_command_on_ray(args: argparse.Namespace) -> int:
 
         if not resolve_device(args.device).startswith("cuda"):
             raise VolrenError("--gpus-per-worker shares a GPU among workers: the workers render on the CPU here")
-    import_ray(flag)  # missing: one line before the checks' seconds of work
+    import_ray(flag, local=not args.ray_address)  # missing: one line before the checks' seconds of work
     report = run_jobs([Job(tuple(argv), Path(args.out))], workers=args.workers, address=args.ray_address, flag=flag,
                       gpus_per_worker=args.gpus_per_worker or 1.0)
     doc = json.loads((Path(args.out) / "stats.json").read_text())

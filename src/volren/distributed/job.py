@@ -339,7 +339,7 @@ def run_batch(args: argparse.Namespace) -> int:
     if on_ray:
         from volren.distributed.runtime import import_ray
 
-        import_ray(flag)  # missing: one line before the checks' seconds of work
+        import_ray(flag, local=args.ray_address is None)  # missing: one line before the checks' seconds of work
     if args.workers is not None and args.workers < 1:
         raise VolrenError(f"--workers must be >= 1, got {args.workers}")
     if args.gpus_per_worker is not None and not on_ray:

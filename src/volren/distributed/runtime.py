@@ -16,8 +16,12 @@ LOCAL_STARTS = 2
 """tries of a local start: on 2 busy cores Ray's raylet can give up waiting (15 s, fixed) for its agents' port files"""
 
 
-def import_ray(flag: str) -> ModuleType:
-    """Ray, or a one-line error naming the flag that asked for it."""
+def import_ray(flag: str, local: bool = False) -> ModuleType:
+    """Ray, or a one-line error naming the flag that asked for it. ``local``: this process may start a local cluster,
+    so Ray's single-machine mode is set first (Ray reads it when it is imported: the node's address is 127.0.0.1,
+    and the GCS, raylet, agents and workers listen on loopback only; otherwise they bind every interface)."""
+    if local:
+        os.environ.setdefault(LOOPBACK_ONLY, "0")
     try:
         import ray
     except ImportError:
@@ -31,11 +35,7 @@ def connect(flag: str, address: str | None = None, num_cpus: int | None = None,
     to 127.0.0.1 with no dashboard. A process already connected (a test session's cluster, a second job in one
     Python session) keeps its connection."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no report sent home from a laptop or a cluster
-    if not address:
-        # Ray's single-machine mode (read when Ray is imported): the node's address is 127.0.0.1, so the GCS,
-        # raylet, agents and workers listen on loopback only; otherwise they bind every interface
-        os.environ.setdefault(LOOPBACK_ONLY, "0")
-    ray = import_ray(flag)
+    ray = import_ray(flag, local=not address)
     if ray.is_initialized():
         return ray
     options = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}

@@ -160,7 +160,7 @@ def start_workers(spec: ShardSpec, shards: int, address: str | None) -> tuple[An
     from volren.distributed.runtime import connect, import_ray
 
     cuda = spec.device.startswith("cuda")
-    connected = not import_ray(FLAG).is_initialized()
+    connected = not import_ray(FLAG, local=not address).is_initialized()
     ray = connect(FLAG, address, num_cpus=None if address else max(os.cpu_count() or 1, shards))
     worker = ray.remote(num_gpus=1, num_cpus=0)(ShardWorker) if cuda else ray.remote(num_cpus=1)(ShardWorker)
     actors = [worker.remote(spec) for _ in range(shards)]
