@@ -2,10 +2,10 @@
 on CUDA against the CPU, and the benchmark suites at full size, each step under its own time limit so the whole fits
 one device call (about 9 minutes of the session's 15), every result written under ``$OUT``.
 
-On the device, after the wheels `../shared/tools/device-wheels.sh` prepares are installed (docs/BENCHMARKS.md,
-"Running the GPU suites"), from a clean tree of HEAD:
+On the device, from a clean tree of HEAD, with the wheels the device lacks copied into /tmp/parts by the earlier
+calls (`../shared/tools/device-wheels.sh` splits and lists them; docs/BENCHMARKS.md, "Running the GPU suites"):
 
-    PYTHONPATH=/tmp/site:$PWD/src python3 scripts/gpu_suite.py --out $OUT/gpu-suite
+    python3 scripts/gpu_suite.py --wheels /tmp/parts --out $OUT/gpu-suite
 
 Here, on the CPU, before any device time is spent (CI runs this through tests/test_gpu_suite.py):
 
@@ -222,6 +222,38 @@ def _collect(step: Step) -> tuple[int, str]:
     return proc.returncode, (proc.stdout.strip().splitlines() or [""])[-1]
 
 
+def wheels_in(folder: Path) -> dict[str, list[Path]]:
+    """The wheels in ``folder`` by name: whole ``*.whl`` files, and ``NAME.whl.00``, ``.01``, ... parts (the pieces
+    `../shared/tools/device-wheels.sh` splits warp-lang into, copied there by the earlier calls), in order."""
+    wheels = {p.name: [p] for p in sorted(folder.glob("*.whl"))}
+    for first in sorted(folder.glob("*.whl.00")):
+        name = first.name[: -len(".00")]
+        parts = sorted(folder.glob(f"{name}.[0-9][0-9]"))
+        if [p.name for p in parts] != [f"{name}.{i:02d}" for i in range(len(parts))]:
+            raise SystemExit(f"gpu-suite: --wheels {folder}: the parts of {name} are not .00 to .{len(parts) - 1:02d}")
+        wheels[name] = parts
+    return wheels
+
+
+def install_wheels(folder: Path, site: Path) -> list[str]:
+    """Join each wheel's parts and install every wheel into ``site`` (no index, no dependencies: the device has no
+    network); return their names."""
+    wheels = wheels_in(folder)
+    joined = site.parent / "gpu-suite-wheels"
+    joined.mkdir(parents=True, exist_ok=True)
+    files = []
+    for name, parts in wheels.items():
+        target = joined / name
+        with open(target, "wb") as out:
+            for part in parts:
+                out.write(part.read_bytes())
+        files.append(str(target))
+    if files:
+        subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
+                        "--upgrade", "--target", str(site), *files], check=True, timeout=300)
+    return sorted(wheels)
+
+
 def run_steps(steps: list[Step], out: Path) -> list[dict]:
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
@@ -254,7 +286,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="folder for every result (default $OUT/gpu-suite)")
     ap.add_argument("--dry-run", action="store_true", help="check the plan and sizes on the CPU; no GPU needed")
     ap.add_argument("--only", help="comma-separated step names (default: all)")
+    ap.add_argument("--wheels", type=Path, help="a folder of wheels (and split wheel parts) the device lacks: joined "
+                    "and installed into --site first, which every step then imports before the image's packages")
+    ap.add_argument("--site", type=Path, default=Path("/tmp/site"), help="where --wheels go (default /tmp/site)")
     args = ap.parse_args(argv)
+    if args.wheels is not None and not args.wheels.is_dir():
+        ap.error(f"--wheels: no folder {args.wheels}")
 
     if args.command == "parity":
         width, height = (int(v) for v in args.size.lower().split("x"))
@@ -287,6 +324,9 @@ def main(argv: list[str] | None = None) -> int:
               f" of the {GPU_MEMORY_GIB:.0f} GiB", flush=True)
     summary = {"dry_run": args.dry_run, "budget_s": BUDGET_S, "steps": [
         {"step": s.name, "limit_s": s.limit_s, "argv": list(s.argv), "env": s.env} for s in steps], "sizes": sizes}
+    if args.wheels is not None:
+        summary["wheels"] = sorted(wheels_in(args.wheels))
+        print(f"gpu-suite wheels: {', '.join(summary['wheels']) or 'none'} from {args.wheels}", flush=True)
     if args.dry_run:
         if over:
             print(f"gpu-suite plan: {', '.join(s['step'] for s in over)} would not fit {GPU_MEMORY_GIB} GiB",
@@ -309,6 +349,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"gpu-suite dry run: {len(steps)} steps within {sum(s.limit_s for s in steps)} s of the {BUDGET_S} s "
               f"budget; wrote {args.out / 'plan.json'}")
         return 0
+    if args.wheels is not None:
+        install_wheels(args.wheels, args.site)
+        os.environ["PYTHONPATH"] = os.pathsep.join([str(args.site), str(ROOT / "src"),
+                                                    os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     summary["results"] = run_steps(steps, args.out)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     return 0 if all(r["rc"] == 0 for r in summary["results"]) else 1

@@ -104,3 +104,22 @@ def test_deterministic_parity_fails_below_50_db(monkeypatch, tmp_path):
     rows = {r["method"]: r for r in json.loads(out.read_text())["rows"]}
     assert not rows["cacrm"]["passed"] and rows["cacrm"]["psnr_db"] < 50  # 0.02 of 0.5: 34 dB
     assert rows["dssrm"]["passed"] and rows["vpt"]["passed"]
+
+
+def test_wheels_are_joined_from_their_parts_and_listed_in_the_plan(tmp_path):
+    """`--wheels`: the warp-lang wheel arrives in 50 MB parts (`device-wheels.sh`), the small wheels whole; the dry run
+    lists what it would install, parts joined in order; a gap in the parts is refused before any install."""
+    parts = tmp_path / "parts"
+    parts.mkdir()
+    for i, chunk in enumerate((b"PK\x03\x04a", b"bc", b"d")):
+        (parts / f"warp_lang-1.19.0-py3-none-manylinux.whl.{i:02d}").write_bytes(chunk)
+    (parts / "nibabel-5.4.2-py3-none-any.whl").write_bytes(b"PK")
+    out = tmp_path / "out"
+    assert gpu_suite.main(["--dry-run", "--only", "bench-dssrm", "--wheels", str(parts), "--out", str(out)]) == 0
+    plan = json.loads((out / "plan.json").read_text())
+    assert plan["wheels"] == ["nibabel-5.4.2-py3-none-any.whl", "warp_lang-1.19.0-py3-none-manylinux.whl"]
+    joined = gpu_suite.wheels_in(parts)["warp_lang-1.19.0-py3-none-manylinux.whl"]
+    assert b"".join(p.read_bytes() for p in joined) == b"PK\x03\x04abcd"
+    (parts / "warp_lang-1.19.0-py3-none-manylinux.whl.01").unlink()
+    with pytest.raises(SystemExit, match="not .00 to"):
+        gpu_suite.wheels_in(parts)
