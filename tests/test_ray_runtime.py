@@ -33,7 +33,7 @@ class FailingRay:
 def test_failed_start_is_retried_cleaned_up_and_one_line(monkeypatch, address):
     fake = FailingRay()
     stopped = []
-    monkeypatch.setattr(runtime, "import_ray", lambda flag: fake)
+    monkeypatch.setattr(runtime, "import_ray", lambda flag, local=False: fake)
     monkeypatch.setattr(runtime, "stop_failed_start", stopped.append)
     with pytest.raises(VolrenError) as err:
         runtime.connect("--workers" if address is None else "--ray-address", address, num_cpus=1)
