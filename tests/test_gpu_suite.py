@@ -121,5 +121,5 @@ def test_wheels_are_joined_from_their_parts_and_listed_in_the_plan(tmp_path):
     joined = gpu_suite.wheels_in(parts)["warp_lang-1.19.0-py3-none-manylinux.whl"]
     assert b"".join(p.read_bytes() for p in joined) == b"PK\x03\x04abcd"
     (parts / "warp_lang-1.19.0-py3-none-manylinux.whl.01").unlink()
-    with pytest.raises(SystemExit, match="not .00 to"):
+    with pytest.raises(SystemExit, match=r"not \.00 to"):
         gpu_suite.wheels_in(parts)
