@@ -132,6 +132,41 @@ def test_sockets_that_never_say_hello_hold_no_slot(monkeypatch):
     run(test)
 
 
+def test_sockets_that_say_hello_and_send_no_camera_release_their_slots(monkeypatch):
+    """Issue 44 item 2: sockets that say hello and never send a camera fill every slot (a real viewer is refused, 1013,
+    as before), but are closed (1008, "no camera") once CAMERA_TIMEOUT_S has passed since their hello, and a real
+    viewer then gets in and gets frames (before: they held the slots for ever: 32 of 32 real viewers refused over
+    20 s). A viewer that sends its camera in time is not closed however long it then stays still."""
+    monkeypatch.setattr(serve_app, "CAMERA_TIMEOUT_S", 1.0)
+
+    async def test(client, loop):
+        steady, _ = await connect(client)
+        await steady.send_json(cam_msg(1))
+        await frame_for(steady, 1)
+        squatters = [(await connect(client))[0] for _ in range(3)]  # with the steady one: all 4 slots
+        late = await client.ws_connect("/ws")
+        await late.send_json({"type": "hello", "width": W, "height": H})
+        refused = await late.receive(timeout=TIMEOUT)
+        refused = refused if refused.type == aiohttp.WSMsgType.CLOSE else await late.receive(timeout=TIMEOUT)
+        assert refused.type == aiohttp.WSMsgType.CLOSE and refused.data == 1013, refused
+        start = time.perf_counter()
+        for s in squatters:
+            msg = await s.receive(timeout=5.0)
+            assert msg.type == aiohttp.WSMsgType.CLOSE and msg.data == 1008 and "camera" in msg.extra, msg
+        assert time.perf_counter() - start < 3.0
+        ws, _ = await connect(client)
+        await ws.send_json(cam_msg(1))
+        await frame_for(ws, 1)
+        await asyncio.sleep(1.5)  # past the deadline: the viewers that sent a camera stay
+        assert not steady.closed and not ws.closed and len(loop.viewers) == 2
+        await ws.send_json(cam_msg(2))
+        await frame_for(ws, 2)
+        await ws.close()
+        await steady.close()
+
+    run(test)
+
+
 async def round_trips(ws, n: int) -> list[float]:
     """``n`` protocol round trips [s]: a refused message and its error reply (no rendering involved)."""
     out = []

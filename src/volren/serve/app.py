@@ -62,6 +62,9 @@ CLOSE_GOING_AWAY = 1001
 HELLO_TIMEOUT_S = 5.0
 """[s] an upgraded socket must say hello within this, else it is closed; it holds no viewer slot meanwhile (issue 20
 item 3: 16 sockets that never said hello locked every viewer out)"""
+CAMERA_TIMEOUT_S = 5.0
+"""[s] a viewer that said hello must send its first camera within this, else it is closed (1008) and its slot freed
+(issue 44 item 2: 16 sockets that said hello and never sent a camera refused 32 of 32 real viewers over 20 s)"""
 KEEPALIVE_S = 10.0
 """[s] an HTTP connection with no complete request for this long is closed: idle sockets, slow headers, 1-byte drips
 (aiohttp's keepalive timeout runs from the connection's start)"""
@@ -203,7 +206,13 @@ async def websocket(request: web.Request) -> web.StreamResponse:
         viewer = await greet(ws, loop, app[SCENE_KEY])
         if viewer is None:
             return ws
-        async for msg in ws:
+        camera_by = time.monotonic() + CAMERA_TIMEOUT_S
+        while True:
+            try:  # until its first camera a viewer holds a slot on a deadline; after it, for as long as it stays
+                msg = await ws.receive(timeout=None if viewer.camera is not None else camera_by - time.monotonic())
+            except TimeoutError:
+                await ws.close(code=CLOSE_POLICY, message=f"no camera within {CAMERA_TIMEOUT_S:g} s".encode())
+                break
             if msg.type not in (WSMsgType.TEXT, WSMsgType.BINARY):
                 break
             try:
