@@ -592,6 +592,31 @@ def transmittance_toward(
 
 
 @wp.func
+def optical_depth_bvh_skipping(
+    x: wp.vec3,
+    toward: wp.vec3,
+    t_limit: float,
+    bvh: wp.uint64,
+    volumes: wp.array(dtype=VolumeGPU),
+    density: wp.array(dtype=float),
+    samples: int,
+    max_density: wp.array(dtype=float),
+    skip: int,
+    exclude: int,
+) -> wp.vec3:
+    """(tau, fetches, skipped): `optical_depth_skipping` summed over every volume whose world box the ray hits but
+    ``exclude`` (-1: none), found by a BVH over the boxes (paper 000 §3.2.3's any-hit traversal: the optical depths
+    add in any order)."""
+    total = wp.vec3(0.0)
+    query = wp.bvh_query_ray(bvh, x, toward)
+    v = int(0)
+    while wp.bvh_query_next(query, v):
+        if v != exclude:
+            total += optical_depth_skipping(volumes[v], x, toward, t_limit, density, max_density, skip, samples)
+    return total
+
+
+@wp.func
 def transmittance_bvh_skipping(
     x: wp.vec3,
     toward: wp.vec3,
@@ -608,19 +633,10 @@ def transmittance_bvh_skipping(
 ) -> float:
     """`transmittance_bvh` (its arguments first) with empty-space skipping (`optical_depth_skipping`): the same T
     bit for bit."""
-    tau = float(0.0)
-    fetched = float(0.0)
-    skipped = float(0.0)
-    query = wp.bvh_query_ray(bvh, x, toward)
-    v = int(0)
-    while wp.bvh_query_next(query, v):
-        r = optical_depth_skipping(volumes[v], x, toward, t_limit, density, max_density, skip, samples)
-        tau += r[0]
-        fetched += r[1]
-        skipped += r[2]
-    count(counters, counter_index, int(fetched))
-    count(counters, skipped_index, int(skipped))
-    return wp.exp(-tau)
+    r = optical_depth_bvh_skipping(x, toward, t_limit, bvh, volumes, density, samples, max_density, skip, -1)
+    count(counters, counter_index, int(r[1]))
+    count(counters, skipped_index, int(r[2]))
+    return wp.exp(-r[0])
 
 
 @wp.func

@@ -58,6 +58,7 @@ from volren.kernels.common import (
     interpolate_cell,
     light_distance,
     light_travel_dir,
+    optical_depth_bvh_skipping,
     optical_depth_skipping,
     vec8,
 )
@@ -103,35 +104,35 @@ def light_path_length(vol: VolumeGPU, p: wp.vec3, toward: wp.vec3, reach: float)
 
 
 @wp.func
-def optical_depth_at(data: wp.array(dtype=float), offset: int, count: int, res: wp.vec3i, p: wp.vec3, s: float,
+def optical_depth_at(data: wp.array(dtype=float), offset: int, nodes: int, res: wp.vec3i, p: wp.vec3, s: float,
                      gi: int) -> float:
     """tau = sigma_bar s + tau_in at local ``p`` whose path to the light runs ``s`` inside the box (module docstring:
     the mean extinction and, with ``gi``, the optical depth of the other volumes, each interpolated trilinearly)."""
     sigma_bar, a = light_map_cell(data, offset, res, p)
     tau = interpolate_cell(sigma_bar, a) * s
     if gi != 0:
-        tau_in, a_in = light_map_cell(data, offset + count, res, p)
+        tau_in, a_in = light_map_cell(data, offset + nodes, res, p)
         tau += interpolate_cell(tau_in, a_in)
     return tau
 
 
 @wp.func
-def sample_light_map(data: wp.array(dtype=float), offset: int, count: int, res: wp.vec3i, p: wp.vec3, s: float,
+def sample_light_map(data: wp.array(dtype=float), offset: int, nodes: int, res: wp.vec3i, p: wp.vec3, s: float,
                      gi: int) -> float:
     """Transmittance to the light of a volume sample at local ``p`` (``s``: `light_path_length`): exp(-tau), exact
     through a uniform medium whatever face the path leaves by."""
-    return wp.exp(-optical_depth_at(data, offset, count, res, p, s, gi))
+    return wp.exp(-optical_depth_at(data, offset, nodes, res, p, s, gi))
 
 
 @wp.func
-def sample_light_map_across(data: wp.array(dtype=float), offset: int, count: int, res: wp.vec3i, p: wp.vec3,
+def sample_light_map_across(data: wp.array(dtype=float), offset: int, nodes: int, res: wp.vec3i, p: wp.vec3,
                             s: float, gi: int) -> float:
     """Transmittance to the light at a shadow ray's box entry ``p`` (a surface's lookup; ``s`` its chord through the
     box): the corners' transmittances along that chord interpolated (module docstring)."""
     sigma_bar, a = light_map_cell(data, offset, res, p)
     tau_in = vec8()
     if gi != 0:
-        tau_in, a = light_map_cell(data, offset + count, res, p)
+        tau_in, a = light_map_cell(data, offset + nodes, res, p)
     t = vec8()
     for c in range(8):
         t[c] = wp.exp(-wp.min(sigma_bar[c] * s + tau_in[c], MAX_OPTICAL_DEPTH))
@@ -180,22 +181,15 @@ def light_map_kernel(
         toward = -light_travel_dir(light, x)
         reach = light_distance(light, x)
         # tau_own through this volume's box, tau_in through the others (GI on: paper 000 §3.2.3's shadows between
-        # volumes), summed per box as `transmittance_bvh_skipping` sums them
+        # volumes)
         own = optical_depth_skipping(vol, x, toward, reach, density, max_density, skip, light_samples)
-        tau_own, fetched, skipped = own[0], own[1], own[2]
-        tau_in = float(0.0)
+        others = wp.vec3(0.0)
         if cross_volume != 0:
-            query = wp.bvh_query_ray(bvh, x, toward)
-            h = int(0)
-            while wp.bvh_query_next(query, h):
-                if h != v:
-                    q = optical_depth_skipping(volumes[h], x, toward, reach, density, max_density, skip,
-                                               light_samples)
-                    tau_in += q[0]
-                    fetched += q[1]
-                    skipped += q[2]
-        count(counters, LIGHT_SAMPLES, int(fetched))
-        count(counters, LIGHT_SKIPPED, int(skipped))
+            others = optical_depth_bvh_skipping(x, toward, reach, bvh, volumes, density, light_samples, max_density,
+                                                skip, v)
+        tau_own, tau_in = own[0], others[0]
+        count(counters, LIGHT_SAMPLES, int(own[1] + others[1]))
+        count(counters, LIGHT_SKIPPED, int(own[2] + others[2]))
         # the node's path length, from the local point the march started at (so tau_own / s is its mean extinction
         # to the last bit, however short the chord of a node on a lit face)
         s = wp.max(light_path_length(vol, wp.transform_point(vol.to_local, x), toward, reach), 1.0e-20)
