@@ -376,6 +376,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
 
 def add_serve_args(p: argparse.ArgumentParser) -> None:
     from volren.presets import QUALITIES
+    from volren.serve.viewers import TICK_MS
 
     p.add_argument("--scene", help=f"built-in scene (default {DEFAULT_SCENE}; see `volren scenes`)")
     add_volume_args(p)
@@ -394,10 +395,15 @@ def add_serve_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lock-settings", action="store_true", help="viewers may not change the shared method, "
                    "quality, transfer function, light or playback")
     p.add_argument("--max-viewers", type=int, default=16, help="viewers connected at once, in [1, 1024]")
+    p.add_argument("--max-viewers-per-client", type=int, default=4, help="viewers connected at once from one "
+                   "address, so one neighbour cannot take every slot (on loopback each 127.x.y.z counts apart)")
     p.add_argument("--max-width", type=int, default=1920, help="[px] largest viewer image (stereo: both eyes)")
     p.add_argument("--max-height", type=int, default=1080, help="[px] largest viewer image")
-    p.add_argument("--pixel-budget", type=int, default=1920 * 1080, help="[px] rendered per tick for all viewers, "
-                   "shared fairly (a viewer over its share gets a smaller frame)")
+    p.add_argument("--pixel-budget", type=int, default=1920 * 1080, help="[px] rendered per tick for all viewers "
+                   "at most")
+    p.add_argument("--tick-ms", type=float, default=TICK_MS, help="[ms] with several viewers, the tick time aimed "
+                   "at: each gets an equal share of it, a viewer whose frame costs more gets a smaller one (0: share "
+                   f"the pixel budget only; default {TICK_MS:g})")
     s = p.add_argument_group("beyond one process (Ray: pip install 'volren[ray]')")
     s.add_argument("--shards", type=int, help="render on N >= 1 Ray actors, each a render loop for the viewers "
                    "placed on it (a stereo pair whole, viewers of one part of the scene together); a local Ray is "
@@ -420,7 +426,11 @@ def run_serve(args: argparse.Namespace) -> int:
     from volren.serve.viewers import Limits
 
     check_bind(args.host, args.token, tuple(args.allow_origin))
-    limits = Limits(args.max_viewers, args.max_width, args.max_height, args.pixel_budget)
+    if args.max_viewers_per_client > args.max_viewers:
+        raise CliError(f"--max-viewers-per-client {args.max_viewers_per_client} exceeds --max-viewers "
+                       f"{args.max_viewers}: it would limit nothing")
+    limits = Limits(args.max_viewers, args.max_width, args.max_height, args.pixel_budget,
+                    max_per_client=args.max_viewers_per_client, tick_ms=args.tick_ms or None)
     name = args.scene or DEFAULT_SCENE
     loop = build_loop(name, args.method, args.quality, args.resolution or DEFAULT_RESOLUTION, args.device, limits,
                       args.lock_settings, **served_volume(args), shards=args.shards, ray_address=args.ray_address)

@@ -50,6 +50,7 @@ from volren.serve.protocol import (
     error_message,
     parse_message,
 )
+from volren.serve.rates import CONNECTS_PER_S, ERROR_LIMIT, ERROR_WINDOW_S, ConnectRates, ErrorCount
 from volren.serve.viewers import Limits, Viewer
 
 STATIC = Path(__file__).parent / "static"
@@ -94,6 +95,7 @@ SCENE_KEY = web.AppKey("scene", str)
 ACCESS_KEY = web.AppKey("access", Access)
 SOCKETS_KEY = web.AppKey("sockets", set)
 REFUSALS_KEY = web.AppKey("refusals", object)
+CONNECTS_KEY = web.AppKey("connects", ConnectRates)
 
 
 def is_loopback(host: str) -> bool:
@@ -151,14 +153,27 @@ async def handle_text(loop: RenderLoop, viewer: Viewer, data: Any) -> None:
         viewer.set_camera(msg)
     elif isinstance(msg, Resize):
         viewer.resize(msg.width, msg.height, viewer.stereo, loop.limits)
-    elif isinstance(msg, Settings) and loop.apply(msg, viewer):
-        loop.announce_settings(skip=viewer)
+    elif isinstance(msg, Settings):
+        loop.offer(msg, viewer)
     loop.wake()
 
 
-async def greet(ws: web.WebSocketResponse, loop: RenderLoop, scene: str) -> Viewer | None:
+async def refuse_message(ws: web.WebSocketResponse, errors: ErrorCount, text: str) -> bool:
+    """Send a refused message's error; past ERROR_LIMIT within ERROR_WINDOW_S close the socket (1008) instead. True
+    when it is closed."""
+    if errors.add():
+        await ws.close(code=CLOSE_POLICY, message=f"over {ERROR_LIMIT} refused messages in {ERROR_WINDOW_S:g} s"
+                       .encode())
+        return True
+    await ws.send_str(error_message(text))
+    return False
+
+
+async def greet(ws: web.WebSocketResponse, loop: RenderLoop, scene: str, client: str) -> Viewer | None:
     """The viewer of a socket once it said a valid hello (within HELLO_TIMEOUT_S of the upgrade, anything before it
-    refused), welcomed; None when the socket is closed instead (no hello in time, the server full, gone)."""
+    refused), welcomed; None when the socket is closed instead (no hello in time, too many refused messages, the
+    server full or ``client``'s share of it taken, gone)."""
+    errors = ErrorCount()
     deadline = time.monotonic() + HELLO_TIMEOUT_S
     while (left := deadline - time.monotonic()) > 0:
         try:
@@ -173,10 +188,11 @@ async def greet(ws: web.WebSocketResponse, loop: RenderLoop, scene: str) -> View
                 raise ProtocolError(f"{type(hello).__name__.lower()}: send hello first (within "
                                     f"{HELLO_TIMEOUT_S:g} s of connecting)")
         except ProtocolError as exc:
-            await ws.send_str(error_message(str(exc)))
+            if await refuse_message(ws, errors, str(exc)):
+                return None
             continue
         try:
-            viewer = loop.viewers.add(ws.send_bytes, ws.send_str)
+            viewer = loop.viewers.add(ws.send_bytes, ws.send_str, client)
         except ProtocolError as exc:
             await ws.send_str(error_message(str(exc)))
             await ws.close(code=CLOSE_TRY_AGAIN, message=b"server full")
@@ -185,7 +201,7 @@ async def greet(ws: web.WebSocketResponse, loop: RenderLoop, scene: str) -> View
         async def close(code: int, reason: str) -> None:
             await ws.close(code=code, message=reason.encode())
 
-        viewer.close = close
+        viewer.close, viewer.errors = close, errors
         viewer.resize(hello.width, hello.height, hello.stereo, loop.limits)
         await ws.send_str(json.dumps(welcome(loop, viewer, scene)))
         return viewer
@@ -196,6 +212,12 @@ async def greet(ws: web.WebSocketResponse, loop: RenderLoop, scene: str) -> View
 async def websocket(request: web.Request) -> web.StreamResponse:
     app = request.app
     loop = app[LOOP_KEY]
+    client = request.remote or ""
+    if not app[CONNECTS_KEY].take(client):
+        app[REFUSALS_KEY].lines.warn("connects", f"volren serve: refused a WebSocket from {client}: over "
+                                                 f"{CONNECTS_PER_S:g} connections a second")
+        raise web.HTTPTooManyRequests(text=f"too many connections from {client}: at most {CONNECTS_PER_S:g} a second "
+                                           "after a burst; try again shortly")
     # aiohttp closes the socket (1009) on messages over max_msg_size; those between our limit and it get an error
     # message. No permessage-deflate: JPEG frames do not shrink (see COMPRESS_NOTE in docs/SERVE.md).
     ws = web.WebSocketResponse(max_msg_size=4 * MAX_MESSAGE_BYTES, heartbeat=30.0, compress=False)
@@ -203,7 +225,7 @@ async def websocket(request: web.Request) -> web.StreamResponse:
     app[SOCKETS_KEY].add(ws)
     viewer = None
     try:
-        viewer = await greet(ws, loop, app[SCENE_KEY])
+        viewer = await greet(ws, loop, app[SCENE_KEY], client)
         if viewer is None:
             return ws
         camera_by = time.monotonic() + CAMERA_TIMEOUT_S
@@ -218,7 +240,8 @@ async def websocket(request: web.Request) -> web.StreamResponse:
             try:
                 await handle_text(loop, viewer, msg.data)
             except ProtocolError as exc:
-                await ws.send_str(error_message(str(exc)))
+                if await refuse_message(ws, viewer.errors, str(exc)):
+                    break
     except (ConnectionError, RuntimeError):
         pass  # the client went away while we answered it
     finally:
@@ -349,6 +372,7 @@ def make_app(loop: RenderLoop, scene: str, token: str | None = None, *, hosts: t
     app[ACCESS_KEY] = Access(token, tuple(h.lower().strip("[]") for h in hosts),
                              tuple(o.lower().rstrip("/") for o in origins))
     app[SOCKETS_KEY], app[REFUSALS_KEY] = set(), Refusals(lines)
+    app[CONNECTS_KEY] = ConnectRates(burst=loop.limits.connect_burst)
     app.router.add_get("/", index)
     app.router.add_get("/health", health)
     app.router.add_get("/ws", websocket)

@@ -44,7 +44,7 @@ from volren.render.vpt.tracer import VPTConfig
 from volren.scene import DirectionalLight, Scene
 from volren.serve.jpeg import JPEG_QUALITY, display_image, encode_jpeg
 from volren.serve.protocol import Choices, ProtocolError, Settings, error_message, pack_frame
-from volren.serve.viewers import Limits, Viewer, ViewerSet, fair_shares
+from volren.serve.viewers import Limits, TimeShares, Viewer, ViewerSet
 from volren.transfer import PRESETS
 
 log = logging.getLogger("volren.serve")
@@ -199,7 +199,11 @@ class RenderLoop:
         """animation steps taken (part of a still view's key)"""
         self.limits = limits or Limits()
         self.choices = Choices(self.methods, QUALITIES, (DENSITY_TF, *PRESETS), MODES)
-        self.viewers = ViewerSet(self.limits.max_viewers)
+        self.viewers = ViewerSet(self.limits.max_viewers, per_client=self.limits.max_per_client)
+        self.time_shares = TimeShares(self.limits)
+        self._settings_tick = -1
+        """the tick count when a viewer's pending settings were last applied: one applied change per tick"""
+        self._settle_timer: asyncio.TimerHandle | None = None
         self.camera = camera or Camera(position=(0.0, 0.4, 3.2))
         self.device, self.shared, self.ipd, self.jpeg_quality = device, shared, ipd, jpeg_quality
         self.encode = encode
@@ -291,19 +295,69 @@ class RenderLoop:
         light = next((lt for lt in self.scene.lights if isinstance(lt, DirectionalLight)), DirectionalLight())
         return light.direction
 
-    def apply(self, settings: Settings, viewer: Viewer) -> bool:
-        """Apply a settings message from ``viewer``; True when a shared setting changed (to tell the others). With
-        ``lock_settings`` only the viewer's own stereo mode may change."""
+    def check(self, settings: Settings) -> None:
+        """Refuse ``settings`` (`ProtocolError`) before anything changes: shared ones under ``lock_settings`` (only
+        the viewer's own stereo mode may change then), a mode the method or scene cannot take."""
         shared = [name for name in SHARED_SETTINGS if getattr(settings, name) is not None]
         if self.lock_settings and shared:
             raise ProtocolError(f"settings: {', '.join(shared)} locked by the operator (--lock-settings); only "
                                 "stereo may change")
         self._check_mode(settings)
+
+    def apply(self, settings: Settings, viewer: Viewer) -> bool:
+        """Apply a settings message from ``viewer`` now; True when a shared setting changed (to tell the others)."""
+        self.check(settings)
         if settings.stereo is not None and settings.stereo != viewer.stereo:
             viewer.resize(viewer.width, viewer.height, settings.stereo, self.limits)
-        changed = self.adopt({name: getattr(settings, name) for name in shared})
+        changed = self.adopt({name: getattr(settings, name) for name in SHARED_SETTINGS
+                              if getattr(settings, name) is not None})
         self.wake()
         return bool(changed)
+
+    def offer(self, settings: Settings, viewer: Viewer) -> None:
+        """A settings message from ``viewer``, checked now (its error goes back at once); its stereo mode applies now
+        (the viewer's own), its shared settings join the viewer's pending ones (the newest value of each) and apply
+        in turn (`settle`): at most one viewer's change per tick and SETTINGS_PER_S a second per viewer (issue 44
+        item 4), so a flood of changes costs the others one renderer rebuild a tick at most."""
+        self.check(settings)
+        if settings.stereo is not None and settings.stereo != viewer.stereo:
+            viewer.resize(viewer.width, viewer.height, settings.stereo, self.limits)
+        viewer.pending.update({name: getattr(settings, name) for name in SHARED_SETTINGS
+                               if getattr(settings, name) is not None})
+        self.settle()
+
+    @property
+    def ticks_done(self) -> int:
+        return self.tick
+
+    def settle(self) -> None:
+        """Apply the pending settings of the viewer that has waited longest among those whose rate allows, if no
+        change was applied since the last tick (or nothing is rendering); tell the others; come back when more wait."""
+        if self._settle_timer is not None:
+            self._settle_timer.cancel()
+            self._settle_timer = None
+        waiting = [v for v in self.viewers.viewers.values() if v.pending and not v.closed]
+        if not waiting:
+            return
+        rendering = any(v.ready for v in self.viewers.viewers.values())
+        if not rendering or self.ticks_done != self._settings_tick:
+            now = time.monotonic()
+            v = next((v for v in waiting if v.settings_rate.take(now)), None)
+            if v is not None:
+                values, v.pending = v.pending, {}
+                try:
+                    self._check_mode(Settings(**{k: values[k] for k in ("method", "mode") if k in values}))
+                except ProtocolError as exc:  # another viewer's change since made it impossible: say so to it
+                    self.tell(v, error_message(str(exc)))
+                else:
+                    if self.adopt(values):
+                        self._settings_tick = self.ticks_done
+                        self.announce_settings(skip=v)
+                    self.wake()
+                waiting = [u for u in waiting if u.pending]
+        if waiting:  # the next turn: after a tick (`step` settles), or when a rate refills
+            delay = min(u.settings_rate.wait() for u in waiting)
+            self._settle_timer = asyncio.get_running_loop().call_later(max(delay, WATCH_INTERVAL_S / 5), self.settle)
 
     def adopt(self, values: dict[str, Any]) -> set[str]:
         """Take the shared settings in ``values`` (validated already); the names that changed. A change bumps the
@@ -408,6 +462,7 @@ class RenderLoop:
             while self._due():
                 try:
                     await self.step()
+                    self.settle()  # a viewer's settings waiting for the tick to pass
                 except asyncio.CancelledError:
                     raise
                 except Exception as exc:  # never let one bad tick end the loop: tell the viewers, carry on
@@ -430,9 +485,10 @@ class RenderLoop:
         version, index = self.version, self.tick
         # per viewer: its camera id and views (within its fair share of the pixel budget), its still view so far and
         # its key after this tick's animation step
-        shares = fair_shares([v.width * v.height for v in order], self.limits.pixel_budget)
+        shares = self.time_shares.shares([v.width * v.height for v in order])
         jobs = [(v, v.camera_id, v.views(self.ipd, px), self._still.get(v.id), (v.camera, version, step))
                 for v, px in zip(order, shares, strict=True)]
+        start = time.perf_counter()
         try:  # the renderer part sees viewer ids, not viewers (sockets): it may run in another process
             frames = await self._render([(v.id, *job) for v, *job in jobs], index, advance, len(self.viewers))
         except VolrenError as exc:
@@ -441,6 +497,8 @@ class RenderLoop:
             self._still.clear()
             self.broadcast(error_message(str(exc)))
             return
+        self.time_shares.took(sum(c.width * c.height for _, _, cams, *_ in jobs for c in cams),
+                              time.perf_counter() - start)
         self._step = step
         self.tick += 1
         self._tick_times.append(time.perf_counter())
@@ -521,11 +579,16 @@ class RenderLoop:
             self.wake()  # it may need the newest camera now
 
     def broadcast(self, text: str, skip: Viewer | None = None) -> None:
-        """A text message to every viewer but ``skip``, never awaited: a viewer whose previous text message is still
-        on its way misses this one (like frames: a stalled client stalls nobody)."""
+        """A text message to every viewer but ``skip`` (`tell`)."""
         for v in list(self.viewers.viewers.values()):
-            if v is not skip and v.text is not None and (v.texting is None or v.texting.done()):
-                v.texting = asyncio.create_task(self._send_text(v, text))
+            if v is not skip:
+                self.tell(v, text)
+
+    def tell(self, v: Viewer, text: str) -> None:
+        """A text message to ``v``, never awaited: if its previous one is still on its way it misses this one (like
+        frames: a stalled client stalls nobody)."""
+        if v.text is not None and (v.texting is None or v.texting.done()):
+            v.texting = asyncio.create_task(self._send_text(v, text))
 
     def announce_settings(self, skip: Viewer | None = None) -> None:
         """The shared settings to every viewer but ``skip``. A viewer whose previous text message is still on its way

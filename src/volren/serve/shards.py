@@ -109,7 +109,7 @@ class ShardLoop(RenderLoop):
                          shared=spec.shared, ipd=spec.ipd, jpeg_quality=spec.jpeg_quality, overrides=spec.overrides,
                          refine=spec.refine)
         self.index, self.actor, self.front = index, actor, front
-        self.viewers = ViewerSet(spec.limits.max_viewers)
+        self.viewers = ViewerSet(spec.limits.max_viewers)  # the front end limits them per client
         """the viewers placed here (`ShardedLoop._place`), the same objects as the front end's"""
         self.up = True
         self.light_maps = self.shadow_grids = 0
@@ -136,6 +136,9 @@ class ShardLoop(RenderLoop):
         self.light_maps += "light_map" in self.pass_ms
         self.shadow_grids += "shadow_grid" in self.pass_ms
         return frames
+
+    def settle(self) -> None:
+        self.front.settle()  # the front end holds the shared settings
 
     async def step(self) -> None:
         try:
@@ -209,6 +212,10 @@ class ShardedLoop(RenderLoop):
         for s in self.shards:
             s.adopt(values)
         return changed
+
+    @property
+    def ticks_done(self) -> int:
+        return sum(s.tick for s in self.shards)
 
     def start(self) -> None:
         for s in self.shards:  # settings set before the start (the bench's playing)

@@ -11,6 +11,13 @@ from typing import Any
 from volren.camera import Camera, StereoRig
 from volren.errors import VolrenError
 from volren.serve.protocol import MIN_SIDE, CameraMessage, ProtocolError
+from volren.serve.rates import CONNECT_BURST, SETTINGS_BURST, SETTINGS_PER_S, ErrorCount, TokenBucket
+
+TICK_MS = 33.0
+"""[ms] the tick time the server aims for when several viewers share it (`Limits.tick_ms`): 30 frames a second"""
+MIN_SHARE = 256 * 144
+"""[px] every viewer is owed min(its size, this) whatever the tick costs: the time share never shrinks a frame below
+256x144 (a big viewer's floor then costs about 28 ms a tick on the 2-core CPU, dssrm at interactive)"""
 
 
 @dataclass(frozen=True)
@@ -20,12 +27,24 @@ class Limits:
     """[px] of a viewer's image (both eyes together when stereo)"""
     max_height: int = 1080
     pixel_budget: int = 1920 * 1080
-    """[px] rendered per tick for all viewers together, shared fairly (`fair_shares`): one viewer at the clamp alone
-    gets all of it; a viewer over its share gets a smaller frame (the page upscales it)"""
+    """[px] rendered per tick for all viewers together, at most: one viewer at the clamp alone gets all of it"""
+    max_per_client: int = 4
+    """viewers connected at once from one client address, at most max_viewers (issue 44 item 2: 16 sockets of one
+    neighbour held every slot); on loopback every 127.x.y.z address counts as its own: local users are told apart
+    by --token only"""
+    tick_ms: float | None = TICK_MS
+    """[ms] with two or more viewers, the tick time aimed at: each viewer gets an equal share of it (`TimeShares`),
+    a viewer whose frame costs more gets a smaller one (the page upscales it); None: the pixel budget alone"""
+    connect_burst: int = CONNECT_BURST
+    """WebSocket upgrades one address may make at once before the rate limit (`volren.serve.rates`)"""
 
     def __post_init__(self) -> None:
         if not 1 <= self.max_viewers <= 1024:
             raise VolrenError(f"--max-viewers must lie in [1, 1024], got {self.max_viewers}")
+        if not 1 <= self.max_per_client <= 1024:
+            raise VolrenError(f"--max-viewers-per-client must lie in [1, 1024], got {self.max_per_client}")
+        if self.tick_ms is not None and not 1.0 <= self.tick_ms <= 10_000.0:
+            raise VolrenError(f"--tick-ms must lie in [1, 10000] ms, got {self.tick_ms:g}")
         if not MIN_SIDE * MIN_SIDE <= self.pixel_budget <= 1 << 26:
             raise VolrenError(f"--pixel-budget must lie in [{MIN_SIDE * MIN_SIDE}, {1 << 26}] pixels, got "
                               f"{self.pixel_budget}")
@@ -72,6 +91,12 @@ class Viewer:
     frames: int = 0
     dropped: int = 0
     closed: bool = False
+    client: str = ""
+    """the address it connected from (`Limits.max_per_client`)"""
+    pending: dict[str, Any] = field(default_factory=dict)
+    """shared settings it asked for that wait for their turn (`RenderLoop.offer`): the newest value of each"""
+    settings_rate: TokenBucket = field(default_factory=lambda: TokenBucket(SETTINGS_PER_S, SETTINGS_BURST))
+    errors: ErrorCount = field(default_factory=ErrorCount)
 
     @property
     def ready(self) -> bool:
@@ -120,6 +145,35 @@ class Viewer:
         return StereoRig(cam, ipd).eyes() if self.stereo else [cam]
 
 
+class TimeShares:
+    """Fair by time, not by pixels (issue 44 item 3): with two or more viewers each gets an equal share of the tick
+    time ``tick_ms``, as pixels. After each tick the pixels that fit in ``tick_ms`` are estimated from what it
+    rendered and how long it took (render and encode), ``pixels * tick_ms / took``: the dynamic resolution of games,
+    which converges to the fitting size from either side, since a tick's time is a fixed part plus a part per pixel
+    (the estimate grows at most 2x a tick, so one lucky tick cannot bring a big viewer back whole). The estimate is
+    water-filled among the viewers (`fair_shares`), each owed at least min(its size, MIN_SHARE); a lone viewer has
+    the whole tick (up to the pixel budget). Before: one 1920x1080 viewer beside four 64x48 ones cut them from 16
+    fps / 52 ms median frame age to 0.64 fps / 1.55 s."""
+
+    def __init__(self, limits: Limits) -> None:
+        self.limits = limits
+        self.budget = limits.pixel_budget
+        """[px] a tick may render, all viewers together"""
+
+    def shares(self, wants: list[int]) -> list[int]:
+        if self.limits.tick_ms is None or len(wants) < 2:
+            return fair_shares(wants, self.limits.pixel_budget)
+        owed = sum(min(w, MIN_SHARE) for w in wants)
+        return fair_shares(wants, min(self.limits.pixel_budget, max(self.budget, owed)))
+
+    def took(self, pixels: int, seconds: float) -> None:
+        """A tick rendered ``pixels`` in ``seconds``: the next one's budget."""
+        if self.limits.tick_ms is None or pixels <= 0 or seconds <= 0:
+            return
+        fits = pixels * self.limits.tick_ms * 1e-3 / seconds
+        self.budget = int(min(self.limits.pixel_budget, fits, 2 * max(self.budget, pixels)))
+
+
 def fair_shares(wants: list[int], budget: int) -> list[int]:
     """Max-min fair split of ``budget`` pixels (water filling): smallest request first, each gets what it asks or an
     equal part of what is left, whichever is less; what a small viewer leaves goes to the larger ones."""
@@ -139,10 +193,16 @@ class ViewerSet:
     viewers: dict[int, Viewer] = field(default_factory=dict)
     next_id: int = 1
 
-    def add(self, send: Any, text: Any = None) -> Viewer:
+    per_client: int | None = None
+    """viewers one address may hold (None: no limit of its own)"""
+
+    def add(self, send: Any, text: Any = None, client: str = "") -> Viewer:
         if len(self.viewers) >= self.limit:
             raise ProtocolError(f"server full: {self.limit} viewers connected (--max-viewers)")
-        v = Viewer(self.next_id, send, text)
+        if self.per_client is not None and sum(v.client == client for v in self.viewers.values()) >= self.per_client:
+            raise ProtocolError(f"server full for {client}: {self.per_client} viewers connected from that address "
+                                "(--max-viewers-per-client)")
+        v = Viewer(self.next_id, send, text, client=client)
         self.viewers[v.id] = v
         self.next_id += 1
         return v
