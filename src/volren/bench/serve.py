@@ -17,6 +17,8 @@ second over all clients and the slowest client's, round-trip latency (camera sen
 median and 95th percentile over all clients, and the worst client's p95), bytes per second received.
 Goals (issue 15), measured in one run: at 8 clients the shared server delivers >= 1.5x the naive server's total
 frames per second, and no client's p95 latency exceeds 3 frame times (the shared run's tick time).
+Issue 44's fair run (`run_fair`): four 64x48 clients alone and beside a 1920x1080 one, on servers of the default
+limits sharing the tick by time and by pixels; goal: their median frame age beside it within 3x of alone.
 Full (GPU): 256^3 smoke, 480x270 per eye, 3 windows of 10 s per point and server.
 Quick (CPU): 64^3 smoke, 160x90 per eye, 2 windows of 3 s per point and server.
 """
@@ -43,11 +45,13 @@ from volren.scene import Scene
 FULL = {"cases": [("fog", "dynamic"), ("cacrm", "smoke")], "resolution": 256, "size": (480, 270),
         "counts": [1, 2, 4, 8, 16], "seconds": 10.0, "min_ticks": 10, "repeats": 3, "camera_hz": 60.0,
         "overrides": {}, "mixed": {"small": 8, "small_size": (480, 270), "big_size": (1920, 1080), "read_every": 1.0,
-                                   "budget_factor": 1.5}}
+                                   "budget_factor": 1.5},
+        "fair": {"small": 4, "small_size": (64, 48), "big_size": (1920, 1080), "camera_hz": 10.0, "seconds": 10.0}}
 QUICK = {"cases": [("fog", "dynamic"), ("cacrm", "smoke")], "resolution": 64, "size": (160, 90),
          "counts": [1, 2, 4, 8, 16], "seconds": 3.0, "min_ticks": 4, "repeats": 2, "camera_hz": 30.0,
          "overrides": {}, "mixed": {"small": 8, "small_size": (320, 180), "big_size": (1920, 1080),
-                                    "read_every": 1.0, "budget_factor": 1.5}}
+                                    "read_every": 1.0, "budget_factor": 1.5},
+         "fair": {"small": 4, "small_size": (64, 48), "big_size": (1920, 1080), "camera_hz": 10.0, "seconds": 4.0}}
 MODES = ("shared", "naive")
 STEREO_EVERY = 4
 """client i is a stereo pair when i % STEREO_EVERY == STEREO_EVERY - 1 (2 of 8 clients, 4 of 16)"""
@@ -59,6 +63,8 @@ GOAL_CLIENTS, GOAL_SPEEDUP, GOAL_LATENCY_FRAMES = 8, 1.5, 3.0
 GOAL_MIXED_P95, GOAL_MIXED_AGE = 1.5, 2.0
 """issue 20's mixed run: the small clients' p95 latency with the big client at most 1.5x of without it; no frame
 older than 2 tick times when it arrives"""
+GOAL_FAIR_AGE = 3.0
+"""issue 44's fair run: four small viewers' median frame age beside a full-HD viewer within 3x of theirs alone"""
 WARMUP_FRAMES = 2
 """frames every client receives before the window opens (kernel compilation, the naive renderers' first upload)"""
 WARMUP_TIMEOUT_S = 600.0
@@ -90,6 +96,9 @@ class ClientRecord:
     frames: int = 0
     bytes: int = 0
     latencies_ms: list[float] = field(default_factory=list)
+    """camera sent -> the first frame answering it"""
+    ages_ms: list[float] = field(default_factory=list)
+    """per frame: its arrival minus the send time of the camera it shows (issue 44's frame age)"""
     render_ms: dict[int, float] = field(default_factory=dict)
     """tick -> render time of that tick (frame headers)"""
     pixels: int = 0
@@ -114,13 +123,15 @@ async def run_client(session: Any, url: str, rec: ClientRecord, index: int, coun
     async with session.ws_connect(url, max_msg_size=0) as ws:
         await ws.send_json({"type": "hello", "width": width, "height": size[1], "stereo": rec.stereo})
         sent: dict[int, float] = {}
+        sent_at: dict[int, float] = {}
+        """every camera's send time until a frame shows a later one (frame ages)"""
         start = time.perf_counter()
 
         async def cameras() -> None:
             cam_id = 0
             while True:
                 cam_id += 1
-                sent[cam_id] = time.perf_counter()
+                sent[cam_id] = sent_at[cam_id] = time.perf_counter()
                 msg = rig_camera(base, walk, index, count, sent[cam_id] - start)
                 await ws.send_json({"type": "camera", "id": cam_id, **msg})
                 await asyncio.sleep(1.0 / hz)
@@ -148,6 +159,9 @@ async def run_client(session: Any, url: str, rec: ClientRecord, index: int, coun
                 t = sent.get(answered)
                 for k in [k for k in sent if k <= answered]:
                     del sent[k]
+                shown_at = sent_at.get(answered)
+                for k in [k for k in sent_at if k < answered]:
+                    del sent_at[k]
                 seen += 1
                 if seen >= WARMUP_FRAMES:
                     rec.warm.set()
@@ -158,6 +172,8 @@ async def run_client(session: Any, url: str, rec: ClientRecord, index: int, coun
                     rec.pixels = max(rec.pixels, header["width"] * header["height"])
                     if t is not None and t >= rec.opened:
                         rec.latencies_ms.append((now - t) * 1e3)
+                    if shown_at is not None and shown_at >= rec.opened:
+                        rec.ages_ms.append((now - shown_at) * 1e3)
         finally:
             if sender is not None:
                 sender.cancel()
@@ -268,6 +284,8 @@ async def measure_window(srv: Served, count: int, cfg: dict[str, Any], base: Cam
             await asyncio.gather(*tasks, return_exceptions=True)
     row = summarize(recs, elapsed, ticks, renders)
     row["clients_detail"] = [{"size": list(size), "read_every_s": every, "frames": r.frames, "pixels": r.pixels,
+                              "fps": r.frames / elapsed,
+                              "age_median_ms": float(np.median(r.ages_ms)) if r.ages_ms else None,
                               "latency_p95_ms": float(np.percentile(r.latencies_ms, 95)) if r.latencies_ms else None,
                               "latency_max_ms": max(r.latencies_ms, default=None)}
                              for r, (size, every) in zip(recs, clients, strict=True)]
@@ -320,7 +338,9 @@ def make_loop(method: str, scene_name: str, cfg: dict[str, Any], shared: bool, d
         scene = builtin_scene(scene_name, cfg["resolution"])
         base = Camera(position=(0.0, 0.4, 3.2))
     w, h = cfg["size"]
-    limits = limits or Limits(max_viewers=max(cfg["counts"]), max_width=2 * w, max_height=h)
+    # the shared/naive comparison renders the same pixels in both: the pixel budget only, no time shares
+    limits = limits or Limits(max_viewers=max(cfg["counts"]), max_width=2 * w, max_height=h,
+                              max_per_client=max(cfg["counts"]), tick_ms=None, connect_burst=1 << 20)
     loop = RenderLoop(scene, method, "interactive", limits=limits, camera=base, device=device, shared=shared,
                       animate=animator(scene, scene_name, device), overrides=cfg["overrides"])
     loop.playing = loop.animated
@@ -341,7 +361,8 @@ async def run_mixed(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     small = [(tuple(mixed["small_size"]), 0.0)] * mixed["small"] + [(tuple(mixed["small_size"]), mixed["read_every"])]
     budget = int(mixed["budget_factor"] * sum(w * h for (w, h), _ in small))
     big_w, big_h = mixed["big_size"]
-    limits = Limits(max_viewers=len(small) + 1, max_width=big_w, max_height=big_h, pixel_budget=budget)
+    limits = Limits(max_viewers=len(small) + 1, max_width=big_w, max_height=big_h, pixel_budget=budget,
+                    max_per_client=len(small) + 1, tick_ms=None, connect_burst=1 << 20)
     loop, base, walk = make_loop(method, scene_name, cfg, True, device, limits)
     out: dict[str, dict[str, Any]] = {}
     async with served(loop) as srv:
@@ -363,6 +384,44 @@ async def run_mixed(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     return {"scene": scene_name, "method": method, "pixel_budget": budget, "rows": rows, "p95_ratio": ratio,
             "p95_goal": GOAL_MIXED_P95, "age_tick_times": age, "age_goal": GOAL_MIXED_AGE,
             "goals": "pass" if ratio <= GOAL_MIXED_P95 and age <= GOAL_MIXED_AGE else "fail"}
+
+
+async def run_fair(cfg: dict[str, Any], device: str) -> dict[str, Any]:
+    """Issue 44's fair run on the first volume case, as the attack measured it: ``small`` clients at ``small_size``
+    sending a camera at ``camera_hz`` and acknowledging every frame, alone, then beside one client at ``big_size``,
+    on a server of the default limits (one full-HD pixel budget) sharing by time (`TimeShares`, the default
+    --tick-ms) and on one sharing the pixel budget alone (--tick-ms 0, the schedule before). Per run the small
+    clients' frames per second and median frame age (arrival minus the send time of the camera a frame shows), the
+    big client's frames and largest frame. Goal: the small clients' median age beside the big one within
+    GOAL_FAIR_AGE x of theirs alone, sharing by time."""
+    from volren.serve.viewers import Limits
+
+    fair = cfg["fair"]
+    method, scene_name = next((m, s) for m, s in cfg["cases"] if m != "fog")
+    small = [(tuple(fair["small_size"]), 0.0)] * fair["small"]
+    run_cfg = {**cfg, "camera_hz": fair["camera_hz"], "seconds": fair["seconds"], "repeats": 1}
+    rows = []
+    for schedule, tick_ms in (("time", Limits.tick_ms), ("pixels", None)):
+        limits = Limits(max_viewers=len(small) + 1, max_per_client=len(small) + 1, tick_ms=tick_ms,
+                        connect_burst=1 << 20)
+        loop, base, walk = make_loop(method, scene_name, cfg, True, device, limits)
+        async with served(loop) as srv:
+            for name, clients in (("alone", small), ("beside big", [*small, (tuple(fair["big_size"]), 0.0)])):
+                if schedule == "pixels" and name == "alone":
+                    continue  # the same schedule as sharing by time: a tick under the target shrinks nobody
+                row = await measure_window(srv, 0, run_cfg, base, walk, clients)
+                detail = row["clients_detail"]
+                ages = [a for c in detail[:fair["small"]] if (a := c["age_median_ms"]) is not None]
+                rows.append({"schedule": schedule, "run": name, "tick_ms": row["tick_ms"],
+                             "small_fps": statistics.mean(c["fps"] for c in detail[:fair["small"]]),
+                             "small_age_median_ms": statistics.median(ages) if ages else math.inf,
+                             "big_frames": detail[-1]["frames"] if name != "alone" else 0,
+                             "big_pixels": detail[-1]["pixels"] if name != "alone" else 0})
+    alone = rows[0]["small_age_median_ms"]
+    ratios = {f"{r['schedule']} {r['run']}": r["small_age_median_ms"] / alone for r in rows[1:]}
+    return {"scene": scene_name, "method": method, "rows": rows, "age_ratio": ratios["time beside big"],
+            "age_ratio_pixels": ratios["pixels beside big"], "age_goal": GOAL_FAIR_AGE,
+            "goals": "pass" if ratios["time beside big"] <= GOAL_FAIR_AGE else "fail"}
 
 
 async def run_async(cfg: dict[str, Any], device: str) -> dict[str, Any]:
@@ -406,6 +465,8 @@ async def run_async(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("latency_frames", "worst p95 latency [tick times]", ".2f"), ("latency_goal", "goal <=", ".0f"),
         ("p95_ratio", f"mixed: small p95 with/without big (goal <= {GOAL_MIXED_P95:g})", ".2f"),
         ("age_tick_times", f"mixed: oldest frame [tick times] (goal <= {GOAL_MIXED_AGE:g})", ".2f"),
+        ("age_ratio", f"fair: small age beside/without big (goal <= {GOAL_FAIR_AGE:g})", ".2f"),
+        ("age_ratio_pixels", "fair: same, pixel budget only", ".2f"),
         ("goals", "goals", "s"),
     ]
     if cfg.get("mixed"):
@@ -413,6 +474,11 @@ async def run_async(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         summary.append({"scene": f"{mixed['scene']} (mixed)", "method": mixed["method"],
                         "clients": mixed["rows"][1]["clients"], "p95_ratio": mixed["p95_ratio"],
                         "age_tick_times": mixed["age_tick_times"], "goals": mixed["goals"], "mixed": mixed})
+    if cfg.get("fair"):
+        fair = await run_fair(cfg, device)
+        summary.append({"scene": f"{fair['scene']} (fair)", "method": fair["method"],
+                        "clients": cfg["fair"]["small"] + 1, "age_ratio": fair["age_ratio"],
+                        "age_ratio_pixels": fair["age_ratio_pixels"], "goals": fair["goals"], "fair": fair})
     settings = {k: v for k, v in cfg.items() if k != "overrides"} | {
         "quality": "interactive", "stereo_every": STEREO_EVERY, "orbit_rad_s": ORBIT_RAD_S,
         "timing": "CPU, 2 cores, shared with other jobs" if device == "cpu" else device}

@@ -67,6 +67,10 @@ ACK_TIMEOUT_S = 30.0
 CLOSE_NO_ACK = 1008
 """WebSocket close code: policy violation (no frame acknowledged)"""
 WATCH_INTERVAL_S = 0.25
+CALM_AFTER_S = 0.5
+"""[s] with no viewer moving (no new camera, size or settings) and nothing playing for this long, the loop is calm: a
+viewer whose last frame was shrunk to its time share gets one of its whole size (the pixel budget alone), so a still
+view is sharp; a viewer that moves meanwhile waits for that one tick at most"""
 REFINE_TOLERANCE = 0.01
 """fog refines until the first frame's weight in its exponential history is below this: 44 frames at weight 0.1"""
 
@@ -234,6 +238,8 @@ class RenderLoop:
         self.render_ms = 0.0
         self.encode_ms = 0.0
         self._tick_times: deque[float] = deque(maxlen=256)
+        self._last_urgent = -math.inf
+        """[s, time.monotonic] when a tick last had a viewer waiting for a new view (`CALM_AFTER_S`)"""
         self._wake = asyncio.Event()
         self._task: asyncio.Task | None = None
         self._watch: asyncio.Task | None = None
@@ -448,11 +454,18 @@ class RenderLoop:
     def _still_key(self, v: Viewer) -> tuple:
         return (v.camera, self.version, self._step)
 
+    def _urgent(self, v: Viewer) -> bool:
+        """``v`` waits for a new view: its camera, size or the settings changed, or the scene plays."""
+        return (self.playing and self.animated) or v.shown != (v.camera_id, self.version)
+
+    def _calm_in(self) -> float:
+        """[s] until the loop is calm (<= 0: it is)."""
+        return self._last_urgent + CALM_AFTER_S - time.monotonic()
+
     def _due(self) -> bool:
-        """Some viewer free to receive needs a frame (new camera, size or settings, the scene plays, or its still view
-        is refining)."""
-        return any(not v.busy and ((self.playing and self.animated) or v.shown != (v.camera_id, self.version)
-                                   or self._refining(v))
+        """Some viewer free to receive needs a frame (new camera, size or settings, the scene plays, its still view
+        is refining, or its still view was shrunk and the loop is calm)."""
+        return any(not v.busy and (self._urgent(v) or self._refining(v) or (v.scaled and self._calm_in() <= 0))
                    for v in self.viewers.render_order())
 
     async def run(self) -> None:
@@ -473,6 +486,8 @@ class RenderLoop:
                         v.shown = (v.camera_id, self.version)
                     self._still.clear()  # no refining of a view that fails: wait for a change
                 await asyncio.sleep(0)  # let the event loop read messages between ticks
+            if self._calm_in() > 0 and any(v.scaled for v in self.viewers.render_order()):
+                asyncio.get_running_loop().call_later(self._calm_in() + 0.01, self.wake)  # its whole frame, calm
 
     async def step(self) -> None:
         """One tick: render every ready viewer in one call (or one per viewer when not shared), send the frames."""
@@ -485,7 +500,9 @@ class RenderLoop:
         version, index = self.version, self.tick
         # per viewer: its camera id and views (within its fair share of the pixel budget), its still view so far and
         # its key after this tick's animation step
-        shares = self.time_shares.shares([v.width * v.height for v in order])
+        if any(self._urgent(v) for v in order):
+            self._last_urgent = time.monotonic()
+        shares = self.time_shares.shares([v.width * v.height for v in order], calm=self._calm_in() <= 0)
         jobs = [(v, v.camera_id, v.views(self.ipd, px), self._still.get(v.id), (v.camera, version, step))
                 for v, px in zip(order, shares, strict=True)]
         start = time.perf_counter()
@@ -507,13 +524,13 @@ class RenderLoop:
         kept = {i: s for i, s in self._still.items() if i in self.viewers.viewers}
         self._still = kept | {job[0].id: still for job, (_, still) in zip(jobs, frames, strict=True)}
         self._sent = {i: n for i, n in self._sent.items() if i in self._still}
-        for (v, cam_id, *_), (payload, still) in zip(jobs, frames, strict=True):
+        for (v, cam_id, *_), (payload, still), px in zip(jobs, frames, shares, strict=True):
             if v.closed:
                 continue
             if v.busy:  # dropped: it still needs this state's frame once it is free (`_due`)
                 v.dropped += 1
                 continue
-            v.shown = (cam_id, version)
+            v.shown, v.scaled = (cam_id, version), px < v.width * v.height
             self._sent[v.id] = still.frames
             v.unacked, v.unacked_since = index, time.monotonic()
             v.sending = asyncio.create_task(self._send(v, payload))
@@ -553,7 +570,7 @@ class RenderLoop:
         for _, cam_id, cams, old, key in jobs:
             own = images[k:k + len(cams)]
             k += len(cams)
-            if old is not None and old.key == key:
+            if old is not None and old.key == key and (old.mean is None or old.mean[0].shape == own[0].shape):
                 n = old.frames + 1
                 if averages and old.mean is not None:  # the running mean: mean += (x - mean) / n
                     own = [m + (x - m) / n for m, x in zip(old.mean, own, strict=True)]

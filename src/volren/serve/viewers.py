@@ -13,11 +13,14 @@ from volren.errors import VolrenError
 from volren.serve.protocol import MIN_SIDE, CameraMessage, ProtocolError
 from volren.serve.rates import CONNECT_BURST, SETTINGS_BURST, SETTINGS_PER_S, ErrorCount, TokenBucket
 
-TICK_MS = 33.0
-"""[ms] the tick time the server aims for when several viewers share it (`Limits.tick_ms`): 30 frames a second"""
-MIN_SHARE = 256 * 144
+TICK_MS = 50.0
+"""[ms] the tick time the server aims for when several viewers share it (`Limits.tick_ms`): 20 frames a second"""
+MIN_SHARE = 160 * 90
 """[px] every viewer is owed min(its size, this) whatever the tick costs: the time share never shrinks a frame below
-256x144 (a big viewer's floor then costs about 28 ms a tick on the 2-core CPU, dssrm at interactive)"""
+160x90 (a big viewer's floor then costs about 11 ms a tick on the 2-core CPU, dssrm at interactive)"""
+SHARE_STEPS = 2
+"""a shrunk frame's pixels are its size / 2^(k / SHARE_STEPS) for a whole k: sizes on a ladder, so the tick-to-tick
+jitter of the estimate does not change a still view's size (which would restart its refinement)"""
 
 
 @dataclass(frozen=True)
@@ -91,6 +94,8 @@ class Viewer:
     frames: int = 0
     dropped: int = 0
     closed: bool = False
+    scaled: bool = False
+    """its last frame was smaller than its size (its time share, `TimeShares`)"""
     client: str = ""
     """the address it connected from (`Limits.max_per_client`)"""
     pending: dict[str, Any] = field(default_factory=dict)
@@ -160,11 +165,16 @@ class TimeShares:
         self.budget = limits.pixel_budget
         """[px] a tick may render, all viewers together"""
 
-    def shares(self, wants: list[int]) -> list[int]:
-        if self.limits.tick_ms is None or len(wants) < 2:
+    def shares(self, wants: list[int], calm: bool = False) -> list[int]:
+        """Each viewer's pixels this tick; ``calm`` (no viewer moved for a while): the pixel budget alone, so still
+        views get their whole size once nobody waits for a frame."""
+        if self.limits.tick_ms is None or len(wants) < 2 or calm:
             return fair_shares(wants, self.limits.pixel_budget)
         owed = sum(min(w, MIN_SHARE) for w in wants)
-        return fair_shares(wants, min(self.limits.pixel_budget, max(self.budget, owed)))
+        fair = fair_shares(wants, min(self.limits.pixel_budget, max(self.budget, owed)))
+        return [w if s >= w else max(min(w, MIN_SHARE), int(w / 2 ** (math.ceil(SHARE_STEPS * math.log2(w / s))
+                                                                     / SHARE_STEPS)))
+                for w, s in zip(wants, fair, strict=True)]
 
     def took(self, pixels: int, seconds: float) -> None:
         """A tick rendered ``pixels`` in ``seconds``: the next one's budget."""
