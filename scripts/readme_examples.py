@@ -68,6 +68,7 @@ def stand_ins(folder: Path, width: int = 640, height: int = 360) -> None:
     np.save(folder / "zbuffer.npy", np.full((height, width), 3.0, np.float32))
     (folder / "bunny.obj").write_text("v 0 0 0\nv 0.2 0 0\nv 0 0 0.2\nv 0 0.2 0\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
     (folder / "my_tf.json").write_text(PRESETS["ct-bone"].to_json())
+    (folder / "volren-token").write_text("readme-example-token-0123\n")  # serve --token-file
     for i in range(3):  # a sequence: the smoke drifting up a voxel a frame
         np.save(folder / f"sim_{i:04d}.npy", np.roll(smoke_density(64)[::2, ::2, ::2], i, axis=1))
     z, y, x = np.mgrid[0:16, 0:24, 0:24]

@@ -6,7 +6,8 @@ same camera rendered offline), differ from its image before the drag, and differ
 page switches to side-by-side stereo and must show its camera's two eyes while the other stays mono. A second test
 drags one page's light pad and switches its method menu: both pages must show the new light and method, and the other
 page's pad and menu follow. A third serves a page from another loopback origin whose WebSocket to the server must be
-refused (issue 20 item 1). Skipped
+refused (issue 20 item 1), with the token in its URL or the server's cookie in the browser; a fourth checks that the
+page moves the token out of its address into that cookie (issue 44 item 5). Skipped
 only when /usr/bin/chromium is missing, and then never in CI (CI=true): there it fails (.ci/run installs it).
 """
 
@@ -239,16 +240,23 @@ def drag_pad(page, u: float, v: float) -> None:
 
 def test_a_page_of_another_origin_cannot_open_the_socket(server):
     """Issue 20 item 1 (cross-site WebSocket hijacking): a page served from another loopback origin (a second HTTP
-    server on another port) opens the server's /ws, even with the right token, to switch the method; Chromium sends
-    that page's Origin and the upgrade is refused (the socket closes with 1006 and never opens)."""
+    server on another port) opens the server's /ws, with the right token and without it (the browser opened the
+    viewer first, so it holds the server's cookie, and SameSite=Strict does not keep it from another port of the
+    same host), to switch the method; Chromium sends that page's Origin and both upgrades are refused (each socket
+    closes with 1006 and never opens)."""
     import http.server
 
     port = int(server.split(":")[2].split("/")[0])
     page_html = f"""<!doctype html><script>
-      window.result = null;
-      const ws = new WebSocket("ws://127.0.0.1:{port}/ws?token={TOKEN}");
-      ws.onopen = () => {{ ws.send(JSON.stringify({{type: "settings", method: "cmsrm"}})); window.result = "open"; }};
-      ws.onclose = (e) => {{ window.result = window.result || "closed " + e.code; }};
+      window.result = {{}};
+      for (const query of ["?token={TOKEN}", ""]) {{
+        const ws = new WebSocket("ws://127.0.0.1:{port}/ws" + query);
+        ws.onopen = () => {{
+          ws.send(JSON.stringify({{type: "settings", method: "cmsrm"}}));
+          window.result[query] = "open";
+        }};
+        ws.onclose = (e) => {{ window.result[query] = window.result[query] || "closed " + e.code; }};
+      }}
     </script>""".encode()
 
     class Hostile(http.server.BaseHTTPRequestHandler):
@@ -267,11 +275,40 @@ def test_a_page_of_another_origin_cannot_open_the_socket(server):
         with sync_api.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=str(CHROMIUM), args=FLAGS)
             try:
-                page = browser.new_page()
+                context = browser.new_context()
+                context.new_page().goto(server)  # the viewer: the server's cookie is in this browser now
+                assert any(c["name"] == f"volren_token_{port}" for c in context.cookies())
+                page = context.new_page()
                 page.goto(f"http://127.0.0.1:{hostile.server_address[1]}/")
-                page.wait_for_function("window.result !== null", timeout=TIMEOUT_MS / 3)
-                assert page.evaluate("window.result") == "closed 1006", "the other origin's page opened the socket"
+                page.wait_for_function("Object.keys(window.result).length === 2", timeout=TIMEOUT_MS / 3)
+                assert page.evaluate("window.result") == {f"?token={TOKEN}": "closed 1006", "": "closed 1006"}, \
+                    "the other origin's page opened the socket"
             finally:
                 browser.close()
     finally:
         hostile.shutdown()
+
+
+def test_the_page_takes_the_token_out_of_its_address(server):
+    """Issue 44 item 5: opened as /?token=T&view=front#here, the page gets the server's cookie (HttpOnly: not in
+    document.cookie; SameSite=Strict) and replaces its address with /?view=front#here; its socket's URL carries no
+    token, and frames are drawn. Reloaded from the token-free address, the page works on the cookie alone."""
+    port = int(server.split(":")[2].split("/")[0])
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=FLAGS)
+        try:
+            page = browser.new_page(viewport={"width": 400, "height": 280})
+            sockets: list[str] = []
+            page.on("websocket", lambda ws: sockets.append(ws.url))
+            page.goto(f"{server}&view=front#here")
+            assert settle(page).std() > 10, "no frame drawn"
+            assert page.evaluate("[location.pathname, location.search, location.hash]") == ["/", "?view=front", "#here"]
+            assert TOKEN not in page.evaluate("location.href + document.cookie")
+            [cookie] = [c for c in page.context.cookies() if c["name"] == f"volren_token_{port}"]
+            assert cookie["value"] == TOKEN and cookie["httpOnly"] and cookie["sameSite"] == "Strict"
+            page.reload()
+            assert page.evaluate("location.search") == "?view=front"
+            assert settle(page).std() > 10, "no frame drawn after the reload"
+            assert len(sockets) == 2 and not any("token" in url for url in sockets), sockets
+        finally:
+            browser.close()

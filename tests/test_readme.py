@@ -160,7 +160,7 @@ def test_every_readme_command_runs_at_reduced_size(tmp_path, monkeypatch, capsys
     EXAMPLES.stand_ins(tmp_path, 32, 24)
     monkeypatch.chdir(tmp_path)
     # `volren serve` builds its scene, render loop and app, then would listen until interrupted: not here
-    monkeypatch.setattr("volren.serve.app.serve", lambda app, host, port, token: None)
+    monkeypatch.setattr("volren.serve.app.serve", lambda app, host, port, token, source="--token": None)
     failed = []
     for args in commands:
         code = main(args)

@@ -23,7 +23,7 @@ from volren.metrics import psnr
 from volren.presets import quality_config
 from volren.render import DSSRM, VPT
 from volren.scene import DirectionalLight, Environment, Scene, Volume
-from volren.serve.app import _serve, check_bind, make_app
+from volren.serve.app import ACCESS_KEY, _serve, check_bind, make_app, open_line, read_token
 from volren.serve.jpeg import decode_jpeg, display_image
 from volren.serve.loop import RenderLoop, animator
 from volren.serve.protocol import MAX_MESSAGE_BYTES, unpack_frame
@@ -319,6 +319,76 @@ def test_token_required_off_loopback_and_checked():
         await ws.close()
 
     run(test, token="s3cret-token-0123")
+
+
+def test_token_sources_file_environment_and_flag(tmp_path):
+    """Issue 44 item 5: the token comes from --token-file (its content, whitespace and the newline stripped), from
+    VOLREN_TOKEN when neither flag is given, or from --token; both flags at once, a missing, empty or overlong file,
+    an empty VOLREN_TOKEN and a token breaking the rules are one-line errors naming their source. The line `serve`
+    prints shows the token only when --token gave it."""
+    good = tmp_path / "token"
+    good.write_text("  file-token-0123456789\n")
+    env = {"VOLREN_TOKEN": "env-token-0123456789"}
+    assert read_token(None, str(good), {}) == ("file-token-0123456789", f"--token-file {good}")
+    assert read_token(None, str(good), env) == ("file-token-0123456789", f"--token-file {good}")
+    assert read_token(None, None, env) == ("env-token-0123456789", "VOLREN_TOKEN")
+    assert read_token("flag-token-0123456789", None, env) == ("flag-token-0123456789", "--token")
+    assert read_token(None, None, {}) == (None, None)
+    (tmp_path / "empty").write_text(" \n")
+    (tmp_path / "short").write_text("short\n")
+    (tmp_path / "long").write_bytes(b"x" * 5000)
+    (tmp_path / "binary").write_bytes(b"\xff" * 20)
+    for flag, path, environ, error in [
+            ("flag-token-0123456789", str(good), {}, f"^give either --token or --token-file {good}, not both$"),
+            (None, str(tmp_path / "missing"), {}, f"^--token-file {tmp_path / 'missing'}: cannot read it \\(No such"),
+            (None, str(tmp_path), {}, f"^--token-file {tmp_path}: cannot read it"),
+            (None, str(tmp_path / "empty"), env, f"^--token-file {tmp_path / 'empty'}: the file is empty"),
+            (None, str(tmp_path / "short"), {}, f"^the token in --token-file {tmp_path / 'short'} must be 16-256"),
+            (None, str(tmp_path / "long"), {}, f"^--token-file {tmp_path / 'long'}: longer than 4096 bytes"),
+            (None, str(tmp_path / "binary"), {}, f"^--token-file {tmp_path / 'binary'}: not UTF-8"),
+            (None, None, {"VOLREN_TOKEN": ""}, "^VOLREN_TOKEN is set but empty"),
+            (None, None, {"VOLREN_TOKEN": "a token with spaces"}, "^the token in VOLREN_TOKEN must be 16-256"),
+            ("short", None, env, "^--token must be 16-256")]:
+        with pytest.raises(VolrenError, match=error) as exc:
+            read_token(flag, path, environ)
+        assert "\n" not in str(exc.value)
+    assert open_line("0.0.0.0", 8000, "flag-token-0123456789") == \
+        "volren serve: open http://0.0.0.0:8000/?token=flag-token-0123456789 (Ctrl-C stops)"
+    line = open_line("::", 8000, "file-token-0123456789", f"--token-file {good}")
+    assert line == f"volren serve: open http://[::]:8000/?token=<the token in --token-file {good}> (Ctrl-C stops)"
+    assert "file-token" not in open_line("h", 1, "env-token-0123456789", "VOLREN_TOKEN")
+    assert open_line("127.0.0.1", 8000, None, None) == "volren serve: open http://127.0.0.1:8000/ (Ctrl-C stops)"
+
+
+def test_serve_cli_takes_the_token_from_a_file_or_the_environment(tmp_path, monkeypatch, capsys):
+    """`volren serve --token-file PATH` (and VOLREN_TOKEN) guard the server with the file's token and print no
+    warning; --token works too but warns that the process list shows it; a bad source stops the CLI in one line."""
+    from volren.cli import main
+
+    served: list[tuple] = []
+    monkeypatch.setattr("volren.serve.app.build_loop", lambda *args, **kw: None)  # no scene: the token is the test
+    monkeypatch.setattr("volren.serve.app.serve", lambda app, host, port, token, source="--token":
+                        served.append((app[ACCESS_KEY].token, token, source)))
+    monkeypatch.delenv("VOLREN_TOKEN", raising=False)
+    path = tmp_path / "token"
+    path.write_text("file-token-0123456789\n")
+    assert main(["serve", "--host", "0.0.0.0", "--token-file", str(path)]) == 0
+    assert served.pop() == ("file-token-0123456789", "file-token-0123456789", f"--token-file {path}")
+    assert capsys.readouterr().err == ""
+    monkeypatch.setenv("VOLREN_TOKEN", "env-token-0123456789")
+    assert main(["serve", "--host", "0.0.0.0"]) == 0
+    assert served.pop() == ("env-token-0123456789", "env-token-0123456789", "VOLREN_TOKEN")
+    assert capsys.readouterr().err == ""
+    assert main(["serve", "--token", "flag-token-0123456789"]) == 0
+    assert served.pop()[0] == "flag-token-0123456789"
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "warning: --token is visible to every local user" in err and "--token-file" in err
+    for argv, error in [(["--token", "flag-token-0123456789", "--token-file", str(path)], "not both"),
+                        (["--token-file", str(tmp_path / "missing")], f"--token-file {tmp_path / 'missing'}: cannot")]:
+        assert main(["serve", *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("volren: error: ") and error in err and err.count("\n") == 1, err
+    assert not served
 
 
 def test_health_fields_and_port_in_use():

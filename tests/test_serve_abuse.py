@@ -73,9 +73,9 @@ def test_cross_origin_and_bad_host_upgrades_refused():
 
 def test_the_token_guards_every_route_and_guesses_are_slowed_and_logged(caplog):
     """Item 2: with --token, /, /static, /health and /ws all need it; a repeated token= is refused even when one is
-    right; the page links its scripts with the token. Past FREE_REFUSALS wrong guesses, each is answered after
-    REFUSAL_DELAY_S, one at a time, and the log has one line per LOG_INTERVAL_S, not one per guess. Only URL-safe
-    tokens of 16+ characters are accepted (a one-line error naming --token)."""
+    right; the page's links carry no token (the cookie it sets does: see the next test). Past FREE_REFUSALS wrong
+    guesses, each is answered after REFUSAL_DELAY_S, one at a time, and the log has one line per LOG_INTERVAL_S, not
+    one per guess. Only URL-safe tokens of 16+ characters are accepted (a one-line error naming --token)."""
     for bad in ("short-token", "a token with spaces", "x" * 15, "tok/en?with&query=1"):
         with pytest.raises(VolrenError, match=r"^--token must be 16-256 URL-safe characters"):
             check_bind("127.0.0.1", bad)
@@ -85,9 +85,11 @@ def test_the_token_guards_every_route_and_guesses_are_slowed_and_logged(caplog):
             assert (await client.get(path)).status == 403, path
             assert (await client.get(f"{path}?token={TOKEN}&token=wrong-token-xxxxxxx")).status == 403, path
             assert (await client.get(f"{path}?token={TOKEN}")).status == 200, path
+            client.session.cookie_jar.clear()  # what / set: the next path must be refused without a token
         assert await refused(client, f"/ws?token={TOKEN}&token=x") == 403
         page = await (await client.get(f"/?token={TOKEN}")).text()
-        assert f'src="/static/viewer.js?token={TOKEN}"' in page
+        assert 'src="/static/viewer.js"' in page and TOKEN not in page
+        client.session.cookie_jar.clear()  # the guesses below must not ride on the page's cookie
         ws = await client.ws_connect(f"/ws?token={TOKEN}")
         await ws.close()
         start = time.perf_counter()
@@ -109,6 +111,38 @@ def test_the_token_guards_every_route_and_guesses_are_slowed_and_logged(caplog):
     log.warn("token", "volren serve: refused")
     assert [r.getMessage() for r in caplog.records] == ["volren serve: refused", "volren serve: refused (and 3 more "
                                                         "since the last such line)"]
+
+
+def test_the_page_moves_the_token_into_a_cookie():
+    """Issue 44 item 5: GET /?token=T answers with this server's cookie (named by its port; HttpOnly, SameSite=Strict,
+    Path=/) and Referrer-Policy no-referrer; the cookie alone then opens /, /static, /health and /ws. A wrong cookie,
+    the right token under another port's cookie name, or a token in the query that is wrong or repeated (the
+    cookie does not override it) are refused."""
+    async def test(client, loop):
+        port = client.server.port
+        name = f"volren_token_{port}"
+        resp = await client.get(f"/?token={TOKEN}&view=1")
+        assert resp.status == 200 and resp.headers["Referrer-Policy"] == "no-referrer"
+        [cookie] = resp.headers.getall("Set-Cookie")
+        attributes = {a.strip().lower() for a in cookie.split(";")[1:]}
+        assert cookie.startswith(f"{name}={TOKEN};") and {"httponly", "samesite=strict", "path=/"} <= attributes, \
+            cookie
+        assert (await client.get("/health")).status == 200, "the client's cookie jar sends it"
+        client.session.cookie_jar.clear()
+        assert "Set-Cookie" not in (await client.get("/", headers={"Cookie": f"{name}={TOKEN}"})).headers
+        for path in ("/", "/static/viewer.js", "/health"):
+            assert (await client.get(path, headers={"Cookie": f"{name}={TOKEN}"})).status == 200, path
+        ws = await client.ws_connect("/ws", headers={"Cookie": f"{name}={TOKEN}"})
+        await ws.send_json({"type": "hello", "width": W, "height": H})
+        assert (await ws.receive_json(timeout=TIMEOUT))["type"] == "welcome"
+        await ws.close()
+        for cookie in (f"{name}=wrong-token-0123456789", f"volren_token_{port + 1}={TOKEN}", f"{name}="):
+            assert (await client.get("/health", headers={"Cookie": cookie})).status == 403, cookie
+            assert await refused(client, "/ws", headers={"Cookie": cookie}) == 403, cookie
+        for query in ("?token=wrong-token-0123456789", f"?token={TOKEN}&token={TOKEN}"):
+            assert (await client.get("/health" + query, headers={"Cookie": f"{name}={TOKEN}"})).status == 403, query
+
+    run(test, {"token": TOKEN})
 
 
 def test_sockets_that_never_say_hello_hold_no_slot(monkeypatch):

@@ -384,10 +384,14 @@ def add_serve_args(p: argparse.ArgumentParser) -> None:
                    f"{DEFAULT_RESOLUTION})")
     p.add_argument("--method", help="dssrm, cmsrm, cacrm, vpt or fog (default: dssrm, fog for fog scenes)")
     p.add_argument("--quality", default="interactive", choices=QUALITIES, help="starting preset (viewers may switch)")
-    p.add_argument("--host", default="127.0.0.1", help="address to listen on; any but loopback needs --token")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on; any but loopback needs a token "
+                   "(--token-file, VOLREN_TOKEN or --token)")
     p.add_argument("--port", type=int, default=8000, help="TCP port, in [1, 65535]")
-    p.add_argument("--token", help="secret every request must carry as ?token=T, 16-256 URL-safe characters "
-                   "(required with a non-loopback --host; default: none)")
+    p.add_argument("--token-file", metavar="PATH", help="a file holding the secret every request must carry (as "
+                   "?token=T, or the cookie the page gets with it), 16-256 URL-safe characters (default: none; "
+                   "without --token-file and --token, the environment variable VOLREN_TOKEN if set)")
+    p.add_argument("--token", help="the secret itself, as --token-file's content (visible to every local user in "
+                   "the process list: prefer --token-file or VOLREN_TOKEN; default: none)")
     p.add_argument("--allow-host", action="append", default=[], metavar="NAME", help="a further name the Host "
                    "header may give (repeatable; default: the bound address, and localhost on loopback)")
     p.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN", help="a further page origin, "
@@ -395,8 +399,9 @@ def add_serve_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lock-settings", action="store_true", help="viewers may not change the shared method, "
                    "quality, transfer function, light or playback")
     p.add_argument("--max-viewers", type=int, default=16, help="viewers connected at once, in [1, 1024]")
-    p.add_argument("--max-viewers-per-client", type=int, default=4, help="viewers connected at once from one "
-                   "address, so one neighbour cannot take every slot (on loopback each 127.x.y.z counts apart)")
+    p.add_argument("--max-viewers-per-client", type=int, help="viewers connected at once from one address, so one "
+                   "neighbour cannot take every slot (on loopback each 127.x.y.z counts apart; default: 4, at most "
+                   "--max-viewers)")
     p.add_argument("--max-width", type=int, default=1920, help="[px] largest viewer image (stereo: both eyes)")
     p.add_argument("--max-height", type=int, default=1080, help="[px] largest viewer image")
     p.add_argument("--pixel-budget", type=int, default=1920 * 1080, help="[px] rendered per tick for all viewers "
@@ -422,21 +427,27 @@ def run_serve(args: argparse.Namespace) -> int:
     if args.shards is not None and args.shards < 1:
         raise CliError(f"--shards must be at least 1, got {args.shards}")
     check_scene_name(args.scene)
-    from volren.serve.app import build_loop, check_bind, make_app, serve
+    from volren.serve.app import TOKEN_ENV, build_loop, check_bind, make_app, read_token, serve
     from volren.serve.viewers import Limits
 
-    check_bind(args.host, args.token, tuple(args.allow_origin))
-    if args.max_viewers_per_client > args.max_viewers:
-        raise CliError(f"--max-viewers-per-client {args.max_viewers_per_client} exceeds --max-viewers "
-                       f"{args.max_viewers}: it would limit nothing")
+    token, source = read_token(args.token, args.token_file)
+    check_bind(args.host, token, tuple(args.allow_origin), source or "--token")
+    if source == "--token":
+        print(f"volren: warning: --token is visible to every local user in the process list (ps, /proc/PID/cmdline): "
+              f"prefer --token-file PATH or {TOKEN_ENV}", file=sys.stderr)
+    per_client = args.max_viewers_per_client
+    if per_client is not None and per_client > args.max_viewers:
+        raise CliError(f"--max-viewers-per-client {per_client} exceeds --max-viewers {args.max_viewers}: it would "
+                       "limit nothing")
     limits = Limits(args.max_viewers, args.max_width, args.max_height, args.pixel_budget,
-                    max_per_client=args.max_viewers_per_client, tick_ms=args.tick_ms or None)
+                    max_per_client=per_client or min(Limits.max_per_client, args.max_viewers),
+                    tick_ms=args.tick_ms or None)
     name = args.scene or DEFAULT_SCENE
     loop = build_loop(name, args.method, args.quality, args.resolution or DEFAULT_RESOLUTION, args.device, limits,
                       args.lock_settings, **served_volume(args), shards=args.shards, ray_address=args.ray_address)
     name = args.volume.name if args.volume is not None else name
-    serve(make_app(loop, name, args.token, hosts=(args.host, *args.allow_host), origins=tuple(args.allow_origin)),
-          args.host, args.port, args.token)
+    serve(make_app(loop, name, token, hosts=(args.host, *args.allow_host), origins=tuple(args.allow_origin)),
+          args.host, args.port, token, source)
     return 0
 
 

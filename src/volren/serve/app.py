@@ -6,8 +6,9 @@ The page and its scripts are files of the package (static/); /ws speaks the prot
 Every request passes `guard` first (issue 20 items 1-2): its Host must name the server (the address the connection
 came in on, `localhost` on loopback, a --host or --allow-host name: a DNS-rebound name is refused), a WebSocket
 upgrade's Origin must be the server's own or an --allow-origin (a page of another site cannot drive the server), and
-with a token every route needs it. Refusals are answered 403, slowed down once they repeat, and logged one line at a
-time, rate-limited (`OneLineLog`), like malformed HTTP requests (`QuietServerLog`) instead of a traceback each.
+with a token every route needs it (in the query, or in the cookie the page got with it: issue 44 item 5). Refusals
+are answered 403, slowed down once they repeat, and logged one line at a time, rate-limited (`OneLineLog`), like
+malformed HTTP requests (`QuietServerLog`) instead of a traceback each.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import socket
 import sys
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -70,7 +71,14 @@ KEEPALIVE_S = 10.0
 """[s] an HTTP connection with no complete request for this long is closed: idle sockets, slow headers, 1-byte drips
 (aiohttp's keepalive timeout runs from the connection's start)"""
 TOKEN_CHARS = re.compile(r"[A-Za-z0-9._~-]{16,256}")
-"""URL-safe (RFC 3986 unreserved) and long enough not to be guessed at the refusal rate below"""
+"""URL-safe (RFC 3986 unreserved; cookie-safe too) and long enough not to be guessed at the refusal rate below"""
+TOKEN_ENV = "VOLREN_TOKEN"
+"""the environment variable that gives the token when neither --token nor --token-file does"""
+TOKEN_FILE_MAX_BYTES = 4096
+"""a --token-file longer than this is refused unread (a token has at most 256 characters; not /dev/zero for ever)"""
+TOKEN_COOKIE = "volren_token_{port}"
+"""the cookie `index` sets for GET /?token=T; cookies are not port-scoped, so each server's (by its local port) has
+its own name: another volren on the same host neither overwrites nor accepts it"""
 FREE_REFUSALS, REFUSAL_WINDOW_S, REFUSAL_DELAY_S = 5, 60.0, 0.25
 """past FREE_REFUSALS refusals within REFUSAL_WINDOW_S, each further one is answered after REFUSAL_DELAY_S, one at
 a time: at most 4 guesses a second however many connections guess (measured before: 1,176 a second)"""
@@ -111,18 +119,64 @@ ORIGIN = re.compile(r"https?://(\[[0-9a-f:.]+\]|[a-z0-9.-]+)(:\d{1,5})?")
 HOST = re.compile(r"(\[[0-9a-f:.]+\]|[a-z0-9.-]+)(:\d{1,5})?")
 
 
-def check_bind(host: str, token: str | None, origins: tuple[str, ...] = ()) -> None:
-    """A server reachable from other machines must ask for a token (issue 15 item 5); the token must survive a URL
-    unquoted and resist guessing; an allowed origin must be one (scheme://host[:port], as browsers send it)."""
-    if token is not None and not TOKEN_CHARS.fullmatch(token):
-        raise VolrenError(f"--token must be 16-256 URL-safe characters (letters, digits, - . _ ~), got {len(token)} "
+def check_token(token: str, source: str = "--token") -> None:
+    """The token must survive a URL and a cookie unquoted and resist guessing; the error names its ``source``."""
+    if not TOKEN_CHARS.fullmatch(token):
+        what = "--token" if source == "--token" else f"the token in {source}"
+        raise VolrenError(f"{what} must be 16-256 URL-safe characters (letters, digits, - . _ ~), got {len(token)} "
                           "characters" + ("" if len(token) < 16 else " with others among them"))
+
+
+def read_token(flag: str | None, path: str | None, environ: Mapping[str, str] = os.environ) \
+        -> tuple[str | None, str | None]:
+    """The server's token and where it came from: ``flag`` (--token: "--token", visible to every local user in the
+    process list), the content of the file at ``path`` (--token-file: "--token-file PATH", surrounding whitespace
+    and the trailing newline stripped) or ``environ``'s VOLREN_TOKEN (used when neither flag is given: "VOLREN_TOKEN");
+    (None, None) when none gives one. Both flags at once, an unreadable, empty or overlong file, an empty
+    VOLREN_TOKEN or a token breaking `check_token`'s rules: a one-line `VolrenError` naming the source."""
+    if flag is not None and path is not None:
+        raise VolrenError(f"give either --token or --token-file {path}, not both")
+    if flag is not None:
+        token, source = flag, "--token"
+    elif path is not None:
+        source = f"--token-file {path}"
+        try:
+            with open(path, "rb") as f:
+                data = f.read(TOKEN_FILE_MAX_BYTES + 1)
+            text = data.decode()
+        except OSError as exc:
+            raise VolrenError(f"{source}: cannot read it ({exc.strerror or exc})") from None
+        except UnicodeDecodeError:
+            raise VolrenError(f"{source}: not UTF-8 text (the token is 16-256 URL-safe characters)") from None
+        if len(data) > TOKEN_FILE_MAX_BYTES:
+            raise VolrenError(f"{source}: longer than {TOKEN_FILE_MAX_BYTES} bytes (the token is 16-256 URL-safe "
+                              "characters)")
+        token = text.strip()
+        if not token:
+            raise VolrenError(f"{source}: the file is empty (write the token in it, 16-256 URL-safe characters)")
+    elif TOKEN_ENV in environ:
+        token, source = environ[TOKEN_ENV], TOKEN_ENV
+        if not token:
+            raise VolrenError(f"{TOKEN_ENV} is set but empty: unset it, or set it to a token of 16-256 URL-safe "
+                              "characters")
+    else:
+        return None, None
+    check_token(token, source)
+    return token, source
+
+
+def check_bind(host: str, token: str | None, origins: tuple[str, ...] = (), source: str = "--token") -> None:
+    """A server reachable from other machines must ask for a token (issue 15 item 5); the token must survive a URL
+    unquoted and resist guessing (`check_token`, its error naming ``source``); an allowed origin must be one
+    (scheme://host[:port], as browsers send it)."""
+    if token is not None:
+        check_token(token, source)
     for origin in origins:
         if not ORIGIN.fullmatch(origin.lower()):
             raise VolrenError(f"--allow-origin must be an origin like http://host:port (no path), got {origin[:80]}")
     if token is None and not is_loopback(host):
-        raise VolrenError(f"--host {host} is reachable from other machines: give --token T too (viewers then "
-                          "open http://HOST:PORT/?token=T)")
+        raise VolrenError(f"--host {host} is reachable from other machines: give a token too (--token-file FILE, "
+                          f"{TOKEN_ENV}=T or --token T; viewers then open http://HOST:PORT/?token=T)")
 
 
 def camera_json(cam: Camera) -> dict[str, Any]:
@@ -309,6 +363,19 @@ class Refusals:
         raise web.HTTPForbidden(text=why)
 
 
+def local_address(request: web.Request) -> tuple[str, int | None]:
+    """The address and port the request's connection came in on ("", None: unknown)."""
+    sockname = request.transport.get_extra_info("sockname") if request.transport is not None else None
+    if not sockname or isinstance(sockname, str):
+        return "", None
+    return str(sockname[0]).split("%")[0].lower(), int(sockname[1])
+
+
+def cookie_name(request: web.Request) -> str:
+    """The name of this server's token cookie (TOKEN_COOKIE): by the port the connection came in on."""
+    return TOKEN_COOKIE.format(port=local_address(request)[1] or request.url.port)
+
+
 def host_allowed(request: web.Request, access: Access) -> bool:
     """Is the request's Host a name of this server (against DNS rebinding)? The address the connection came in on,
     on loopback also `localhost` and `*.localhost` (RFC 6761), and the names in ``access.hosts``."""
@@ -316,8 +383,7 @@ def host_allowed(request: web.Request, access: Access) -> bool:
     if m is None:
         return False
     name = m.group(1).strip("[]").rstrip(".")
-    sockname = request.transport.get_extra_info("sockname") if request.transport is not None else None
-    local = str(sockname[0]).split("%")[0].lower() if sockname else ""
+    local = local_address(request)[0]
     if name == local or name in access.hosts:
         return True
     return bool(local) and is_loopback(local) and (name in ("localhost", "127.0.0.1", "::1")
@@ -327,13 +393,17 @@ def host_allowed(request: web.Request, access: Access) -> bool:
 @web.middleware
 async def guard(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]) \
         -> web.StreamResponse:
-    """Host, then the token (every route), then a WebSocket upgrade's Origin; refusals through `Refusals`."""
+    """Host, then the token (every route), then a WebSocket upgrade's Origin; refusals through `Refusals`. The token
+    comes in the query (exactly one token=, as scripts send it and as the page is first opened) or, with no token= in
+    the query, in this server's cookie (`cookie_name`), which the page got with its first load."""
     access, refusals = request.app[ACCESS_KEY], request.app[REFUSALS_KEY]
     if not host_allowed(request, access):
         await refusals.refuse(request, "host", f"Host {request.headers.get('Host', '')[:60]!r} is not this server's "
                                                "(add it with --allow-host)")
     if access.token is not None:
         given = request.query.getall("token", [])
+        if not given and (cookie := request.cookies.get(cookie_name(request))) is not None:
+            given = [cookie]
         if len(given) != 1 or not hmac.compare_digest(given[0].encode(), access.token.encode()):
             await refusals.refuse(request, "token", "missing, repeated or wrong token (open the page as /?token=T)")
     origin = request.headers.get("Origin")
@@ -355,11 +425,17 @@ async def health(request: web.Request) -> web.Response:
 
 
 async def index(request: web.Request) -> web.StreamResponse:
-    html = (STATIC / "index.html").read_text()
+    """The viewer page. Opened as /?token=T (`guard` checked T), it also sets this server's token cookie (HttpOnly,
+    SameSite=Strict, Path=/): the browser sends it with the page's own files, its WebSocket and later loads, so the
+    page's script takes the token out of the address bar (history.replaceState) and nothing else carries it. With
+    Referrer-Policy no-referrer the token-bearing first URL is not sent on as a Referer either."""
+    response = web.Response(text=(STATIC / "index.html").read_text(), content_type="text/html",
+                            headers={"Referrer-Policy": "no-referrer", "Cache-Control": "no-store"})
     token = request.app[ACCESS_KEY].token
-    if token is not None:  # the page's own files need the token too (URL-safe: no quoting)
-        html = re.sub(r'"(/static/[\w.-]+)"', rf'"\1?token={token}"', html)
-    return web.Response(text=html, content_type="text/html")
+    if token is not None and "token" in request.query:
+        response.set_cookie(cookie_name(request), token, path="/", httponly=True, samesite="Strict",
+                            secure=request.secure or None)
+    return response
 
 
 def make_app(loop: RenderLoop, scene: str, token: str | None = None, *, hosts: tuple[str, ...] = (),
@@ -467,12 +543,24 @@ def _given(animate: Callable[[], Scene] | None) -> Callable[[], Scene] | None:
     return animate
 
 
-def serve(app: web.Application, host: str, port: int, token: str | None) -> None:
-    """Run until SIGINT or SIGTERM, then close every viewer (1001) and end the process with status 0 within
-    SHUTDOWN_S: without the interpreter's teardown, which alone took 2.4 s with Warp loaded (2 busy cores)."""
+def open_line(host: str, port: int, token: str | None, source: str | None = "--token") -> str:
+    """What `serve` prints once it listens: the URL to open. The token in it only when it came from --token (the
+    command line shows it anyway); from a file or VOLREN_TOKEN the line names where it is instead, so the secret
+    does not land in a terminal's scrollback or a service's log."""
     shown = f"[{host}]" if ":" in host else host
-    url = f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
-    asyncio.run(_serve(app, host, port, f"volren serve: open {url} (Ctrl-C stops)"))
+    url = f"http://{shown}:{port}/"
+    if token and source == "--token":
+        url += f"?token={token}"
+    elif token:
+        url += f"?token=<the token in {source}>"
+    return f"volren serve: open {url} (Ctrl-C stops)"
+
+
+def serve(app: web.Application, host: str, port: int, token: str | None, source: str | None = "--token") -> None:
+    """Run until SIGINT or SIGTERM, then close every viewer (1001) and end the process with status 0 within
+    SHUTDOWN_S: without the interpreter's teardown, which alone took 2.4 s with Warp loaded (2 busy cores). It prints
+    `open_line` once listening."""
+    asyncio.run(_serve(app, host, port, open_line(host, port, token, source)))
     sys.stdout.flush()
     sys.stderr.flush()
     logging.shutdown()

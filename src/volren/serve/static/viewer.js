@@ -52,10 +52,17 @@ function cameraMessage() {
 }
 
 // ---- socket --------------------------------------------------------------------------------------------------------
+// Opened as /?token=T, the page got the server's token cookie (HttpOnly, SameSite=Strict) with it: the browser sends
+// that with the page's files, this socket's handshake and later loads. So the token leaves the address bar (history,
+// bookmarks, copied links, screen shares) at once, other query parameters and the hash kept, and the socket's URL
+// carries none (docs/SERVE.md, "token").
 const params = new URLSearchParams(location.search);
-const token = params.get("token");
-const wsUrl = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws` +
-  (token ? `?token=${encodeURIComponent(token)}` : "");
+if (params.has("token")) {
+  params.delete("token");
+  const query = params.toString();
+  history.replaceState(history.state, "", location.pathname + (query ? `?${query}` : "") + location.hash);
+}
+const wsUrl = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`;
 const ws = new WebSocket(wsUrl);
 ws.binaryType = "arraybuffer";
 const sentAt = new Map(); // camera id -> performance.now() when sent
