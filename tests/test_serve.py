@@ -11,6 +11,7 @@ import socket
 import struct
 import threading
 import time
+import types
 
 import numpy as np
 import pytest
@@ -366,7 +367,8 @@ def test_serve_cli_takes_the_token_from_a_file_or_the_environment(tmp_path, monk
     from volren.cli import main
 
     served: list[tuple] = []
-    monkeypatch.setattr("volren.serve.app.build_loop", lambda *args, **kw: None)  # no scene: the token is the test
+    # no scene: the token is the test (make_app reads only the loop's limits)
+    monkeypatch.setattr("volren.serve.app.build_loop", lambda *args, **kw: types.SimpleNamespace(limits=args[5]))
     monkeypatch.setattr("volren.serve.app.serve", lambda app, host, port, token, source="--token":
                         served.append((app[ACCESS_KEY].token, token, source)))
     monkeypatch.delenv("VOLREN_TOKEN", raising=False)

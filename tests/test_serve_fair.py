@@ -105,6 +105,8 @@ def test_time_shares_reach_the_tick_time_keep_floors_and_a_ladder():
     assert got == [64 * 48] * 4 + [MIN_SHARE], "everyone owed min(size, MIN_SHARE) whatever a tick costs"
     assert slow.shares([FULL_HD]) == [FULL_HD], "a lone viewer has the whole tick"
     assert slow.shares(wants, calm=True) == [*wants[:4], FULL_HD - 4 * 64 * 48], "calm: the pixel budget"
+    capped = TimeShares(Limits(4, 128, 96, pixel_budget=2 * 64 * 48))
+    assert capped.shares([128 * 96, 64 * 48]) == [64 * 48, 64 * 48], "the operator's pixel budget binds below floors"
     pixels_only = TimeShares(Limits(8, tick_ms=None))
     pixels_only.took(10_000, 10.0)
     assert pixels_only.shares(wants) == [*wants[:4], FULL_HD - 4 * 64 * 48]

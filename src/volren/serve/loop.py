@@ -502,7 +502,8 @@ class RenderLoop:
         # its key after this tick's animation step
         if any(self._urgent(v) for v in order):
             self._last_urgent = time.monotonic()
-        shares = self.time_shares.shares([v.width * v.height for v in order], calm=self._calm_in() <= 0)
+        calm = self._calm_in() <= 0
+        shares = self.time_shares.shares([v.width * v.height for v in order], calm=calm)
         jobs = [(v, v.camera_id, v.views(self.ipd, px), self._still.get(v.id), (v.camera, version, step))
                 for v, px in zip(order, shares, strict=True)]
         start = time.perf_counter()
@@ -530,7 +531,7 @@ class RenderLoop:
             if v.busy:  # dropped: it still needs this state's frame once it is free (`_due`)
                 v.dropped += 1
                 continue
-            v.shown, v.scaled = (cam_id, version), px < v.width * v.height
+            v.shown, v.scaled = (cam_id, version), px < v.width * v.height and not calm  # calm: its best
             self._sent[v.id] = still.frames
             v.unacked, v.unacked_since = index, time.monotonic()
             v.sending = asyncio.create_task(self._send(v, payload))

@@ -172,8 +172,9 @@ class TimeShares:
             return fair_shares(wants, self.limits.pixel_budget)
         owed = sum(min(w, MIN_SHARE) for w in wants)
         fair = fair_shares(wants, min(self.limits.pixel_budget, max(self.budget, owed)))
-        return [w if s >= w else max(min(w, MIN_SHARE), int(w / 2 ** (math.ceil(SHARE_STEPS * math.log2(w / s))
-                                                                     / SHARE_STEPS)))
+        # a rung of the ladder, never under what a viewer is owed (unless the operator's pixel budget gives less)
+        return [w if s >= w else max(min(w, MIN_SHARE, s), int(w / 2 ** (math.ceil(SHARE_STEPS * math.log2(w / s))
+                                                                        / SHARE_STEPS)))
                 for w, s in zip(wants, fair, strict=True)]
 
     def took(self, pixels: int, seconds: float) -> None:
