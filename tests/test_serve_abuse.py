@@ -384,9 +384,10 @@ def test_a_parked_viewer_refines_on_once_it_acks():
 
 
 def test_settings_converge_after_a_burst():
-    """Item 7: after a burst of 500 light changes from one viewer, the other viewer's last settings message is the
-    server's final state (before: 3 of 3 runs ended on a stale one). B's link is slow (each text message takes 5 ms
-    to go out), so changes keep arriving while one is on its way."""
+    """Item 7: after a burst of 300 light changes from one viewer (500 before issue 44's message rate: past 400 at
+    once a socket is closed), the other viewer's last settings message is the server's final state (before: 3 of 3
+    runs ended on a stale one). B's link is slow (each text message takes 5 ms to go out), so changes keep arriving
+    while one is on its way."""
     async def test(client, loop):
         a, _ = await connect(client)
         b, _ = await connect(client)
@@ -399,9 +400,9 @@ def test_settings_converge_after_a_burst():
 
         viewer_b.text = slow
         last = None
-        for i in range(500):
+        for i in range(300):
             await a.send_str(json.dumps({"type": "settings", "light_dir": [0.001 * i - 0.3, -1.0, 0.2]}))
-        await until(lambda: loop.light_dir == (0.499 - 0.3, -1.0, 0.2), "the burst applied")
+        await until(lambda: loop.light_dir == (0.299 - 0.3, -1.0, 0.2), "the burst applied")
         while True:
             try:
                 msg = await b.receive_json(timeout=1.0)

@@ -46,12 +46,14 @@ FULL = {"cases": [("fog", "dynamic"), ("cacrm", "smoke")], "resolution": 256, "s
         "counts": [1, 2, 4, 8, 16], "seconds": 10.0, "min_ticks": 10, "repeats": 3, "camera_hz": 60.0,
         "overrides": {}, "mixed": {"small": 8, "small_size": (480, 270), "big_size": (1920, 1080), "read_every": 1.0,
                                    "budget_factor": 1.5},
-        "fair": {"small": 4, "small_size": (64, 48), "big_size": (1920, 1080), "camera_hz": 10.0, "seconds": 10.0}}
+        "fair": {"small": 4, "small_size": (64, 48), "big_size": (1920, 1080), "camera_hz": 10.0, "seconds": 10.0},
+        "neighbour": {"viewers": 4, "size": (64, 48), "camera_hz": 10.0, "seconds": 10.0}}
 QUICK = {"cases": [("fog", "dynamic"), ("cacrm", "smoke")], "resolution": 64, "size": (160, 90),
          "counts": [1, 2, 4, 8, 16], "seconds": 3.0, "min_ticks": 4, "repeats": 2, "camera_hz": 30.0,
          "overrides": {}, "mixed": {"small": 8, "small_size": (320, 180), "big_size": (1920, 1080),
                                     "read_every": 1.0, "budget_factor": 1.5},
-         "fair": {"small": 4, "small_size": (64, 48), "big_size": (1920, 1080), "camera_hz": 10.0, "seconds": 4.0}}
+         "fair": {"small": 4, "small_size": (64, 48), "big_size": (1920, 1080), "camera_hz": 10.0, "seconds": 4.0},
+         "neighbour": {"viewers": 4, "size": (64, 48), "camera_hz": 10.0, "seconds": 4.0}}
 MODES = ("shared", "naive")
 STEREO_EVERY = 4
 """client i is a stereo pair when i % STEREO_EVERY == STEREO_EVERY - 1 (2 of 8 clients, 4 of 16)"""
@@ -424,6 +426,116 @@ async def run_fair(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             "goals": "pass" if ratios["time beside big"] <= GOAL_FAIR_AGE else "fail"}
 
 
+NEIGHBOUR = "127.0.0.2"
+"""the hostile neighbour's address: another client than the viewers (127.0.0.1)"""
+TALLY = ("messages", "closed", "connections", "refused")
+"""what a neighbour counts (`attack`)"""
+
+
+async def attack(kind: str, url: str, tally: Any) -> None:
+    """A neighbour's attack on the server at ``url`` until cancelled, from NEIGHBOUR, counting in ``tally`` (indexed
+    as TALLY) what it sent and how the server answered: ``settings`` (a viewer changing quality and light as fast as
+    its socket takes them, reconnecting when closed), ``malformed`` (the same with invalid JSON), ``churn`` (100
+    clients connecting, saying hello, sending a camera and leaving, each over and over); ``spin`` only keeps its
+    process busy (the CPU an attacker on this machine takes whatever the server does)."""
+    import aiohttp
+
+    def count(what: str) -> None:
+        tally[TALLY.index(what)] += 1
+
+    if kind == "spin":  # the neighbour's process busy on its own core, sending nothing: the machine's share
+        while True:
+            sum(range(100_000))
+            await asyncio.sleep(0)
+
+    async with aiohttp.ClientSession(connector=aiohttp.TCPConnector(local_addr=(NEIGHBOUR, 0), limit=0)) as session:
+        async def viewer() -> Any:
+            while True:
+                try:
+                    ws = await session.ws_connect(url, max_msg_size=0)
+                except aiohttp.WSServerHandshakeError:
+                    count("refused")
+                    await asyncio.sleep(0.05)
+                    continue
+                count("connections")
+                await ws.send_json({"type": "hello", "width": 64, "height": 48})
+                return ws
+
+        async def churner() -> None:
+            while True:
+                ws = await viewer()
+                await ws.send_json({"type": "camera", "id": 1, "position": [0, 0.4, 3.2], "look_at": [0, 0, 0]})
+                await ws.close()
+
+        if kind == "churn":
+            await asyncio.gather(*(churner() for _ in range(100)))
+        while True:
+            ws = await viewer()
+
+            async def drain(ws: Any = ws) -> None:
+                async for _ in ws:  # until the server closes it
+                    pass
+
+            reader = asyncio.create_task(drain())
+            i = 0
+            while not reader.done():
+                i += 1
+                if kind == "settings":
+                    await ws.send_json({"type": "settings", "quality": ("default", "interactive")[i % 2],
+                                        "light_dir": [0.3 * math.sin(i), -1.0, 0.2]})
+                else:
+                    await ws.send_str("{not json")
+                count("messages")
+                await asyncio.sleep(0)
+            count("closed")
+            await ws.close()
+
+
+def attack_process(kind: str, url: str, tally: Any) -> None:
+    """`attack` in a process of its own (a neighbour's CPU is not the server's, nor its GIL)."""
+    asyncio.run(attack(kind, url, tally))
+
+
+async def run_neighbour(cfg: dict[str, Any], device: str) -> dict[str, Any]:
+    """Issue 44 item 4's attacks on the first volume case at the default limits: ``viewers`` clients (a camera at
+    ``camera_hz``, every frame acknowledged) alone, then beside a neighbour (`attack`, in its own process) flooding
+    settings, sending malformed JSON, or churning 100 connections, or only spinning its process (on a 2-core machine
+    the attacker's own core is half the machine: the attacks compare with ``spin``). Per run their frames per
+    second and median frame age, and what the neighbour sent and how it was answered."""
+    import multiprocessing
+
+    from volren.serve.viewers import Limits
+
+    nb = cfg["neighbour"]
+    method, scene_name = next((m, s) for m, s in cfg["cases"] if m != "fog")
+    clients = [(tuple(nb["size"]), 0.0)] * nb["viewers"]
+    run_cfg = {**cfg, "camera_hz": nb["camera_hz"], "seconds": nb["seconds"], "repeats": 1}
+    loop, base, walk = make_loop(method, scene_name, cfg, True, device, Limits())
+    ctx = multiprocessing.get_context("spawn")
+    rows = []
+    async with served(loop) as srv:
+        for kind in ("none", "spin", "settings", "malformed", "churn"):
+            tally = ctx.Array("q", len(TALLY))
+            attacker = ctx.Process(target=attack_process, args=(kind, srv.url, tally), daemon=True)
+            if kind != "none":
+                attacker.start()
+            try:
+                row = await measure_window(srv, 0, run_cfg, base, walk, clients)
+            finally:
+                if attacker.is_alive():
+                    attacker.kill()
+                    attacker.join()
+            while len(loop.viewers):  # the neighbour's sockets closing
+                await asyncio.sleep(0.01)
+            detail = row["clients_detail"]
+            ages = [a for c in detail if (a := c["age_median_ms"]) is not None]
+            rows.append({"attack": kind, "tick_ms": row["tick_ms"], "fps": statistics.mean(c["fps"] for c in detail),
+                         "age_median_ms": statistics.median(ages) if ages else math.inf,
+                         "neighbour": dict(zip(TALLY, tally[:], strict=True))})
+            await asyncio.sleep(1.0)  # the connection rate's bucket refills a little between attacks
+    return {"scene": scene_name, "method": method, "rows": rows}
+
+
 async def run_async(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     rows, summary = [], []
     for method, scene_name in cfg["cases"]:
@@ -467,6 +579,7 @@ async def run_async(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         ("age_tick_times", f"mixed: oldest frame [tick times] (goal <= {GOAL_MIXED_AGE:g})", ".2f"),
         ("age_ratio", f"fair: small age beside/without big (goal <= {GOAL_FAIR_AGE:g})", ".2f"),
         ("age_ratio_pixels", "fair: same, pixel budget only", ".2f"),
+        ("fps", "neighbour: viewers' fps", ".1f"), ("age_ms", "neighbour: median age [ms]", ".0f"),
         ("goals", "goals", "s"),
     ]
     if cfg.get("mixed"):
@@ -474,6 +587,12 @@ async def run_async(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         summary.append({"scene": f"{mixed['scene']} (mixed)", "method": mixed["method"],
                         "clients": mixed["rows"][1]["clients"], "p95_ratio": mixed["p95_ratio"],
                         "age_tick_times": mixed["age_tick_times"], "goals": mixed["goals"], "mixed": mixed})
+    if cfg.get("neighbour"):
+        neighbour = await run_neighbour(cfg, device)
+        for r in neighbour["rows"]:
+            summary.append({"scene": f"{neighbour['scene']} (neighbour: {r['attack']})", "method": neighbour["method"],
+                            "clients": cfg["neighbour"]["viewers"], "fps": r["fps"], "age_ms": r["age_median_ms"],
+                            "goals": "-", "neighbour": r})
     if cfg.get("fair"):
         fair = await run_fair(cfg, device)
         summary.append({"scene": f"{fair['scene']} (fair)", "method": fair["method"],

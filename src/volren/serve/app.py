@@ -51,7 +51,16 @@ from volren.serve.protocol import (
     error_message,
     parse_message,
 )
-from volren.serve.rates import CONNECTS_PER_S, ERROR_LIMIT, ERROR_WINDOW_S, ConnectRates, ErrorCount
+from volren.serve.rates import (
+    CONNECTS_PER_S,
+    ERROR_LIMIT,
+    ERROR_WINDOW_S,
+    MESSAGE_BURST,
+    MESSAGES_PER_S,
+    ConnectRates,
+    ErrorCount,
+    TokenBucket,
+)
 from volren.serve.viewers import Limits, Viewer
 
 STATIC = Path(__file__).parent / "static"
@@ -212,6 +221,15 @@ async def handle_text(loop: RenderLoop, viewer: Viewer, data: Any) -> None:
     loop.wake()
 
 
+async def over_rate(ws: web.WebSocketResponse, messages: TokenBucket) -> bool:
+    """A message arrived: past MESSAGES_PER_S (after MESSAGE_BURST) close the socket (1008) before parsing it. True
+    when it is closed."""
+    if messages.take():
+        return False
+    await ws.close(code=CLOSE_POLICY, message=f"over {MESSAGES_PER_S:g} messages a second".encode())
+    return True
+
+
 async def refuse_message(ws: web.WebSocketResponse, errors: ErrorCount, text: str) -> bool:
     """Send a refused message's error; past ERROR_LIMIT within ERROR_WINDOW_S close the socket (1008) instead. True
     when it is closed."""
@@ -227,14 +245,14 @@ async def greet(ws: web.WebSocketResponse, loop: RenderLoop, scene: str, client:
     """The viewer of a socket once it said a valid hello (within HELLO_TIMEOUT_S of the upgrade, anything before it
     refused), welcomed; None when the socket is closed instead (no hello in time, too many refused messages, the
     server full or ``client``'s share of it taken, gone)."""
-    errors = ErrorCount()
+    errors, messages = ErrorCount(), TokenBucket(MESSAGES_PER_S, MESSAGE_BURST)
     deadline = time.monotonic() + HELLO_TIMEOUT_S
     while (left := deadline - time.monotonic()) > 0:
         try:
             msg = await ws.receive(timeout=left)
         except TimeoutError:
             break
-        if msg.type not in (WSMsgType.TEXT, WSMsgType.BINARY):
+        if msg.type not in (WSMsgType.TEXT, WSMsgType.BINARY) or await over_rate(ws, messages):
             return None
         try:
             hello = parse_message(msg.data, loop.choices)
@@ -255,7 +273,7 @@ async def greet(ws: web.WebSocketResponse, loop: RenderLoop, scene: str, client:
         async def close(code: int, reason: str) -> None:
             await ws.close(code=code, message=reason.encode())
 
-        viewer.close, viewer.errors = close, errors
+        viewer.close, viewer.errors, viewer.messages = close, errors, messages
         viewer.resize(hello.width, hello.height, hello.stereo, loop.limits)
         await ws.send_str(json.dumps(welcome(loop, viewer, scene)))
         return viewer
@@ -267,11 +285,10 @@ async def websocket(request: web.Request) -> web.StreamResponse:
     app = request.app
     loop = app[LOOP_KEY]
     client = request.remote or ""
-    if not app[CONNECTS_KEY].take(client):
-        app[REFUSALS_KEY].lines.warn("connects", f"volren serve: refused a WebSocket from {client}: over "
-                                                 f"{CONNECTS_PER_S:g} connections a second")
-        raise web.HTTPTooManyRequests(text=f"too many connections from {client}: at most {CONNECTS_PER_S:g} a second "
-                                           "after a burst; try again shortly")
+    if not app[CONNECTS_KEY].take(client):  # 429, slowed down like every refusal: churn costs a few a second
+        await app[REFUSALS_KEY].refuse(request, "connects", f"too many connections from {client}: at most "
+                                       f"{CONNECTS_PER_S:g} a second after a burst; try again shortly",
+                                       web.HTTPTooManyRequests)
     # aiohttp closes the socket (1009) on messages over max_msg_size; those between our limit and it get an error
     # message. No permessage-deflate: JPEG frames do not shrink (see COMPRESS_NOTE in docs/SERVE.md).
     ws = web.WebSocketResponse(max_msg_size=4 * MAX_MESSAGE_BYTES, heartbeat=30.0, compress=False)
@@ -289,7 +306,7 @@ async def websocket(request: web.Request) -> web.StreamResponse:
             except TimeoutError:
                 await ws.close(code=CLOSE_POLICY, message=f"no camera within {CAMERA_TIMEOUT_S:g} s".encode())
                 break
-            if msg.type not in (WSMsgType.TEXT, WSMsgType.BINARY):
+            if msg.type not in (WSMsgType.TEXT, WSMsgType.BINARY) or await over_rate(ws, viewer.messages):
                 break
             try:
                 await handle_text(loop, viewer, msg.data)
@@ -351,7 +368,8 @@ class Refusals:
         self.times: deque[float] = deque(maxlen=4 * FREE_REFUSALS)
         self._lock: asyncio.Lock | None = None
 
-    async def refuse(self, request: web.Request, key: str, why: str) -> None:
+    async def refuse(self, request: web.Request, key: str, why: str,
+                     status: type[web.HTTPClientError] = web.HTTPForbidden) -> None:
         now = time.monotonic()
         self.times.append(now)
         self.lines.warn(key, f"volren serve: refused {request.method} {request.path[:60]} from {request.remote}: "
@@ -360,7 +378,7 @@ class Refusals:
             self._lock = self._lock or asyncio.Lock()
             async with self._lock:
                 await asyncio.sleep(REFUSAL_DELAY_S)
-        raise web.HTTPForbidden(text=why)
+        raise status(text=why)
 
 
 def local_address(request: web.Request) -> tuple[str, int | None]:

@@ -15,6 +15,10 @@ setting waits, `RenderLoop.offer`), so a dragged light still ends where the user
 CONNECTS_PER_S, CONNECT_BURST = 2.0, 32
 """WebSocket upgrades per client address: a burst of 32 (every viewer slot twice over: a page reloaded in a few
 tabs, a VR pair reconnecting), then 2 a second; past it the upgrade is answered 429 before any work"""
+MESSAGES_PER_S, MESSAGE_BURST = 200.0, 400
+"""messages a socket may send: a burst of 400, then 200 a second (a page sends a camera per pointer event, ~60-120 a
+second, and an ack per frame); past it the socket is closed (1008) before the message is parsed: 1.6 million valid
+settings messages in 6 s from one socket had cut four viewers from 10 to 2 fps by parsing alone"""
 ERROR_LIMIT, ERROR_WINDOW_S = 50, 10.0
 """a socket with more than 50 refused messages within 10 s is closed (1008): a page makes none; each costs a parse
 and a reply on the event loop every viewer shares"""

@@ -11,7 +11,15 @@ from typing import Any
 from volren.camera import Camera, StereoRig
 from volren.errors import VolrenError
 from volren.serve.protocol import MIN_SIDE, CameraMessage, ProtocolError
-from volren.serve.rates import CONNECT_BURST, SETTINGS_BURST, SETTINGS_PER_S, ErrorCount, TokenBucket
+from volren.serve.rates import (
+    CONNECT_BURST,
+    MESSAGE_BURST,
+    MESSAGES_PER_S,
+    SETTINGS_BURST,
+    SETTINGS_PER_S,
+    ErrorCount,
+    TokenBucket,
+)
 
 TICK_MS = 50.0
 """[ms] the tick time the server aims for when several viewers share it (`Limits.tick_ms`): 20 frames a second"""
@@ -102,6 +110,8 @@ class Viewer:
     """shared settings it asked for that wait for their turn (`RenderLoop.offer`): the newest value of each"""
     settings_rate: TokenBucket = field(default_factory=lambda: TokenBucket(SETTINGS_PER_S, SETTINGS_BURST))
     errors: ErrorCount = field(default_factory=ErrorCount)
+    messages: TokenBucket = field(default_factory=lambda: TokenBucket(MESSAGES_PER_S, MESSAGE_BURST))
+    """its socket's message rate (from its upgrade on: `volren.serve.app.greet` hands its bucket over)"""
 
     @property
     def ready(self) -> bool:
