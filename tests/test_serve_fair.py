@@ -338,6 +338,30 @@ def test_a_socket_past_the_refused_message_limit_is_closed():
     run(test, Limits(4, 128, 96))
 
 
+def test_a_socket_past_the_message_rate_is_closed():
+    """Item 4: a socket sending valid messages faster than MESSAGES_PER_S after a burst of MESSAGE_BURST is closed
+    (1008, saying why) before they are parsed; a page's rate (a camera every 10 ms, acks) never is; another viewer's
+    frames go on."""
+    from volren.serve.rates import MESSAGE_BURST
+
+    async def test(client, loop):
+        good, _ = await connect(client)
+        for i in range(1, 40):  # 100 cameras a second for 0.4 s, each frame acknowledged
+            await good.send_json(cam_msg(i, 0.001 * i))
+            await asyncio.sleep(0.01)
+        await frame_for(good, 39)
+        flood, _ = await connect(client)
+        for i in range(1, MESSAGE_BURST + 50):
+            await flood.send_json(cam_msg(i, 0.001 * i))
+        code, why = await closed_with(flood)
+        assert code == 1008 and "messages a second" in why, (code, why)
+        assert not good.closed
+        await good.send_json(cam_msg(40))
+        await frame_for(good, 40)
+        await good.close()
+
+    run(test, Limits(4, 128, 96))
+
 def test_connections_are_rate_limited_per_address():
     """Item 4: WebSocket upgrades from one address past its burst are answered 429 before any work; another
     address connects meanwhile; a token comes back after 1 / CONNECTS_PER_S s. The buckets stay bounded (least
@@ -373,3 +397,35 @@ def test_connections_are_rate_limited_per_address():
 
     run(test, Limits(4, 128, 96, connect_burst=5))
 
+
+
+def test_bench_fair_and_neighbour_runs():
+    """`volren bench serve`'s fair run (small viewers alone and beside a big one, sharing by time and by pixels) and
+    neighbour run (the viewers beside a neighbour at 127.0.0.2 in a process of its own): rows in order, the ratios
+    and goal follow from them, the big viewer shrunk only sharing by time, and the neighbour's tallies show the
+    server's answers (malformed JSON: closed past ERROR_LIMIT; churn: 429s past the connection burst)."""
+    from volren.bench.serve import GOAL_FAIR_AGE, run_fair, run_neighbour
+    from volren.serve.rates import CONNECT_BURST, ERROR_LIMIT
+
+    cfg = {"cases": [("dssrm", "smoke")], "resolution": 64, "size": (48, 32), "min_ticks": 3, "camera_hz": 20.0,
+           "overrides": {"samples": 32, "light_samples": 8, "light_grid": 8},
+           "fair": {"small": 2, "small_size": (48, 32), "big_size": (640, 360), "camera_hz": 10.0, "seconds": 1.0},
+           "neighbour": {"viewers": 2, "size": (48, 32), "camera_hz": 10.0, "seconds": 1.5,
+                         "attacks": ("none", "malformed", "churn")}}
+    r = asyncio.run(run_fair(cfg, "cpu"))
+    rows = {(row["schedule"], row["run"]): row for row in r["rows"]}
+    assert list(rows) == [("time", "alone"), ("time", "beside big"), ("pixels", "beside big")]
+    alone = rows["time", "alone"]["small_age_median_ms"]
+    assert r["age_ratio"] == rows["time", "beside big"]["small_age_median_ms"] / alone
+    assert r["age_ratio_pixels"] == rows["pixels", "beside big"]["small_age_median_ms"] / alone
+    assert r["goals"] == ("pass" if r["age_ratio"] <= GOAL_FAIR_AGE else "fail")
+    assert rows["time", "beside big"]["big_pixels"] < 640 * 360 == rows["pixels", "beside big"]["big_pixels"]
+    assert all(row["big_frames"] > 0 for (_, run), row in rows.items() if run != "alone")
+    n = asyncio.run(run_neighbour(cfg, "cpu"))
+    rows = {row["attack"]: row for row in n["rows"]}
+    assert list(rows) == ["none", "malformed", "churn"] and rows["none"]["neighbour"]["messages"] == 0
+    assert all(row["fps"] > 0 for row in rows.values())
+    bad = rows["malformed"]["neighbour"]
+    assert bad["closed"] >= 1 and bad["messages"] >= ERROR_LIMIT * bad["closed"]
+    churn = rows["churn"]["neighbour"]
+    assert churn["refused"] > 0 and churn["connections"] <= CONNECT_BURST + 2 * 3 * 2.0, churn

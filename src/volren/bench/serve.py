@@ -199,7 +199,7 @@ async def served(loop: Any) -> AsyncIterator[Served]:
 
     from volren.serve.app import make_app
 
-    runner = web.AppRunner(make_app(loop, "bench"))
+    runner = web.AppRunner(make_app(loop, "bench"), shutdown_timeout=1.0)  # not the refusals still queued
     await runner.setup()
     try:
         await web.TCPSite(runner, "127.0.0.1", 0).start()
@@ -428,6 +428,8 @@ async def run_fair(cfg: dict[str, Any], device: str) -> dict[str, Any]:
 
 NEIGHBOUR = "127.0.0.2"
 """the hostile neighbour's address: another client than the viewers (127.0.0.1)"""
+ATTACKS = ("none", "spin", "settings", "malformed", "churn")
+"""`run_neighbour`'s runs, in order (`attack`; none: the viewers alone)"""
 TALLY = ("messages", "closed", "connections", "refused")
 """what a neighbour counts (`attack`)"""
 
@@ -491,8 +493,12 @@ async def attack(kind: str, url: str, tally: Any) -> None:
             await ws.close()
 
 
-def attack_process(kind: str, url: str, tally: Any) -> None:
-    """`attack` in a process of its own (a neighbour's CPU is not the server's, nor its GIL)."""
+def attack_process(kind: str, url: str, tally: Any, ready: Any) -> None:
+    """`attack` in a process of its own (a neighbour's CPU is not the server's, nor its GIL); ``ready`` is set once
+    it is imported and starts."""
+    import aiohttp  # noqa: F401  (imported before the start is announced)
+
+    ready.set()
     asyncio.run(attack(kind, url, tally))
 
 
@@ -514,11 +520,14 @@ async def run_neighbour(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     ctx = multiprocessing.get_context("spawn")
     rows = []
     async with served(loop) as srv:
-        for kind in ("none", "spin", "settings", "malformed", "churn"):
-            tally = ctx.Array("q", len(TALLY))
-            attacker = ctx.Process(target=attack_process, args=(kind, srv.url, tally), daemon=True)
+        for kind in nb.get("attacks", ATTACKS):
+            tally, ready = ctx.Array("q", len(TALLY)), ctx.Event()
+            attacker = ctx.Process(target=attack_process, args=(kind, srv.url, tally, ready), daemon=True)
             if kind != "none":
                 attacker.start()
+                if not await asyncio.to_thread(ready.wait, WARMUP_TIMEOUT_S):
+                    raise VolrenError(f"bench serve: the neighbour's process did not start within "
+                                      f"{WARMUP_TIMEOUT_S:.0f} s")
             try:
                 row = await measure_window(srv, 0, run_cfg, base, walk, clients)
             finally:
