@@ -263,7 +263,7 @@ def test_a_settings_flood_applies_one_change_a_tick_and_ends_on_the_newest():
     """Item 4: 400 settings from one viewer (quality flipped, the light moved) while another moves its camera: at
     most one applied change a tick and SETTINGS_BURST + SETTINGS_PER_S a second from that viewer (renderer
     rebuilds likewise), the other viewer keeps getting frames, and the flood ends on its newest values (coalesced,
-    not dropped)."""
+    not dropped); two messages of different settings waiting together both apply."""
     async def test(client, loop):
         flood, _ = await connect(client)
         other, _ = await connect(client)
@@ -305,6 +305,13 @@ def test_a_settings_flood_applies_one_change_a_tick_and_ends_on_the_newest():
         assert len(versions) == len(set(versions)), f"two changes applied in one tick: {versions}"
         assert len(builds) <= len(versions), builds
         assert loop.tick - tick0 >= len(versions) - 1
+        # two messages inside one tick, each one setting: both apply (merged while they wait, not the last alone)
+        await flood.send_str(json.dumps({"type": "settings", "quality": "default"}))
+        await flood.send_str(json.dumps({"type": "settings", "light_dir": [0.25, -1.0, 0.0]}))
+        await other.send_json(cam_msg(99))
+        await until(lambda: loop.light_dir == (0.25, -1.0, 0.0), "the light")
+        await asyncio.sleep(1.0)  # past the rate: whatever waited has applied
+        assert loop.quality == "default", loop.quality
         for w in (flood, other):
             await w.close()
 
