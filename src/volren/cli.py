@@ -376,7 +376,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
 
 def add_serve_args(p: argparse.ArgumentParser) -> None:
     from volren.presets import QUALITIES
-    from volren.serve.viewers import TICK_MS
+    from volren.serve.rates import TICK_MS
 
     p.add_argument("--scene", help=f"built-in scene (default {DEFAULT_SCENE}; see `volren scenes`)")
     add_volume_args(p)

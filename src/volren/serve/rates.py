@@ -9,6 +9,9 @@ import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
+TICK_MS = 50.0
+"""[ms] the tick time the server aims for when several viewers share it (`volren.serve.viewers.Limits.tick_ms`): 20
+frames a second (here, not in viewers.py: the CLI's help shows it without importing numpy)"""
 SETTINGS_PER_S, SETTINGS_BURST = 4.0, 4
 """a client's settings changes applied: a burst of 4, then 4 a second; the rest coalesce (the newest value of each
 setting waits, `RenderLoop.offer`), so a dragged light still ends where the user let go"""

@@ -17,12 +17,11 @@ from volren.serve.rates import (
     MESSAGES_PER_S,
     SETTINGS_BURST,
     SETTINGS_PER_S,
+    TICK_MS,
     ErrorCount,
     TokenBucket,
 )
 
-TICK_MS = 50.0
-"""[ms] the tick time the server aims for when several viewers share it (`Limits.tick_ms`): 20 frames a second"""
 MIN_SHARE = 160 * 90
 """[px] every viewer is owed min(its size, this) whatever the tick costs: the time share never shrinks a frame below
 160x90 (a big viewer's floor then costs about 11 ms a tick on the 2-core CPU, dssrm at interactive)"""
