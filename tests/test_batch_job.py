@@ -17,6 +17,8 @@ from volren.errors import VolrenError
 TINY = {"scene": "smoke", "width": 40, "height": 24, "samples": 24, "light-samples": 6, "light-grid": 8,
         "views": "mono"}
 """the flags of a render that takes a fraction of a second"""
+SHARED = {k: v for k, v in TINY.items() if k != "views"}
+"""`TINY` beside a sweep of views"""
 
 
 def toml_value(value) -> str:
@@ -45,7 +47,7 @@ light-irradiance = 1
 light-dir = [1, -1, 0]
 [[sweep.light]]
 light-irradiance = [3, 2.5, 1]
-""", base={**TINY, "light-irradiance": 2})
+""", base={**TINY, "light-dir": [0, -1, 0]})
     batch = load_batch(path)
     assert batch.folders == ("method-dssrm_light-low", "method-dssrm_light-irradiance-3-2.5-1",
                              "method-cmsrm_light-low", "method-cmsrm_light-irradiance-3-2.5-1")
@@ -54,9 +56,9 @@ light-irradiance = [3, 2.5, 1]
         assert job.argv[0] == "render" and job.out == tmp_path / "batch" / folder
         assert flag_values(job.argv, "--out") == [str(job.out)]
     low, rgb = batch.jobs[2].argv, batch.jobs[3].argv
-    # the sweep's value replaces the shared one (one flag, not two); what an entry does not set stays shared
+    # an entry's value replaces the shared one (one flag, not two); what an entry does not set stays shared
     assert flag_values(low, "--light-irradiance") == ["1"] and flag_values(low, "--light-dir") == ["1,-1,0"]
-    assert flag_values(rgb, "--light-irradiance") == ["3,2.5,1"] and flag_values(rgb, "--light-dir") == []
+    assert flag_values(rgb, "--light-irradiance") == ["3,2.5,1"] and flag_values(rgb, "--light-dir") == ["0,-1,0"]
     assert flag_values(low, "--method") == ["cmsrm"] and flag_values(low, "--width") == ["40"]
     assert batch.varies[1] == {"sweep.method[0]": "dssrm", "sweep.light[1].light-irradiance": [3, 2.5, 1]}
     index = json.loads(write_index(batch).read_text())
@@ -118,17 +120,48 @@ def test_frames_all_plays_every_frame_of_a_volume_sequence(tmp_path):
     ("[[sweep.looks]]\nout = \"elsewhere\"", "sweep.looks[0].out", "the batch's folder is the top-level out"),
     ("[sweep]\nviews = [\"mono\"]\n[[sweep.rigs]]\nviews = \"4\"\nrig = \"arc\"", "sweep.rigs[0].views",
      "'views' is also set by sweep.views: one axis per flag"),
+    ("[sweep]\nwidth = [40, 64]", "sweep.width", "'width' is set at the top of the file too (width = 40), but every "
+     "job takes the sweep's value: remove one"),
+    ("[[sweep.looks]]\nname = \"a\"\nsamples = 8\n[[sweep.looks]]\nname = \"b\"\nsamples = 16", "sweep.looks",
+     "'samples' is set at the top of the file too (samples = 24)"),
+    ("[sweep]", "sweep", "is empty: give it an axis (a flag = [values]), or leave [sweep] out for one job"),
     ("[[sweep.looks]]\nname = \"a\"\nalbedo = 0.5\n[[sweep.looks]]\nname = \"a\"\nalbedo = 0.9",
      "sweep.looks[1].albedo", "both write folder 'looks-a'"),
     ("[sweep]\nambient = [\"0.1,0.1,0.1\", [0.1, 0.1, 0.1]]", "sweep.ambient[1]", "both write folder "
      "'ambient-0.1-0.1-0.1'"),
 ])
 def test_every_problem_is_one_line_naming_the_file_and_key(tmp_path, body, key, message):
-    path = job_file(tmp_path, body + "\n", base={k: v for k, v in TINY.items() if k != "height"})
+    path = job_file(tmp_path, body + "\n", base={k: v for k, v in TINY.items() if k not in ("height", "views")})
     with pytest.raises(VolrenError) as refused:
         load_batch(path)
     text = str(refused.value)
     assert text.startswith(f"{path}: {key}: ") and message in text and "\n" not in text, text
+
+
+def test_a_flag_at_the_top_is_the_default_of_the_entries_that_do_not_set_it(tmp_path):
+    """A table axis whose entries set a top-level flag only some of the time: the top value is their default, not a
+    flag that does nothing (the refusal is for a flag every entry replaces)."""
+    body = "[[sweep.looks]]\nname = \"bright\"\nsamples = 16\n[[sweep.looks]]\nname = \"plain\"\nalbedo = 0.5\n"
+    batch = load_batch(job_file(tmp_path, body))
+    assert [flag_values(job.argv, "--samples") for job in batch.jobs] == [["16"], ["24"]]
+
+
+def test_an_empty_job_file_and_a_swept_top_flag_are_one_line_before_anything_runs(tmp_path, capsys, monkeypatch):
+    """`volren batch` of an empty file rendered the default smoke; a flag at the top and in a sweep took the sweep's
+    value unsaid. Each is now one line naming the file (and the key), exit 2, nothing written."""
+    monkeypatch.chdir(tmp_path)  # where the empty file's default out/empty would go
+    empty = tmp_path / "empty.toml"
+    empty.write_text("# nothing yet\n")
+    assert main(["batch", str(empty)]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"volren: error: {empty} has no jobs: it sets no flag and no [sweep] (e.g. scene = \"smoke\", and a [sweep] of "
+        "what varies: see examples/turntable-sweep.toml)"]
+    both = job_file(tmp_path, "[sweep]\nviews = [\"mono\", \"stereo\"]\n")
+    assert main(["batch", str(both)]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"volren: error: {both}: sweep.views: 'views' is set at the top of the file too (views = \"mono\"), but every "
+        "job takes the sweep's value: remove one"]
+    assert not (tmp_path / "batch").exists() and not (tmp_path / "out").exists()
 
 
 def test_not_toml_and_a_missing_file_are_one_line(tmp_path):
@@ -151,7 +184,7 @@ def test_a_bad_job_anywhere_stops_the_batch_before_anything_renders(tmp_path, ca
 
 
 def test_dry_run_prints_the_jobs_and_writes_nothing(tmp_path, capfd):
-    path = job_file(tmp_path, "[sweep]\nviews = [\"mono\", \"stereo\"]\n", base={**TINY, "frames": 2})
+    path = job_file(tmp_path, "[sweep]\nviews = [\"mono\", \"stereo\"]\n", base={**SHARED, "frames": 2})
     assert main(["batch", str(path), "--dry-run"]) == 0
     lines = capfd.readouterr().out.strip().splitlines()
     # one unit per frame: dssrm keeps no history across frames
@@ -232,7 +265,7 @@ def test_a_job_file_on_ray_writes_the_files_of_the_in_process_run(tmp_path, ray_
     for where, extra in (("here", []), ("ray", ["--workers", "2"])):
         folder = tmp_path / where
         folder.mkdir()
-        path = job_file(folder, body, base={**TINY, "frames": 2})
+        path = job_file(folder, body, base={**SHARED, "frames": 2})
         assert main(["batch", str(path), *extra]) == 0
         runs[where] = folder / "batch"
     assert "2 job(s) into" in capfd.readouterr().out

@@ -73,6 +73,31 @@ def test_channel_methods_agree_with_the_reference(method):
     assert psnr(image[..., :3], truth[..., :3]) > 30.0
 
 
+def test_channel_mip_is_each_channels_grey_mip_in_its_colour_added():
+    """MIP of channels: each channel's own MIP (grey, its maximum P) tinted by its colour, summed (napari's additive
+    MIP); alpha 1 - prod(1 - P_c). Before, the channels were added grey: the colours were dropped."""
+    cls, config_cls = METHODS["dssrm"]
+    scene = channel_scene(blobs())
+    image = AdditiveChannels(lambda: cls(config_cls(samples=64, mode="mip"), device="cpu"), 2).render(
+        scene, [view()]).images[0]
+    alone = [cls(config_cls(samples=64, mode="mip"), device="cpu").render(
+        Scene((v,), lights=(), environment=scene.environment), [view()]).images[0] for v in scene.volumes]
+    for grey in alone:
+        np.testing.assert_allclose(grey[..., 0], grey[..., 3], atol=1e-6)  # each alone: grey, RGB = alpha = P
+    want = sum(grey[..., :3] * np.array(color, np.float32) for grey, color in zip(alone, (GREEN, MAGENTA), strict=True))
+    np.testing.assert_allclose(image[..., :3], want, atol=1e-6)
+    np.testing.assert_allclose(image[..., 3], 1 - (1 - alone[0][..., 3]) * (1 - alone[1][..., 3]), atol=1e-6)
+
+
+def test_channel_iso_is_refused():
+    cls, config_cls = METHODS["dssrm"]
+    with pytest.raises(VolrenError, match=r"mode iso .* would be black"):
+        AdditiveChannels(lambda: cls(config_cls(mode="iso"), device="cpu"), 2)
+    channels = renderer("dssrm", 2)
+    with pytest.raises(VolrenError, match=r"mode iso .* would be black"):
+        channels.config = config_cls(mode="iso")
+
+
 def test_vpt_and_fog_are_refused():
     for method in ("vpt", "fog"):
         with pytest.raises(VolrenError, match="multi-channel volume renders with"):
@@ -145,6 +170,34 @@ def test_cli_renders_a_two_channel_volume_in_its_colours(two_channel_file, tmp_p
     image = np.load(out / "view0.npy")
     left, right = image[:, :16, :3].sum(axis=(0, 1)), image[:, 16:, :3].sum(axis=(0, 1))
     assert left[0] > 3 * left[2] and right[2] > 3 * right[0] and left[1] == right[1] == 0.0
+
+
+def test_cli_mip_keeps_each_channels_colour(two_channel_file, tmp_path, capsys):
+    """``--mode mip`` on two channels: where channel 0 (green, left) is brightest the pixel is green, where channel 1
+    (magenta, right) is, magenta; nothing on stderr. Before, the picture was grey."""
+    out = tmp_path / "out"
+    assert main(["render", "--volume", str(two_channel_file), "--mode", "mip", "--views", "mono", "--width", "64",
+                 "--height", "48", "--samples", "64", "--out", str(out), "--save-linear"]) == 0
+    assert capsys.readouterr().err == ""
+    image = np.load(out / "view0.npy")
+    green = image[np.unravel_index(np.argmax(image[..., 1]), image.shape[:2])]
+    magenta = image[np.unravel_index(np.argmax(image[..., 0]), image.shape[:2])]
+    assert green[1] > 0.8 and green[0] < 0.05 * green[1] and green[2] < 0.05 * green[1], green
+    assert magenta[0] > 0.8 and magenta[2] == pytest.approx(magenta[0]) and magenta[1] < 0.05 * magenta[0], magenta
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--mode", "iso"], "--mode iso draws a lit, opaque surface; the multi-channel --volume {file} glows unlit in its "
+     "channel colours, so its surfaces would be black: use --mode dvr, mip or mida"),
+    (["--mode", "mip", "--channel-opacity", "2"], "--channel-opacity would do nothing with --mode mip: each channel "
+     "shows its maximum in its colour, whatever its opacity"),
+])
+def test_cli_refuses_iso_on_channels_and_opacity_with_mip_in_one_line(two_channel_file, tmp_path, capsys, flags,
+                                                                       message):
+    """``--mode iso`` on channels rendered a black image with exit 0; now one line naming both flags, exit 2."""
+    assert cli("--volume", str(two_channel_file), *flags, "--out", str(tmp_path / "o")) == 2
+    assert capsys.readouterr().err.splitlines() == [f"volren: error: {message.format(file=two_channel_file)}"]
+    assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.parametrize(("flags", "message"), [

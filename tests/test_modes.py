@@ -4,7 +4,9 @@ clamped at the border, as `sample_grid` reads them); the cube methods also again
 
 from __future__ import annotations
 
+import json
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -309,6 +311,65 @@ def test_cli_mode_flags(tmp_path, capfd) -> None:
                         (["--mode", "iso", "--iso-value", "-1"], r"iso_value \(--iso-value\) must be")):
         assert main([*base, *extra, "--out", str(tmp_path / "x")]) != 0
         assert re.search(text, capfd.readouterr().err)
+
+
+ISO_ARGS = ["--views", "mono", "--width", "64", "--height", "48", "--samples", "64", "--light-samples", "16"]
+
+
+def test_cli_iso_without_iso_value_takes_otsus_threshold_and_says_so(tmp_path, capsys) -> None:
+    """``--mode iso`` without ``--iso-value`` used 0.5 unsaid; now V is Otsu's threshold of the densities, said in
+    one line on stderr and recorded in stats.json (the value the renderer used)."""
+    from skimage.filters import threshold_otsu
+
+    from volren.cli import main
+
+    density = 3.0 * blobs(32)  # densities 0..3: the old 0.5 lies far below the middle
+    np.save(tmp_path / "blobs.npy", density)
+    out = tmp_path / "out"
+    assert main(["render", "--volume", str(tmp_path / "blobs.npy"), "--mode", "iso", *ISO_ARGS, "--out", str(out),
+                 "--save-linear"]) == 0
+    v = float(threshold_otsu(density.ravel()))  # 32^3 voxels: every one counts
+    assert 0.5 < v < 2.0
+    assert capsys.readouterr().err.splitlines() == [
+        f"volren: --mode iso without --iso-value: the isosurface is at density {v:.4g}, Otsu's threshold of the "
+        f"densities 0 to {density.max():.4g} (give --iso-value to choose)"]
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["iso_value"] == {"value": v, "rule": "otsu", "densities": [0.0, float(density.max())]}
+    assert stats["frames"][0]["settings"]["iso_value"] == v
+    assert np.load(out / "view0.npy")[..., 3].max() == 1.0  # the surface is drawn (opaque)
+
+
+def test_cli_iso_run_time_probe_renders_at_the_chosen_iso_value(tmp_path, capsys) -> None:
+    """The run-time probe (a large render, refused by --max-minutes after it) renders at Otsu's V as the run would:
+    densities 0..0.2 and the old default 0.5 would warn of an empty isosurface that the run does not draw."""
+    from volren.cli import main
+
+    np.save(tmp_path / "faint.npy", 0.2 * blobs(32) / blobs(32).max())
+    assert main(["render", "--volume", str(tmp_path / "faint.npy"), "--mode", "iso", "--views", "mono", "--width",
+                 "1920", "--height", "1080", "--frames", "10", "--samples", "16", "--light-samples", "8",
+                 "--max-minutes", "0.0001", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and err[0].startswith("volren: --mode iso without --iso-value: the isosurface is at density")
+    assert err[1].startswith("volren: error: 1 view(s) of 1920x1080 for 10 frame(s) with dssrm would take"), err
+
+
+@pytest.mark.parametrize(("offset", "iso", "says"), [
+    (0.0, 5.0, "iso_value (--iso-value) 5 is above the densities 0 to 1: the isosurface is empty"),
+    (0.2, 0.1, "iso_value (--iso-value) 0.1 is at or below the densities 0.2 to 1.2: the isosurface is the "
+     "volume's box"),
+])
+def test_cli_iso_value_outside_the_densities_is_one_volren_warning(tmp_path, capsys, offset, iso, says) -> None:
+    """An --iso-value outside the data's densities printed Python's UserWarning with its source line (only above
+    the largest); now one ``volren: warning:`` line, before the render, once."""
+    from volren.cli import main
+
+    np.save(tmp_path / "blobs.npy", blobs(32) / blobs(32).max() + np.float32(offset))
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        assert main(["render", "--volume", str(tmp_path / "blobs.npy"), "--mode", "iso", "--iso-value", f"{iso:g}",
+                     *ISO_ARGS, "--out", str(tmp_path / "out")]) == 0
+    assert capsys.readouterr().err.splitlines() == [f"volren: warning: {says}"]
+    assert [str(w.message) for w in shown] == []  # no Python warning besides
 
 
 def test_mida_weighs_by_the_running_maximum_along_rays_through_two_blobs() -> None:

@@ -155,6 +155,61 @@ def test_cli_refuses_level_without_a_volume(tmp_path, capsys):
     assert "there is no --volume" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--level", "1", "--memory-budget", "0.5"], "--memory-budget chooses a level by its size; --level 1 names the "
+     "level, so the budget would do nothing: give one of them"),
+    (["--memory-budget", "1e12"], "--memory-budget 1e+12 GiB exceeds this machine's memory ({memory:.1f} GiB): a "
+     "level that large could not be read"),
+    (["--memory-budget", "0"], "--memory-budget must be a positive number of GiB, got 0"),
+])
+def test_cli_memory_budget_that_would_do_nothing_is_one_line(tmp_path, capsys, flags, message):
+    """--memory-budget beside --level did nothing, and 1e12 GiB was taken as given: one line each, exit 2."""
+    from volren.cli import host_memory
+
+    write_pyramid(tmp_path / "p.zarr")
+    assert main(["render", "--volume", str(tmp_path / "p.zarr"), *flags, "--out", str(tmp_path / "o")]) == 2
+    memory = host_memory()
+    assert memory is not None  # Linux and macOS say
+    assert capsys.readouterr().err.splitlines() == [f"volren: error: {message.format(memory=memory / 2**30)}"]
+
+
+def chunked_pyramid(path, density: np.ndarray) -> None:
+    """One channel, levels 0 and 1 (every axis halved), chunks of 16^3 voxels: 8 chunks at level 0 for 32^3."""
+    levels = [density, density[::2, ::2, ::2]]
+    writer.write_multiscale(levels, zarr.open_group(str(path), mode="w"), axes=space_axes()[1:],
+                            storage_options={"chunks": (16, 16, 16)})
+
+
+def test_missing_chunks_are_one_warning_naming_the_store_and_their_count(tmp_path, capsys):
+    """An OME-Zarr whose level 0 lost 2 of its 8 chunk files (a copy cut short) read them as zeros with no word;
+    now one warning names the store and the count, the render goes on (exit 0). A store whose absent chunks are
+    empty by design (zarr writes no chunk that holds only the fill value) gets none; one with no chunk of its level
+    is refused."""
+    z, y, x = np.mgrid[0:32, 0:32, 0:32].astype(np.float32)
+    blob = np.exp(-((x - 16) ** 2 + (y - 16) ** 2 + (z - 16) ** 2) / 120.0)
+    args = ["--views", "mono", "--width", "64", "--height", "48", "--samples", "48"]
+    chunked_pyramid(tmp_path / "holes.zarr", blob)
+    chunks = sorted((tmp_path / "holes.zarr" / "s0" / "c").glob("*/*/*"))
+    assert len(chunks) == 8
+    for chunk in chunks[:2]:
+        chunk.unlink()
+    assert main(["render", "--volume", str(tmp_path / "holes.zarr"), *args, "--out", str(tmp_path / "o1")]) == 0
+    assert capsys.readouterr().err.splitlines() == [
+        f"volren: warning: {tmp_path / 'holes.zarr'}: level 0 is missing 2 of its 8 chunks where level 1 holds data; "
+        "zarr reads them as the fill value 0 (holes in the volume)"]
+    sparse = np.where(x < 16, 0.0, blob).astype(np.float32)  # half the chunks empty: zarr leaves them out
+    chunked_pyramid(tmp_path / "sparse.zarr", sparse)
+    assert len(list((tmp_path / "sparse.zarr" / "s0" / "c").glob("*/*/*"))) == 4
+    assert main(["render", "--volume", str(tmp_path / "sparse.zarr"), *args, "--out", str(tmp_path / "o2")]) == 0
+    assert capsys.readouterr().err == ""
+    for chunk in chunks[2:]:
+        chunk.unlink()
+    assert main(["render", "--volume", str(tmp_path / "holes.zarr"), *args, "--out", str(tmp_path / "o3")]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"volren: error: {tmp_path / 'holes.zarr'}: level 0 has none of its 8 chunks on disk (every voxel would read "
+        "as the fill value 0): an incomplete copy?"]
+
+
 def test_density_validation_by_min_and_max_still_refuses_and_counts():
     """`validate_density` checks a big level by its min and max (two reductions); what it refuses is still counted."""
     from volren.scene import validate_density

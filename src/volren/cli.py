@@ -15,11 +15,12 @@ import re
 import signal
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from volren.errors import VolrenError
+from volren.errors import VolrenError, VolrenWarning
 
 # Building the parser imports no renderer, Warp or numpy (`volren --help` and refusals answer at once), so the names
 # its choices and help list are spelled out here; tests/test_api.py checks they equal their sources'.
@@ -62,6 +63,26 @@ ANIMATE_FRAMES = 60
 
 class CliError(VolrenError):
     """A bad command-line value."""
+
+
+_warned: set[str] = set()
+"""the warnings printed by this command (`main` empties it): each is said once"""
+
+
+def warn(message: str) -> None:
+    """One ``volren: warning: ...`` line on stderr, once per command however often the cause recurs."""
+    if message not in _warned:
+        _warned.add(message)
+        print(f"volren: warning: {message}", file=sys.stderr)
+
+
+def _show_warning(show, message, category, filename, lineno, file=None, line=None) -> None:
+    """`warnings.showwarning` while a command runs: a `VolrenWarning` (a renderer's or a loader's) as `warn`'s one
+    line, anything else as Python shows it."""
+    if issubclass(category, VolrenWarning):
+        warn(str(message))
+    else:
+        show(message, category, filename, lineno, file, line)
 
 
 NEGATIVE_NUMBERS = re.compile(r"^-\.?\d")
@@ -189,7 +210,8 @@ def add_volume_args(src: argparse._ArgumentGroup | argparse.ArgumentParser) -> N
     src.add_argument("--level", type=int, help=".zarr (OME-Zarr) pyramids: the level to read, 0 = finest "
                      "(default: the finest within --memory-budget)")
     src.add_argument("--memory-budget", type=float, help=".zarr pyramids: [GiB] of float32 voxels (all "
-                     "channels) the chosen level may take (default: 1)")
+                     "channels) the chosen level may take, at most the machine's memory; not with --level "
+                     "(default: 1)")
     src.add_argument("--channel-colors", type=channel_colors, help="multi-channel volumes: a colour per "
                      "channel, names (green,magenta) or r,g,b triples separated by ';' (default: green, magenta, "
                      "cyan, yellow, red, blue, ...)")
@@ -308,9 +330,11 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                    "(it runs where a base step reaches a voxel: N up to the grid's diagonal in voxels, 221 at 128^3)")
     r.add_argument("--mode", choices=("dvr", "mip", "mida", "iso"), help="dssrm/cmsrm/cacrm: dvr (volume rendering, "
                    "default), mip (maximum intensity projection), mida (maximum intensity difference accumulation) "
-                   "or iso (shaded isosurface at --iso-value)")
+                   "or iso (shaded isosurface at --iso-value); a multi-channel --volume: dvr, mip (each channel's "
+                   "maximum in its colour, added) or mida")
     r.add_argument("--iso-value", type=float, help="--mode iso: the surface's density V > 0, in the grid's units (a CT "
-                   "with a Hounsfield range lo..hi holds (HU - lo) / (hi - lo)); default 0.5")
+                   "with a Hounsfield range lo..hi holds (HU - lo) / (hi - lo)); outside the densities: a warning "
+                   "(default: Otsu's threshold of the densities, said on stderr and in stats.json)")
     r.add_argument("--oit", choices=("tiled", "pixel-rt", "pixel-sort"), help="dssrm/cmsrm/cacrm: how each pixel "
                    "finds the boxes its ray meets, in ray order: tiled (paper 000 §3.4 tiled k-buffer, default), "
                    "pixel-rt (per-pixel BVH ray queries) or pixel-sort (every box tested per pixel)")
@@ -433,8 +457,8 @@ def run_serve(args: argparse.Namespace) -> int:
     token, source = read_token(args.token, args.token_file)
     check_bind(args.host, token, tuple(args.allow_origin), source or "--token")
     if source == "--token":
-        print(f"volren: warning: --token is visible to every local user in the process list (ps, /proc/PID/cmdline): "
-              f"prefer --token-file PATH or {TOKEN_ENV}", file=sys.stderr)
+        warn(f"--token is visible to every local user in the process list (ps, /proc/PID/cmdline): prefer --token-file "
+             f"PATH or {TOKEN_ENV}")
     per_client = args.max_viewers_per_client
     if per_client is not None and per_client > args.max_viewers:
         raise CliError(f"--max-viewers-per-client {per_client} exceeds --max-viewers {args.max_viewers}: it would "
@@ -454,6 +478,7 @@ def run_serve(args: argparse.Namespace) -> int:
 def served_volume(args: argparse.Namespace) -> dict:
     """`build_loop`'s scene, camera and play step for ``serve --volume`` (none without): the file's scene, framed as
     `views_from_args` frames it for a --max-width x --max-height view; a sequence plays its frames in a loop."""
+    check_channel_flags(args)
     if args.volume is None:
         return {}
     import numpy as np
@@ -608,10 +633,10 @@ def warn_density(volumes: tuple, transfer: bool) -> None:
         hi = float(v.density.max())
         voxel = float(np.min(np.linalg.norm(v.to_world[:3, :3], axis=0) * 2 / np.array(v.density.shape[::-1])))
         if hi == 0:
-            print(f"volren: warning: volume '{v.name}' has an all-zero density: it renders nothing", file=sys.stderr)
+            warn(f"volume '{v.name}' has an all-zero density: it renders nothing")
         elif not transfer and hi * v.density_scale * voxel > OPAQUE_VOXEL_DEPTH:
-            print(f"volren: warning: volume '{v.name}' is opaque (optical depth {hi * v.density_scale * voxel:.3g} "
-                  "in its densest voxel): check --density-scale", file=sys.stderr)
+            warn(f"volume '{v.name}' is opaque (optical depth {hi * v.density_scale * voxel:.3g} in its densest "
+                 "voxel): check --density-scale")
 
 
 def rect_light(x: float, y: float, z: float, width: float, height: float, radiance: float):
@@ -673,6 +698,13 @@ def channel_scene(args: argparse.Namespace, loaded):
     if unused:
         raise CliError(f"a multi-channel volume glows in its channel colours, unlit: {', '.join(unused)} would do "
                        "nothing (use --channel-colors, --channel-opacity)")
+    mode = getattr(args, "mode", None)
+    if mode == "iso":
+        raise CliError(f"--mode iso draws a lit, opaque surface; the multi-channel --volume {args.volume} glows unlit "
+                       "in its channel colours, so its surfaces would be black: use --mode dvr, mip or mida")
+    if mode == "mip" and args.channel_opacity is not None:
+        raise CliError("--channel-opacity would do nothing with --mode mip: each channel shows its maximum in its "
+                       "colour, whatever its opacity")
     colors = args.channel_colors or loaded.channel_colors or None  # the flag, else the file's (OME-Zarr omero)
     volumes = channel_volumes(loaded.channels, loaded.to_world, colors=colors, opacity=args.channel_opacity,
                               name=args.volume.name)
@@ -680,18 +712,44 @@ def channel_scene(args: argparse.Namespace, loaded):
 
 
 def check_channel_flags(args: argparse.Namespace) -> None:
-    """--channel-colors / --channel-opacity need a multi-channel --volume; --level / --memory-budget a --volume (the
-    loader refuses them for anything but .zarr)."""
+    """--level / --memory-budget need a --volume (the loader refuses them for anything but .zarr) and not each other
+    (`check_memory_budget`), checked before the file is read; --channel-colors / --channel-opacity a multi-channel
+    --volume."""
     volume = getattr(args, "volume", None)
+    zarr_flags = [f for f, k in (("--level", "level"), ("--memory-budget", "memory_budget"))
+                  if getattr(args, k, None) is not None]
+    if zarr_flags and volume is None:
+        raise CliError(f"{', '.join(zarr_flags)} choose the level of a .zarr --volume; there is no --volume")
+    check_memory_budget(getattr(args, "memory_budget", None), getattr(args, "level", None))
     channel_flags = [f for f, k in (("--channel-colors", "channel_colors"), ("--channel-opacity", "channel_opacity"))
                      if getattr(args, k, None) is not None]
     if channel_flags and (volume is None or not _volume_from_args(args).channels):
         raise CliError(f"{', '.join(channel_flags)} apply to a multi-channel --volume only (a (C, Z, Y, X) array, a "
                        "TIFF or OME-Zarr with a channel axis)")
-    zarr_flags = [f for f, k in (("--level", "level"), ("--memory-budget", "memory_budget"))
-                  if getattr(args, k, None) is not None]
-    if zarr_flags and volume is None:
-        raise CliError(f"{', '.join(zarr_flags)} choose the level of a .zarr --volume; there is no --volume")
+
+
+def host_memory() -> int | None:
+    """[bytes] of this machine's physical memory; None where the system does not say (no ``os.sysconf``)."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_memory_budget(budget: float | None, level: int | None) -> None:
+    """--memory-budget [GiB]: a positive number no larger than the machine's memory (a level it would admit could
+    not be held), and not beside --level, which names the level the budget would choose."""
+    if budget is None:
+        return
+    if level is not None:
+        raise CliError(f"--memory-budget chooses a level by its size; --level {level} names the level, so the budget "
+                       "would do nothing: give one of them")
+    if not (math.isfinite(budget) and budget > 0):
+        raise CliError(f"--memory-budget must be a positive number of GiB, got {budget:g}")
+    memory = host_memory()
+    if memory is not None and budget * 2**30 > memory:
+        raise CliError(f"--memory-budget {budget:g} GiB exceeds this machine's memory ({memory / 2**30:.1f} GiB): a "
+                       "level that large could not be read")
 
 
 def _with_material(args: argparse.Namespace, volumes: tuple) -> tuple:
@@ -1064,6 +1122,8 @@ class RenderPlan:
     played: object
     occluder_depth: list | None
     value_mapping: dict
+    """stats.json's entries beside the scene and the command: ``value_mapping`` (`_value_mapping`), and the
+    ``iso_value`` chosen from the data (`iso_value_from_data`)"""
     animated: bool
     walking: bool
 
@@ -1135,6 +1195,7 @@ def plan_render(args: argparse.Namespace, method: str) -> RenderPlan:
     views = views_from_args(args)
     occluder_depth = depth_images_from_args(args, len(views))
     renderer = renderer_from_args(args, method)
+    value_mapping |= iso_value_from_data(args, scene, renderer)
     from volren.device import check_allocation
 
     check_allocation(estimate_memory(args, scene, views, method), renderer.device,
@@ -1145,6 +1206,29 @@ def plan_render(args: argparse.Namespace, method: str) -> RenderPlan:
     check_run_time(args, scene, views, method)  # the last check: it renders a probe
     return RenderPlan(args, method, scene, views, renderer, sequence, played, occluder_depth, value_mapping,
                       animated, walking)
+
+
+def iso_value_from_data(args: argparse.Namespace, scene, renderer) -> dict:
+    """``--mode iso``: without --iso-value, V is Otsu's threshold of the scene's densities (`otsu_iso_value`), set in
+    the renderer's config and ``args`` and said in one line; a given V outside the densities is warned of in one line
+    (`iso_range_message`) before any rendering. Returns stats.json's ``iso_value`` entry when V was chosen here."""
+    if getattr(renderer.config, "mode", "dvr") != "iso":
+        return {}
+    from volren.render.marching.modes import iso_range_message, otsu_iso_value
+
+    densities = [v.density for v in scene.volumes]
+    lo, hi = min(float(d.min()) for d in densities), max(float(d.max()) for d in densities)
+    if args.iso_value is not None:
+        message = iso_range_message(args.iso_value, lo, hi)
+        if message:
+            warn(message)
+        return {}
+    value = otsu_iso_value(densities)
+    args.iso_value = value  # for the renderers made from args later (the run-time probe)
+    renderer.config = dataclasses.replace(renderer.config, iso_value=value)
+    print(f"volren: --mode iso without --iso-value: the isosurface is at density {value:.4g}, Otsu's threshold of "
+          f"the densities {lo:.4g} to {hi:.4g} (give --iso-value to choose)", file=sys.stderr)
+    return {"iso_value": {"value": value, "rule": "otsu", "densities": [lo, hi]}}
 
 
 def frame_prefix(args: argparse.Namespace, i: int) -> str:
@@ -1293,7 +1377,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
         args.argv = tuple(argv)  # what the batch engine's workers parse again (--workers)
-        code = run_command(args, command)
+        _warned.clear()
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", VolrenWarning)  # `warn` says each once
+            warnings.showwarning = functools.partial(_show_warning, warnings.showwarning)
+            code = run_command(args, command)
         sys.stdout.flush()  # a reader that left shows here, not in Python's exit-time flush
         if console and "warp" in sys.modules:
             # every output is closed by now; the interpreter's teardown with Warp loaded waits 2-4 s in native code

@@ -3,3 +3,8 @@
 
 class VolrenError(Exception):
     """A problem with the user's input or environment (bad file, bad size, no GPU), not a bug in volren."""
+
+
+class VolrenWarning(UserWarning):
+    """Something the user should know that does not stop the work (an isosurface that will be empty, a store with
+    missing chunks): the CLI prints it as one line, ``volren: warning: ...``, without Python's source line."""

@@ -10,6 +10,11 @@ One volume per file: a ``t`` axis of length 1 (bioformats2raw's ``tczyx``) is dr
 or any other axis that is neither space nor channel, is refused in one line naming the file, the axis and its length,
 rather than read as its first time point (sequences are numbered files: `volren.data.sequence`).
 
+Chunks not on disk: zarr reads them as the array's fill value, and leaves out by design a chunk that holds only
+that value, so an absent chunk is either empty or lost. A level with no chunk on disk is refused; a chunk absent
+where the next coarser level holds data is a hole, and the holes are warned of in one line naming the store
+(`_missing_chunks`). The coarsest level, with nothing to compare, is read as zarr reads it.
+
 Orientation: as microscopy viewers show an image (row 0 at the top, x to the right, z away from the viewer), the
 file's x, y, z axes map onto the world's +x, -y, -z (a rotation, nothing mirrored): the default camera, looking down
 -z, sees row 0 at the top of the picture, as TIFF pages.
@@ -17,13 +22,15 @@ file's x, y, z axes map onto the world's +x, -y, -z (a rotation, nothing mirrore
 
 from __future__ import annotations
 
+import math
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from volren.data.loaders import _Grid, _one_line
-from volren.errors import VolrenError
+from volren.errors import VolrenError, VolrenWarning
 
 DEFAULT_MEMORY_BUDGET = 1 << 30
 """[bytes] of float32 voxels (all channels) the automatically chosen level may take: 1 GiB."""
@@ -145,7 +152,18 @@ def _read_multiscale(path: Path, group: Any, level: int | None, budget: float) -
     outer_scale, outer_offset = _scale_translation(multiscale.get("coordinateTransformations", []), ndim)
     scale, offset = scale * outer_scale, offset * outer_scale + outer_offset
     index = tuple(slice(None) if i in keep else 0 for i in range(ndim))
-    data = np.asarray(arrays[chosen][index])  # this level's chunks only
+    level = arrays[chosen]
+    stored, chunks = level.nchunks_initialized, level.nchunks  # the first lists the level's keys
+    if stored == 0:
+        raise VolrenError(f"{path}: level {chosen} has none of its {chunks} chunks on disk (every voxel would read "
+                          f"as the fill value {_fill(level):g}): an incomplete copy?")
+    data = np.asarray(level[index])  # this level's chunks only
+    if stored < chunks and chosen + 1 < len(arrays):
+        holes = _missing_chunks(data, level, np.asarray(arrays[chosen + 1][index]), keep)
+        if holes:
+            warnings.warn(f"{path}: level {chosen} is missing {holes} of its {chunks} chunks where level {chosen + 1} "
+                          f"holds data; zarr reads them as the fill value {_fill(level):g} (holes in the volume)",
+                          VolrenWarning, stacklevel=2)
     if len(keep) == 4:  # the channel axis first, whatever its place among the kept axes
         data = np.moveaxis(data, sorted(keep).index(keep[0]), 0)
     # index (i, j, k) = (x, y, z) -> file coordinates; the NGFF axes run z, y, x
@@ -167,6 +185,42 @@ def _read_multiscale(path: Path, group: Any, level: int | None, budget: float) -
     m[:3, 3] = origin
     colors = _omero_colors(attrs, data.shape[0]) if len(keep) == 4 else ()
     return _Grid(data, m, IMAGE_SPACE, metres_per_unit, level=chosen, channel_colors=colors)
+
+
+def _fill(array: Any) -> float:
+    """The value zarr gives the voxels of a chunk that is not on disk."""
+    return 0.0 if array.fill_value is None else float(array.fill_value)
+
+
+CHUNK_MARGIN = 2
+"""[voxels of the coarser level] left out at each side of a chunk's box when `_missing_chunks` looks there for data
+(fewer where the box is narrower, keeping its middle): a smoothing downsampler (a Gaussian pyramid) spreads a
+neighbouring chunk's values about this far"""
+
+
+def _missing_chunks(data: np.ndarray, array: Any, coarser: np.ndarray, keep: list[int]) -> int:
+    """How many chunks (shards, where the array is sharded) of the level read as ``data`` (``array``'s kept axes
+    ``keep``) are missing rather than empty: zarr leaves out a chunk that holds only the fill value, so an absent
+    chunk is a hole only where the next coarser level (read as ``coarser``) holds data in the same box, its
+    margins (`CHUNK_MARGIN`) left out."""
+    fill = _fill(array)
+    unit = [(getattr(array, "shards", None) or array.chunks)[i] for i in sorted(keep)]
+    ratio = [c / f for c, f in zip(coarser.shape, data.shape, strict=True)]
+    holes = 0
+    for corner in np.ndindex(*(-(-n // u) for n, u in zip(data.shape, unit, strict=True))):
+        box = [(k * u, min((k + 1) * u, n)) for k, u, n in zip(corner, unit, data.shape, strict=True)]
+        block = data[tuple(slice(a, b) for a, b in box)]
+        if not (np.all(block == fill) or (np.isnan(fill) and np.all(np.isnan(block)))):
+            continue
+        inner = []  # the box in the coarser level's voxels, less the margins
+        for (a, b), r in zip(box, ratio, strict=True):
+            lo, hi = math.ceil(a * r), math.floor(b * r)
+            m = 0 if r == 1 else max(0, min(CHUNK_MARGIN, (hi - lo - 1) // 2))
+            inner.append(slice(lo + m, hi - m))
+        if all(s.start < s.stop for s in inner):
+            region = coarser[tuple(inner)]
+            holes += bool(np.any((region != fill) & ~np.isnan(region)))
+    return holes
 
 
 def _omero_colors(attrs: dict[str, Any], count: int) -> tuple[tuple[float, float, float], ...]:

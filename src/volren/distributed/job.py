@@ -24,8 +24,9 @@ zip: axes are independent (methods x transfer functions x views is what a sweep 
 together are one table of a table axis, which says so in the file instead of relying on two lists' positions. Each
 job writes ``<out>/<folder>``, named from what varies: ``<flag>-<value>`` for a flag axis, ``<axis>-<name>`` for a
 table axis (a table without ``name``: ``<flag>-<value>`` of its flags), joined by ``_`` (``views-stereo_looks-warm``).
-A file without ``[sweep]`` is one job written into ``<out>`` itself. ``<out>/jobs.json`` maps each folder to its
-settings and command line.
+A top-level flag is the default of a table axis's entries that do not set it; one that every entry of an axis sets
+would do nothing and is refused. A file without ``[sweep]`` is one job written into ``<out>`` itself.
+``<out>/jobs.json`` maps each folder to its settings and command line.
 
 A job renders frames 0 to N - 1 (``frames = N``) as ``volren render --frames N`` would. Without ``--workers`` or
 ``--ray-address`` the jobs run in this process one after another; on Ray the engine splits each into work units (a
@@ -33,7 +34,8 @@ frame each; a temporal method one frame range per worker) and every job's folder
 manifest, so running the file again resumes where it stopped. The files are the same either way.
 
 Everything is checked before any Ray start or render, each problem one `VolrenError` naming the file and the key:
-unknown keys (with the closest flag), wrong types, empty axes, a flag two axes set, two jobs in one folder, and every
+a file with no flag and no sweep, unknown keys (with the closest flag), wrong types, an empty [sweep] or axis, a flag
+two axes set, a top-level flag that every entry of an axis replaces, two jobs in one folder, and every
 expanded command line through the CLI's own parser and checks (`volren.cli.plan_render`, as ``volren render`` would
 run them).
 """
@@ -145,8 +147,14 @@ def load_batch(path: Path, workers: int | None = None) -> Batch:
     sweep = doc.get("sweep", {})
     if not isinstance(sweep, dict):
         fail("sweep", "must be a table of what varies ([sweep])")
+    if not base and not sweep:
+        raise VolrenError(f"{path} has no jobs: it sets no flag and no [sweep] (e.g. scene = \"smoke\", and a [sweep] "
+                          "of what varies: see examples/turntable-sweep.toml)")
+    if "sweep" in doc and not sweep:
+        fail("sweep", "is empty: give it an axis (a flag = [values]), or leave [sweep] out for one job")
     axes = [_axis(fail, flags, name, values) for name, values in sweep.items()]
     _check_axes_disjoint(fail, axes)
+    _check_top_not_swept(fail, base, sweep, axes)
     jobs, folders, varies, states = [], [], [], []
     seen: dict[str, str] = {}
     for combo in itertools.product(*axes) if axes else [()]:
@@ -272,6 +280,16 @@ def _check_axes_disjoint(fail, axes: list) -> None:
             if flag in owner and owner[flag].split("[")[0] != key.split("[")[0]:
                 fail(key, f"'{flag}' is also set by {owner[flag].split('[')[0]}: one axis per flag")
             owner.setdefault(flag, key)
+
+
+def _check_top_not_swept(fail, base: dict[str, Setting], sweep: dict[str, Any], axes: list) -> None:
+    """No flag both at the top of the file and in every entry of a sweep axis: every job would take the sweep's value
+    and the top one would do nothing. (An axis of tables whose entries set a flag only some of the time takes the top
+    value as the others' default.)"""
+    for name, axis in zip(sweep, axes, strict=True):
+        for flag in [f for f in base if all(any(s.flag == f for s in entry) for _, entry in axis)]:
+            fail(f"sweep.{name}", f"'{flag}' is set at the top of the file too ({flag} = "
+                 f"{json.dumps(base[flag].value)}), but every job takes the sweep's value: remove one")
 
 
 def _argv(flags: Flags, command: str, settings: dict[str, Setting], out: Path) -> tuple[list[str], dict[str, str]]:

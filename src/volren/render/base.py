@@ -11,7 +11,7 @@ import numpy as np
 
 from volren.camera import Camera
 from volren.device import check_allocation, resolve_device
-from volren.errors import VolrenError
+from volren.errors import VolrenError, VolrenWarning
 from volren.kernels.common import INF, ViewBuffers
 from volren.render.compositing.surface_light import (
     AO_COARSE,
@@ -26,7 +26,7 @@ from volren.render.compositing.surfaces import check_user_depth, trace_surfaces,
 from volren.render.frame import Frame, PassClock, Stats
 from volren.render.gi.ambient import AmbientGI, GIConfig
 from volren.render.lightmap import LightMapCache
-from volren.render.marching.modes import check_mode, mode_index
+from volren.render.marching.modes import check_mode, iso_range_message, mode_index
 from volren.scene import Scene
 from volren.upload import DeviceScene, camera_struct, only_lights_differ, upload_lights, upload_scene
 
@@ -284,9 +284,11 @@ class LightMapRenderer(Renderer):
         if self._peak_of is None or self._peak_of[0] is not ds:
             peak = max(float(np.max(v.density)) for v in ds.scene.volumes)
             self._peak_of = (ds, 1.0 / peak if peak > 0 else 1.0)
-            if self.config.mode == "iso" and self.config.iso_value > peak:
-                warnings.warn(f"iso_value (--iso-value) {self.config.iso_value:g} exceeds the scene's largest density "
-                              f"{peak:g}: the isosurface is empty", stacklevel=2)
+            if self.config.mode == "iso":
+                floor = min(float(np.min(v.density)) for v in ds.scene.volumes)
+                message = iso_range_message(self.config.iso_value, floor, peak)
+                if message:
+                    warnings.warn(message, VolrenWarning, stacklevel=2)
         params.mode = mode_index(self.config.mode)
         params.iso_value = self.config.iso_value
         params.inv_max = self._peak_of[1]

@@ -11,6 +11,11 @@ proportion to extinction integrates in closed form along any ray to RGB = c * al
 channel shows its colour, in proportion to its own opacity. The sum's alpha is 1 - prod_c (1 - alpha_c), the
 transmittance of the background through every channel (always in [0, 1]); its RGB may exceed alpha where channels
 overlap, as additive blending does (the tone map or the PNG's clamp limits it).
+
+Sci-vis modes (`volren.render.marching.modes`): MIDA composites the channels' emission as DVR does. MIP renders each
+channel's maximum intensity P (its own densities' maximum is P = 1) as a grey pixel, which `channel_mip` tints with
+the channel's colour (emission / sigma_t; a channel of opacity 0 stays dark) before the sum: RGB = sum_c c_c P_c,
+napari's additive MIP. Iso is refused: a surface lit by nothing would be black.
 """
 
 from __future__ import annotations
@@ -108,6 +113,24 @@ def add_channels(frames: Sequence[Frame]) -> Frame:
                  first.index)
 
 
+def channel_color(volume: Volume) -> np.ndarray:
+    """A channel volume's colour (`channel_volumes`): its emission per unit extinction; black for opacity 0."""
+    if volume.density_scale <= 0:
+        return np.zeros(3, np.float32)
+    return np.asarray(volume.emission, np.float32) / np.float32(volume.density_scale)
+
+
+def channel_mip(frame: Frame, volume: Volume) -> Frame:
+    """A channel's MIP frame (grey: RGB = alpha = P) with its RGB tinted by the channel's colour (`channel_color`)."""
+    color = channel_color(volume)
+    images = []
+    for image in frame.images:
+        tinted = image.copy()
+        tinted[..., :3] *= color
+        images.append(tinted)
+    return replace(frame, images=images)
+
+
 class AdditiveChannels:
     """A renderer for a scene whose volumes are channels (`channel_volumes`): each volume rendered alone by its own
     renderer from ``make_renderer``, the frames added (`add_channels`). It takes and passes on what a renderer
@@ -123,6 +146,7 @@ class AdditiveChannels:
                               f"'{self.renderers[0].name}'")
         self.device = self.renderers[0].device
         self.name = self.renderers[0].name
+        self._check_mode(self.renderers[0].config)
         self._scenes: tuple[Scene, tuple[Scene, ...]] | None = None
 
     @property
@@ -131,8 +155,15 @@ class AdditiveChannels:
 
     @config.setter
     def config(self, value: Any) -> None:
+        self._check_mode(value)
         for r in self.renderers:
             r.config = value
+
+    @staticmethod
+    def _check_mode(config: Any) -> None:
+        if getattr(config, "mode", "dvr") == "iso":
+            raise VolrenError("mode iso (--mode iso) draws a lit surface; a multi-channel volume glows unlit, so its "
+                              "surfaces would be black: use mode dvr, mip or mida")
 
     @property
     def on_rows(self) -> Callable[[int], None] | None:
@@ -165,5 +196,8 @@ class AdditiveChannels:
         occluder_depth: Sequence[np.ndarray | None] | None = None,
     ) -> Frame:
         scenes = self._channel_scenes(scene)
-        return add_channels([r.render(s, views, frame, occluder_depth=occluder_depth)
-                             for r, s in zip(self.renderers, scenes, strict=True)])
+        frames = [r.render(s, views, frame, occluder_depth=occluder_depth)
+                  for r, s in zip(self.renderers, scenes, strict=True)]
+        if getattr(self.config, "mode", "dvr") == "mip":
+            frames = [channel_mip(f, s.volumes[0]) for f, s in zip(frames, scenes, strict=True)]
+        return add_channels(frames)
