@@ -185,7 +185,7 @@ def add_volume_args(src: argparse._ArgumentGroup | argparse.ArgumentParser) -> N
                      "--spacing (default: what the file states, e.g. a TIFF's microns, else mm; .vdb: m, "
                      "OpenVDB states no unit)")
     src.add_argument("--grid", help=".vdb files: the density grid's name (default: 'density', else the file's "
-                     "only float grid)")
+                     "only float or double grid)")
     src.add_argument("--level", type=int, help=".zarr (OME-Zarr) pyramids: the level to read, 0 = finest "
                      "(default: the finest within --memory-budget)")
     src.add_argument("--memory-budget", type=float, help=".zarr pyramids: [GiB] of float32 voxels (all "
