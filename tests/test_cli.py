@@ -958,8 +958,9 @@ def test_one_dcm_file_refused_naming_it(capfd, tmp_path: Path) -> None:
 
     (tmp_path / "junk").mkdir()
     (tmp_path / "junk" / "j.dcm").write_bytes(GARBAGE)
-    render_error(capfd, tmp_path, ["--volume", tmp_path / "junk" / "j.dcm"], f"--volume {tmp_path / 'junk' / 'j.dcm'}",
-                 "j.dcm: not a DICOM file")
+    line = render_error(capfd, tmp_path, ["--volume", tmp_path / "junk" / "j.dcm"],
+                        f"{tmp_path / 'junk' / 'j.dcm'}: not a DICOM file")
+    assert line.count("j.dcm") == 1  # named once: the loader's message names the file given
     write_dicom_series(tmp_path / "gap", [(0, 0, z) for z in (0.0, 2.0, 6.0)], size=(4, 4), radius=1.0)
     file = tmp_path / "gap" / "im001.dcm"
     render_error(capfd, tmp_path, ["--volume", file], f"--volume {file}: reading the DICOM series in its folder: "

@@ -755,16 +755,18 @@ def _open_sequence(path: Path, _stamp, loop: bool, *options):
 def _load_volume(path: Path, shape, dtype, spacing, units, grid=None, level=None, memory_budget=None,
                  emission_grid=None):
     """``--volume`` read once: the scene and the default camera framing both need it (keyed on the file's mtime too,
-    so a rewritten file is read again). One ``.dcm`` file stands for its series: the files of its folder with its
-    SeriesInstanceUID (other series beside it are skipped)."""
-    dicom_file = path.suffix.lower() == ".dcm" and path.is_file()
+    so a rewritten file is read again). One DICOM file (``.dcm``, or DICOM content without another extension) stands
+    for its series: the files of its folder with its SeriesInstanceUID (other series beside it are skipped)."""
+    from volren.data.loaders import dicom_member
+
+    dicom_file = dicom_member(path, shape)
     source = path.parent if dicom_file else path
     stamp = source.stat().st_mtime_ns if source.exists() else None
     try:
         return _load_volume_cached(path, stamp, shape, dtype, spacing, units, grid, level, memory_budget,
                                    emission_grid)
     except VolrenError as exc:
-        if not dicom_file:
+        if not dicom_file or str(exc).startswith(str(path)):  # the message names the file already
             raise
         # the loader names the folder; the user named a file (e.g. the folder holds two series: say which file)
         raise CliError(f"--volume {path}: reading the DICOM series in its folder: {exc}") from None

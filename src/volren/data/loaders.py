@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from volren.data.dicom import is_dicom_file
 from volren.device import init_warp
 from volren.errors import VolrenError
 from volren.scene import validate_density
@@ -429,6 +430,12 @@ def _spacing_placement(shape_zyx: tuple[int, ...], spacing: Sequence[float] | No
     return m
 
 
+def dicom_member(path: Path, shape: tuple[int, int, int] | None = None) -> bool:
+    """Whether ``path`` is one DICOM file that ``load_volume`` reads as its series: a ``.dcm``, or DICOM Part 10
+    content in a file whose extension no other reader takes (unless ``shape`` says it is raw data)."""
+    return is_dicom_file(path, (*_READERS, *RAW_EXTENSIONS), sniff=shape is None)
+
+
 def load_volume(
     path: str | Path,
     *,
@@ -448,8 +455,9 @@ def load_volume(
     ImagePositionPatient / ImageOrientationPatient / PixelSpacing and the slice positions (LPS); anatomical frames
     map to the world as the module docstring says; ImageJ TIFF voxel sizes (centred) and the NanoVDB index-to-world
     map. Units: what the file states (NRRD ``space units``, NIfTI ``xyzt_units``, ImageJ ``unit``), else millimetres
-    (DICOM is always mm; NanoVDB states none); ``units`` (a key of ``UNITS``) overrides both. A ``.dcm`` file is
-    read as its series (the files of its folder with its SeriesInstanceUID). ``spacing`` = voxel size
+    (DICOM is always mm; NanoVDB states none); ``units`` (a key of ``UNITS``) overrides both. A DICOM file (``.dcm``,
+    or a DICOM Part 10 file with no other reader's extension) is read as its series: the files of its folder with its
+    SeriesInstanceUID, whatever else the folder holds (`volren.data.dicom`). ``spacing`` = voxel size
     (x, y, z) in ``units`` (default mm) places ``.npy``, ``.npz``, raw, ``.tif``/``.tiff`` and ``.nvdb`` (replacing
     what a TIFF or NanoVDB stores), centred on the origin; without it and without a stored placement they get cubic
     voxels with the longest side 2 m, centred. ``spacing`` is refused for NRRD, NIfTI and DICOM.
@@ -485,7 +493,7 @@ def load_volume(
         if shape is not None or dtype is not None:
             raise VolrenError(f"{path}: shape/dtype apply to raw binary files only; a DICOM series stores its own")
         grid = read_dicom_series(path)
-    elif path.suffix.lower() == ".dcm" and path.is_file():  # one slice stands for its series, in its folder
+    elif dicom_member(path, shape):  # one slice stands for its series, in its folder
         from volren.data.dicom import read_dicom_series
 
         if shape is not None or dtype is not None:
