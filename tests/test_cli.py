@@ -922,8 +922,8 @@ BAD_VOLUMES: dict[str, tuple[str, Callable[[Path], object], list[str], list[str]
     "complex": ("c.npy", lambda p: np.save(p, np.ones((3, 4, 5), np.complex64)), [], ["complex64"]),
     "npz-several-arrays": ("two.npz", lambda p: np.savez(p, a=np.ones((3, 4, 5)), b=np.ones((3, 4, 5))), [],
                            ["a, b", "density"]),
-    "nifti-4d": ("t.nii", lambda p: nib.save(nib.Nifti1Image(np.ones((3, 4, 5, 2), np.float32), np.eye(4)), p), [],
-                 ["4D"]),
+    "nifti-vectors": ("t.nii", lambda p: nib.save(nib.Nifti1Image(np.ones((3, 4, 5, 1, 3), np.float32), np.eye(4)),
+                                                  p), [], ["shape (3, 4, 5, 1, 3)", "3 values per voxel"]),
 }
 
 

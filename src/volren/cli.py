@@ -733,12 +733,15 @@ def _volume_from_args(args: argparse.Namespace, frame: int = 0):
 
 
 def volume_sequence(args: argparse.Namespace):
-    """The `VolumeSequence` a ``--volume`` pattern names (serve's reads ahead across the end: it plays in a loop),
-    opened once (keyed on the folder's mtime too, so added or removed frames are found); None for one volume."""
+    """The `VolumeSequence` a ``--volume`` pattern or 4-D NIfTI names (serve's reads ahead across the end: it plays
+    in a loop), opened once (keyed on the folder's mtime too, so added or removed frames are found, and a file's);
+    None for one volume."""
     if getattr(args, "volume", None) is None:
         return None
     folder = args.volume if args.volume.is_dir() else args.volume.parent
     stamp = folder.stat().st_mtime_ns if folder.exists() else None
+    if args.volume.is_file():  # a 4-D NIfTI's time points: the file rewritten in place
+        stamp = (stamp, args.volume.stat().st_mtime_ns)
     return _open_sequence(args.volume, stamp, args.command == "serve", *_volume_options(args))
 
 
