@@ -922,8 +922,8 @@ BAD_VOLUMES: dict[str, tuple[str, Callable[[Path], object], list[str], list[str]
     "complex": ("c.npy", lambda p: np.save(p, np.ones((3, 4, 5), np.complex64)), [], ["complex64"]),
     "npz-several-arrays": ("two.npz", lambda p: np.savez(p, a=np.ones((3, 4, 5)), b=np.ones((3, 4, 5))), [],
                            ["a, b", "density"]),
-    "nifti-4d": ("t.nii", lambda p: nib.save(nib.Nifti1Image(np.ones((3, 4, 5, 2), np.float32), np.eye(4)), p), [],
-                 ["4D"]),
+    "nifti-vectors": ("t.nii", lambda p: nib.save(nib.Nifti1Image(np.ones((3, 4, 5, 1, 3), np.float32), np.eye(4)),
+                                                  p), [], ["shape (3, 4, 5, 1, 3)", "3 values per voxel"]),
 }
 
 
@@ -958,8 +958,9 @@ def test_one_dcm_file_refused_naming_it(capfd, tmp_path: Path) -> None:
 
     (tmp_path / "junk").mkdir()
     (tmp_path / "junk" / "j.dcm").write_bytes(GARBAGE)
-    render_error(capfd, tmp_path, ["--volume", tmp_path / "junk" / "j.dcm"], f"--volume {tmp_path / 'junk' / 'j.dcm'}",
-                 "j.dcm: not a DICOM file")
+    line = render_error(capfd, tmp_path, ["--volume", tmp_path / "junk" / "j.dcm"],
+                        f"{tmp_path / 'junk' / 'j.dcm'}: not a DICOM file")
+    assert line.count("j.dcm") == 1  # named once: the loader's message names the file given
     write_dicom_series(tmp_path / "gap", [(0, 0, z) for z in (0.0, 2.0, 6.0)], size=(4, 4), radius=1.0)
     file = tmp_path / "gap" / "im001.dcm"
     render_error(capfd, tmp_path, ["--volume", file], f"--volume {file}: reading the DICOM series in its folder: "

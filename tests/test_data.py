@@ -320,10 +320,51 @@ def test_invalid_values_are_refused_naming_the_file(tmp_path: Path, array: np.nd
     assert "v.npy" in str(info.value)
 
 
-def test_nifti_with_several_volumes_is_refused(tmp_path: Path) -> None:
-    nib.save(nib.Nifti1Image(np.ones((3, 4, 5, 2), dtype=np.float32), np.eye(4)), tmp_path / "t.nii")
-    with pytest.raises(VolrenError, match="4D NIfTI with 2 volumes"):
+def test_nifti_with_several_volumes_is_a_time_series(tmp_path: Path) -> None:
+    """A 4-D NIfTI (x, y, z, t) reads one time point at a time (issue 45 item 3: the CLI plays them as a sequence,
+    tests/test_sequence.py); read whole, it is refused pointing to --frames and time_point."""
+    from volren.data.loaders import load_volume
+
+    stored = np.arange(3 * 4 * 5 * 2, dtype=np.float32).reshape(3, 4, 5, 2)  # [x, y, z, t]
+    nib.save(nib.Nifti1Image(stored, np.eye(4)), tmp_path / "t.nii")
+    with pytest.raises(VolrenError) as err:
         load_volume_file(tmp_path / "t.nii")
+    assert str(err.value) == (f"{tmp_path / 't.nii'}: a 4-D NIfTI of 2 time points (shape (3, 4, 5, 2)): the CLI plays "
+                              "them as a sequence (volren render --volume t.nii --frames 2, animate, serve); load one "
+                              "with time_point=N (0 to 1)")
+    for t in (0, 1):
+        density = load_volume(tmp_path / "t.nii", time_point=t).density
+        np.testing.assert_array_equal(density, stored[..., t].transpose(2, 1, 0))  # [z, y, x] of time point t
+        assert density[4, 3, 2] == 2 * (2 * 20 + 3 * 5 + 4) + t
+    with pytest.raises(VolrenError, match=r"t\.nii: time_point 2 is outside the NIfTI's 2 time points \(0 to 1\)$"):
+        load_volume(tmp_path / "t.nii", time_point=2)
+    nib.save(nib.Nifti1Image(stored[..., 0], np.eye(4)), tmp_path / "v.nii")
+    with pytest.raises(VolrenError, match=r"v\.nii: time_point picks a time point of a 4-D NIfTI; this one holds one "
+                       r"3-D volume \(shape \(3, 4, 5\)\)$"):
+        load_volume(tmp_path / "v.nii", time_point=0)
+    with pytest.raises(VolrenError, match=r"x\.npy: time_point picks a time point of a 4-D NIfTI \(\.nii, \.nii\.gz\) "
+                       "only$"):
+        load_volume(tmp_path / "x.npy", time_point=0)
+
+
+@pytest.mark.parametrize("shape, intent, what", [((3, 4, 5, 1, 3), None, "components along its 5th dimension"),
+                                                 ((3, 4, 5, 2, 3), None, "components along its 5th dimension"),
+                                                 ((3, 4, 5, 3), "vector", "a vector")])
+def test_nifti_of_vectors_or_five_dimensions_is_refused(tmp_path: Path, shape, intent, what) -> None:
+    """Not a time series: one line naming the file, its shape and what its voxels hold, from the loader and from the
+    sequence finder alike (a 4-D file whose intent says vector is no time series)."""
+    from volren.data.sequence import frame_files
+
+    image = nib.Nifti1Image(np.ones(shape, dtype=np.float32), np.eye(4))
+    if intent:
+        image.header.set_intent(intent)
+    nib.save(image, tmp_path / "f.nii.gz")
+    message = (f"{tmp_path / 'f.nii.gz'}: a NIfTI of shape {shape}, 3 values per voxel ({what}): volren reads a 3-D "
+               "volume (x, y, z) or a 4-D time series (x, y, z, t)")
+    for read in (load_volume_file, frame_files):
+        with pytest.raises(VolrenError) as err:
+            read(tmp_path / "f.nii.gz")
+        assert str(err.value) == message
 
 
 def test_nvdb_vector_grid_is_refused(tmp_path: Path) -> None:

@@ -276,3 +276,95 @@ def test_each_slice_is_rescaled_by_its_own_slope_and_intercept(tmp_path: Path, m
     values = lo + loaded.density * (hi - lo)  # back to the rescaled values
     np.testing.assert_allclose(values[:, 1, 1], [40.0, -1000.0, 40.0], atol=1e-3)  # each slice's fill
     np.testing.assert_allclose(values[:, 0, 0], [1000.0, 1000.0, 0.0], atol=1e-3)  # each slice's pixel (0, 0)
+
+
+PYDICOM_NEIGHBOURS = ("CT_small.dcm", "MR_small.dcm", "MR_small_RLE.dcm", "rtplan.dcm", "SC_rgb_jpeg.dcm",
+                      "ExplVR_BigEndNoMeta.dcm")
+"""pydicom's bundled files: a CT slice, an MR slice and a copy of it (the same SOP instance, RLE-compressed), an RT
+plan (no pixels), a colour image and a header without file meta"""
+
+
+def _mixed_folder(tmp_path: Path) -> Path:
+    """A folder as users have them (issue 45 item 3): pydicom's files beside two sphere series written here, A (5
+    axial slices of 6 x 5, bone about LPS (2, 2, 4) mm) and B (3 slices of 4 x 7), and notes."""
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    for name in PYDICOM_NEIGHBOURS:
+        shutil.copy(get_testdata_file(name), folder / name)
+    (folder / "notes.txt").write_text("two series and pydicom's test files\n")
+    write_dicom_series(tmp_path / "a", [(0.0, 0.0, z) for z in (0.0, 2.0, 4.0, 6.0, 8.0)], size=(6, 5), radius=3.0,
+                       centre=(2.0, 2.0, 4.0))
+    write_dicom_series(tmp_path / "b", [(0.0, 0.0, z) for z in (0.0, 3.0, 6.0)], size=(4, 7), radius=4.0,
+                       centre=(1.0, 1.0, 3.0))
+    for series in ("a", "b"):
+        for file in (tmp_path / series).iterdir():
+            shutil.copy(file, folder / f"{series}-{file.name}")
+    return folder
+
+
+def test_a_file_alone_reads_its_own_series_beside_others(tmp_path: Path, caplog, monkeypatch) -> None:
+    """``a-im002.dcm`` reads series A (5 slices), ``b-im001.dcm`` series B (3), each exactly as its own folder reads;
+    pixel data is read from that series' files only, and the folder's other files (pydicom's, notes) raise no
+    warning: they are not of the series."""
+    import pydicom
+
+    folder = _mixed_folder(tmp_path)
+    full_reads: list[str] = []
+    dcmread = pydicom.dcmread
+
+    def counting(file, *args, **kwargs):
+        if not kwargs.get("stop_before_pixels"):
+            full_reads.append(Path(file).name)
+        return dcmread(file, *args, **kwargs)
+
+    monkeypatch.setattr(pydicom, "dcmread", counting)
+    for series, member, shape in (("a", "a-im002.dcm", (5, 6, 5)), ("b", "b-im001.dcm", (3, 4, 7))):
+        expected = load_volume(tmp_path / series)
+        full_reads.clear()
+        with caplog.at_level(logging.WARNING):
+            loaded = load_volume(folder / member)
+        assert loaded.density.shape == shape
+        np.testing.assert_array_equal(loaded.density, expected.density)
+        np.testing.assert_array_equal(loaded.to_world, expected.to_world)
+        assert loaded.value_range == (-1000.0, 1000.0) and loaded.hounsfield
+        assert sorted(full_reads) == sorted(f"{series}-{f.name}" for f in (tmp_path / series).iterdir())
+    assert not caplog.records, [r.getMessage() for r in caplog.records]
+    a = load_volume(folder / "a-im000.dcm")
+    # LPS (2, 2, 4) mm is world (2, 4, -2) mm: bone (1000 HU, density 1); LPS (0, 7.5, 0) mm is air
+    np.testing.assert_array_equal(density_at(a, np.array([[2.0, 4.0, -2.0], [0.0, 0.0, -7.5]]) * 1e-3), [1.0, 0.0])
+
+
+@pytest.mark.parametrize(("name", "copies"), [
+    ("CT_small.dcm", ""), ("MR_small.dcm", " (1 other file(s) hold copies of it: MR_small_RLE.dcm)")])
+def test_a_lone_slice_is_refused_naming_its_file(tmp_path: Path, name: str, copies: str) -> None:
+    """pydicom's CT_small.dcm and MR_small.dcm are each the only slice (MR_small_RLE.dcm the same image again) of
+    their series: one line naming the file, its folder and the count, not the folder's other series."""
+    folder = _mixed_folder(tmp_path)
+    with pytest.raises(VolrenError) as err:
+        load_volume(folder / name)
+    assert str(err.value) == f"{folder / name}: its series has 1 slice in {folder}{copies}; a volume needs at least 2"
+
+
+def test_an_extensionless_dicom_file_alone_reads_its_series(tmp_path: Path) -> None:
+    """Scanners name slices IM0001 with no extension: one given alone reads its series too (the .dcm series beside
+    it is skipped); before, an unknown extension was refused."""
+    folder = _mixed_folder(tmp_path)
+    for n, file in enumerate(sorted((tmp_path / "a").iterdir())):
+        shutil.copy(file, folder / f"IM{n:04d}")
+        (folder / f"a-{file.name}").unlink()
+    loaded = load_volume(folder / "IM0003")
+    np.testing.assert_array_equal(loaded.density, load_volume(tmp_path / "a").density)
+
+
+def test_cli_renders_a_file_alone_as_its_series(tmp_path: Path, capfd) -> None:
+    """``volren render --volume mixed/b-im001.dcm`` is the picture of series B's own folder; a lone slice is one
+    error line naming the file."""
+    from test_cli import _linear_render, render_error
+
+    folder = _mixed_folder(tmp_path)
+    reference = _linear_render(capfd, tmp_path / "ref", tmp_path / "b")
+    assert reference[..., 3].max() > 0.05
+    np.testing.assert_array_equal(_linear_render(capfd, tmp_path / "one", folder / "b-im001.dcm"), reference)
+    line = render_error(capfd, tmp_path, ["--volume", folder / "CT_small.dcm"], f"{folder / 'CT_small.dcm'}: its "
+                        "series has 1 slice")
+    assert line.count("CT_small.dcm") == 1

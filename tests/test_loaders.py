@@ -174,7 +174,9 @@ def test_dicom_sagittal_orientation(tmp_path: Path) -> None:
 
 
 def test_pydicom_bundled_ct_slice_refused_alone(tmp_path: Path) -> None:
-    """pydicom's bundled CT_small.dcm reads (its values rescale) but one slice is not a volume."""
+    """pydicom's bundled CT_small.dcm reads (its values rescale) but one slice is not a volume: alone in a folder,
+    and named as a file in pydicom's own test folder (85 other files, other series), where the refusal names the
+    file and its series' one slice, not the folder's other files (issue 45 item 3)."""
     import shutil
 
     from pydicom.data import get_testdata_file
@@ -186,6 +188,9 @@ def test_pydicom_bundled_ct_slice_refused_alone(tmp_path: Path) -> None:
     shutil.copy(path, tmp_path / "one" / "a.dcm")
     with pytest.raises(VolrenError, match=r"/one: one DICOM slice; a volume needs at least 2$"):
         load_volume(tmp_path / "one")
+    with pytest.raises(VolrenError) as err:
+        load_volume(path)
+    assert str(err.value) == f"{path}: its series has 1 slice in {Path(path).parent}; a volume needs at least 2"
 
 
 @pytest.mark.parametrize(

@@ -13,6 +13,7 @@ import weakref
 from pathlib import Path
 
 import imageio.v2 as imageio
+import nibabel as nib
 import numpy as np
 import pytest
 from aiohttp.test_utils import TestClient, TestServer
@@ -21,7 +22,7 @@ from test_cli import assert_error, ok
 from test_serve import cam_msg, connect, next_frame
 from volren.bench.playback import play
 from volren.cli import build_parser, served_volume
-from volren.data.loaders import LoadedVolume, load_volume
+from volren.data.loaders import LoadedVolume, TimePoint, load_volume
 from volren.data.sequence import KEEP, SequenceConfig, VolumeSequence, frame_files
 from volren.errors import VolrenError
 from volren.serve.app import make_app
@@ -47,6 +48,26 @@ def frames(tmp_path: Path) -> Path:
     folder.mkdir()
     for i in range(FRAMES):
         np.save(folder / f"p_{i:04d}.npy", blob(i))
+    return folder
+
+
+AFFINE = np.array([[0.0, 0.0, 3.0, -30.0], [2.0, 0.0, 0.0, 10.0], [0.0, 2.5, 0.0, -5.0], [0.0, 0.0, 0.0, 1.0]])
+"""a NIfTI affine that permutes and scales the axes (mm): voxel i, j, k -> RAS (3k - 30, 2i + 10, 2.5j - 5)"""
+
+
+@pytest.fixture
+def nifti4d(tmp_path: Path) -> Path:
+    """seq.nii.gz, a 4-D NIfTI (x, y, z, t) of the blob's FRAMES time points as int16 (scaled by 1000, so the values
+    are mapped as integers are: min..max, 0..1000 by a marker voxel at index 0, 0, 0 in every time point), and
+    t_0000.nii.gz .. t_0003.nii.gz, each time point alone as a 3-D NIfTI with the same affine."""
+    folder = tmp_path / "nifti"
+    folder.mkdir()
+    stored = [np.rint(blob(i) * 1000).astype(np.int16).transpose(2, 1, 0) for i in range(FRAMES)]  # [x, y, z]
+    for volume in stored:
+        volume[0, 0, 0] = 1000
+    nib.save(nib.Nifti1Image(np.stack(stored, axis=-1), AFFINE), folder / "seq.nii.gz")
+    for i, volume in enumerate(stored):
+        nib.save(nib.Nifti1Image(volume, AFFINE), folder / f"t_{i:04d}.nii.gz")
     return folder
 
 
@@ -256,3 +277,69 @@ def test_serve_refuses_a_multi_channel_volume(tmp_path: Path):
     args = build_parser().parse_args(["serve", "--volume", str(tmp_path / "two.npy")])
     with pytest.raises(VolrenError, match="multi-channel volume renders with render and animate only"):
         served_volume(args)
+
+
+def test_a_4d_nifti_is_a_sequence_of_its_time_points(nifti4d: Path):
+    """Issue 45 item 3: seq.nii.gz's frames are its time points, each read alone, equal to that time point saved as a
+    3-D NIfTI (values, and the one affine's placement for every frame), the value mapping frame 0's."""
+    files = frame_files(nifti4d / "seq.nii.gz")
+    assert files == tuple(TimePoint(nifti4d / "seq.nii.gz", t) for t in range(FRAMES))
+    seq = VolumeSequence(SequenceConfig(files), load_volume)
+    first = load_volume(nifti4d / "t_0000.nii.gz")
+    assert first.value_range == (0.0, 1000.0)  # int16: min..max of frame 0
+    # the affine's placement: voxel index (i, j, k) = (x, y, z) at RAS (3k - 30, 2i + 10, 2.5j - 5) mm, world (-R, S, A)
+    corner = first.to_world @ np.array([-1 + 1 / N, -1 + 1 / N, -1 + 1 / N, 1.0])  # voxel (0, 0, 0)'s centre
+    np.testing.assert_allclose(corner[:3], np.array([30.0, -5.0, 10.0]) * 1e-3, atol=1e-12)
+    for t in range(FRAMES):
+        vol = seq.frame(t)
+        assert vol.density.shape == (N, N, N) and vol.value_range == (0.0, 1000.0)
+        np.testing.assert_array_equal(vol.to_world, first.to_world)
+        np.testing.assert_array_equal(vol.density, load_volume(nifti4d / f"t_{t:04d}.nii.gz").density)
+        blob_t = np.rint(blob(t) * 1000) / 1000
+        blob_t[0, 0, 0] = 1.0
+        np.testing.assert_allclose(vol.density, blob_t, atol=1e-6)  # time point t, not another
+    seq.close()
+    assert frame_files(nifti4d / "t_0001.nii.gz") is None  # a 3-D NIfTI stays one volume
+
+
+def test_render_frames_of_a_4d_nifti_equal_each_time_point_rendered_alone(capfd, nifti4d: Path, tmp_path: Path):
+    out = tmp_path / "seq"
+    ok(capfd, "render", "--volume", nifti4d / "seq.nii.gz", "--frames", FRAMES, *SMALL, "--save-linear", "--out", out)
+    images = [np.load(out / f"frame{i:04d}_view0.npy") for i in range(FRAMES)]
+    assert not np.array_equal(images[0], images[1]), "the blob moves"
+    assert images[0][..., 3].max() > 0.05
+    for i in (0, 3):
+        ok(capfd, "render", "--volume", nifti4d / f"t_{i:04d}.nii.gz", *SMALL, "--save-linear", "--out",
+           tmp_path / "one")
+        np.testing.assert_array_equal(np.load(tmp_path / "one" / "view0.npy"), images[i])
+    assert_error(capfd, ["render", "--volume", nifti4d / "seq.nii.gz", "--frames", 5, *SMALL, "--out", tmp_path / "x"],
+                 "--frames 5", "has 4 frames", no_out=tmp_path / "x")
+
+
+def test_animate_and_serve_play_a_4d_nifti(capfd, nifti4d: Path, tmp_path: Path):
+    """animate renders one frame per time point (its --frames defaults to them); serve plays them in a loop: the
+    fifth image is the first again, each step another time point."""
+    out = tmp_path / "anim"
+    ok(capfd, "animate", "--volume", nifti4d / "seq.nii.gz", "--orbit", "0", *SMALL, "--out", out)
+    assert sorted(p.name for p in out.glob("frame*_view0.png")) == [f"frame{i:04d}_view0.png" for i in range(FRAMES)]
+    with imageio.get_reader(out / "animation.mp4") as movie:
+        assert movie.count_frames() == FRAMES
+    args = build_parser().parse_args(["serve", "--volume", str(nifti4d / "seq.nii.gz"), "--max-width", "128",
+                                      "--max-height", "96"])
+    loop = RenderLoop(method="dssrm", limits=Limits(4, 128, 96), device="cpu", **served_volume(args),
+                      overrides={"samples": 48, "light_samples": 12, "light_grid": 8})
+
+    async def main() -> None:
+        async with TestClient(TestServer(make_app(loop, "p"), shutdown_timeout=1.0)) as client:
+            ws, welcome = await connect(client)
+            assert welcome["animated"]
+            await ws.send_json(cam_msg(1))
+            _, first = await next_frame(ws)
+            await ws.send_json({"type": "settings", "playing": True})
+            played = [(await next_frame(ws))[1] for _ in range(FRAMES + 1)]
+            await ws.close()
+        shown = [first, *played]
+        assert np.array_equal(shown[FRAMES], shown[0]) and np.array_equal(shown[FRAMES + 1], shown[1]), "loops"
+        assert not any(np.array_equal(a, b) for a, b in itertools.pairwise(shown)), "every step another frame"
+
+    asyncio.run(main())

@@ -196,12 +196,13 @@ def test_spacing_replaces_the_vdb_placement_as_for_nvdb(vdb_dir):
 def test_grid_choice(vdb_dir):
     np.testing.assert_array_equal(load_volume(vdb_dir / "two.vdb", grid="temperature").density, TEMPERATURE)
     np.testing.assert_array_equal(load_volume(vdb_dir / "smoke.vdb").density, DENSITY)  # the only float grid
-    with pytest.raises(VolrenError, match=r"several float grids.*--grid NAME: heat \(float\), flame \(float\)"):
+    with pytest.raises(VolrenError, match=r"several scalar grids.*--grid NAME: heat \(float\), flame \(float\)$"):
         load_volume(vdb_dir / "several.vdb")
-    with pytest.raises(VolrenError, match=r"two\.vdb: no grid named 'fuel' \(--grid\); the file holds density "
-                       r"\(float\), temperature \(float\), velocity \(vec3s\)"):
+    with pytest.raises(VolrenError, match=r"two\.vdb: no grid named 'fuel' \(--grid\); pick one of density "
+                       r"\(float\), temperature \(float\); its other grids, velocity \(vec3s\), are not scalar"):
         load_volume(vdb_dir / "two.vdb", grid="fuel")
-    with pytest.raises(VolrenError, match=r"'velocity' is of type Tree_vec3s.*needs a float grid"):
+    with pytest.raises(VolrenError, match=r"'velocity' is of type Tree_vec3s.*needs a scalar float or double grid: "
+                       r"pick one of density \(float\), temperature \(float\)$"):
         load_volume(vdb_dir / "two.vdb", grid="velocity")
     with pytest.raises(VolrenError, match=r"apply to \.vdb only \(CLI: --grid"):
         load_volume(vdb_dir / "nothing.npy", grid="density")

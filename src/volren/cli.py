@@ -206,7 +206,7 @@ def add_volume_args(src: argparse._ArgumentGroup | argparse.ArgumentParser) -> N
                      "--spacing (default: what the file states, e.g. a TIFF's microns, else mm; .vdb: m, "
                      "OpenVDB states no unit)")
     src.add_argument("--grid", help=".vdb files: the density grid's name (default: 'density', else the file's "
-                     "only float grid)")
+                     "only float or double grid)")
     src.add_argument("--level", type=int, help=".zarr (OME-Zarr) pyramids: the level to read, 0 = finest "
                      "(default: the finest within --memory-budget)")
     src.add_argument("--memory-budget", type=float, help=".zarr pyramids: [GiB] of float32 voxels (all "
@@ -791,12 +791,15 @@ def _volume_from_args(args: argparse.Namespace, frame: int = 0):
 
 
 def volume_sequence(args: argparse.Namespace):
-    """The `VolumeSequence` a ``--volume`` pattern names (serve's reads ahead across the end: it plays in a loop),
-    opened once (keyed on the folder's mtime too, so added or removed frames are found); None for one volume."""
+    """The `VolumeSequence` a ``--volume`` pattern or 4-D NIfTI names (serve's reads ahead across the end: it plays
+    in a loop), opened once (keyed on the folder's mtime too, so added or removed frames are found, and a file's);
+    None for one volume."""
     if getattr(args, "volume", None) is None:
         return None
     folder = args.volume if args.volume.is_dir() else args.volume.parent
     stamp = folder.stat().st_mtime_ns if folder.exists() else None
+    if args.volume.is_file():  # a 4-D NIfTI's time points: the file rewritten in place
+        stamp = (stamp, args.volume.stat().st_mtime_ns)
     return _open_sequence(args.volume, stamp, args.command == "serve", *_volume_options(args))
 
 
@@ -813,16 +816,18 @@ def _open_sequence(path: Path, _stamp, loop: bool, *options):
 def _load_volume(path: Path, shape, dtype, spacing, units, grid=None, level=None, memory_budget=None,
                  emission_grid=None):
     """``--volume`` read once: the scene and the default camera framing both need it (keyed on the file's mtime too,
-    so a rewritten file is read again). One ``.dcm`` file stands for its series: the files of its folder with its
-    SeriesInstanceUID (other series beside it are skipped)."""
-    dicom_file = path.suffix.lower() == ".dcm" and path.is_file()
+    so a rewritten file is read again). One DICOM file (``.dcm``, or DICOM content without another extension) stands
+    for its series: the files of its folder with its SeriesInstanceUID (other series beside it are skipped)."""
+    from volren.data.loaders import dicom_member
+
+    dicom_file = dicom_member(path, shape)
     source = path.parent if dicom_file else path
     stamp = source.stat().st_mtime_ns if source.exists() else None
     try:
         return _load_volume_cached(path, stamp, shape, dtype, spacing, units, grid, level, memory_budget,
                                    emission_grid)
     except VolrenError as exc:
-        if not dicom_file:
+        if not dicom_file or str(exc).startswith(str(path)):  # the message names the file already
             raise
         # the loader names the folder; the user named a file (e.g. the folder holds two series: say which file)
         raise CliError(f"--volume {path}: reading the DICOM series in its folder: {exc}") from None

@@ -10,11 +10,19 @@ a folder with no image left is refused. Frames are sorted by their position alon
 frames differ in size, orientation or pixel spacing, when two share a position, or when the steps between positions
 are uneven (a missing slice). Stored values become RescaleSlope * v + RescaleIntercept per frame: Hounsfield units
 for CT; other modalities without a rescale keep their stored integers (normalised by BitsStored).
+
+One file given alone (``read_dicom_series(folder, member=file)``) stands for its series: the files of its folder with
+its SeriesInstanceUID, whatever else the folder holds. Other files are sorted out by two tags read from each
+(``specific_tags``: no pixel data, no other element parsed), silently: other series, notes and non-DICOM files are
+no concern of this series. Copies of one image (the same SOPInstanceUID, e.g. in another transfer syntax) count once.
+A series of one slice is refused naming the file.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +36,27 @@ _DICOMDIR = "1.2.840.10008.1.3.10"
 """Media Storage Directory Storage: the SOP class of a DICOMDIR (an index of a file set, no image)."""
 _LISTED = 6
 """skipped files named in the warning; more are counted."""
+_PREAMBLE = 128
+"""a DICOM Part 10 file holds b"DICM" after its 128-byte preamble"""
 log = logging.getLogger("volren.data")
+
+
+def is_dicom_file(path: Path, readers: tuple[str, ...] = (), sniff: bool = True) -> bool:
+    """Whether ``path``, a file given alone, is a DICOM image standing for its series: a ``.dcm``, or (with
+    ``sniff``: not for raw data given its shape) a file whose extension no other reader (``readers``) takes that holds
+    b"DICM" after the preamble (scanners write IM0001 or 1.2.840.113619.2.55.3.1 without an extension)."""
+    if not path.is_file():
+        return False
+    if path.suffix.lower() == ".dcm":
+        return True
+    if not sniff or any(path.name.lower().endswith(r) for r in readers):
+        return False
+    try:
+        with open(path, "rb") as f:
+            f.seek(_PREAMBLE)
+            return f.read(4) == b"DICM"
+    except OSError:
+        return False
 
 
 @dataclass(frozen=True)
@@ -45,11 +73,59 @@ class _Frame:
     intercept: float
 
 
-def _series_files(folder: Path) -> list[Path]:
-    """The ``.dcm`` files of the folder; when there are none, every visible regular file (series without extensions)."""
+def _series_files(folder: Path, member: Path | None = None) -> list[Path]:
+    """The ``.dcm`` files of the folder; when there are none, or ``member`` has another extension, every visible
+    regular file (series without extensions)."""
     files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
     dcm = [p for p in files if p.suffix.lower() == ".dcm"]
-    return dcm or files
+    return files if member is not None and member.suffix.lower() != ".dcm" else dcm or files
+
+
+def _uids(pydicom, file: Path) -> tuple[str, str] | None:
+    """(SeriesInstanceUID, SOPInstanceUID) of a file, reading those two tags only; None when it is not DICOM or its
+    header does not parse."""
+    pydicom_log, thread = logging.getLogger("pydicom"), threading.get_ident()
+
+    def this_thread(record: logging.LogRecord) -> bool:
+        return record.thread != thread
+
+    pydicom_log.addFilter(this_thread)  # pydicom warns and logs about another series' files: no concern here
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ds = pydicom.dcmread(file, stop_before_pixels=True, specific_tags=["SeriesInstanceUID", "SOPInstanceUID"])
+    except Exception:  # not DICOM, truncated, ...: not of the series either way
+        return None
+    finally:
+        pydicom_log.removeFilter(this_thread)
+    return str(ds.get("SeriesInstanceUID", "")), str(ds.get("SOPInstanceUID", ""))
+
+
+def _member_series(pydicom, folder: Path, member: Path, skipped: list[str]) -> tuple[list[Path], list[str]]:
+    """The image files of ``member``'s series in its folder, ``member`` first, each SOP instance once (a copy is the
+    same image: no warning); and the names of the files that hold copies. Files of the series that are no image are
+    added to ``skipped``."""
+    header, reason = _read_header(pydicom, member)
+    if header is None:
+        raise VolrenError(f"{member}: {'not a DICOM file' if reason == 'not DICOM' else reason}; name an image "
+                          "of the series, or its folder")
+    wanted = str(header.get("SeriesInstanceUID", ""))
+    files, copies = [member], []
+    seen = {str(header.get("SOPInstanceUID", "")): member.name}
+    for file in _series_files(folder, member):
+        uids = None if file.samefile(member) else _uids(pydicom, file)
+        if uids is None or uids[0] != wanted:
+            continue  # the member itself, or no file of its series
+        if uids[1] and uids[1] in seen:
+            copies.append(file.name)
+            continue
+        header, reason = _read_header(pydicom, file)
+        if header is None:
+            skipped.append(f"{file.name}: {reason}")
+            continue
+        seen[uids[1]] = file.name
+        files.append(file)
+    return files, copies
 
 
 def _vector(item, keyword: str, count: int, folder: Path, name: str) -> np.ndarray:
@@ -151,26 +227,21 @@ def read_dicom_series(folder: Path, member: Path | None = None):
 
     from volren.data.loaders import _Grid, _one_line
 
-    files = _series_files(folder)
-    if not files:
-        raise VolrenError(f"{folder}: empty folder; a DICOM series needs its slice files (.dcm)")
-    wanted = None
-    if member is not None:
-        header, reason = _read_header(pydicom, member)
-        if header is None:
-            raise VolrenError(f"{member}: {'not a DICOM file' if reason == 'not DICOM' else reason}; name an image "
-                              "of the series, or its folder")
-        wanted = str(header.get("SeriesInstanceUID", ""))
     skipped: list[str] = []  # "name: why"
     series: dict[str, list[Path]] = {}  # SeriesInstanceUID -> its image files
-    for file in files:
-        header, reason = _read_header(pydicom, file)
-        if header is None:
-            skipped.append(f"{file.name}: {reason}")
-            continue
-        uid = str(header.get("SeriesInstanceUID", ""))
-        if wanted is None or uid == wanted:  # else another series in the same folder
-            series.setdefault(uid, []).append(file)
+    copies: list[str] = []
+    if member is not None:
+        series[""], copies = _member_series(pydicom, folder, member, skipped)
+    else:
+        files = _series_files(folder)
+        if not files:
+            raise VolrenError(f"{folder}: empty folder; a DICOM series needs its slice files (.dcm)")
+        for file in files:
+            header, reason = _read_header(pydicom, file)
+            if header is None:
+                skipped.append(f"{file.name}: {reason}")
+                continue
+            series.setdefault(str(header.get("SeriesInstanceUID", "")), []).append(file)
     if len(series) > 1:
         names = ", ".join(f[0].name for f in series.values())
         raise VolrenError(f"{folder}: holds {len(series)} DICOM series (first files {names}); put each series in its "
@@ -206,6 +277,10 @@ def read_dicom_series(folder: Path, member: Path | None = None):
     normal = np.cross(row, column)
     frames.sort(key=lambda f: float(np.dot(f.position, normal)))
     positions = np.array([f.position for f in frames])
+    if len(frames) < 2 and member is not None:
+        named = ", ".join(copies[:3]) + (", ..." if len(copies) > 3 else "")
+        also = f" ({len(copies)} other file(s) hold copies of it: {named})" if copies else ""
+        raise VolrenError(f"{member}: its series has 1 slice in {folder}{also}; a volume needs at least 2")
     if len(frames) < 2:
         raise VolrenError(f"{folder}: one DICOM slice; a volume needs at least 2")
     steps = np.diff(positions, axis=0)

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from volren.data.dicom import is_dicom_file
 from volren.device import init_warp
 from volren.errors import VolrenError
 from volren.scene import validate_density
@@ -42,6 +43,26 @@ _LPS_TO_WORLD = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 """Patient Left-Posterior-Superior to the y-up world: Left -> +x, Superior -> +y, Anterior (-P) -> +z."""
 _ANATOMICAL_SIGNS = {"L": (0, 1.0), "R": (0, -1.0), "P": (1, 1.0), "A": (1, -1.0), "S": (2, 1.0), "I": (2, -1.0)}
 _NRRD_SPACES = {"left-posterior-superior": "LPS", "right-anterior-superior": "RAS", "left-anterior-superior": "LAS"}
+_NIFTI_COMPONENTS = {1004: "a matrix", 1005: "a symmetric matrix", 1006: "a displacement vector", 1007: "a vector",
+                     1008: "a point set", 1009: "a triangle", 1010: "a quaternion", 2003: "an RGB vector",
+                     2004: "an RGBA vector", 2006: "a displacement field"}
+"""NIfTI intent codes whose 4th or 5th dimension holds the components of one value per voxel, not time points"""
+
+
+@dataclass(frozen=True)
+class TimePoint:
+    """Time point ``index`` (0-based) of a file that holds a time series (a 4-D NIfTI: x, y, z, t): one frame of a
+    sequence (`volren.data.sequence`), which ``load_volume`` reads alone."""
+
+    path: Path
+    index: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.path.name} (time point {self.index})"
+
+    def __str__(self) -> str:
+        return f"{self.path} (time point {self.index})"
 
 
 @dataclass(frozen=True)
@@ -252,23 +273,72 @@ def _read_nrrd(path: Path) -> _Grid:
     return _Grid(data, m, space if len(space) == 3 and set(space) <= set(_ANATOMICAL_SIGNS) else "", scale)
 
 
-def _read_nifti(path: Path) -> _Grid:
+def _nifti_shape(path: Path, image) -> tuple[int, ...]:
+    """A NIfTI's shape without the trailing dimensions of size 1 after z; refused, naming the file and its shape,
+    unless it is a 3-D volume (x, y, z) or a 4-D time series (x, y, z, t): 5 or more dimensions (NIfTI keeps the 5th
+    for the components of a vector or matrix per voxel), or a 4th whose intent code says it holds such components."""
+    full = tuple(int(n) for n in image.shape)
+    shape = full
+    while len(shape) > 3 and shape[-1] == 1:
+        shape = shape[:-1]
+    what = _NIFTI_COMPONENTS.get(int(image.header["intent_code"]))
+    if len(shape) > 4 or (len(shape) == 4 and what is not None):
+        per_voxel = f", {shape[-1]} values per voxel ({what or 'components along its 5th dimension'})"
+        raise VolrenError(f"{path}: a NIfTI of shape {full}{per_voxel}: volren reads a 3-D volume (x, y, z) or a "
+                          "4-D time series (x, y, z, t)")
+    return shape
+
+
+def nifti_time_points(path: Path) -> int:
+    """The time points of a 4-D NIfTI time series (x, y, z, t), 0 for a 3-D one (read from the header only);
+    refused as ``_nifti_shape`` says for other shapes."""
+    import nibabel as nib  # lazy: only NIfTI users pay for the import
+
+    try:
+        image = nib.load(str(path))
+    except Exception as exc:  # nibabel's many kinds on a bad header
+        raise VolrenError(f"{path}: cannot read the file ({_one_line(exc)})") from None
+    shape = _nifti_shape(path, image)
+    return shape[3] if len(shape) == 4 else 0
+
+
+def _read_nifti(path: Path, time_point: int | None = None) -> _Grid:
     """NIfTI stores ``[x, y, z]``; its affine (sform, else qform, as nibabel chooses) maps voxel (i, j, k) to RAS+.
     Voxels are read with scl_slope / scl_inter applied (integers without them unscaled, to keep their bit depth):
-    stored unsigned CT values with scl_inter -1024 become Hounsfield units, which go below zero."""
+    stored unsigned CT values with scl_inter -1024 become Hounsfield units, which go below zero.
+
+    A 4-D time series (x, y, z, t) is read one time point at a time (``time_point``, 0-based: nibabel reads that
+    volume alone), each placed by the one affine; without ``time_point`` it is refused, pointing to the CLI's
+    sequences (`volren.data.sequence` plays every time point)."""
     import nibabel as nib  # lazy: only NIfTI users pay for the import
 
     image = nib.load(str(path))
+    shape = _nifti_shape(path, image)
+    if len(shape) == 4:
+        count = shape[3]
+        if time_point is None:
+            raise VolrenError(f"{path}: a 4-D NIfTI of {count} time points (shape {shape}): the CLI plays them as a "
+                              f"sequence (volren render --volume {path.name} --frames {count}, animate, serve); "
+                              f"load one with time_point=N (0 to {count - 1})")
+        if not 0 <= time_point < count:
+            raise VolrenError(f"{path}: time_point {time_point} is outside the NIfTI's {count} time points (0 to "
+                              f"{count - 1})")
+    elif time_point is not None:
+        raise VolrenError(f"{path}: time_point picks a time point of a 4-D NIfTI; this one holds one 3-D volume "
+                          f"(shape {shape})")
     stored = image.get_data_dtype()
     rescaled = np.issubdtype(stored, np.integer) and (image.dataobj.slope, image.dataobj.inter) != (1.0, 0.0)
-    if np.issubdtype(stored, np.integer) and not rescaled:
+    if time_point is not None:
+        # that volume only; integers without a rescale stay the stored ones, as in a 3-D file
+        data = np.asarray(image.dataobj[(slice(None),) * 3 + (time_point,) + (0,) * (len(image.shape) - 4)])
+        if not np.issubdtype(stored, np.integer) or rescaled:
+            data = data.astype(np.float32)
+    elif np.issubdtype(stored, np.integer) and not rescaled:
         data = np.asarray(image.dataobj.get_unscaled())
     else:
         data = image.get_fdata(dtype=np.float32)  # scl_slope * v + scl_inter
-    if data.ndim == 4 and data.shape[3] == 1:
-        data = data[..., 0]
-    elif data.ndim == 4:
-        raise VolrenError(f"{path}: a 4D NIfTI with {data.shape[3]} volumes; volren needs one 3D volume")
+    if len(shape) == 3:
+        data = data.reshape(shape)  # without the trailing dimensions of size 1
     if data.ndim != 3:
         raise VolrenError(f"{path}: NIfTI data has {data.ndim} dimension(s) {data.shape}; volren needs 3D")
     unit = image.header.get_xyzt_units()[0]
@@ -429,8 +499,14 @@ def _spacing_placement(shape_zyx: tuple[int, ...], spacing: Sequence[float] | No
     return m
 
 
+def dicom_member(path: Path, shape: tuple[int, int, int] | None = None) -> bool:
+    """Whether ``path`` is one DICOM file that ``load_volume`` reads as its series: a ``.dcm``, or DICOM Part 10
+    content in a file whose extension no other reader takes (unless ``shape`` says it is raw data)."""
+    return is_dicom_file(path, (*_READERS, *RAW_EXTENSIONS), sniff=shape is None)
+
+
 def load_volume(
-    path: str | Path,
+    path: str | Path | TimePoint,
     *,
     shape: tuple[int, int, int] | None = None,
     dtype: str | None = None,
@@ -440,6 +516,7 @@ def load_volume(
     memory_budget: float | None = None,
     grid: str | None = None,
     emission_grid: str | None = None,
+    time_point: int | None = None,
 ) -> LoadedVolume:
     """Read a density grid (see ``load_volume_file`` for the formats and value mapping) or a folder holding a DICOM
     series, and place it in the world.
@@ -448,8 +525,9 @@ def load_volume(
     ImagePositionPatient / ImageOrientationPatient / PixelSpacing and the slice positions (LPS); anatomical frames
     map to the world as the module docstring says; ImageJ TIFF voxel sizes (centred) and the NanoVDB index-to-world
     map. Units: what the file states (NRRD ``space units``, NIfTI ``xyzt_units``, ImageJ ``unit``), else millimetres
-    (DICOM is always mm; NanoVDB states none); ``units`` (a key of ``UNITS``) overrides both. A ``.dcm`` file is
-    read as its series (the files of its folder with its SeriesInstanceUID). ``spacing`` = voxel size
+    (DICOM is always mm; NanoVDB states none); ``units`` (a key of ``UNITS``) overrides both. A DICOM file (``.dcm``,
+    or a DICOM Part 10 file with no other reader's extension) is read as its series: the files of its folder with its
+    SeriesInstanceUID, whatever else the folder holds (`volren.data.dicom`). ``spacing`` = voxel size
     (x, y, z) in ``units`` (default mm) places ``.npy``, ``.npz``, raw, ``.tif``/``.tiff`` and ``.nvdb`` (replacing
     what a TIFF or NanoVDB stores), centred on the origin; without it and without a stored placement they get cubic
     voxels with the longest side 2 m, centred. ``spacing`` is refused for NRRD, NIfTI and DICOM.
@@ -457,12 +535,27 @@ def load_volume(
     A ``.zarr`` is an OME-Zarr pyramid or a plain Zarr array (`volren.data.omezarr`): ``level`` (0 = finest) or the
     finest level within ``memory_budget`` [bytes of float32] is read. A 4D array, a TIFF with a C axis or a Zarr
     with a ``c`` axis holds channels (``LoadedVolume.channels``).
+
+    A 4-D NIfTI (x, y, z, t) is a time series: ``time_point`` (0-based), or ``path`` a `TimePoint`, reads one of its
+    volumes; the CLI plays them all as a sequence (`volren.data.sequence`).
     """
+    if isinstance(path, TimePoint):
+        if time_point is not None:
+            raise VolrenError(f"{path}: give the time point once (a TimePoint, or time_point=)")
+        path, time_point = path.path, path.index
     path = Path(path)
-    vdb_options = {k: v for k, v in (("grid", grid), ("emission_grid", emission_grid)) if v is not None}
-    if vdb_options and path.suffix.lower() != ".vdb":  # Warp reads a .nvdb's first grid only
+    options: dict[str, str | int] = {k: v for k, v in (("grid", grid), ("emission_grid", emission_grid))
+                                     if v is not None}  # the reader's: an OpenVDB file's grids
+    if options and path.suffix.lower() != ".vdb":  # Warp reads a .nvdb's first grid only
         raise VolrenError(f"{path}: grid and emission_grid name grids of an OpenVDB file: they apply to .vdb only "
                           "(CLI: --grid, --emission-grid)")
+    if time_point is not None:
+        if isinstance(time_point, bool) or not isinstance(time_point, int | np.integer):
+            raise VolrenError(f"{path}: time_point must be a whole number (0-based), got {time_point!r}")
+        time_point = int(time_point)
+        if not path.name.lower().endswith((".nii", ".nii.gz")):
+            raise VolrenError(f"{path}: time_point picks a time point of a 4-D NIfTI (.nii, .nii.gz) only")
+        options["time_point"] = time_point  # or a 4-D NIfTI's time point
     if units is not None and units not in UNITS:
         raise VolrenError(f"units must be one of {', '.join(UNITS)}, got {units!r} (CLI: --units)")
     if spacing is not None:
@@ -485,14 +578,14 @@ def load_volume(
         if shape is not None or dtype is not None:
             raise VolrenError(f"{path}: shape/dtype apply to raw binary files only; a DICOM series stores its own")
         grid = read_dicom_series(path)
-    elif path.suffix.lower() == ".dcm" and path.is_file():  # one slice stands for its series, in its folder
+    elif dicom_member(path, shape):  # one slice stands for its series, in its folder
         from volren.data.dicom import read_dicom_series
 
         if shape is not None or dtype is not None:
             raise VolrenError(f"{path}: shape/dtype apply to raw binary files only; a DICOM series stores its own")
         grid = read_dicom_series(path.parent, member=path)
     else:
-        grid = _read_file(path, shape, dtype, **vdb_options)
+        grid = _read_file(path, shape, dtype, **options)
     if grid.index_to_file is not None and spacing is not None and not grid.spacing_replaces:
         raise VolrenError(f"{path}: this volume stores its own voxel spacing; --spacing applies to .npy, .npz, raw, "
                           ".tif and .nvdb")
@@ -519,8 +612,9 @@ def load_volume(
                         grid.level, grid.emission, mapping, grid.channel_colors if channels else ())
 
 
-def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None, **options: str) -> _Grid:
-    """``options``: the OpenVDB grid names (``grid``, ``emission_grid``), passed to the .vdb reader."""
+def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None, **options: str | int) -> _Grid:
+    """``options``: the OpenVDB grid names (``grid``, ``emission_grid``), passed to the .vdb reader, or a 4-D
+    NIfTI's ``time_point``, passed to the NIfTI reader."""
     if not path.exists():
         raise VolrenError(f"{path}: file not found")
     if not path.is_file():

@@ -1,7 +1,9 @@
 """Volume sequences: one file per frame (``sim_####.vdb``, ``sim_%04d.npy``, ``sim_*.npy``, a folder of numbered
-files), read one frame at a time and ahead of need in a background thread.
+files) or one file of many time points (a 4-D NIfTI: x, y, z, t), read one frame at a time and ahead of need in a
+background thread.
 
-`frame_files` finds a ``--volume``'s frames, in frame order; `VolumeSequence` reads frame i as ``load(files[i])``
+`frame_files` finds a ``--volume``'s frames, in frame order (files, or a NIfTI's `TimePoint` frames);
+`VolumeSequence` reads frame i as ``load(files[i])``
 (`volren.data.loaders.load_volume` with the same options for every frame), loading the next frames in a worker thread
 while the caller renders, and holds at most ``keep`` frames. Every frame must match the first in grid shape,
 placement and value mapping; one that does not is refused, naming its file, when it is reached.
@@ -25,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from volren.data.loaders import LoadedVolume, ValueMapping
+from volren.data.loaders import LoadedVolume, TimePoint, ValueMapping, nifti_time_points
 from volren.errors import VolrenError
 
 KEEP = 3
@@ -91,9 +93,12 @@ def _folder_frames(folder: Path) -> tuple[Path, ...] | None:
     return _numbered(str(folder), frames) if frames else None
 
 
-def frame_files(volume: str | Path) -> tuple[Path, ...] | None:
+def frame_files(volume: str | Path) -> tuple[Path, ...] | tuple[TimePoint, ...] | None:
     """The frame files of a ``--volume`` that names a sequence, in frame order; None when it names one volume (an
     existing file, a folder that is not a sequence, or a name with no pattern: the loader reads or refuses it).
+
+    An existing 4-D NIfTI (x, y, z, t, more than one time point) is a sequence of its time points (`TimePoint` frames,
+    from its header alone); a NIfTI of another shape (5-D, a vector per voxel) is refused here, naming the file.
 
     Forms: ``sim_####.vdb`` (a run of ``#`` is the frame number, zero-padded to that many digits), ``sim_%04d.npy``
     (printf ``%d`` or ``%0Nd``), a glob (``sim_*.npy``; frames ordered by the last number in the name), or a folder
@@ -101,7 +106,10 @@ def frame_files(volume: str | Path) -> tuple[Path, ...] | None:
     text = str(volume)
     path = Path(text)
     if path.is_file():
-        return None
+        if _suffix(path.name) not in (".nii", ".nii.gz"):
+            return None
+        count = nifti_time_points(path)
+        return tuple(TimePoint(path, t) for t in range(count)) if count > 1 else None
     if path.is_dir():
         return _folder_frames(path)
     name, folder = path.name, path.parent
@@ -130,8 +138,8 @@ def _listing(folder: Path) -> list[Path]:
 class SequenceConfig:
     """A sequence's frames and how it is read."""
 
-    files: tuple[Path, ...]
-    """frame i's file"""
+    files: tuple[Path, ...] | tuple[TimePoint, ...]
+    """frame i's file (or time point of one file)"""
     keep: int = KEEP
     """frames held at once (the asked one and the next keep - 1, read ahead), >= 2"""
     loop: bool = False

@@ -1,4 +1,5 @@
-"""OpenVDB ``.vdb`` files (Houdini, Blender, EmberGen smoke and fire) through tinyvdb: ZIP / Blosc, half precision.
+"""OpenVDB ``.vdb`` files (Houdini, Blender, EmberGen smoke and fire, C++ simulations) through tinyvdb: ZIP / Blosc,
+float, double (read as float32) and half precision.
 
 A grid is densified over its active voxels' index bounding box (OpenVDB's ``file_bbox_min`` / ``file_bbox_max``
 stats, which ``openvdb::io::File::write`` stores for every grid; else the box of its active leaves and tiles), inactive
@@ -22,9 +23,11 @@ from volren.errors import VolrenError
 
 MAX_DENSE_VOXELS = 1 << 30
 """A dense copy of a sparse grid larger than this (4 GiB of float32) is refused before anything is allocated."""
-_FLOAT_TREES = ("Tree_float_",)
-"""tinyvdb type names of the scalar grids volren reads: float (half precision is a float grid stored with
-``is_saved_as_half_float``, as OpenVDB 10 writes it)."""
+_SCALAR_TREES = {"Tree_float_": np.dtype("<f4"), "Tree_double_": np.dtype("<f8")}
+"""type-name prefixes of the scalar grids volren reads, and the values tinyvdb decodes their leaves to: float (half
+precision is a float grid stored with ``is_saved_as_half_float``, as OpenVDB 10 writes it) and double (C++
+simulations' ``DoubleGrid``), which volren reads as float32. Only these are ever offered as ``--grid`` choices."""
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 _MAGIC = 0x56444220
 _MIN_FILE_VERSION = 222
 """OPENVDB_FILE_VERSION_NODE_MASK_COMPRESSION: per-grid compression, instancing and mask metadata are all present."""
@@ -52,7 +55,7 @@ class _Tiles:
     extents: np.ndarray
     """(T,) int64 edge in voxels: 8 (lower internal node), 128 (upper) or 4096 (root)"""
     values: np.ndarray
-    """(T,) float32"""
+    """(T,) float64 (a double grid's tiles exactly; float32 ones widened)"""
 
 
 @dataclass(frozen=True)
@@ -85,12 +88,32 @@ def _open(path: Path):
         vdb = tinyvdb.open(str(path))
         vdb.read_grids()  # tinyvdb decompresses all grids at once; there is no per-grid read
     except tinyvdb.VDBError as exc:
+        halves = _half_doubles(path)
+        if halves:  # say why, rather than "corrupt"
+            raise VolrenError(f"{path}: grid {halves[0]!r} is a double grid saved as half precision, which tinyvdb "
+                              f"cannot decode ({exc}); save it at full precision (or as a float grid)") from None
         raise VolrenError(f"{path}: not a readable OpenVDB file, truncated or corrupt ({exc})") from None
     return vdb
 
 
+def _half_doubles(path: Path) -> list[str]:
+    """The file's double grids saved as half precision (``Tree_double_5_4_3_HalfFloat``): tinyvdb 0.9.0 fails on
+    the whole file with one of them. [] when the header does not parse."""
+    try:
+        with open(path, "rb") as f:
+            grids = _grid_offsets(f.read(1 << 20))  # the descriptors lie at the start
+    except (OSError, struct.error, VolrenError):
+        return []
+    return [name for name, _, _, half, type_name in grids if half and type_name.startswith("Tree_double_")]
+
+
 def _grid_names(vdb) -> list[tuple[str, str]]:
     return [(vdb.grid_name(i), vdb.grid_type_name(i)) for i in range(vdb.grid_count)]
+
+
+def _value_type(type_name: str) -> np.dtype | None:
+    """The values tinyvdb decodes a grid of this type name to, None for a grid volren cannot read as a density."""
+    return next((dt for prefix, dt in _SCALAR_TREES.items() if type_name.startswith(prefix)), None)
 
 
 def _describe(names: list[tuple[str, str]]) -> str:
@@ -98,20 +121,29 @@ def _describe(names: list[tuple[str, str]]) -> str:
 
 
 def _find_grid(path: Path, vdb, name: str | None, flag: str) -> int:
-    """Index of the grid ``name``; None picks ``density``, else the only float grid."""
+    """Index of the grid ``name``; None picks ``density``, else the only scalar (float or double) grid. A refusal
+    offers as choices only the grids that can be read; the others are named as such."""
     names = _grid_names(vdb)
-    floats = [i for i, (_, t) in enumerate(names) if t.startswith(_FLOAT_TREES)]
+    scalar = [i for i, (_, t) in enumerate(names) if _value_type(t) is not None]
+    readable = _describe([names[i] for i in scalar])
+    others = [names[i] for i in range(len(names)) if i not in scalar]
+    rest = f"; its other grids, {_describe(others)}, are not scalar float or double grids" if others else ""
     if name is None:
-        named = [i for i in floats if names[i][0] == "density"]
-        if named or len(floats) == 1:
-            return (named or floats)[0]
-        reason = "no float grid" if not floats else "several float grids and none named 'density'"
-        raise VolrenError(f"{path}: {reason}; pick one with {flag} NAME: {_describe(names)}")
+        named = [i for i in scalar if names[i][0] == "density"]
+        if named or len(scalar) == 1:
+            return (named or scalar)[0]
+        if not scalar:
+            raise VolrenError(f"{path}: no scalar float or double grid to read as the density; the file holds "
+                              f"{_describe(names)}")
+        raise VolrenError(f"{path}: several scalar grids and none named 'density'; pick one with {flag} NAME: "
+                          f"{readable}")
     match = [i for i, (n, _) in enumerate(names) if n == name]
+    choices = f"pick one of {readable}" if scalar else "the file has no scalar float or double grid"
     if not match:
-        raise VolrenError(f"{path}: no grid named {name!r} ({flag}); the file holds {_describe(names)}")
-    if match[0] not in floats:
-        raise VolrenError(f"{path}: grid {name!r} is of type {names[match[0]][1]}; {flag} needs a float grid")
+        raise VolrenError(f"{path}: no grid named {name!r} ({flag}); {choices}{rest}")
+    if match[0] not in scalar:
+        raise VolrenError(f"{path}: grid {name!r} is of type {names[match[0]][1]}; {flag} needs a scalar float or "
+                          f"double grid: {choices}")
     return match[0]
 
 
@@ -158,8 +190,9 @@ class _Reader:
             self.raw(self.take("I"))
 
 
-def _grid_offsets(data: bytes | mmap.mmap) -> list[tuple[str, int, int, bool]]:
-    """(name, grid position, buffers position, saved as half) of each grid, from the file header's descriptors."""
+def _grid_offsets(data: bytes | mmap.mmap) -> list[tuple[str, int, int, bool, str]]:
+    """(name, grid position, buffers position, saved as half, type name) of each grid, from the file header's
+    descriptors."""
     r = _Reader(data)
     if r.take("q") != _MAGIC:
         raise VolrenError("no OpenVDB magic number")
@@ -176,24 +209,25 @@ def _grid_offsets(data: bytes | mmap.mmap) -> list[tuple[str, int, int, bool]]:
     for _ in range(r.take("i")):
         name, type_name, _parent = r.string(), r.string(), r.string()
         grid_pos, block_pos, end_pos = r.take("qqq")
-        grids.append((name.split("\x1e")[0], grid_pos, block_pos, type_name.endswith("_HalfFloat")))
+        grids.append((name.split("\x1e")[0], grid_pos, block_pos, type_name.endswith("_HalfFloat"), type_name))
         r.pos = end_pos
     return grids
 
 
 def _compressed_values(r: _Reader, count: int, value_mask: np.ndarray, compression: int, half: bool,
-                       decode: bool) -> np.ndarray | None:
+                       decode: bool, dtype: np.dtype = _SCALAR_TREES["Tree_float_"]) -> np.ndarray | None:
     """``io::readCompressedValues`` (an internal node's tile values): the mask-compression metadata byte, inactive
-    values and selection mask, then the data, size-prefixed when ZIP / Blosc compressed. Decoded (float32, all
-    ``count`` places, inactive ones 0) when ``decode``, else stepped over."""
+    values and selection mask, then the data, size-prefixed when ZIP / Blosc compressed. Values are ``dtype`` (the
+    grid's: float32 or float64), or half precision when ``half``. Decoded (float64, all ``count`` places, inactive
+    ones 0) when ``decode``, else stepped over."""
     metadata = r.take("b")
-    r.raw(4 * (metadata in (2, 4, 5)) + 4 * (metadata == 5))  # one or two float inactive values
+    r.raw(dtype.itemsize * ((metadata in (2, 4, 5)) + (metadata == 5)))  # one or two inactive values, full width
     r.raw(count // 8 * (metadata in (3, 4, 5)))  # selection mask between the two inactive values
     masked = bool(compression & _COMPRESS_ACTIVE_MASK) and metadata != _NO_MASK_AND_ALL_VALS
     stored = int(value_mask.sum()) if masked else count  # mask compression keeps the active values only
     if half and stored == 0:  # io::HalfReader reads (and HalfWriter writes) nothing for no values
         return None
-    width = 2 if half else 4
+    width = 2 if half else dtype.itemsize
     if compression & (_COMPRESS_BLOSC | _COMPRESS_ZIP):
         size = r.take("q")  # the compressed size; <= 0: stored uncompressed, -size bytes
         raw = r.raw(abs(size))
@@ -205,10 +239,10 @@ def _compressed_values(r: _Reader, count: int, value_mask: np.ndarray, compressi
         return None
     if len(raw) != stored * width:
         raise VolrenError(f"tile values decode to {len(raw)} bytes, not the {stored * width} of {stored} values")
-    values = np.frombuffer(raw, np.float16 if half else np.float32).astype(np.float32)
+    values = np.frombuffer(raw, np.float16 if half else dtype).astype(np.float64)
     if not masked:
         return values
-    out = np.zeros(count, np.float32)
+    out = np.zeros(count, np.float64)
     out[value_mask] = values
     return out
 
@@ -225,16 +259,18 @@ def _decompress(raw: bytes, compression: int) -> bytes:
         raise VolrenError(f"its tile values do not decompress ({exc})") from None
 
 
-def _leaf_origins(path: Path, data: mmap.mmap, index: int, name: str) -> tuple[np.ndarray, np.ndarray, _Tiles]:
+def _leaf_origins(path: Path, data: mmap.mmap, index: int, name: str, dtype: np.dtype
+                  ) -> tuple[np.ndarray, np.ndarray, _Tiles]:
     """Origins (L, 3) (x, y, z) of the grid's leaves in file order, their active voxel counts and the grid's active
     tiles, read from the tree topology (root tiles and children, then per internal node its child and value masks
     and tile values), which ends where the leaf buffers begin. tinyvdb 0.9.0 decodes every leaf's values (not the
     tiles') but places at most 64 leaves per lower internal node in its own index (so its ``materialize_dense`` /
-    ``to_sparse`` drop the rest of any larger grid); volren places the leaves itself."""
+    ``to_sparse`` drop the rest of any larger grid); volren places the leaves itself. ``dtype``: the grid's values
+    (float32 or float64: the background, root tiles and tile values are stored at that width)."""
     offsets = _grid_offsets(data)
     if index >= len(offsets) or offsets[index][0] != name:
         raise VolrenError(f"grid {name!r} is not where the file header puts it")
-    _, grid_pos, block_pos, half = offsets[index]
+    _, grid_pos, block_pos, half, _ = offsets[index]
     r = _Reader(data, grid_pos)
     compression = r.take("I")
     r.skip_metadata()
@@ -243,21 +279,22 @@ def _leaf_origins(path: Path, data: mmap.mmap, index: int, name: str) -> tuple[n
         raise VolrenError(f"grid {name!r} has a {map_type} transform; volren reads linear (affine) maps")
     r.raw(_MAP_BYTES[map_type])
     r.take("i")  # buffer count (1)
-    r.take("f")  # background
+    value = dtype.char  # "f" or "d"
+    r.take(value)  # background
     tiles, children = r.take("II")
-    root = [r.take("iiif?") for _ in range(tiles)]  # RootNode::readTopology: origin, value, active
+    root = [r.take(f"iii{value}?") for _ in range(tiles)]  # RootNode::readTopology: origin, value, active
     root = [t for t in root if t[4]]
     origins, counts = [], []
     tile_origins = [np.array([t[:3] for t in root], np.int64).reshape(-1, 3)]
     tile_extents = [np.full(len(root), _ROOT_TILE_EXTENT, np.int64)]
-    tile_values = [np.array([t[3] for t in root], np.float32)]
+    tile_values = [np.array([t[3] for t in root], np.float64)]
 
     def node(origin: np.ndarray, log2dim: int, child_extent: int) -> None:
         size = 1 << (3 * log2dim)
         child_mask = np.unpackbits(np.frombuffer(r.raw(size // 8), np.uint8), bitorder="little").astype(bool)
         value_mask = np.unpackbits(np.frombuffer(r.raw(size // 8), np.uint8), bitorder="little").astype(bool)
         active = np.flatnonzero(value_mask & ~child_mask)
-        values = _compressed_values(r, size, value_mask, compression, half, decode=len(active) > 0)
+        values = _compressed_values(r, size, value_mask, compression, half, decode=len(active) > 0, dtype=dtype)
         dim = (1 << log2dim) - 1
 
         def place(index: np.ndarray) -> np.ndarray:  # table index (x slowest) to the child's or tile's origin
@@ -302,14 +339,16 @@ def _active_box(path: Path, grid, origins: np.ndarray, tiles: _Tiles) -> tuple[n
     return lo.astype(np.int64), hi.astype(np.int64)
 
 
-def _leaves(path: Path, data: mmap.mmap, vdb, index: int) -> tuple[list, np.ndarray, _Tiles]:
-    """tinyvdb's decoded leaves of grid ``index`` in file order, their origins and the grid's active tiles; refused
-    unless every leaf's active count matches the topology's, so that a leaf is never put in another's place."""
+def _leaves(path: Path, data: mmap.mmap, vdb, index: int) -> tuple[list, np.ndarray, _Tiles, np.dtype]:
+    """tinyvdb's decoded leaves of grid ``index`` in file order, their origins, the grid's active tiles and its
+    values' dtype; refused unless every leaf's active count matches the topology's, so that a leaf is never put in
+    another's place."""
     grid = vdb.grid(index)
     tree = grid.tree
+    dtype = _value_type(vdb.grid_type_name(index))
     leaves = [n for n in (tree.node(i) for i in range(tree.num_nodes)) if n.level == 3]
     try:
-        origins, counts, tiles = _leaf_origins(path, data, index, grid.name)
+        origins, counts, tiles = _leaf_origins(path, data, index, grid.name, dtype)
     except struct.error:
         raise VolrenError(f"{path}: not a readable OpenVDB file, truncated or corrupt (grid {grid.name!r})") from None
     except VolrenError as exc:
@@ -319,14 +358,25 @@ def _leaves(path: Path, data: mmap.mmap, vdb, index: int) -> tuple[list, np.ndar
                           f"lists {len(origins)} (or their active voxels differ)")
     if not counts.any() and not len(tiles.values):
         raise VolrenError(f"{path}: grid {grid.name!r} has no active voxels")
-    return leaves, origins, tiles
+    return leaves, origins, tiles, dtype
 
 
-def _densify(leaves: list, origins: np.ndarray, tiles: _Tiles, lo: np.ndarray, hi: np.ndarray, background: float
-             ) -> np.ndarray:
+def _float32(values: np.ndarray, what: str) -> np.ndarray:
+    """A double grid's values as float32 (rounded to nearest); refused, naming the grid, where one lies beyond
+    float32's range (it would become Inf). NaN stays NaN for ``validate_density`` to count."""
+    if values.dtype != np.float32 and values.size and np.nanmax(np.abs(values), initial=0.0) > _FLOAT32_MAX:
+        huge = int(np.count_nonzero(np.abs(values) > _FLOAT32_MAX))
+        raise VolrenError(f"{what} (double) holds {huge} value(s) beyond the range of float32, which volren reads it "
+                          f"as (up to {np.nanmax(np.abs(values)):.3g}); rescale the grid")
+    return values.astype(np.float32, copy=False)
+
+
+def _densify(leaves: list, origins: np.ndarray, tiles: _Tiles, dtype: np.dtype, lo: np.ndarray, hi: np.ndarray,
+             background: float, what: str) -> np.ndarray:
     """float32 ``[z, y, x]`` over the inclusive box: each active tile's cube (clipped to the box) set to its value,
-    each 8^3 leaf (tinyvdb's values, x slowest, z fastest) copied into its place through a block view of the output,
-    the rest the background. Leaves are scattered in chunks, so only a chunk's values are joined."""
+    each 8^3 leaf (tinyvdb's values of ``dtype``, x slowest, z fastest) copied into its place through a block view of
+    the output, the rest the background. Leaves are scattered in chunks, so only a chunk's values are joined; a
+    double grid's are rounded to float32 (``_float32``; ``what`` names the grid)."""
     start, stop = (lo >> 3) << 3, ((hi >> 3) + 1) << 3  # the box widened to whole leaves (tiles are whole leaves)
     blocks = (stop - start) >> 3
     inside = np.flatnonzero(np.all((origins >= start) & (origins < stop), axis=1))
@@ -337,13 +387,14 @@ def _densify(leaves: list, origins: np.ndarray, tiles: _Tiles, lo: np.ndarray, h
     small = tiles.extents == 8
     b = (tiles.origins[small] - start) >> 3
     keep = np.all((b >= 0) & (b < blocks), axis=1)
-    blocked[b[keep, 2], b[keep, 1], b[keep, 0]] = tiles.values[small][keep, None, None, None]  # one leaf each
-    for o, e, v in zip(tiles.origins[~small], tiles.extents[~small], tiles.values[~small], strict=True):
+    tile_values = _float32(tiles.values, what)
+    blocked[b[keep, 2], b[keep, 1], b[keep, 0]] = tile_values[small][keep, None, None, None]  # one leaf each
+    for o, e, v in zip(tiles.origins[~small], tiles.extents[~small], tile_values[~small], strict=True):
         a, z = np.maximum(o, start) - start, np.minimum(o + e, stop) - start  # 128^3 / 4096^3, few: one slice each
         if np.all(z > a):
             out[a[2] : z[2], a[1] : z[1], a[0] : z[0]] = v
     for chunk in np.array_split(inside, max(1, len(inside) // _LEAF_CHUNK)):
-        values = np.frombuffer(b"".join(leaves[i].data for i in chunk), np.float32).reshape(-1, 8, 8, 8)
+        values = _float32(np.frombuffer(b"".join(leaves[i].data for i in chunk), dtype), what).reshape(-1, 8, 8, 8)
         b = (origins[chunk] - start) >> 3
         blocked[b[:, 2], b[:, 1], b[:, 0]] = values
     # a view: the caller copies it contiguous once tinyvdb's trees are freed (load_volume's validate_density does)
@@ -370,7 +421,7 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
         index = _find_grid(path, vdb, grid, "--grid")
         density_grid = vdb.grid(index)
         to_world = _index_to_world(path, density_grid)
-        leaves, origins, tiles = _leaves(path, data, vdb, index)
+        leaves, origins, tiles, dtype = _leaves(path, data, vdb, index)
         lo, hi = _active_box(path, density_grid, origins, tiles)
         emission = None
         if emission_grid is not None:
@@ -380,9 +431,11 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
                 raise VolrenError(f"{path}: grid {emission_grid!r} (--emission-grid) has another index-to-world "
                                   f"transform than the density grid {density_grid.name!r}")
         _check_size(path, lo, hi, 1 if emission_grid is None else 2)
-        values = _densify(leaves, origins, tiles, lo, hi, density_grid.float_background())
+        values = _densify(leaves, origins, tiles, dtype, lo, hi, density_grid.float_background(),
+                          f"{path}: grid {density_grid.name!r}")
         if emission_grid is not None:
-            emission = _densify(*_leaves(path, data, vdb, other_index), lo, hi, other.float_background())
+            emission = _densify(*_leaves(path, data, vdb, other_index), lo, hi, other.float_background(),
+                                f"{path}: grid {emission_grid!r} (--emission-grid)")
             if not np.all(np.isfinite(emission)):
                 raise VolrenError(f"{path}: grid {emission_grid!r} (--emission-grid) holds NaN/Inf values")
     finally:
