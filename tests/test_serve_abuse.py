@@ -6,6 +6,7 @@ real `volren serve`. Loopback only, every wait bounded; a 16^3 smoke at 64x48 (t
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import logging
 import os
@@ -13,11 +14,13 @@ import select
 import signal
 import socket
 import statistics
+import struct
 import subprocess
 import sys
 import time
 
 import aiohttp
+import numpy as np
 import pytest
 from aiohttp.test_utils import TestClient, TestServer
 
@@ -530,3 +533,80 @@ def test_abandon_stops_a_render_after_its_image_pass():
     loop._build_renderer()
     with pytest.raises(RenderAbandoned):
         loop.renderer.render(SCENE, [cam])
+
+
+def raw_websocket(addr: tuple[str, int]) -> socket.socket:
+    """A WebSocket opened by hand (no client library to hide what arrives): upgraded, nothing read past the 101."""
+    s = socket.create_connection(addr, timeout=10.0)
+    key = base64.b64encode(os.urandom(16)).decode()
+    s.sendall(f"GET /ws HTTP/1.1\r\nHost: {addr[0]}:{addr[1]}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+              f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+    head = b""
+    while b"\r\n\r\n" not in head:
+        head += s.recv(1)
+    assert head.startswith(b"HTTP/1.1 101"), head
+    return s
+
+
+def client_frame(payload: bytes, opcode: int = 1) -> bytes:
+    """One masked client frame (RFC 6455 5.2)."""
+    n, mask = len(payload), os.urandom(4)
+    size = bytes([0x80 | n]) if n < 126 else bytes([0x80 | 126]) + struct.pack(">H", n) if n < 65536 else \
+        bytes([0x80 | 127]) + struct.pack(">Q", n)
+    masked = (np.frombuffer(payload, np.uint8) ^ np.resize(np.frombuffer(mask, np.uint8), n)).tobytes()
+    return bytes([0x80 | opcode]) + size + mask + masked
+
+
+def server_frames(data: bytes) -> list[tuple[int, bytes]]:
+    """(opcode, payload) of the unmasked server frames in ``data``."""
+    out, i = [], 0
+    while i + 2 <= len(data):
+        opcode, n, i = data[i] & 0x0F, data[i + 1] & 0x7F, i + 2
+        if n >= 126:
+            width = 2 if n == 126 else 8
+            n, i = int.from_bytes(data[i:i + width], "big"), i + width
+        out.append((opcode, data[i:i + n]))
+        i += n
+    return out
+
+
+def test_a_message_over_the_size_limit_gets_close_1009_not_a_reset():
+    """Issue 44 item 6: a 1 MiB text message (and 64 KiB, and the first size aiohttp refuses) gets a close frame
+    with code 1009 (message too big) and then an orderly end of the connection: the server reads on and drops the
+    rest of the message while the client answers (before, it closed at once and the bytes still arriving drew a TCP
+    reset, which could discard the close frame: the socket dropped without a close code). A message between
+    MAX_MESSAGE_BYTES and aiohttp's limit gets an error message and the socket stays open."""
+    from volren.serve.protocol import MAX_MESSAGE_BYTES
+
+    def probe(addr: tuple[str, int], size: int) -> tuple[list[tuple[int, bytes]], str]:
+        """Hello, then one ``size``-byte text message at once; the frames that came back and how the stream ended."""
+        with raw_websocket(addr) as s:
+            s.sendall(client_frame(json.dumps({"type": "hello", "width": W, "height": H}).encode()))
+            s.sendall(client_frame(b"x" * size))
+            data, end = b"", "eof"
+            try:
+                while chunk := s.recv(65536):
+                    data += chunk
+                    if any(op == 8 for op, _ in server_frames(data)):
+                        s.sendall(client_frame(b"\x03\xf1", opcode=8))  # the client's close (1009), as a library's
+                        s.settimeout(3.0)
+            except ConnectionResetError:
+                end = "reset"
+            return server_frames(data), end
+
+    async def test(client, loop):
+        addr = (client.server.host, client.server.port)
+        for size in (4 * MAX_MESSAGE_BYTES, 65536, 1 << 20, 1 << 20):
+            frames, end = await asyncio.to_thread(probe, addr, size)
+            closes = [int.from_bytes(p[:2], "big") for op, p in frames if op == 8]
+            assert closes == [1009] and end == "eof", (size, closes, end, [op for op, _ in frames])
+        ws, _ = await connect(client)
+        await ws.send_str("x" * (MAX_MESSAGE_BYTES + 500))
+        assert "message too large" in (await ws.receive_json(timeout=TIMEOUT))["message"]
+        await ws.send_str("x" * (1 << 20))
+        msg = await ws.receive(timeout=TIMEOUT)
+        assert (msg.type, msg.data) == (aiohttp.WSMsgType.CLOSE, 1009) and ws.close_code == 1009, (msg, ws.close_code)
+        await until(lambda: not loop.viewers, "the viewers to be gone")
+
+    run(test)
+

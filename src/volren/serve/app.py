@@ -13,6 +13,7 @@ time, rate-limited (`OneLineLog`), like malformed HTTP requests (`QuietServerLog
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import hmac
 import ipaddress
@@ -77,6 +78,9 @@ LOG_INTERVAL_S = 5.0
 """[s] at most one log line per kind of refusal this often; the next one counts those left out"""
 SHUTDOWN_S = 2.0
 """[s] from SIGINT or SIGTERM to exit"""
+LINGER_S = 1.0
+"""[s] a closed socket keeps reading (and dropping) what its client still sends for up to this, until the client
+closes its end (`ViewerSocket`)"""
 
 
 @dataclass(frozen=True)
@@ -193,12 +197,37 @@ async def greet(ws: web.WebSocketResponse, loop: RenderLoop, scene: str) -> View
     return None
 
 
+class ViewerSocket(web.WebSocketResponse):
+    """aiohttp's WebSocket with a lingering close: aiohttp closes a socket on a message over max_msg_size (1009) as
+    soon as its header is read, and the rest of the message, still arriving, made the kernel answer with a reset that
+    could discard the close frame before the client read it (issue 44 item 6: a 1 MiB message dropped the socket
+    without a close code). Here the close frame is followed by a half-close (FIN), the client's bytes are read on and
+    dropped, and the connection ends once the client closes its end or `linger` gives up after LINGER_S."""
+
+    def _close_transport(self) -> None:  # aiohttp's (private) step of every close: a rename brings the reset back,
+        # as test_a_message_over_the_size_limit_gets_close_1009_not_a_reset would show
+        transport = self._req.transport if self._req is not None else None
+        if transport is not None and not transport.is_closing() and transport.can_write_eof():
+            with contextlib.suppress(OSError):  # the peer gone already: close
+                transport.write_eof()
+                return
+        super()._close_transport()
+
+    async def linger(self) -> None:
+        """Wait (at most LINGER_S) for the client to close its end of a half-closed connection."""
+        transport = self._req.transport if self._req is not None else None
+        deadline = time.monotonic() + LINGER_S
+        while transport is not None and not transport.is_closing() and time.monotonic() < deadline:
+            await asyncio.sleep(0.02)
+
+
 async def websocket(request: web.Request) -> web.StreamResponse:
     app = request.app
     loop = app[LOOP_KEY]
-    # aiohttp closes the socket (1009) on messages over max_msg_size; those between our limit and it get an error
-    # message. No permessage-deflate: JPEG frames do not shrink (see COMPRESS_NOTE in docs/SERVE.md).
-    ws = web.WebSocketResponse(max_msg_size=4 * MAX_MESSAGE_BYTES, heartbeat=30.0, compress=False)
+    # aiohttp closes the socket (1009) on messages over max_msg_size (lingering: `ViewerSocket`); those between our
+    # limit and it get an error message. No permessage-deflate: JPEG frames do not shrink (see COMPRESS_NOTE in
+    # docs/SERVE.md).
+    ws = ViewerSocket(max_msg_size=4 * MAX_MESSAGE_BYTES, heartbeat=30.0, compress=False)
     await ws.prepare(request)
     app[SOCKETS_KEY].add(ws)
     viewer = None
@@ -226,6 +255,8 @@ async def websocket(request: web.Request) -> web.StreamResponse:
         if viewer is not None:
             loop.viewers.remove(viewer)
             loop.wake()
+        if ws.closed:
+            await ws.linger()
     return ws
 
 
