@@ -610,3 +610,136 @@ def test_a_message_over_the_size_limit_gets_close_1009_not_a_reset():
 
     run(test)
 
+
+def rss_mb(pid: int) -> float:
+    """[MB] the resident set of process ``pid`` (Linux)."""
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads the resident set from /proc")
+def test_memory_returns_once_16_full_hd_viewers_have_left():
+    """Issue 44 item 6: a real `volren serve` (the 64^3 smoke, its default limits) warmed by a 640x360 viewer and a
+    stereo one; then 16 viewers at 1918x1079 (every third stereo) connect, take two frames, leave and come back at
+    another size for 8 s, and all leave. Its resident set returns to within 50 MB of the warmed one (before: +259 MB;
+    +108 MB after 16 viewers that stayed 20 s), while it rose by over 100 MB under them."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "volren.cli", "serve", "--port", str(port), "--device", "cpu"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    url = f"http://127.0.0.1:{port}"
+
+    async def viewer(session, k: int, width: int, height: int, stereo: bool, frames: int) -> None:
+        async with session.ws_connect(f"{url}/ws", max_msg_size=0) as ws:
+            await ws.send_json({"type": "hello", "width": width, "height": height, "stereo": stereo})
+            await ws.receive_json(timeout=TIMEOUT)
+            for i in range(1, frames + 1):
+                await ws.send_json({**cam_msg(i, 0.05 * k + 0.01 * i), "position": [0.05 * k, 0.4, 3.2]})
+                await frame_for(ws, i)
+
+    async def idle_rss(session) -> float:
+        """The server's resident set once it has no viewer left and a second has passed."""
+        for _ in range(200):
+            if (await (await session.get(f"{url}/health")).json())["viewers"] == 0:
+                break
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(1.0)
+        return rss_mb(proc.pid)
+
+    async def main() -> tuple[float, float, float]:
+        async with aiohttp.ClientSession() as session:
+            await viewer(session, 0, 640, 360, False, 3)  # every kernel loaded: frames reusing their targets, stereo
+            await viewer(session, 0, 640, 360, True, 3)
+            base = await idle_rss(session)
+            peak = base
+            end = time.monotonic() + 8.0
+
+            async def churn(k: int) -> None:
+                nonlocal peak
+                n = 0
+                while time.monotonic() < end:
+                    await viewer(session, k, 1918 - 37 * (n % 5), 1079 - 11 * (n % 7), k % 3 == 0, 2)
+                    peak, n = max(peak, rss_mb(proc.pid)), n + 1
+
+            await asyncio.gather(*(churn(k) for k in range(16)))
+            after = base + 1e9
+            for _ in range(10):  # settled within a few seconds
+                after = await idle_rss(session)
+                if after <= base + 50.0:
+                    break
+            return base, peak, after
+
+    try:
+        ready, _, _ = select.select([proc.stdout], [], [], 120.0)
+        line = proc.stdout.readline() if ready else ""
+        assert "open http://127.0.0.1" in line, (line, proc.stderr.read() if proc.poll() is not None else "")
+        base, peak, after = asyncio.run(asyncio.wait_for(main(), 50.0))
+        print(f"resident set: {base:.0f} MB warmed, {peak:.0f} MB at most, {after:.0f} MB after")
+        assert peak - base > 100.0, f"the viewers raised the resident set only from {base:.0f} to {peak:.0f} MB"
+        assert after - base <= 50.0, f"resident set {base:.0f} MB warmed, {peak:.0f} MB at most, {after:.0f} MB after"
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_the_last_viewer_leaving_releases_the_view_buffers(monkeypatch):
+    """Issue 44 item 6: once the last viewer has left, the renderer's render targets and the still views are
+    dropped and the heap trimmed, once (the loop then idles); a viewer after that is served as before. A tick with
+    under half the pixels of the largest since the last trim trims too (a large viewer gone, a small one left)."""
+    trims = []
+    monkeypatch.setattr(serve_loop, "trim_heap", lambda: trims.append(1))
+
+    async def test(client, loop):
+        big, _ = await connect(client, width=128, height=96, stereo=True)
+        small, _ = await connect(client)
+        await big.send_json(cam_msg(1))
+        await small.send_json(cam_msg(2))
+        await frame_for(big, 1)
+        await frame_for(small, 2)
+        assert len(loop.renderer._targets) == 3 and len(loop._still) == 2 and not trims
+        await big.close()
+        await small.send_json(cam_msg(3))
+        await frame_for(small, 3)  # 64x48 after 64x96 + 64x48 (both eyes, then the small one)
+        assert len(trims) == 1, "a tick of a third of the pixels trims"
+        await small.close()
+        await until(lambda: not loop.renderer._targets and not loop._still and len(trims) == 2, "the release")
+        await asyncio.sleep(0.2)
+        assert len(trims) == 2, "released once, then idle"
+        again, _ = await connect(client)
+        await again.send_json(cam_msg(4))
+        _, image = await frame_for(again, 4)
+        assert db(offline(cam_msg(4)), image) > 40.0 and len(loop.renderer._targets) == 1
+        await again.close()
+
+    run(test)
+
+
+def test_vpt_and_fog_release_their_per_view_history():
+    """Issue 44 item 6: VPT's denoiser keeps a history per view index: views past the frame's last are dropped (it
+    kept all 21 of 16 viewers' views after they had gone), and `release_views` drops them all and the targets; fog's
+    froxel history goes with `release_views` too."""
+    from volren.camera import Camera
+    from volren.data.fog_scenes import FOG_SCENES, fog_scene, fog_scene_camera
+    from volren.presets import quality_config
+    from volren.render import VPT
+    from volren.render.fog.renderer import FogRenderer
+
+    cam = Camera(position=(0.0, 0.2, 1.9), width=32, height=24)
+    r = VPT(quality_config("vpt", "interactive", denoise="ours"), device="cpu")
+    r.render(SCENE, [cam, cam, cam])
+    assert sorted(r._denoiser.history) == [0, 1, 2]
+    r.render(SCENE, [cam])
+    assert sorted(r._denoiser.history) == [0]
+    r.release_views()
+    assert not r._denoiser.history and not r._targets
+    assert r.render(SCENE, [cam]).images[0].shape == (24, 32, 4)
+
+    name = next(iter(FOG_SCENES))
+    view = fog_scene_camera(name)
+    fog = FogRenderer(quality_config("fog", "interactive"), device="cpu")
+    fog.render(fog_scene(name), [Camera(position=view["position"], look_at=view["look_at"], width=32, height=24)])
+    assert fog._history is not None and fog._targets
+    fog.release_views()
+    assert fog._history is None and fog._prev_cams is None and not fog._targets

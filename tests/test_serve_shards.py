@@ -233,6 +233,7 @@ class InThreadWorker:
 
         self.worker, self.dead = ShardWorker(spec), False
         self.tick = SimpleNamespace(remote=self._tick)
+        self.release_views = SimpleNamespace(remote=lambda: asyncio.to_thread(self.worker.release_views))
 
     def _tick(self, *args):
         if self.dead:
