@@ -426,7 +426,10 @@ async def _serve(app: web.Application, host: str, port: int, ready: str) -> str 
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             asyncio.get_running_loop().remove_signal_handler(sig)
-        await asyncio.wait_for(runner.cleanup(), SHUTDOWN_S)
+        try:
+            await asyncio.wait_for(runner.cleanup(), SHUTDOWN_S)
+        except TimeoutError:  # `serve` ends the process all the same (before: a traceback and the slow teardown)
+            print(f"volren serve: stopping took over {SHUTDOWN_S:g} s; exiting anyway", file=sys.stderr, flush=True)
 
 
 def build_loop(scene_name: str, method: str | None, quality: str, resolution: int, device: str,

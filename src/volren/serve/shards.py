@@ -238,7 +238,9 @@ class ShardedLoop(RenderLoop):
             await s.stop()
             self._ray.kill(s.actor)
         if self._connected:  # the server's own Ray: `serve` ends the process without the atexit that stops it
-            self._ray.shutdown()
+            from volren.distributed.runtime import shutdown_local
+
+            shutdown_local(self._ray)
 
     def wake(self) -> None:
         self._place()
