@@ -451,6 +451,9 @@ def run_serve(args: argparse.Namespace) -> int:
     if args.shards is not None and args.shards < 1:
         raise CliError(f"--shards must be at least 1, got {args.shards}")
     check_scene_name(args.scene)
+    from volren.serve.heap import one_arena
+
+    one_arena()  # before the imports below start threads
     from volren.serve.app import TOKEN_ENV, build_loop, check_bind, make_app, read_token, serve
     from volren.serve.viewers import Limits
 

@@ -166,6 +166,12 @@ class Renderer:
             b.occluder_depth.fill_(INF)
         return self._targets
 
+    def release_views(self) -> None:
+        """Drop what is sized by the last frame's views (render targets, a subclass's per-view history), keeping what
+        belongs to the scene (its upload, light map, majorants): the next frame allocates them afresh. `volren serve`
+        calls this once its last viewer has left (issue 44 item 6: 16 full-HD viewers' buffers stayed held)."""
+        self._targets, self._target_sizes = [], []
+
     def _settings(self) -> dict[str, Any]:
         """The config as a dict, converted once per config (``asdict`` of the nested GI config took ~1 ms a frame)."""
         if self._settings_of is None or self._settings_of[0] is not self.config:

@@ -14,6 +14,7 @@ malformed HTTP requests (`QuietServerLog`) instead of a traceback each.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import hmac
 import ipaddress
@@ -95,6 +96,9 @@ LOG_INTERVAL_S = 5.0
 """[s] at most one log line per kind of refusal this often; the next one counts those left out"""
 SHUTDOWN_S = 2.0
 """[s] from SIGINT or SIGTERM to exit"""
+LINGER_S = 1.0
+"""[s] a closed socket keeps reading (and dropping) what its client still sends for up to this, until the client
+closes its end (`ViewerSocket`)"""
 
 
 @dataclass(frozen=True)
@@ -281,6 +285,30 @@ async def greet(ws: web.WebSocketResponse, loop: RenderLoop, scene: str, client:
     return None
 
 
+class ViewerSocket(web.WebSocketResponse):
+    """aiohttp's WebSocket with a lingering close: aiohttp closes a socket on a message over max_msg_size (1009) as
+    soon as its header is read, and the rest of the message, still arriving, made the kernel answer with a reset that
+    could discard the close frame before the client read it (issue 44 item 6: a 1 MiB message dropped the socket
+    without a close code). Here the close frame is followed by a half-close (FIN), the client's bytes are read on and
+    dropped, and the connection ends once the client closes its end or `linger` gives up after LINGER_S."""
+
+    def _close_transport(self) -> None:  # aiohttp's (private) step of every close: a rename brings the reset back,
+        # as test_a_message_over_the_size_limit_gets_close_1009_not_a_reset would show
+        transport = self._req.transport if self._req is not None else None
+        if transport is not None and not transport.is_closing() and transport.can_write_eof():
+            with contextlib.suppress(OSError):  # the peer gone already: close
+                transport.write_eof()
+                return
+        super()._close_transport()
+
+    async def linger(self) -> None:
+        """Wait (at most LINGER_S) for the client to close its end of a half-closed connection."""
+        transport = self._req.transport if self._req is not None else None
+        deadline = time.monotonic() + LINGER_S
+        while transport is not None and not transport.is_closing() and time.monotonic() < deadline:
+            await asyncio.sleep(0.02)
+
+
 async def websocket(request: web.Request) -> web.StreamResponse:
     app = request.app
     loop = app[LOOP_KEY]
@@ -289,9 +317,10 @@ async def websocket(request: web.Request) -> web.StreamResponse:
         await app[REFUSALS_KEY].refuse(request, "connects", f"too many connections from {client}: at most "
                                        f"{CONNECTS_PER_S:g} a second after a burst; try again shortly",
                                        web.HTTPTooManyRequests)
-    # aiohttp closes the socket (1009) on messages over max_msg_size; those between our limit and it get an error
-    # message. No permessage-deflate: JPEG frames do not shrink (see COMPRESS_NOTE in docs/SERVE.md).
-    ws = web.WebSocketResponse(max_msg_size=4 * MAX_MESSAGE_BYTES, heartbeat=30.0, compress=False)
+    # aiohttp closes the socket (1009) on messages over max_msg_size (lingering: `ViewerSocket`); those between our
+    # limit and it get an error message. No permessage-deflate: JPEG frames do not shrink (see COMPRESS_NOTE in
+    # docs/SERVE.md).
+    ws = ViewerSocket(max_msg_size=4 * MAX_MESSAGE_BYTES, heartbeat=30.0, compress=False)
     await ws.prepare(request)
     app[SOCKETS_KEY].add(ws)
     viewer = None
@@ -320,6 +349,8 @@ async def websocket(request: web.Request) -> web.StreamResponse:
         if viewer is not None:
             loop.viewers.remove(viewer)
             loop.wake()
+        if ws.closed:
+            await ws.linger()
     return ws
 
 
@@ -513,7 +544,10 @@ async def _serve(app: web.Application, host: str, port: int, ready: str) -> str 
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             asyncio.get_running_loop().remove_signal_handler(sig)
-        await asyncio.wait_for(runner.cleanup(), SHUTDOWN_S)
+        try:
+            await asyncio.wait_for(runner.cleanup(), SHUTDOWN_S)
+        except TimeoutError:  # `serve` ends the process all the same (before: a traceback and the slow teardown)
+            print(f"volren serve: stopping took over {SHUTDOWN_S:g} s; exiting anyway", file=sys.stderr, flush=True)
 
 
 def build_loop(scene_name: str, method: str | None, quality: str, resolution: int, device: str,

@@ -42,6 +42,7 @@ from volren.render.fog.renderer import FogConfig, FogRenderer
 from volren.render.marching.modes import MODES
 from volren.render.vpt.tracer import VPTConfig
 from volren.scene import DirectionalLight, Scene
+from volren.serve.heap import trim_heap
 from volren.serve.jpeg import JPEG_QUALITY, display_image, encode_jpeg
 from volren.serve.protocol import Choices, ProtocolError, Settings, error_message, pack_frame
 from volren.serve.viewers import Limits, TimeShares, Viewer, ViewerSet
@@ -201,6 +202,10 @@ class RenderLoop:
         """viewer id -> the refinement frame count of the last frame handed to it"""
         self._step = 0
         """animation steps taken (part of a still view's key)"""
+        self._holding = False
+        """a tick rendered since the view-sized state was last released (`release`)"""
+        self._pixels_high = 0
+        """[px] the most a tick rendered since the heap was last trimmed"""
         self.limits = limits or Limits()
         self.choices = Choices(self.methods, QUALITIES, (DENSITY_TF, *PRESETS), MODES)
         self.viewers = ViewerSet(self.limits.max_viewers, per_client=self.limits.max_per_client)
@@ -486,6 +491,8 @@ class RenderLoop:
                         v.shown = (v.camera_id, self.version)
                     self._still.clear()  # no refining of a view that fails: wait for a change
                 await asyncio.sleep(0)  # let the event loop read messages between ticks
+            if not self.viewers and self._holding:
+                await self.release()
             if self._calm_in() > 0 and any(v.scaled for v in self.viewers.render_order()):
                 asyncio.get_running_loop().call_later(self._calm_in() + 0.01, self.wake)  # its whole frame, calm
 
@@ -495,6 +502,7 @@ class RenderLoop:
         order = self.viewers.render_order()
         if not order:
             return
+        self._holding = True
         advance = self.playing and self.animated
         step = self._step + advance
         version, index = self.version, self.tick
@@ -535,6 +543,25 @@ class RenderLoop:
             self._sent[v.id] = still.frames
             v.unacked, v.unacked_since = index, time.monotonic()
             v.sending = asyncio.create_task(self._send(v, payload))
+
+    async def release(self) -> None:
+        """The last viewer has left: forget the still views and drop the renderer part's view-sized state (a tick
+        is never under way here: `run` calls this between them)."""
+        self._holding = False
+        self._still, self._sent = {}, {}
+        await self._release_views()
+
+    async def _release_views(self) -> None:
+        await asyncio.to_thread(self.release_views)
+
+    def release_views(self) -> None:
+        """The renderer part of `release`: the renderers' render targets and per-view history
+        (`Renderer.release_views`; the naive server's own renderers dropped), then the heap trimmed."""
+        for r in filter(None, (self.renderer, *self._own.values())):
+            r.release_views()
+        self._own = {}
+        self._pixels_high = 0
+        trim_heap()
 
     async def _render(self, jobs: list[tuple[int, int, list[Camera], Still | None, tuple]], index: int,
                       advance: bool, viewers: int) -> list[tuple[bytes, Still]]:
@@ -585,6 +612,11 @@ class RenderLoop:
             data = encode_jpeg(rgb, self.jpeg_quality) if self.encode is None else self.encode(rgb)
             out.append((pack_frame(header, data), still))
         self.encode_ms = (time.perf_counter() - start) * 1e3
+        pixels = sum(c.width * c.height for _, _, cams, *_ in jobs for c in cams)
+        if pixels < self._pixels_high // 2:  # far fewer pixels than before: the larger targets were freed
+            trim_heap()
+            self._pixels_high = 0
+        self._pixels_high = max(self._pixels_high, pixels)
         return out
 
     async def _send(self, viewer: Viewer, payload: bytes) -> None:

@@ -21,6 +21,7 @@ advances its own copy), so viewers on different shards may see different steps o
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 from collections.abc import Callable
@@ -30,6 +31,7 @@ from typing import Any
 from volren.camera import Camera
 from volren.errors import VolrenError
 from volren.scene import Scene
+from volren.serve.heap import one_arena
 from volren.serve.jpeg import JPEG_QUALITY
 from volren.serve.loop import SHARED_SETTINGS, RenderLoop, Still
 from volren.serve.placement import Footprint, choose_shard, footprint
@@ -79,6 +81,7 @@ class ShardWorker:
     """A shard's Ray actor: the renderer part of a `RenderLoop` (never started: no sockets, no ticks of its own)."""
 
     def __init__(self, spec: ShardSpec) -> None:
+        one_arena()  # as `volren serve` does (the threads Ray started already keep the arenas they have)
         self.loop = spec.loop(animate=spec.animate() if spec.animate is not None else None)
 
     def ready(self) -> bool:
@@ -96,6 +99,10 @@ class ShardWorker:
         frames = loop._render_encode(jobs, index, advance, viewers)
         return frames, {"renders": loop.renders - renders, "render_ms": loop.render_ms, "encode_ms": loop.encode_ms,
                         "pass_ms": loop.pass_ms, "views": loop.views_last}
+
+    def release_views(self) -> None:
+        """The front end's shard has no viewer left (`RenderLoop.release`)."""
+        self.loop.release_views()
 
 
 class ShardLoop(RenderLoop):
@@ -145,6 +152,15 @@ class ShardLoop(RenderLoop):
             await super().step()
         except ShardLost as exc:
             self.front.lost(self, str(exc))
+
+    async def _release_views(self) -> None:
+        """The actor's view-sized state, and the front end's heap."""
+        from ray.exceptions import RayError
+
+        await super()._release_views()
+        if self.up:
+            with contextlib.suppress(RayError):  # a dead actor: its next tick marks the shard down
+                await self.actor.release_views.remote()
 
     def health(self) -> dict[str, Any]:
         fps = self.fps
@@ -229,7 +245,9 @@ class ShardedLoop(RenderLoop):
             await s.stop()
             self._ray.kill(s.actor)
         if self._connected:  # the server's own Ray: `serve` ends the process without the atexit that stops it
-            self._ray.shutdown()
+            from volren.distributed.runtime import shutdown_local
+
+            shutdown_local(self._ray)
 
     def wake(self) -> None:
         self._place()

@@ -508,6 +508,10 @@ class FogRenderer(Renderer):
                               f"{len(scene.lights)}")
         return self._upload(scene, clock)
 
+    def release_views(self) -> None:
+        super().release_views()
+        self._history = self._history_key = self._prev_cams = None
+
     def _shadow_grid(self, ds: DeviceScene, views: list[Camera]) -> tuple[ShadowGrid, bool]:
         """The persistent shadow grid over the scene's bounds, padded by a voxel (new: every voxel must be traced
         once). It is kept while the bounds stay the same, also across re-built scenes (objects moving inside a fixed

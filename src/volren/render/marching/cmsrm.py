@@ -600,6 +600,11 @@ class CMSRM(LightMapRenderer):
     def __init__(self, config: CMSRMConfig | None = None, device: str = "auto") -> None:
         super().__init__(config or CMSRMConfig(), device)
 
+    def release_views(self) -> None:
+        super().release_views()
+        self._layers = LayerFinder(self.config.oit, self.config.oit_k, self.device)  # the views' OIT tiles gone
+        self._meshes = []  # and their mesh k-buffers
+
     def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
         self._layers = LayerFinder(self.config.oit, self.config.oit_k, self.device)
         ds = self._upload(scene, clock, self.config.light_grid, mip_levels=True)

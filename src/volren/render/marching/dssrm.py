@@ -102,6 +102,10 @@ class DSSRM(LightMapRenderer):
     def __init__(self, config: DSSRMConfig | None = None, device: str = "auto") -> None:
         super().__init__(config or DSSRMConfig(), device)
 
+    def release_views(self) -> None:
+        super().release_views()
+        self._layers = LayerFinder(self.config.oit, self.config.oit_k, self.device)  # the views' OIT tiles gone
+
     def _prepare(self, scene, clock: PassClock, frame: int) -> DeviceScene:
         self._layers = LayerFinder(self.config.oit, self.config.oit_k, self.device)
         ds = self._upload(scene, clock, self.config.light_grid)

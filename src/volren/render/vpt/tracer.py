@@ -631,6 +631,18 @@ class VPT(Renderer):
         self._frame_info["majorant_build_ms"] = round(sum(m.build_ms for m in majorants), 3)
         return ds
 
+    def release_views(self) -> None:
+        super().release_views()
+        self._denoiser.history.clear()
+
+    def _render_views(self, ds: DeviceScene, views: list[Camera], frame: int, targets: list[ViewBuffers],
+                      clock: PassClock) -> None:
+        """The views, after dropping the denoiser's history of views past the last (before, it kept every view
+        index ever rendered: 21 full-HD views' classes after the viewers had gone)."""
+        for view in [v for v in self._denoiser.history if v >= len(views)]:
+            del self._denoiser.history[view]
+        super()._render_views(ds, views, frame, targets, clock)
+
     def _majorant_arrays(self, tables: list[np.ndarray], majorants: list[Majorants]) -> tuple:
         """Device arrays of the majorant octrees (packed) and of one lookup table per volume."""
         structs, values, offset = [], [], 0
