@@ -3,3 +3,8 @@
 
 class VolrenError(Exception):
     """A problem with the user's input or environment (bad file, bad size, no GPU), not a bug in volren."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM during a run on Ray (`volren.distributed.runtime.terminate_like_ctrl_c`): handled as Ctrl-C is (what
+    is complete is kept), and the CLI exits with 143 (128 + SIGTERM) where Ctrl-C's is 130."""

@@ -353,6 +353,10 @@ def run_batch(args: argparse.Namespace) -> int:
             print(f"{folder}: {frames} frame(s) x {views} view(s), {units} unit(s): volren {shlex.join(job.argv)}")
         print(f"{len(batch.jobs)} job(s), {sum(batch.units)} unit(s) into {batch.out}")
         return 0
+    if args.ray_address is not None:  # nothing answering there: refused before the batch's folder is touched
+        from volren.distributed.runtime import check_address
+
+        check_address(args.ray_address)
     index = write_index(batch)
     if on_ray:
         from volren.distributed.engine import run_jobs
