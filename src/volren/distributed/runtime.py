@@ -3,8 +3,9 @@ existing one at ``--ray-address``. Every Ray entry point of volren goes through 
 
 Nothing hangs (issue 45 item 4): an address where nothing listens is refused in seconds with one line
 (`check_address`, which the engine also calls before it touches --out), where Ray would log "Failed to connect" for
-minutes; ``ray.init`` on an address that answers is bounded too (`INIT_TIMEOUT_S`); and once connected, SIGTERM ends
-the run as Ctrl-C does (`Terminated`), where Ray's native handler would dump a stack and abort (exit 134)."""
+minutes; ``ray.init`` on an address that answers is bounded too (`INIT_TIMEOUT_S`); and SIGTERM ends a run on Ray as
+Ctrl-C does (`terminate_like_ctrl_c`, at its start and again after ``ray.init``, which replaces the handler), where
+Ray's native handler dumped a stack and aborted (exit 134)."""
 
 from __future__ import annotations
 
