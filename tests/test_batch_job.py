@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -192,6 +193,43 @@ def test_dry_run_prints_the_jobs_and_writes_nothing(tmp_path, capfd):
     assert lines[1].startswith("views-stereo: 2 frame(s) x 2 view(s), 2 unit(s): volren render ")
     assert lines[-1] == f"2 job(s), 4 unit(s) into {tmp_path / 'batch'}"
     assert not (tmp_path / "batch").exists()
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("axes", [2, 4], ids=["1e6-jobs", "1e12-jobs"])
+@pytest.mark.parametrize("dry_run", [True, False], ids=["dry-run", "run"])
+def test_a_sweep_past_the_job_limit_is_refused_at_once_without_enumerating(tmp_path, capfd, axes, dry_run):
+    """Issue 45 item 4: a sweep of 10^6 (or 10^12) jobs hung, --dry-run too, planning job after job; the product is
+    counted first and refused in one line giving the count and the limit, before any job is made."""
+    from volren.distributed import job
+
+    flags = ["seed", "samples", "light-samples", "light-grid"][:axes]
+    body = "[sweep]\n" + "".join(f"{flag} = {list(range(1, 1001))}\n" for flag in flags)
+    path = job_file(tmp_path, body)
+    planned = []
+    with pytest.MonkeyPatch.context() as patch:  # a job made at all would be planned
+        patch.setattr(job, "_checked_job", lambda *a: planned.append(a) or pytest.fail("a job was made"))
+        started = time.monotonic()
+        assert main(["batch", str(path), *(["--dry-run"] if dry_run else [])]) == 2
+        elapsed = time.monotonic() - started
+    count = 1000 ** axes
+    assert capfd.readouterr().err.splitlines() == [
+        f"volren: error: {path}: sweep: makes {count:,} jobs ({' x '.join(['1000'] * axes)}), more than the "
+        f"{job.MAX_JOBS:,} a job file may make (each is checked and planned before anything renders): split it into "
+        "several job files"]
+    assert elapsed < 1.0, elapsed
+    assert not planned and not (tmp_path / "batch").exists()
+
+
+def test_a_sweep_at_the_job_limit_is_made(tmp_path, monkeypatch):
+    from volren.distributed import job
+
+    monkeypatch.setattr(job, "MAX_JOBS", 4)
+    path = job_file(tmp_path, "[sweep]\nseed = [1, 2]\nlight-irradiance = [1, 2]\n")
+    assert len(load_batch(path).jobs) == 4
+    path.write_text(path.read_text().replace("seed = [1, 2]", "seed = [1, 2, 3]"))
+    with pytest.raises(VolrenError, match=r"sweep: makes 6 jobs \(3 x 2\), more than the 4 a job file may make"):
+        load_batch(path)
 
 
 def _files(folder: Path) -> dict[str, bytes]:

@@ -1379,6 +1379,8 @@ def run_command(args: argparse.Namespace, command: str) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from volren.errors import Terminated
+
     console = argv is None  # the volren command, not a caller in Python
     argv = list(sys.argv[1:] if argv is None else argv)
     command = " ".join(["volren", *argv])
@@ -1410,6 +1412,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:  # what no loader or writer turned into a VolrenError: stdout on a full disk, mostly
         print(f"volren: error: cannot write {exc.filename or 'stdout'}: {exc.strerror or exc}", file=sys.stderr)
         return 2
+    except Terminated:  # SIGTERM during a run on Ray: stopped as Ctrl-C stops it (below), 128 + SIGTERM
+        print("volren: terminated", file=sys.stderr)
+        if console:
+            sys.stderr.flush()
+            os._exit(128 + signal.SIGTERM)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("volren: interrupted", file=sys.stderr)
         if console:  # run_output has removed any partial run; the interpreter's exit would wait seconds on Warp

@@ -8,3 +8,8 @@ class VolrenError(Exception):
 class VolrenWarning(UserWarning):
     """Something the user should know that does not stop the work (an isosurface that will be empty, a store with
     missing chunks): the CLI prints it as one line, ``volren: warning: ...``, without Python's source line."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM during a run on Ray (`volren.distributed.runtime.terminate_like_ctrl_c`): handled as Ctrl-C is (what
+    is complete is kept), and the CLI exits with 143 (128 + SIGTERM) where Ctrl-C's is 130."""

@@ -16,8 +16,9 @@ them; ``batch.json`` is one of them, so a plain render there later removes it to
 
 Faults: a worker that dies mid-unit (killed, out of memory) costs a retry of that unit only, on a fresh actor
 (`MAX_RETRIES`); a unit failing with a `VolrenError` fails the job with that line, no retry; Ctrl-C kills the actors
-and leaves only complete units and the manifest. A unit is written once: a result for a unit already complete is
-dropped.
+and leaves only complete units and the manifest, and so does SIGTERM (`runtime.terminate_like_ctrl_c`). A unit is
+written once: a result for a unit already complete is dropped. An address where nothing answers is refused before
+--out is touched (`runtime.check_address`).
 
 Temporal methods keep history across frames (`warmup_frames`): a unit starting at frame s renders the W frames
 before s first, not written, unless its worker's renderer has just rendered frame s - 1 (then it continues, exactly
@@ -55,6 +56,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from volren.distributed.runtime import check_address, terminate_like_ctrl_c
 from volren.distributed.worker import Unit, UnitWorker
 from volren.errors import VolrenError
 
@@ -334,6 +336,9 @@ def run_jobs(jobs: Sequence[Job], *, workers: int | None, address: str | None, f
     states = list(planned) if planned is not None else [plan_job(i, job, workers, unit_frames)
                                                           for i, job in enumerate(jobs)]
     cuda = any(s.plan.renderer.device.startswith("cuda") for s in states)
+    terminate_like_ctrl_c()  # from here SIGTERM stops the run as Ctrl-C does: complete units kept
+    if address is not None:  # an address where nothing answers is refused before --out is touched
+        check_address(address)
     for s in states:
         s.open_output()
     queue = deque(u for s in states for u in s.units if not s.complete(u))
