@@ -205,7 +205,7 @@ def test_a_sweep_past_the_job_limit_is_refused_at_once_without_enumerating(tmp_p
 
     flags = ["seed", "samples", "light-samples", "light-grid"][:axes]
     body = "[sweep]\n" + "".join(f"{flag} = {list(range(1, 1001))}\n" for flag in flags)
-    path = job_file(tmp_path, body)
+    path = job_file(tmp_path, body, base={k: v for k, v in TINY.items() if k not in flags})  # no flag set twice
     planned = []
     with pytest.MonkeyPatch.context() as patch:  # a job made at all would be planned
         patch.setattr(job, "_checked_job", lambda *a: planned.append(a) or pytest.fail("a job was made"))
