@@ -505,8 +505,9 @@ def served_volume(args: argparse.Namespace) -> dict:
     played = volume_sequence(args)
     animate = None if played is None or len(played) == 1 else sequence_player(
         len(played), lambda i: dataclasses.replace(scene, volumes=_file_scene(args, i).volumes))
-    return {"scene": scene, "camera": Camera(position=tuple(look_at + distance * direction), look_at=tuple(look_at)),
-            "animate": animate}
+    camera = Camera(position=tuple(look_at + distance * direction), look_at=tuple(look_at),
+                    near=min(Camera.near, distance / 1000))  # as `views_from_args`: 1 cm would clip a 30 um stack
+    return {"scene": scene, "camera": camera, "animate": animate}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -662,14 +663,17 @@ def warn_density(volumes: tuple, transfer: bool) -> None:
 def warn_empty_render(plan, frame) -> None:
     """One line when a --volume's render shows nothing (alpha under `EMPTY_ALPHA` in every view) though its box's
     optical depth is not under `THIN_BOX_DEPTH` (`warn_density` said why then; a density_scale of 0 asks for
-    nothing): the camera misses its box or the volume is too thin, and what to set for each."""
+    nothing; or a line was said already): the camera misses its box or the volume is too thin, and what to set for
+    each."""
     import numpy as np
 
     from volren._api import box_longest_side
 
     volumes = plan.scene.volumes
-    if getattr(plan.args, "volume", None) is None or len(volumes) != 1:
-        return
+    if getattr(plan.args, "volume", None) is None or len(volumes) != 1 or _warned:
+        return  # a line said already (an --iso-value outside the data, ...) says it best: one line
+    if getattr(plan.renderer.config, "mode", "dvr") not in ("dvr", "mida"):
+        return  # iso and mip show what their value and maximum make of it, not the density's opacity
     v = volumes[0]
     depth = float(v.density.max()) * v.density_scale * box_longest_side(v.to_world)
     if depth < THIN_BOX_DEPTH or max(float(np.max(im[..., 3])) for im in frame.images) >= EMPTY_ALPHA:
