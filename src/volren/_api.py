@@ -22,13 +22,38 @@ DEFAULT_QUALITY = "interactive"
 """what `volren serve` starts with; `volren render`'s default is ``default`` (the papers' settings)"""
 
 
+BOX_OPTICAL_DEPTH = 20.0
+"""K: a loaded volume's default optical depth at density 1 (the top of its value mapping) across its box's longest
+side, whatever its units (`box_density_scale`). 20 keeps the density_scale of 10 /m that files had before on the
+2 m box of a file that stores no placement (so those render as before), shows a sparse specimen (a ball filling a
+fifth of the box's side at density 1: optical depth 4), and makes a dense block opaque but not a solid wall of
+one voxel (a 64-voxel side: 0.3 a voxel)."""
+
+
+def box_longest_side(to_world: Any) -> float:
+    """[m] the longest side of the box that ``to_world`` maps the local cube [-1, 1]^3 onto."""
+    import numpy as np
+
+    return 2.0 * float(np.max(np.linalg.norm(np.asarray(to_world, dtype=np.float64)[:3, :3], axis=0)))
+
+
+def box_density_scale(to_world: Any) -> float:
+    """[1/m] a loaded volume's default density_scale: `BOX_OPTICAL_DEPTH` / its box's longest side, so density 1
+    has the same optical depth across the box in micrometres as in metres (ParaView's scalar opacity unit distance
+    relative to the data's bounds; the rule the channels of a multi-channel file follow with their own constant)."""
+    return BOX_OPTICAL_DEPTH / box_longest_side(to_world)
+
+
 def volume_from_file(loaded: LoadedVolume, name: str, **material: Any) -> Volume:
     """A loaded file as a Volume (`volren load`, ``volren render --volume``): its placement, its emission grid, and
     its value range when that is Hounsfield units (CT transfer functions classify by HU; a constant file, lo = hi,
-    has no HU scale)."""
+    has no HU scale). Without a ``density_scale`` in ``material`` it is `box_density_scale` (its box sets its
+    opacity, whatever the file's units); given, it is per metre as everywhere."""
     from volren.scene import Volume
 
     hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
+    if material.get("density_scale") is None:
+        material["density_scale"] = box_density_scale(loaded.to_world)
     return Volume(loaded.density, loaded.to_world, name=name, value_range=loaded.value_range if hu else None,
                   emission_grid=loaded.emission_source, **material)
 
@@ -41,7 +66,9 @@ def load(path: str | Path, **options: Any) -> Volume:
     """A density file placed in the world, as ``volren render --volume`` reads it. ``options``: the reader's
     (`volren.data.loaders.load_volume`: ``spacing`` and ``units`` to place a file that stores no placement, ``shape``
     and ``dtype`` for raw files, ...) and material fields of `Volume` (``density_scale``, ``albedo``, ``g``,
-    ``emission``) to replace its defaults."""
+    ``emission``) to replace its defaults. ``density_scale`` [1/m] defaults to `box_density_scale`: density 1 has
+    optical depth `BOX_OPTICAL_DEPTH` across the box's longest side, so a specimen in micrometres shows as one in
+    metres does."""
     import inspect
 
     from volren.data.loaders import load_volume

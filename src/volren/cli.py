@@ -234,7 +234,9 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     src.add_argument("--count", type=int, help="scenes multi, instances, instances-overlap: 4, 16 or 36 "
                      "instances (default 16)")
     mat = p.add_argument_group("material and light (override the scene's)")
-    mat.add_argument("--density-scale", type=float, help="sigma_t per unit density [1/m], >= 0 (default: the scene's)")
+    mat.add_argument("--density-scale", type=float, help="sigma_t per unit density [1/m], >= 0 (default: the scene's; "
+                     "a --volume's: 20 / its box's longest side [m], optical depth 20 at density 1 across the box "
+                     "whatever the file's units)")
     mat.add_argument("--albedo", type=rgb, help="single-scattering albedo: a or r,g,b, each in [0, 1] (default: the "
                      "scene's)")
     mat.add_argument("--g", type=float, help="Henyey-Greenstein asymmetry in (-1, 1) (default: the scene's)")
@@ -503,8 +505,9 @@ def served_volume(args: argparse.Namespace) -> dict:
     played = volume_sequence(args)
     animate = None if played is None or len(played) == 1 else sequence_player(
         len(played), lambda i: dataclasses.replace(scene, volumes=_file_scene(args, i).volumes))
-    return {"scene": scene, "camera": Camera(position=tuple(look_at + distance * direction), look_at=tuple(look_at)),
-            "animate": animate}
+    camera = Camera(position=tuple(look_at + distance * direction), look_at=tuple(look_at),
+                    near=min(Camera.near, distance / 1000))  # as `views_from_args`: 1 cm would clip a 30 um stack
+    return {"scene": scene, "camera": camera, "animate": animate}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -625,21 +628,59 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
 
 OPAQUE_VOXEL_DEPTH = 100.0
 """optical depth of one voxel beyond which a volume renders as an opaque box (transmittance e^-100 per voxel)"""
+THIN_BOX_DEPTH = 0.05
+"""optical depth at the densest value across the box's longest side below which a volume renders all but empty
+(alpha under 5% in every pixel)"""
+EMPTY_ALPHA = 0.01
+"""a render whose alpha stays below this in every pixel of every view shows nothing of its --volume"""
 
 
 def warn_density(volumes: tuple, transfer: bool) -> None:
-    """Warn of a density that renders nothing (all zero) or an opaque box (the densest voxel's optical depth over
-    `OPAQUE_VOXEL_DEPTH`, sigma_t = density_scale * density); a --tf reads density / its maximum, so only the first."""
+    """Warn of a density that renders nothing (all zero), all but nothing (the densest value's optical depth across
+    the box's longest side under `THIN_BOX_DEPTH`: a float file of tiny values, or a --density-scale [1/m] meant for
+    a box in metres on one in micrometres) or an opaque box (the densest voxel's optical depth over
+    `OPAQUE_VOXEL_DEPTH`, sigma_t = density_scale * density); a --tf reads density / its maximum, so only the first.
+    A density_scale of 0 asks for nothing and gets no warning."""
     import numpy as np
+
+    from volren._api import BOX_OPTICAL_DEPTH, box_longest_side
 
     for v in volumes:
         hi = float(v.density.max())
         voxel = float(np.min(np.linalg.norm(v.to_world[:3, :3], axis=0) * 2 / np.array(v.density.shape[::-1])))
+        side = box_longest_side(v.to_world)
         if hi == 0:
             warn(f"volume '{v.name}' has an all-zero density: it renders nothing")
         elif not transfer and hi * v.density_scale * voxel > OPAQUE_VOXEL_DEPTH:
             warn(f"volume '{v.name}' is opaque (optical depth {hi * v.density_scale * voxel:.3g} in its densest "
                  "voxel): check --density-scale")
+        elif not transfer and 0 < hi * v.density_scale * side < THIN_BOX_DEPTH:
+            warn(f"volume '{v.name}' renders all but empty (optical depth {hi * v.density_scale * side:.3g} at its "
+                 f"densest across its {side:.3g} m box): set --density-scale [1/m] to about "
+                 f"{BOX_OPTICAL_DEPTH / (hi * side):.3g}")
+
+
+def warn_empty_render(plan, frame) -> None:
+    """One line when a --volume's render shows nothing (alpha under `EMPTY_ALPHA` in every view) though its box's
+    optical depth is not under `THIN_BOX_DEPTH` (`warn_density` said why then; a density_scale of 0 asks for
+    nothing; or a line was said already): the camera misses its box or the volume is too thin, and what to set for
+    each."""
+    import numpy as np
+
+    from volren._api import box_longest_side
+
+    volumes = plan.scene.volumes
+    if getattr(plan.args, "volume", None) is None or len(volumes) != 1 or _warned:
+        return  # a line said already (an --iso-value outside the data, ...) says it best: one line
+    if getattr(plan.renderer.config, "mode", "dvr") not in ("dvr", "mida"):
+        return  # iso and mip show what their value and maximum make of it, not the density's opacity
+    v = volumes[0]
+    depth = float(v.density.max()) * v.density_scale * box_longest_side(v.to_world)
+    if depth < THIN_BOX_DEPTH or max(float(np.max(im[..., 3])) for im in frame.images) >= EMPTY_ALPHA:
+        return  # warn_density said why (all zero, too thin) or a density_scale of 0 asked for nothing
+    warn(f"the render of volume '{v.name}' is empty (alpha under {EMPTY_ALPHA:g} in every view): the camera misses "
+         "its box (check --camera-pos, --look-at, --fov) or it is too thin (raise --density-scale [1/m], now "
+         f"{v.density_scale:.3g})")
 
 
 def rect_light(x: float, y: float, z: float, width: float, height: float, radiance: float):
@@ -774,9 +815,23 @@ def _file_scene(args: argparse.Namespace, frame: int = 0):
 
 def _value_mapping(args: argparse.Namespace) -> dict:
     """stats.json's ``value_mapping``: how ``--volume``'s file values became densities (a sequence's frames share
-    frame 0's); nothing for built-in scenes and multi-channel files."""
+    frame 0's), and ``opacity``: how densities became extinction (`opacity_entry`); nothing for built-in scenes and
+    multi-channel files."""
     mapping = _volume_from_args(args).value_mapping if getattr(args, "volume", None) is not None else None
-    return {} if mapping is None else {"value_mapping": mapping.to_dict()}
+    return {} if mapping is None else {"value_mapping": mapping.to_dict(), "opacity": opacity_entry(args)}
+
+
+def opacity_entry(args: argparse.Namespace) -> dict:
+    """stats.json's ``opacity`` of a one-channel ``--volume``: its ``density_scale`` [1/m] and the ``rule`` that
+    set it: "--density-scale" (given, per metre) or "box" (`volren._api.box_density_scale`: ``optical_depth`` at
+    density 1 across the box's ``longest_side`` [m])."""
+    from volren._api import BOX_OPTICAL_DEPTH, box_density_scale, box_longest_side
+
+    if args.density_scale is not None:
+        return {"rule": "--density-scale", "density_scale": args.density_scale}
+    to_world = _volume_from_args(args).to_world
+    return {"rule": "box", "optical_depth": BOX_OPTICAL_DEPTH, "longest_side": box_longest_side(to_world),
+            "density_scale": box_density_scale(to_world)}
 
 
 def _volume_options(args: argparse.Namespace) -> tuple:
@@ -1274,6 +1329,8 @@ def run_render(args: argparse.Namespace, method: str, command: str, plan: Render
             plan.renderer.on_rows = advance
             for i in range(args.frames):
                 frame = plan.render(i)
+                if i == 0:
+                    warn_empty_render(plan, frame)
                 if plan.sequence is not None:
                     shown = frame.images[0] if len(frame.images) == 1 else contact_sheet(frame.images)
                     movie.append(to_srgb8(composite(shown, frame.background), args.exposure, args.tonemap))

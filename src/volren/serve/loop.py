@@ -214,6 +214,7 @@ class RenderLoop:
         """the tick count when a viewer's pending settings were last applied: one applied change per tick"""
         self._settle_timer: asyncio.TimerHandle | None = None
         self.camera = camera or Camera(position=(0.0, 0.4, 3.2))
+        self.viewers.near = self.camera.near  # a framed micrometre specimen's, kept as viewers steer
         self.device, self.shared, self.ipd, self.jpeg_quality = device, shared, ipd, jpeg_quality
         self.encode = encode
         self.overrides = dict(overrides or {})

@@ -83,6 +83,9 @@ class Viewer:
     stereo: bool = False
     camera: Camera | None = None
     camera_id: int = -1
+    near: float = Camera.near
+    """[m] the near plane of the cameras this viewer sends (the served camera's: a thousandth of the distance that
+    frames a specimen in micrometres, which the default 1 cm would clip away)"""
     shown: tuple[int, int] = (-1, -1)
     """(camera id, scene version) of the last frame rendered for this viewer"""
     sending: asyncio.Task | None = None
@@ -135,7 +138,7 @@ class Viewer:
         w, h = self.eye_size()
         try:
             self.camera = Camera(position=msg.position, look_at=msg.look_at, up=msg.up, fov_y=msg.fov, width=w,
-                                 height=h)
+                                 height=h, near=self.near)
         except VolrenError as exc:
             raise ProtocolError(f"camera: {exc}") from None
         self.camera_id = msg.id
@@ -215,6 +218,8 @@ class ViewerSet:
 
     per_client: int | None = None
     """viewers one address may hold (None: no limit of its own)"""
+    near: float = Camera.near
+    """[m] each viewer's `Viewer.near`: the served camera's"""
 
     def add(self, send: Any, text: Any = None, client: str = "") -> Viewer:
         if len(self.viewers) >= self.limit:
@@ -222,7 +227,7 @@ class ViewerSet:
         if self.per_client is not None and sum(v.client == client for v in self.viewers.values()) >= self.per_client:
             raise ProtocolError(f"server full for {client}: {self.per_client} viewers connected from that address "
                                 "(--max-viewers-per-client)")
-        v = Viewer(self.next_id, send, text, client=client)
+        v = Viewer(self.next_id, send, text, client=client, near=self.near)
         self.viewers[v.id] = v
         self.next_id += 1
         return v
