@@ -654,6 +654,7 @@ def flame_defaults(volumes: tuple, lights, environment) -> tuple:
 def emission_reading(args: argparse.Namespace, scene) -> dict:
     """stats.json's ``emission_grid`` for a file's emission grid, and one line on stdout: how its values became
     temperatures (kelvin, relative, or relative by --temperature-range) and the emission scale; nothing without."""
+    from volren.blackbody import FLAME_CONTRAST
 
     volume = next((v for v in scene.volumes if v.emission_grid is not None), None)
     if getattr(args, "volume", None) is None or volume is None:
@@ -672,8 +673,9 @@ def emission_reading(args: argparse.Namespace, scene) -> dict:
         reading, said = "relative", f"as relative (values {values[0]:.4g}..{values[1]:.4g}), mapped to {k0:g}..{k1:g} K"
         kelvin = [k0, k1]
     given = args.emission_scale is not None
+    rule = "--emission-scale" if given else f"default: the flame {FLAME_CONTRAST:g}x a lit white surface"
     print(f"volren: emission grid '{args.emission_grid}' read {said}; emission scale {volume.emission_scale:.4g} "
-          f"W/(m^3 sr) ({'--emission-scale' if given else 'default: the flame 4x a lit white surface'})")
+          f"W/(m^3 sr) ({rule})")
     return {"emission_grid": {"name": args.emission_grid, "reading": reading, "values": values, "kelvin": kelvin,
                               "temperature_range_given": args.temperature_range is not None,
                               "emission_scale": volume.emission_scale,
