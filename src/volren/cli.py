@@ -1205,7 +1205,10 @@ class RenderPlan:
         if self.animated and i:
             scene = scene_from_args(args, i / ANIMATION_FPS)
         if self.played is not None and i:  # the lights, geometry and environment stay the same objects
-            scene = dataclasses.replace(self.scene, volumes=_with_material(args, _file_scene(args, i).volumes))
+            volumes = _with_material(args, _file_scene(args, i).volumes)
+            if getattr(args, "emission_scale", None) is None:  # each frame's flame by its own grids, as frame 0's
+                volumes = flame_defaults(volumes, scene.lights, scene.environment)
+            scene = dataclasses.replace(self.scene, volumes=volumes)
         if self.walking and i:
             views = views_from_args(args, i / ANIMATION_FPS)
         if self.sequence is not None:
