@@ -260,3 +260,101 @@ def test_two_grid_vdb_renders_as_fire(capfd, tmp_path) -> None:
 def test_cli_refuses_fire_flags_that_would_do_nothing(capfd, tmp_path, argv, fragments) -> None:
     assert_error(capfd, ["render", *argv, "--width", "8", "--height", "8", "--views", "mono", "--device", "cpu",
                          "--out", tmp_path / "out"], *fragments)
+
+
+# ---------------------------------------------------------------- a loaded flame by default (issue 45 item 2)
+
+FLAME_N = 32
+FLAME_ARGS = ("--width", "64", "--height", "48", "--samples", "32", "--light-samples", "8", "--light-grid", "16",
+              "--device", "cpu", "--units", "m")
+CORE = (slice(20, 28), slice(28, 36))
+"""8 x 8 pixels in the middle of the flame's hot core (radius 0.5 m of the 2 m box, at its centre), default framing"""
+
+
+@pytest.fixture(scope="module")
+def flame_files(tmp_path_factory):
+    """A 2 m ball of thin soot (32^3) with a hot core, written by OpenVDB (zeros inactive): ``kelvin.vdb``'s
+    temperature grid holds 300 K (ambient) to 2500 K at the centre, ``relative.vdb``'s the same shape in 0..1."""
+    import os
+
+    from volren.bench.load import SYSTEM_PYTHON, openvdb_available, write_with_openvdb
+
+    if not openvdb_available():
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"{SYSTEM_PYTHON} cannot import pyopenvdb in CI: .ci/run installs python3-openvdb")
+        pytest.skip(f"{SYSTEM_PYTHON} cannot import pyopenvdb (apt-get install python3-openvdb)")
+    c = (np.arange(FLAME_N) + 0.5) * 2.0 / FLAME_N - 1.0
+    z, y, x = np.meshgrid(c, c, c, indexing="ij")
+    r = np.sqrt(x**2 + y**2 + z**2)
+    inside = r < 0.8
+    density = np.where(inside, 0.15, 0.0).astype(np.float32)
+    hot = np.clip(1.0 - r / 0.5, 0.0, 1.0) ** 0.5
+    hot /= hot.max()
+    voxel = np.diag([2.0 / FLAME_N] * 3 + [1.0]).tolist()
+    folder = tmp_path_factory.mktemp("flame")
+    grids = {"kelvin.vdb": np.where(inside, 300.0 + 2200.0 * hot, 0.0), "relative.vdb": np.where(inside, hot, 0.0)}
+    write_with_openvdb({name: [{"name": "density", "array": density, "matrix": voxel},
+                               {"name": "temperature", "array": t.astype(np.float32), "matrix": voxel}]
+                        for name, t in grids.items()}, folder)
+    return folder
+
+
+def _flame(capfd, out, path, *extra) -> tuple[np.ndarray, str, dict]:
+    """The linear image, stdout and stats.json of a dssrm render of ``path``."""
+    from test_cli import ok, stats_of
+
+    r = ok(capfd, "render", *FLAME_ARGS, "--views", "mono", "--save-linear", "--out", out, "--volume", path, *extra)
+    return np.load(out / "view0.npy"), r.out, stats_of(out)
+
+
+def _srgb(image: np.ndarray) -> np.ndarray:
+    from volren.imageio import to_srgb8
+
+    return to_srgb8(image[..., :3]).astype(np.float64)
+
+
+@pytest.mark.parametrize("name", ["kelvin.vdb", "relative.vdb"])
+def test_emission_grid_alone_makes_a_flame_glow(capfd, tmp_path, flame_files, name: str) -> None:
+    """``--emission-grid temperature`` and nothing else: the default emission scale (the hottest radiance through
+    the flame 4x a white surface facing the light) makes the core far brighter than the lit soot without it (mean
+    over the core > 30/255 in the PNG's values; it was 0.03/255 at scale 1), and warm: R > G > B."""
+    plain, _, _ = _flame(capfd, tmp_path / "plain", flame_files / name)
+    fire, said, stats = _flame(capfd, tmp_path / "fire", flame_files / name, "--emission-grid", "temperature")
+    difference = (_srgb(fire) - _srgb(plain))[CORE]
+    assert difference.mean() > 30, difference.mean()
+    r, g, b = fire[24, 32, :3]
+    assert r > g > b and r > 2 * plain[24, 32, 0]
+    assert stats["emission_grid"]["emission_scale_rule"] == "flame" and "emission scale" in said
+
+
+def test_kelvin_grid_is_read_as_kelvin_and_the_range_overrides(capfd, tmp_path, flame_files) -> None:
+    """A grid of 300..2500 K is read as kelvin (said on one line, recorded in stats.json); --temperature-range
+    1000,3000 reads it as relative instead (its 2500 K core then at 3000 K): the kelvin core is the more orange, G / R
+    lower. A 0..1 grid reads as relative, mapped to 1000..3000 K."""
+    kelvin, said, stats = _flame(capfd, tmp_path / "k", flame_files / "kelvin.vdb", "--emission-grid", "temperature")
+    assert "read as kelvin (300..2500 K)" in said
+    entry = stats["emission_grid"]
+    assert entry["reading"] == "kelvin" and entry["kelvin"] == pytest.approx([300.0, 2500.0], rel=1e-6)
+    mapped, said, stats = _flame(capfd, tmp_path / "m", flame_files / "kelvin.vdb", "--emission-grid", "temperature",
+                                 "--temperature-range", "1000,3000")
+    assert "read as relative (--temperature-range), mapped to 1000..3000 K" in said
+    assert stats["emission_grid"]["reading"] == "relative" and stats["emission_grid"]["temperature_range_given"]
+    orange, yellow = kelvin[24, 32, :3], mapped[24, 32, :3]
+    assert orange[1] / orange[0] < 0.85 * yellow[1] / yellow[0]
+    _, said, stats = _flame(capfd, tmp_path / "r", flame_files / "relative.vdb", "--emission-grid", "temperature")
+    assert "read as relative (values" in said and "mapped to 1000..3000 K" in said
+    assert stats["emission_grid"]["reading"] == "relative" and stats["emission_grid"]["kelvin"] == [1000.0, 3000.0]
+
+
+def test_kelvin_rule() -> None:
+    """Kelvin when the positive values run from >= 200 K to a hottest in 500..10000 K; zeros and negatives (inactive,
+    nothing emitted) are left out; a 0..1 grid, a heat grid reaching down to ~0, and one beyond 10,000 are relative."""
+    from volren.blackbody import kelvin_span
+
+    assert kelvin_span(np.array([0.0, 300.0, 2500.0, -5.0])) == (300.0, 2500.0)
+    assert kelvin_span(np.array([250.0, 600.0])) == (250.0, 600.0)
+    assert kelvin_span(np.array([0.0, 0.2, 1.0])) is None
+    assert kelvin_span(np.array([0.5, 2000.0])) is None
+    assert kelvin_span(np.array([300.0, 12000.0])) is None
+    assert kelvin_span(np.array([300.0, 450.0])) is None
+    assert kelvin_span(np.zeros(4)) is None

@@ -48,12 +48,19 @@ def volume_from_file(loaded: LoadedVolume, name: str, **material: Any) -> Volume
     """A loaded file as a Volume (`volren load`, ``volren render --volume``): its placement, its emission grid, and
     its value range when that is Hounsfield units (CT transfer functions classify by HU; a constant file, lo = hi,
     has no HU scale). Without a ``density_scale`` in ``material`` it is `box_density_scale` (its box sets its
-    opacity, whatever the file's units); given, it is per metre as everywhere."""
+    opacity, whatever the file's units); given, it is per metre as everywhere. An emission grid whose values look like
+    kelvin (`volren.blackbody.kelvin_span`) is read as kelvin, temperature range (0, its hottest): T = v; else its
+    values are relative, 0+ to max at 1000-3000 K."""
+    from volren.blackbody import kelvin_span
     from volren.scene import Volume
 
     hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
     if material.get("density_scale") is None:
         material["density_scale"] = box_density_scale(loaded.to_world)
+    if loaded.emission_source is not None and "temperature_range" not in material:
+        span = kelvin_span(loaded.emission_source)
+        if span is not None:
+            material = {**material, "temperature_range": (0.0, span[1])}
     return Volume(loaded.density, loaded.to_world, name=name, value_range=loaded.value_range if hu else None,
                   emission_grid=loaded.emission_source, **material)
 

@@ -243,12 +243,16 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     mat.add_argument("--emission", type=rgb, help="emitted radiance per unit density per metre: e or r,g,b, >= 0 "
                      "(default: the scene's)")
     mat.add_argument("--emission-grid", help=".vdb files: a second grid (e.g. temperature, heat, flame) that emits "
-                     "blackbody radiance where the density is > 0 (default: none)")
+                     "blackbody radiance where the density is > 0; read as kelvin when its positive values run from "
+                     ">= 200 to a hottest in 500..10000, else as relative (default: none)")
     mat.add_argument("--temperature-range", type=kelvin_range, help="K0,K1: kelvin of the emission grid's values "
-                     "0+ and max (linear between; values <= 0 emit nothing), 0 < K0 < K1 (default: the scene's, "
-                     "else 1000,3000)")
+                     "0+ and max (linear between; values <= 0 emit nothing), 0 < K0 < K1; given, the grid is read as "
+                     "relative (default: the scene's; a file's grid read as kelvin: its values; else 1000,3000)")
     mat.add_argument("--emission-scale", type=float, help="luminance Y [W/(m^3 sr)] of the blackbody radiance "
-                     "emitted per metre at K1, >= 0 (default: the scene's, else 1)")
+                     "emitted per metre at the hottest value, >= 0 (default: the scene's; a file's: 4 W sigma / "
+                     "(1 - exp(-sigma d)), W = sum(Y(light irradiance)) / pi + Y(ambient), d and sigma the thickness "
+                     "and extinction of the flame's hot region: its core 4x as bright as a white surface facing the "
+                     "light)")
     mat.add_argument("--light-dir", type=vec3, help="direction the light travels: x,y,z, not zero (default: the "
                      "scene's)")
     mat.add_argument("--light-irradiance", type=rgb, help="directional light irradiance [W/m^2]: e or r,g,b, >= 0 "
@@ -622,8 +626,63 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
         else:
             environment = Environment(image=load_image(args.environment)[..., :3])
     background = args.background if args.background is not None else scene.background
+    if getattr(args, "volume", None) is not None and getattr(args, "emission_scale", None) is None:
+        volumes = flame_defaults(volumes, lights, environment)
     return dataclasses.replace(scene, volumes=volumes, lights=tuple(lights), environment=environment,
                                background=background, opaque=tuple(opaque))
+
+
+def flame_defaults(volumes: tuple, lights, environment) -> tuple:
+    """A file's volumes with the default emission scale of their emission grids (`flame_emission_scale`, relative
+    to the white W = sum(Y(directional irradiance)) / pi + Y(mean environment radiance) of these lights; W = 3 / pi,
+    the default light's, where there is no light)."""
+    import numpy as np
+
+    from volren.blackbody import flame_emission_scale, luminance
+    from volren.scene import DirectionalLight
+
+    white = sum(float(luminance(lt.irradiance)) for lt in lights if isinstance(lt, DirectionalLight)) / math.pi
+    white += float(luminance(environment.mean_radiance()))
+    white = white if white > 0 else float(luminance(DirectionalLight().irradiance)) / math.pi
+    out = []
+    for v in volumes:
+        if v.emission_grid is not None:
+            voxel = abs(float(np.linalg.det(v.to_world[:3, :3]))) * 8.0 / v.density.size
+            scale = flame_emission_scale(v.emission_u, v.density, v.density_scale, *v.temperature_range, voxel, white)
+            v = dataclasses.replace(v, emission_scale=scale)
+        out.append(v)
+    return tuple(out)
+
+
+def emission_reading(args: argparse.Namespace, scene) -> dict:
+    """stats.json's ``emission_grid`` for a file's emission grid, and one line on stdout: how its values became
+    temperatures (kelvin, relative, or relative by --temperature-range) and the emission scale; nothing without."""
+    from volren.blackbody import FLAME_CONTRAST
+
+    volume = next((v for v in scene.volumes if v.emission_grid is not None), None)
+    if getattr(args, "volume", None) is None or volume is None:
+        return {}
+    grid = volume.emission_grid
+    positive = grid[grid > 0]
+    values = [float(positive.min()), float(positive.max())] if positive.size else [0.0, 0.0]
+    k0, k1 = volume.temperature_range
+    if args.temperature_range is not None:
+        reading, said = "relative", f"as relative (--temperature-range), mapped to {k0:g}..{k1:g} K"
+        kelvin = [k0, k1]
+    elif k0 == 0:
+        reading, said = "kelvin", f"as kelvin ({values[0]:.4g}..{values[1]:.4g} K)"
+        kelvin = values
+    else:
+        reading, said = "relative", f"as relative (values {values[0]:.4g}..{values[1]:.4g}), mapped to {k0:g}..{k1:g} K"
+        kelvin = [k0, k1]
+    given = args.emission_scale is not None
+    rule = "--emission-scale" if given else f"default: the flame {FLAME_CONTRAST:g}x a lit white surface"
+    print(f"volren: emission grid '{args.emission_grid}' read {said}; emission scale {volume.emission_scale:.4g} "
+          f"W/(m^3 sr) ({rule})")
+    return {"emission_grid": {"name": args.emission_grid, "reading": reading, "values": values, "kelvin": kelvin,
+                              "temperature_range_given": args.temperature_range is not None,
+                              "emission_scale": volume.emission_scale,
+                              "emission_scale_rule": "--emission-scale" if given else "flame"}}
 
 
 OPAQUE_VOXEL_DEPTH = 100.0
@@ -1201,7 +1260,10 @@ class RenderPlan:
         if self.animated and i:
             scene = scene_from_args(args, i / ANIMATION_FPS)
         if self.played is not None and i:  # the lights, geometry and environment stay the same objects
-            scene = dataclasses.replace(self.scene, volumes=_with_material(args, _file_scene(args, i).volumes))
+            volumes = _with_material(args, _file_scene(args, i).volumes)
+            if getattr(args, "emission_scale", None) is None:  # each frame's flame by its own grids, as frame 0's
+                volumes = flame_defaults(volumes, scene.lights, scene.environment)
+            scene = dataclasses.replace(self.scene, volumes=volumes)
         if self.walking and i:
             views = views_from_args(args, i / ANIMATION_FPS)
         if self.sequence is not None:
@@ -1259,6 +1321,7 @@ def plan_render(args: argparse.Namespace, method: str) -> RenderPlan:
     occluder_depth = depth_images_from_args(args, len(views))
     renderer = renderer_from_args(args, method)
     value_mapping |= iso_value_from_data(args, scene, renderer)
+    value_mapping |= emission_reading(args, scene)
     from volren.device import check_allocation
 
     check_allocation(estimate_memory(args, scene, views, method), renderer.device,

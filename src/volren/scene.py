@@ -128,7 +128,8 @@ class Volume:
     """[z, y, x] source of blackbody emission, the density's shape (module docstring, "Fire"): a value v > 0 is at
     K0 + (K1 - K0) v / max(v) kelvin (``temperature_range``); v <= 0 emits nothing. None: no fire."""
     temperature_range: tuple[float, float] = (1000.0, 3000.0)
-    """[K] (K0, K1), 0 < K0 < K1: the temperatures of ``emission_grid``'s values 0+ and max"""
+    """[K] (K0, K1), 0 <= K0 < K1: the temperatures of ``emission_grid``'s values 0+ and max; (0, max(v)) reads the
+    values as kelvin, T = v (a loaded grid whose values look like kelvin, `volren.blackbody.kelvin_span`)"""
     emission_scale: float = 1.0
     """[W/(m^3 sr)] the luminance Y of the blackbody radiance emitted per metre at K1 (`volren.blackbody`)"""
 
@@ -172,9 +173,9 @@ class Volume:
                 raise VolrenError(f"volume '{self.name}': emission grid must hold finite real numbers")
             object.__setattr__(self, "emission_grid", np.ascontiguousarray(grid, dtype=np.float32))
         k = tuple(float(v) for v in np.asarray(self.temperature_range, dtype=np.float64).reshape(-1))
-        if len(k) != 2 or not all(np.isfinite(k)) or not 0 < k[0] < k[1]:
+        if len(k) != 2 or not all(np.isfinite(k)) or not 0 <= k[0] < k[1]:
             raise VolrenError(f"volume '{self.name}': temperature range must be two finite kelvin values "
-                              f"0 < K0 < K1, got {self.temperature_range}")
+                              f"0 < K0 < K1 (K0 = 0: the values are kelvin), got {self.temperature_range}")
         object.__setattr__(self, "temperature_range", k)
         if not (np.isfinite(self.emission_scale) and self.emission_scale >= 0):
             raise VolrenError(f"volume '{self.name}': emission scale must be a finite number >= 0, got "
