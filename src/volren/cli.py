@@ -722,8 +722,8 @@ def warn_density(volumes: tuple, transfer: bool) -> None:
 def warn_empty_render(plan, frame) -> None:
     """One line when a --volume's render shows nothing (alpha under `EMPTY_ALPHA` in every view) though its box's
     optical depth is not under `THIN_BOX_DEPTH` (`warn_density` said why then; a density_scale of 0 asks for
-    nothing; or a line was said already): the camera misses its box or the volume is too thin, and what to set for
-    each."""
+    nothing; or a line was said already) and no transfer function chose what shows: the camera misses its box or the
+    volume is too thin, and what to set for each."""
     import numpy as np
 
     from volren._api import box_longest_side
@@ -733,6 +733,8 @@ def warn_empty_render(plan, frame) -> None:
         return  # a line said already (an --iso-value outside the data, ...) says it best: one line
     if getattr(plan.renderer.config, "mode", "dvr") not in ("dvr", "mida"):
         return  # iso and mip show what their value and maximum make of it, not the density's opacity
+    if getattr(plan.renderer.config, "transfer", None) is not None:
+        return  # the transfer function chose what shows (ct-bone on a CT without bone is rightly empty)
     v = volumes[0]
     depth = float(v.density.max()) * v.density_scale * box_longest_side(v.to_world)
     if depth < THIN_BOX_DEPTH or max(float(np.max(im[..., 3])) for im in frame.images) >= EMPTY_ALPHA:
