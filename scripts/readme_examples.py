@@ -75,6 +75,9 @@ def stand_ins(folder: Path, width: int = 640, height: int = 360) -> None:
     cells = (np.stack([np.exp(-((x - cx) ** 2 + (y - 12) ** 2 + (z - 8) ** 2) / 20.0) for cx in (8, 16)]) * 3000
              ).astype(np.uint16)  # (C, Z, Y, X), 12-bit
     tifffile.imwrite(folder / "cells.tif", cells.transpose(1, 0, 2, 3), imagej=True, metadata={"axes": "ZCYX"})
+    ball = (np.exp(-((x - 12) ** 2 + (y - 12) ** 2 + (z - 8) ** 2) / 30.0) * 4000).astype(np.uint16)  # 12-bit
+    tifffile.imwrite(folder / "beads.tif", ball, imagej=True, resolution=(2.0, 2.0),  # 0.5 um pixels, 1 um slices
+                     metadata={"axes": "ZYX", "spacing": 1.0, "unit": "um"})
     with warnings.catch_warnings():  # ome-zarr 0.18 warns of its own default Scaler even given scale_factors
         warnings.simplefilter("ignore", DeprecationWarning)
         write_image(cells, zarr.open_group(str(folder / "cells.zarr"), mode="w"), axes="czyx", scale_factors=(2,),
@@ -83,7 +86,8 @@ def stand_ins(folder: Path, width: int = 640, height: int = 360) -> None:
     voxel = np.diag([2 / 32, 2 / 32, 2 / 32, 1.0]).tolist()
     shutil.copytree(ROOT / "examples", folder / "examples", dirs_exist_ok=True)  # the job files, as in a checkout
     write_with_openvdb({"fire.vdb": [{"name": "density", "array": soot, "matrix": voxel},
-                                     {"name": "temperature", "array": 2000.0 * temperature, "matrix": voxel}],
+                                     {"name": "temperature", "array": 300.0 + 2200.0 * temperature,  # kelvin
+                                      "matrix": voxel}],
                         "explosion.vdb": [{"name": "density", "array": head, "matrix": voxel}]}, folder)
 
 
