@@ -216,3 +216,25 @@ def test_show_displays_what_save_writes(count, written, tmp_path, monkeypatch):
     assert [where for where, _ in shown] == ["viewer", "notebook"]
     for _, pixels in shown:
         np.testing.assert_array_equal(pixels, saved)
+
+
+def test_reprs_summarise_instead_of_printing_arrays():
+    """Issue 42 item 2: the repr of a Volume, a Scene and a Frame is a one-line summary (shape, dtype, world box,
+    density range, opacity; views, sizes, method), not their arrays (a 48^3 volume's repr was 1,936 characters)."""
+    import numpy as np
+
+    import volren as vr
+
+    d = np.zeros((48, 40, 32), np.float32)
+    d[20:28, 16:24, 12:20] = 0.5
+    vol = vr.Volume(d, to_world=np.diag([3e-6, 4e-6, 5e-6, 1.0]), density_scale=2e5, name="cells",
+                    value_range=(-1000.0, 40.0))
+    text = repr(vol)
+    assert text == ("Volume('cells', 32x40x48 float32 (x, y, z), box 6e-06 x 8e-06 x 1e-05 m at (0, 0, 0), "
+                    "density 0..0.5, density_scale 2e+05 /m, HU -1000..40)"), text
+    scene = vr.Scene([vol], name="lab")
+    assert repr(scene) == f"Scene('lab', volumes=[{text}], 1 light(s))"
+    frame = vr.render(scene, vr.Camera(position=(0, 0, 3e-5), width=16, height=12), method="dssrm")
+    assert repr(frame).startswith("Frame(1 view(s) 16x12, dssrm on cpu, ") and repr(frame).endswith(
+        "ms, frame 0, scene 'lab')"), repr(frame)
+    assert "\n" not in repr(scene) + repr(frame)

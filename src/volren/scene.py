@@ -163,6 +163,21 @@ class Volume:
             raise VolrenError(f"volume '{self.name}': emission must be >= 0, got {emission}")
         object.__setattr__(self, "emission", emission)
 
+    def __repr__(self) -> str:
+        """A summary, not the voxels (issue 42: a 48^3 volume's repr was 1,936 characters of array)."""
+        nx, ny, nz = self.resolution
+        size = 2.0 * np.linalg.norm(self.to_world[:3, :3], axis=0)
+        centre = ", ".join(f"{c:.3g}" for c in self.center_world)
+        lo, hi = float(self.density.min()), float(self.density.max())
+        parts = [f"{self.name!r}", f"{nx}x{ny}x{nz} {self.density.dtype} (x, y, z)",
+                 f"box {' x '.join(f'{e:.3g}' for e in size)} m at ({centre})", f"density {lo:.3g}..{hi:.3g}",
+                 f"density_scale {self.density_scale:.4g} /m"]
+        if self.value_range is not None:
+            parts.append(f"HU {self.value_range[0]:g}..{self.value_range[1]:g}")
+        if self.emission_grid is not None:
+            parts.append(f"fire {self.temperature_range[0]:g}..{self.temperature_range[1]:g} K")
+        return f"Volume({', '.join(parts)})"
+
     def _check_fire(self) -> None:
         if self.emission_grid is not None:
             grid = np.asarray(self.emission_grid)
@@ -552,6 +567,14 @@ class Scene:
     """opaque diffuse surfaces, ray-traced into a colour + depth buffer per view that clips the volumes"""
     fog: Fog | None = None
     """participating media of the froxel fog method (a fog scene may have no volumes)"""
+
+    def __repr__(self) -> str:
+        """A summary: its name, each volume's (`Volume.__repr__`), what else it holds by count."""
+        volumes = ", ".join(repr(v) for v in self.volumes[:4]) + (f", ... ({len(self.volumes)})"
+                                                                  if len(self.volumes) > 4 else "")
+        extra = [f"{len(self.lights)} light(s)"] + ([f"{len(self.opaque)} opaque"] if self.opaque else []) + (
+            ["fog"] if self.fog is not None else [])
+        return f"Scene({self.name!r}, volumes=[{volumes}], {', '.join(extra)})"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "volumes", tuple(self.volumes))

@@ -74,6 +74,13 @@ class Frame:
     scene_name: str = "scene"
     """the scene's name, stats.json's ``scene``"""
 
+    def __repr__(self) -> str:
+        """A summary, not the pixels: views and their size, method, device, time, scene."""
+        sizes = sorted({f"{im.shape[1]}x{im.shape[0]}" for im in self.images})
+        total = sum(self.stats.times_ms.values())
+        return (f"Frame({len(self.images)} view(s) {', '.join(sizes)}, {self.stats.method} on {self.stats.device}, "
+                f"{total:.1f} ms, frame {self.index}, scene {self.scene_name!r})")
+
     def save(self, out: str | Path, *, exposure: float = 0.0, tonemap: str = "none",
              linear: bool = False) -> list[Path]:
         """Write into folder ``out`` what ``volren render --out OUT`` writes for one frame (`volren.output`, the same
