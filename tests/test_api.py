@@ -62,22 +62,22 @@ def test_cli_name_lists_equal_their_sources():
 
 
 def test_public_names_are_their_modules_objects():
-    import volren.camera
-    import volren.render
-    import volren.render.frame
-    import volren.render.gi.ambient
-    import volren.render.marching.cacrm
-    import volren.scene
+    from volren.camera import Camera
+    from volren.render.frame import Frame
+    from volren.render.gi.ambient import GIConfig
+    from volren.render.marching.cacrm import CACRMConfig
+    from volren.scene import Scene, Volume
 
     assert dir(vr) == sorted(vr.__all__)
-    assert vr.Scene is volren.scene.Scene and vr.Volume is volren.scene.Volume
-    assert vr.Camera is volren.camera.Camera and vr.Frame is volren.render.frame.Frame
-    assert vr.CACRMConfig is volren.render.marching.cacrm.CACRMConfig
-    assert vr.GIConfig is volren.render.gi.ambient.GIConfig
-    assert vr.render is sys.modules["volren.render"] and callable(vr.render)  # the package, callable
-    # ... also where nothing imported the package yet: the first look-up does, loading Warp then
-    first = "import sys, volren as vr\nassert vr.render is sys.modules['volren.render'] and callable(vr.render)"
-    assert "warp" in loaded_after(first)
+    assert vr.Scene is Scene and vr.Volume is Volume
+    assert vr.Camera is Camera and vr.Frame is Frame
+    assert vr.CACRMConfig is CACRMConfig and vr.GIConfig is GIConfig
+    from volren._api import render
+
+    assert vr.render is render  # the function, though the renderer subpackage shares its name
+    # ... also where nothing imported the subpackage yet: the first call does, loading Warp then
+    first = "import volren as vr\nfrom volren._api import render\nassert vr.render is render"
+    assert "warp" not in loaded_after(first)
     assert vr.__version__ == importlib.metadata.version("volren")
     import volren.notebook
 
@@ -211,7 +211,7 @@ def test_show_displays_what_save_writes(count, written, tmp_path, monkeypatch):
     monkeypatch.setattr(Image.Image, "show", lambda image, *a, **k: shown.append(("viewer", np.asarray(image))))
     monkeypatch.setattr(IPython.display, "display", lambda image: shown.append(("notebook", np.asarray(image))))
     frame.show(exposure=1.0)
-    monkeypatch.setattr("volren.render.frame._in_notebook", lambda: True)
+    monkeypatch.setattr(sys.modules["volren.render.frame"], "_in_notebook", lambda: True)
     frame.show(exposure=1.0)
     assert [where for where, _ in shown] == ["viewer", "notebook"]
     for _, pixels in shown:
@@ -238,3 +238,19 @@ def test_reprs_summarise_instead_of_printing_arrays():
     assert repr(frame).startswith("Frame(1 view(s) 16x12, dssrm on cpu, ") and repr(frame).endswith(
         "ms, frame 0, scene 'lab')"), repr(frame)
     assert "\n" not in repr(scene) + repr(frame)
+
+
+def test_render_is_a_function_with_its_own_signature_and_help():
+    """Issue 42 item 2: `vr.render` is the API's function whatever imported the renderer subpackage of the same name:
+    `help` shows its signature and docstring (before: the package's docstring and ``(*args, **kwargs)``)."""
+    import inspect
+    import pydoc
+
+    import volren.render  # noqa: F401  (the import system binds the subpackage to volren.render: the function stays)
+    from volren.render import METHODS
+
+    assert inspect.isfunction(vr.render) and vr.render.__module__ == "volren._api"
+    assert list(inspect.signature(vr.render).parameters)[:4] == ["scene", "views", "method", "quality"]
+    text = pydoc.render_doc(vr.render, renderer=pydoc.plaintext)
+    assert "render(scene" in text and "One frame of" in text and "dssrm" in METHODS
+    assert sys.modules["volren.render"].__name__ == "volren.render" and "render" in dir(vr)

@@ -9,13 +9,17 @@ The public API (model: a thin ``__all__`` over private modules, as Newton and py
     frame.save("out")  # what `volren render` writes: view0.png, stats.json
 
 Every name is imported on first use (PEP 562), so ``import volren`` and ``volren --help`` load neither Warp nor
-numpy. ``volren.render`` is the renderer package and, called, the ``render`` function (`volren.render.__call__`):
-the subpackage's name is the API's verb.
+numpy. ``volren.render`` is the API's function (`volren._api.render`: ``help`` shows its signature and docstring),
+although the renderer subpackage has the same name: the import system binds a subpackage to its parent's
+attribute, so this package's class keeps that attribute a property (`_Package`); the subpackage is in
+``sys.modules["volren.render"]`` and ``from volren.render import ...`` reads it as ever.
 """
 
 from __future__ import annotations
 
 import importlib
+import sys
+import types
 from typing import Any
 
 _EXPORTS: dict[str, str] = {
@@ -23,7 +27,6 @@ _EXPORTS: dict[str, str] = {
     "load": "volren._api",
     "builtin_scene": "volren._api",
     "views": "volren._api",
-    "render": "volren.render",  # the package itself, callable (see the module docstring)
     "Renderer": "volren._api",
     "Scene": "volren.scene",
     "Volume": "volren.scene",
@@ -44,9 +47,9 @@ _EXPORTS: dict[str, str] = {
     "Viewer": "volren.notebook",
     "VolrenError": "volren.errors",
 }
-"""public name -> the module that defines it (a module of the name's own name: that module)"""
+"""public name -> the module that defines it"""
 
-__all__ = list(_EXPORTS)
+__all__ = [*_EXPORTS, "render"]
 
 
 def __getattr__(name: str) -> Any:
@@ -54,10 +57,27 @@ def __getattr__(name: str) -> Any:
     if module is None:
         raise AttributeError(f"module 'volren' has no attribute '{name}'")
     home = importlib.import_module(module)
-    value = home if module == f"volren.{name}" else getattr(home, name)
+    value = getattr(home, name)
     globals()[name] = value  # later look-ups skip this function
     return value
 
 
 def __dir__() -> list[str]:
     return sorted(__all__)
+
+
+class _Package(types.ModuleType):
+    """volren's module class: ``render`` is the API's function whatever the import system binds to it."""
+
+    @property
+    def render(self) -> Any:
+        from volren._api import render
+
+        return render
+
+    @render.setter
+    def render(self, subpackage: types.ModuleType) -> None:
+        """``import volren.render`` binds the subpackage here; it stays in sys.modules only."""
+
+
+sys.modules[__name__].__class__ = _Package

@@ -1,13 +1,5 @@
-"""Renderers, one module per method; `METHODS` maps the CLI's --method names to their classes.
-
-Called, this package is the public API's ``volren.render(scene, views, method=..., quality=..., **settings)``
-(`volren._api.render`): the import system binds the subpackage to the name ``volren.render``, where it would hide a
-function.
-"""
-
-import sys
-import types
-from typing import Any
+"""Renderers, one module per method; `METHODS` maps the CLI's --method names to their classes. (The public API's
+``volren.render`` is the function `volren._api.render`: see `volren`'s docstring.)"""
 
 from volren.render.base import Renderer
 from volren.render.fog.renderer import FogConfig, FogRenderer
@@ -27,15 +19,6 @@ METHODS: dict[str, tuple[type[Renderer], type]] = {
     "vpt": (VPT, VPTConfig),
 }
 
-
-class _CallablePackage(types.ModuleType):
-    def __call__(self, *args: Any, **kwargs: Any) -> Frame:
-        from volren._api import render
-
-        return render(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallablePackage
 
 __all__ = [
     "CACRM",
