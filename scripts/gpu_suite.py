@@ -101,7 +101,7 @@ def plan(out: Path, python: str = sys.executable) -> list[Step]:
 def check_plan(steps: list[Step], budget_s: int = BUDGET_S) -> list[str]:
     """What would waste device time: a step longer than one call, steps longer than the budget together, a bench
     suite, ``--repeats`` or ``--set`` key the suite does not take (each refused only once it runs)."""
-    from volren.bench import all_suites
+    from volren.bench.runner import all_suites
 
     problems = [f"{s.name}: limit {s.limit_s} s exceeds one call's {CALL_LIMIT_S} s" for s in steps
                 if not 0 < s.limit_s <= CALL_LIMIT_S]

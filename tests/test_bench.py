@@ -7,8 +7,8 @@ import re
 
 import pytest
 
-from volren.bench import run_suite
 from volren.bench.resolution import run_config
+from volren.bench.runner import run_suite
 
 
 def test_resolution_suite_rows_and_ratios():

@@ -9,7 +9,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from volren.bench import peers, run_suite
+from volren.bench import peers
+from volren.bench.runner import run_suite
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.errors import VolrenError

@@ -444,7 +444,8 @@ def test_twelve_bit_uint16_renders_as_its_float_twin(tmp_path: Path) -> None:
     says the mapping. 8-bit data keeps v / 255, 10-bit v / 1023; DICOM's BitsStored is used where stated."""
     import json
 
-    from volren.data.loaders import _Grid, _normalise
+    from volren.data.grid import Grid
+    from volren.data.loaders import _normalise
 
     z, y, x = np.mgrid[0:24, 0:24, 0:24] / 11.5 - 1
     ct = np.clip(4400 * (1 - 1.5 * (x**2 + y**2 + z**2)), 0, 4095).round().astype(np.uint16)
@@ -467,7 +468,7 @@ def test_twelve_bit_uint16_renders_as_its_float_twin(tmp_path: Path) -> None:
     for values, bits, top in (([0, 51], None, 255), ([3, 700], None, 1023), ([0, 700], 12, 4095),
                               ([0, 70000], None, 131071)):
         data = np.array(values, np.uint32 if max(values) > 65535 else np.uint16)
-        out, value_range = _normalise(_Grid(data, bits_stored=bits))
+        out, value_range = _normalise(Grid(data, bits_stored=bits))
         assert value_range == (0.0, top)
         np.testing.assert_allclose(out, data / top, rtol=1e-6)
 

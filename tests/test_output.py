@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 import volren.bench as bench
+import volren.bench.runner as runner
 import volren.output as output
 from volren.cli import main
 from volren.errors import VolrenError
@@ -71,7 +72,7 @@ def test_run_output_moves_in_only_when_complete(tmp_path):
 def test_bench_writes_to_out_bench_by_default(tmp_path, monkeypatch):
     suite = bench.Suite("tiny", "a one-row suite", lambda quick, device: {"rows": [{"n": 1}],
                                                                         "columns": [("n", "n", "d")]})
-    monkeypatch.setattr(bench, "all_suites", lambda: {"tiny": suite})
+    monkeypatch.setattr(runner, "all_suites", lambda: {"tiny": suite})
     monkeypatch.chdir(tmp_path)
     assert Path("out/bench") == bench.DEFAULT_OUT
     assert main(["bench", "tiny", "--quick", "--device", "cpu"]) == 0

@@ -137,7 +137,7 @@ def test_every_readme_line_parses_as_written():
 
 
 def test_every_readme_bench_line_names_a_suite():
-    from volren.bench import all_suites
+    from volren.bench.runner import all_suites
     from volren.cli import build_parser
 
     benches = [w[1:] for w in readme_commands() if w[1] == "bench"]

@@ -1458,7 +1458,7 @@ def bench_overrides(settings: list[str]) -> dict[str, Any]:
 
 
 def run_bench(args: argparse.Namespace) -> int:
-    from volren.bench import all_suites, run_suite
+    from volren.bench.runner import all_suites, run_suite
 
     if args.suite == "list":
         for name, suite in all_suites().items():

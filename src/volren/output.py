@@ -19,14 +19,16 @@ import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from skimage.transform import downscale_local_mean
 
 from volren.errors import VolrenError
 from volren.imageio import save_linear, save_png, save_side_by_side
-from volren.render.frame import Frame
+
+if TYPE_CHECKING:  # only named in annotations: Frame.save writes through this module, so no import back
+    from volren.render.frame import Frame
 
 # The names write_frame, write_stats, write_mp4 and ``volren compare``'s default heat map give a run's files, and
 # ``--workers``' manifest (`volren.distributed.engine`): a plain render there ends the batch it recorded.

@@ -219,13 +219,13 @@ def _units(ds) -> str:
 
 
 def read_dicom_series(folder: Path, member: Path | None = None):
-    """Read the series in ``folder`` as a ``volren.data.loaders._Grid`` (index -> LPS mm; values rescaled to
+    """Read the series in ``folder`` as a ``volren.data.grid.Grid`` (index -> LPS mm; values rescaled to
     float32, or the stored integers with their BitsStored where no rescale applies). With ``member`` (one of its
     files), read that file's series (its SeriesInstanceUID) and skip the folder's other series; without it, a folder
     of several series is refused."""
     import pydicom  # lazy: only DICOM users pay for the import
 
-    from volren.data.loaders import _Grid, _one_line
+    from volren.data.grid import Grid, one_line
 
     skipped: list[str] = []  # "name: why"
     series: dict[str, list[Path]] = {}  # SeriesInstanceUID -> its image files
@@ -253,7 +253,7 @@ def read_dicom_series(folder: Path, member: Path | None = None):
             ds = pydicom.dcmread(file)
             pixels = ds.pixel_array
         except Exception as exc:  # pydicom raises many kinds on corrupt or unsupported pixel data
-            skipped.append(f"{file.name}: unreadable pixel data ({_one_line(exc)})")
+            skipped.append(f"{file.name}: unreadable pixel data ({one_line(exc)})")
             continue
         frames += _frames(ds, pixels, file, folder)
         first = ds if first is None else first
@@ -307,7 +307,7 @@ def read_dicom_series(folder: Path, member: Path | None = None):
     if not units and all(f.slope == 1.0 and f.intercept == 0.0 for f in frames):
         # no rescale (MR, PET counts, ...): the stored integers, normalised by their BitsStored
         data = np.stack([f.pixels for f in frames])  # [z, y, x]: pixel_array is [row, column] = [y, x]
-        return _Grid(data, m, "LPS", 1e-3, bits_stored=int(first.get("BitsStored", 0) or 0) or None)
+        return Grid(data, m, "LPS", 1e-3, bits_stored=int(first.get("BitsStored", 0) or 0) or None)
     # float32: HU are exact
     data = np.stack([f.pixels.astype(np.float32) * np.float32(f.slope) + np.float32(f.intercept) for f in frames])
-    return _Grid(data, m, "LPS", 1e-3, rescale=True, units=units, source=stored.name)
+    return Grid(data, m, "LPS", 1e-3, rescale=True, units=units, source=stored.name)

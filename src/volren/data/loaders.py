@@ -23,6 +23,7 @@ import numpy as np
 import warp as wp
 
 from volren.data.dicom import is_dicom_file
+from volren.data.grid import Grid, one_line
 from volren.device import init_warp
 from volren.errors import VolrenError
 from volren.scene import validate_density
@@ -63,35 +64,6 @@ class TimePoint:
 
     def __str__(self) -> str:
         return f"{self.path} (time point {self.index})"
-
-
-@dataclass(frozen=True)
-class _Grid:
-    """What a reader found: the voxels, and where the file puts them (if it says)."""
-
-    data: np.ndarray
-    index_to_file: np.ndarray | None = None
-    """4x4: voxel index (i, j, k) = (x, y, z) to the file's coordinates; None when the file stores no placement."""
-    space: str = ""
-    """anatomical axis code of the file's coordinates ("LPS", "RAS", ...), "" for plain x, y, z."""
-    metres_per_unit: float | None = None
-    """the unit the file states, None when it states none (then millimetres are assumed)."""
-    rescale: bool = False
-    """min-max normalise floats too (DICOM Hounsfield units are floats that go below zero)."""
-    units: str = ""
-    """what the file says its values are: "HU", "Gy", "relative" (dose), "" when it says nothing."""
-    bits_stored: int | None = None
-    """the bits of an unsigned integer the file says are used (DICOM BitsStored); None: the data's own depth."""
-    source: str = ""
-    """the stored values' dtype when ``data`` holds them rescaled (DICOM, NIfTI scl_slope / scl_inter)."""
-    spacing_replaces: bool = False
-    """``spacing`` replaces the stored placement (ImageJ TIFF, NanoVDB) instead of being refused."""
-    level: int | None = None
-    """the OME-Zarr pyramid level read (`volren.data.omezarr`)."""
-    channel_colors: tuple[tuple[float, float, float], ...] = ()
-    """the file's own colour per channel (OME-Zarr ``omero``), () when it states none."""
-    emission: np.ndarray | None = None
-    """a second grid of an OpenVDB file (``emission_grid``), raw float32 values, the shape of ``data``."""
 
 
 @dataclass(frozen=True)
@@ -167,11 +139,7 @@ def _local_to_index(shape_zyx: tuple[int, ...]) -> np.ndarray:
     return m
 
 
-def _one_line(exc: BaseException) -> str:
-    return " ".join(f"{type(exc).__name__}: {exc}".split())
-
-
-def _normalise(grid: _Grid) -> tuple[np.ndarray, tuple[float, float] | None]:
+def _normalise(grid: Grid) -> tuple[np.ndarray, tuple[float, float] | None]:
     """Map the file's values to densities in [0, 1]. Returns the data and the values that 0 and 1 stand for (None
     when unchanged: floats are densities already).
 
@@ -250,7 +218,7 @@ def _read_raw(path: Path, shape: tuple[int, int, int] | None, dtype: str | None)
     return np.fromfile(path, dtype=dt).reshape(nz, ny, nx)  # x varies fastest on disk
 
 
-def _read_nrrd(path: Path) -> _Grid:
+def _read_nrrd(path: Path) -> Grid:
     """Placement from ``space directions`` (one row per axis, x first) and ``space origin``, or from ``spacings``."""
     import nrrd  # lazy: only NRRD users pay for the import
 
@@ -263,14 +231,14 @@ def _read_nrrd(path: Path) -> _Grid:
     elif header.get("spacings") is not None and len(header["spacings"]) == 3:
         m[:3, :3] = np.diag(np.asarray(header["spacings"], dtype=float))
     else:
-        return _Grid(data)
+        return Grid(data)
     if not np.all(np.isfinite(m)):
         raise VolrenError(f"{path}: the NRRD space directions / origin / spacings are not finite numbers")
     space = str(header.get("space", ""))
     space = _NRRD_SPACES.get(space.lower(), space.upper())
     units = {str(u).lower() for u in header.get("space units", [])}
     scale = _FILE_UNITS.get(units.pop()) if len(units) == 1 else None
-    return _Grid(data, m, space if len(space) == 3 and set(space) <= set(_ANATOMICAL_SIGNS) else "", scale)
+    return Grid(data, m, space if len(space) == 3 and set(space) <= set(_ANATOMICAL_SIGNS) else "", scale)
 
 
 def _nifti_shape(path: Path, image) -> tuple[int, ...]:
@@ -297,12 +265,12 @@ def nifti_time_points(path: Path) -> int:
     try:
         image = nib.load(str(path))
     except Exception as exc:  # nibabel's many kinds on a bad header
-        raise VolrenError(f"{path}: cannot read the file ({_one_line(exc)})") from None
+        raise VolrenError(f"{path}: cannot read the file ({one_line(exc)})") from None
     shape = _nifti_shape(path, image)
     return shape[3] if len(shape) == 4 else 0
 
 
-def _read_nifti(path: Path, time_point: int | None = None) -> _Grid:
+def _read_nifti(path: Path, time_point: int | None = None) -> Grid:
     """NIfTI stores ``[x, y, z]``; its affine (sform, else qform, as nibabel chooses) maps voxel (i, j, k) to RAS+.
     Voxels are read with scl_slope / scl_inter applied (integers without them unscaled, to keep their bit depth):
     stored unsigned CT values with scl_inter -1024 become Hounsfield units, which go below zero.
@@ -343,11 +311,11 @@ def _read_nifti(path: Path, time_point: int | None = None) -> _Grid:
         raise VolrenError(f"{path}: NIfTI data has {data.ndim} dimension(s) {data.shape}; volren needs 3D")
     unit = image.header.get_xyzt_units()[0]
     hu = "HU" if rescaled and data.size and float(data.min()) < 0 else ""  # like signed integers: CT
-    return _Grid(np.ascontiguousarray(data.transpose(2, 1, 0)), np.asarray(image.affine, dtype=float), "RAS",
+    return Grid(np.ascontiguousarray(data.transpose(2, 1, 0)), np.asarray(image.affine, dtype=float), "RAS",
                  _FILE_UNITS.get(unit), rescale=rescaled, units=hu, source=stored.name if rescaled else "")
 
 
-def _read_tiff(path: Path) -> _Grid:
+def _read_tiff(path: Path) -> Grid:
     """A multi-page TIFF stack (microscopy): pages are z, each page [y, x], turned upright (``_pages_to_grid``: row
     0 at the top, page 0 in front). Colour or multi-channel stacks are refused:
     volren renders one scalar channel. ImageJ stacks place the voxels: x/y size = 1 / XResolution, YResolution (pixels
@@ -365,16 +333,16 @@ def _read_tiff(path: Path) -> _Grid:
                           "[z, y, x] (or [c, z, y, x] with a C axis, e.g. an ImageJ hyperstack ZCYX)")
     data = _pages_to_grid(data)
     if not imagej:
-        return _Grid(data)
+        return Grid(data)
     unit = str(imagej.get("unit", "")).strip().lower()
     step = [den / num if num else float("inf") for num, den in resolution] + [float(imagej.get("spacing", 1.0))]
     if step == [1.0, 1.0, 1.0] and unit in ("", "pixel"):
-        return _Grid(data)
+        return Grid(data)
     if not all(np.isfinite(v) and v > 0 for v in step):
         raise VolrenError(f"{path}: the ImageJ voxel size {step} (1 / XResolution, 1 / YResolution, spacing) is not "
                           "three positive numbers; give --spacing x,y,z to replace it")
     m = _spacing_placement(data.shape[-3:], step, 1.0)  # ImageJ stores no origin: centred, in the file's unit
-    return _Grid(data, m, metres_per_unit=_FILE_UNITS.get(unit), spacing_replaces=True)
+    return Grid(data, m, metres_per_unit=_FILE_UNITS.get(unit), spacing_replaces=True)
 
 
 def _pages_to_grid(pages: np.ndarray) -> np.ndarray:
@@ -393,7 +361,7 @@ def _tiff_channels_first(data: np.ndarray, axes: str) -> np.ndarray:
     return data
 
 
-def _split_channels(path: Path, grid: _Grid) -> tuple[_Grid, tuple[_Grid, ...]]:
+def _split_channels(path: Path, grid: Grid) -> tuple[Grid, tuple[Grid, ...]]:
     """A (C, Z, Y, X) grid's channels, each min-max normalised by its own range (``rescale``), and channel 0 as the
     grid; a 3D grid (or one channel) unchanged with no channels."""
     if grid.data.ndim != 4:
@@ -427,7 +395,7 @@ def _active_index_bbox(volume: wp.Volume) -> tuple[np.ndarray, np.ndarray]:
     return bbox[:3].astype(np.int64), bbox[3:].astype(np.int64)
 
 
-def _read_nvdb(path: Path) -> _Grid:
+def _read_nvdb(path: Path) -> Grid:
     """Resample the first grid of a NanoVDB file densely over its active index bounding box (index i, j, k = x,
     y, z), on the CPU. Voxels outside the active set read as the grid's background value.
 
@@ -440,7 +408,7 @@ def _read_nvdb(path: Path) -> _Grid:
         volume = wp.Volume.load_from_nvdb(path.read_bytes(), device="cpu")
         grid_type = volume.get_grid_info().type_str
     except (RuntimeError, struct.error, ValueError) as exc:
-        raise VolrenError(f"{path}: not a readable NanoVDB file ({_one_line(exc)})") from None
+        raise VolrenError(f"{path}: not a readable NanoVDB file ({one_line(exc)})") from None
     if grid_type != "float":
         raise VolrenError(f"{path}: NanoVDB grid of type '{grid_type}' is not supported; volren needs a float grid")
     lo, hi = _active_index_bbox(volume)
@@ -455,26 +423,26 @@ def _read_nvdb(path: Path) -> _Grid:
     matrix = np.array(info.transform_matrix, dtype=np.float64).reshape(3, 3)
     translation = np.array(info.translation, dtype=np.float64)
     if np.array_equal(matrix, np.eye(3)) and not translation.any():
-        return _Grid(out.numpy())
+        return Grid(out.numpy())
     if not (np.all(np.isfinite(matrix)) and np.all(np.isfinite(translation))):
         raise VolrenError(f"{path}: the NanoVDB index-to-world transform is not finite numbers")
     m = np.eye(4)
     m[:3, :3] = matrix
     m[:3, 3] = matrix @ lo + translation  # dense index 0 is NanoVDB index lo
-    return _Grid(out.numpy(), m, spacing_replaces=True)
+    return Grid(out.numpy(), m, spacing_replaces=True)
 
 
-def _read_vdb(path: Path, grid: str | None = None, emission_grid: str | None = None) -> _Grid:
+def _read_vdb(path: Path, grid: str | None = None, emission_grid: str | None = None) -> Grid:
     """An OpenVDB file through tinyvdb (``volren.data.vdb``): the density grid over its active box, placed by its
     index-to-world map in metres (OpenVDB states no unit; ``units`` overrides), which ``spacing`` replaces as for
     NanoVDB; ``emission_grid`` densified over the same box."""
     from volren.data.vdb import read_vdb  # lazy: tinyvdb only for .vdb users
 
     vdb, emission = read_vdb(path, grid, emission_grid)
-    return _Grid(vdb.data, vdb.index_to_world, metres_per_unit=1.0, spacing_replaces=True, emission=emission)
+    return Grid(vdb.data, vdb.index_to_world, metres_per_unit=1.0, spacing_replaces=True, emission=emission)
 
 
-_READERS: dict[str, Callable[..., np.ndarray | _Grid]] = {
+_READERS: dict[str, Callable[..., np.ndarray | Grid]] = {
     ".npy": _read_npy,
     ".npz": _read_npz,
     ".nrrd": _read_nrrd,
@@ -612,7 +580,7 @@ def load_volume(
                         grid.level, grid.emission, mapping, grid.channel_colors if channels else ())
 
 
-def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None, **options: str | int) -> _Grid:
+def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None, **options: str | int) -> Grid:
     """``options``: the OpenVDB grid names (``grid``, ``emission_grid``), passed to the .vdb reader, or a 4-D
     NIfTI's ``time_point``, passed to the NIfTI reader."""
     if not path.exists():
@@ -635,8 +603,8 @@ def _read_file(path: Path, shape: tuple[int, int, int] | None, dtype: str | None
     except VolrenError:
         raise
     except Exception as exc:  # any parser failure on user data means an unreadable or corrupt file
-        raise VolrenError(f"{path}: cannot read the file ({_one_line(exc)})") from None
-    return grid if isinstance(grid, _Grid) else _Grid(grid)
+        raise VolrenError(f"{path}: cannot read the file ({one_line(exc)})") from None
+    return grid if isinstance(grid, Grid) else Grid(grid)
 
 
 def load_volume_file(

@@ -1,4 +1,4 @@
-"""Read an OME-Zarr multiscale image (NGFF 0.4 and 0.5) or a plain Zarr array as a ``_Grid`` for ``load_volume``.
+"""Read an OME-Zarr multiscale image (NGFF 0.4 and 0.5) or a plain Zarr array as a ``Grid`` for ``load_volume``.
 
 OME-Zarr (https://ngff.openmicroscopy.org/0.5/#multiscale-md): the group's ``multiscales[0]`` lists ``axes`` (name,
 type ``space`` / ``channel`` / ``time``, a unit such as ``micrometer``) and ``datasets`` finest first, each with
@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from volren.data.loaders import _Grid, _one_line
+from volren.data.grid import Grid, one_line
 from volren.errors import VolrenError, VolrenWarning
 
 DEFAULT_MEMORY_BUDGET = 1 << 30
@@ -96,7 +96,7 @@ def _choose_level(path: Path, shapes: list[tuple[int, ...]], level: int | None, 
     return min(fitting)
 
 
-def read_zarr(path: Path, *, level: int | None = None, memory_budget: float | None = None) -> _Grid:
+def read_zarr(path: Path, *, level: int | None = None, memory_budget: float | None = None) -> Grid:
     """The voxels of one pyramid level of an OME-Zarr image as ``[c,] z, y, x`` (a ``t`` axis of length 1 is
     dropped), placed by its coordinate transformations: index -> file coordinates in the axes' unit (or in metres
     where the spatial axes' units differ). A plain Zarr array is read as a ``.npy`` would be (no placement)."""
@@ -111,20 +111,20 @@ def read_zarr(path: Path, *, level: int | None = None, memory_budget: float | No
     try:
         node = zarr.open(str(path), mode="r")
     except Exception as exc:  # zarr raises several types for a folder that is no Zarr
-        raise VolrenError(f"{path}: not a readable Zarr store ({_one_line(exc)})") from None
+        raise VolrenError(f"{path}: not a readable Zarr store ({one_line(exc)})") from None
     if isinstance(node, zarr.Array):
         if level is not None:
             raise VolrenError(f"{path}: a plain Zarr array has no pyramid levels; --level applies to OME-Zarr")
-        return _Grid(np.asarray(node[...]))
+        return Grid(np.asarray(node[...]))
     try:
         return _read_multiscale(path, node, level, budget)
     except VolrenError:
         raise
     except Exception as exc:  # KeyError, TypeError, ValueError, ...: metadata that is not NGFF
-        raise VolrenError(f"{path}: malformed OME-Zarr metadata ({_one_line(exc)})") from None
+        raise VolrenError(f"{path}: malformed OME-Zarr metadata ({one_line(exc)})") from None
 
 
-def _read_multiscale(path: Path, group: Any, level: int | None, budget: float) -> _Grid:
+def _read_multiscale(path: Path, group: Any, level: int | None, budget: float) -> Grid:
     attrs = _attributes(group)
     if "multiscales" not in attrs:
         raise VolrenError(f"{path}: a Zarr group without OME-Zarr 'multiscales' metadata (arrays: "
@@ -184,7 +184,7 @@ def _read_multiscale(path: Path, group: Any, level: int | None, budget: float) -
     m[:3, :3] = np.diag(step)
     m[:3, 3] = origin
     colors = _omero_colors(attrs, data.shape[0]) if len(keep) == 4 else ()
-    return _Grid(data, m, IMAGE_SPACE, metres_per_unit, level=chosen, channel_colors=colors)
+    return Grid(data, m, IMAGE_SPACE, metres_per_unit, level=chosen, channel_colors=colors)
 
 
 def _fill(array: Any) -> float:
