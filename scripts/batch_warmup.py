@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import argparse
 
-from volren import cli
 from volren.metrics import psnr
+from volren.plan import plan_render, render_parser
 
 SMALL = ("--width", "64", "--height", "48", "--views", "mono", "--orbit", "30", "--frames", "48", "--max-minutes", "0")
 CASES = {
@@ -22,8 +22,8 @@ START, FRAMES = 24, 8
 
 
 def plan(case: str):
-    args = cli.build_parser().parse_args(["animate", *CASES[case], *SMALL])
-    return cli.plan_render(args, args.method)
+    args = render_parser().parse_args(["animate", *CASES[case], *SMALL])
+    return plan_render(args, args.method)
 
 
 def main() -> None:

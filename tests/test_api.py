@@ -46,19 +46,19 @@ for bad in (["render", "--method", "nope"], ["render", "--scene", "nope"], ["ren
 
 def test_cli_name_lists_equal_their_sources():
     """The parser's static name lists (kept so that building it imports nothing heavy) agree with the modules."""
-    from volren import cli
     from volren.data import BUILTIN_SCENES
     from volren.data.fog_scenes import FOG_SCENES
     from volren.imageio import TONEMAPS
+    from volren.plan import options
     from volren.render import METHODS
     from volren.render.gi.ambient import GI_METHODS
     from volren.transfer import PRESETS
 
-    assert tuple(METHODS) == cli.METHOD_NAMES
-    assert cli.GI_METHOD_NAMES == GI_METHODS
-    assert tuple(PRESETS) == cli.TF_PRESET_NAMES
-    assert cli.TONEMAPS == TONEMAPS
-    assert (*BUILTIN_SCENES, *FOG_SCENES) == cli.SCENE_NAMES
+    assert tuple(METHODS) == options.METHOD_NAMES
+    assert options.GI_METHOD_NAMES == GI_METHODS
+    assert tuple(PRESETS) == options.TF_PRESET_NAMES
+    assert options.TONEMAPS == TONEMAPS
+    assert (*BUILTIN_SCENES, *FOG_SCENES) == options.SCENE_NAMES
 
 
 def test_public_names_are_their_modules_objects():

@@ -368,16 +368,16 @@ def test_a_temporal_method_is_planned_as_one_frame_range_per_worker(tmp_path):
 def test_each_job_is_planned_once_in_process(tmp_path, monkeypatch, capfd):
     """The job file's checks plan every job (the CLI's checks and a probe render, `engine.plan_job`); the run uses
     those plans instead of making them again (it made two more per job, each with its probe render)."""
-    from volren import cli
+    from volren import plan
 
     made = []
-    real = cli.plan_render
+    real = plan.plan_render
 
     def counted(args, method):
         made.append(args.out)
         return real(args, method)
 
-    monkeypatch.setattr(cli, "plan_render", counted)
+    monkeypatch.setattr(plan, "plan_render", counted)
     path = job_file(tmp_path, "[sweep]\nlight-irradiance = [1, 4]\n")
     assert main(["batch", str(path)]) == 0
     assert sorted(map(str, made)) == sorted(str(tmp_path / "batch" / f"light-irradiance-{v}") for v in (1, 4))

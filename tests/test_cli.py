@@ -461,7 +461,8 @@ NEGATIVE_VECTORS = {
 
 
 def test_every_vector_option_takes_negative_components() -> None:
-    from volren.cli import build_parser, floats4, floats6, rgb, vec3
+    from volren.cli import build_parser
+    from volren.plan.argv import floats4, floats6, rgb, vec3
 
     parser = build_parser()
     render_parser = next(a for a in parser._actions if a.dest == "command").choices["render"]
@@ -602,10 +603,13 @@ def test_bench_dssrm_quick(capfd, tmp_path: Path) -> None:
 def test_memory_estimate_closed_form() -> None:
     """Device buffers 40 B/px, 20 B/px host copies per frame, cube maps 6 S0^2 x 24 B per view and volume, three
     fog froxel grids of ceil(W/tile) ceil(H/tile) (slices + 1) x 16 B per view."""
-    from volren.cli import build_parser, estimate_memory, scene_from_args, views_from_args
+    from volren.plan import render_parser
+    from volren.plan.render import estimate_memory
+    from volren.plan.scene import scene_from_args
+    from volren.plan.views import views_from_args
 
     def estimate(*argv: str) -> int:
-        args = build_parser().parse_args(["render", *TINY, *argv])
+        args = render_parser().parse_args(["render", *TINY, *argv])
         return estimate_memory(args, scene_from_args(args), views_from_args(args), args.method)
 
     assert estimate("--frames", "3") == 2 * W * H * (40 + 3 * 20)  # stereo
@@ -940,12 +944,13 @@ def test_one_dcm_file_renders_its_series(capfd, tmp_path: Path) -> None:
     """``--volume ct/im003.dcm`` reads the series in ct/ (issue 13 item 2): all 9 slices, the image of ``--volume
     ct``."""
     from test_loaders import write_dicom_series
-    from volren.cli import build_parser, scene_from_args
+    from volren.plan import render_parser
+    from volren.plan.scene import scene_from_args
 
     write_dicom_series(tmp_path / "ct", [(-12.0, -12.0, z) for z in np.arange(-12.0, 13.0, 3.0)], size=(16, 16),
                        spacing=(1.5, 1.5))
     file = tmp_path / "ct" / "im003.dcm"
-    assert scene_from_args(build_parser().parse_args(["render", "--volume", str(file)])).volumes[0].density.shape == (
+    assert scene_from_args(render_parser().parse_args(["render", "--volume", str(file)])).volumes[0].density.shape == (
         9, 16, 16)
     series = _linear_render(capfd, tmp_path / "dir", tmp_path / "ct")
     assert series[..., 3].max() > 0
@@ -971,7 +976,8 @@ def test_one_dcm_file_picks_its_series_among_several(tmp_path: Path) -> None:
     """A folder holding two series (as scanners export them): ``--volume ct/FILE.dcm`` reads FILE's series only; the
     folder itself stays refused, naming both series."""
     from test_loaders import write_dicom_series
-    from volren.cli import build_parser, scene_from_args
+    from volren.plan import render_parser
+    from volren.plan.scene import scene_from_args
 
     write_dicom_series(tmp_path / "ct", [(0, 0, z) for z in (0.0, 2.0, 4.0)], size=(4, 4), radius=1.0, series="1.2.3")
     write_dicom_series(tmp_path / "b", [(0, 0, z) for z in (0.0, 3.0)], size=(6, 5), radius=1.0, series="1.2.4")
@@ -979,7 +985,7 @@ def test_one_dcm_file_picks_its_series_among_several(tmp_path: Path) -> None:
         f.rename(tmp_path / "ct" / f"b{f.name}")
 
     def shape(path: Path) -> tuple[int, ...]:
-        return scene_from_args(build_parser().parse_args(["render", "--volume", str(path)])).volumes[0].density.shape
+        return scene_from_args(render_parser().parse_args(["render", "--volume", str(path)])).volumes[0].density.shape
 
     assert shape(tmp_path / "ct" / "im001.dcm") == (3, 4, 4)
     assert shape(tmp_path / "ct" / "bim001.dcm") == (2, 6, 5)
@@ -1253,17 +1259,18 @@ def test_vpt_tf_ct_bone_reads_hounsfield_units_of_a_signed_ct(capfd, tmp_path: P
     """An int16 CT of soft tissue (40 HU) in air (-1000 HU) holds no bone: under ct-bone it renders empty (alpha 0),
     although the loader maps 40 HU to density 1, where the preset's normalised form is bone. The scene's volume
     carries the HU range; a uint8 file's 0..255 is no HU, and a constant file has no scale: they carry none."""
-    from volren.cli import build_parser, scene_from_args
+    from volren.plan import render_parser
+    from volren.plan.scene import scene_from_args
 
     z, y, x = np.mgrid[0:16, 0:16, 0:16] / 7.5 - 1
     ct = np.where(x**2 + y**2 + z**2 < 0.5, 40, -1000).astype(np.int16)
     nrrd.write(str(tmp_path / "ct.nrrd"), ct, index_order="C")
     nrrd.write(str(tmp_path / "u8.nrrd"), ct.astype(np.uint8), index_order="C")
-    args = build_parser().parse_args(["render", "--volume", str(tmp_path / "ct.nrrd")])
+    args = render_parser().parse_args(["render", "--volume", str(tmp_path / "ct.nrrd")])
     assert scene_from_args(args).volumes[0].value_range == (-1000.0, 40.0)
     nrrd.write(str(tmp_path / "flat.nrrd"), np.full((4, 4, 4), 40, np.int16), index_order="C")
     for name in ("u8.nrrd", "flat.nrrd"):  # no HU; a constant CT has no HU scale
-        args = build_parser().parse_args(["render", "--volume", str(tmp_path / name)])
+        args = render_parser().parse_args(["render", "--volume", str(tmp_path / name)])
         assert scene_from_args(args).volumes[0].value_range is None
     for tf, empty in (("ct-bone", True), ("ct-muscle", False)):
         out = tmp_path / tf
@@ -1304,10 +1311,13 @@ def test_run_time_estimate_refuses_before_output(capfd, tmp_path: Path) -> None:
 
 
 def test_run_time_check_refuses_over_the_limit_and_passes_under_it() -> None:
-    from volren.cli import CliError, build_parser, check_run_time, scene_from_args, views_from_args
+    from volren.plan import CliError, render_parser
+    from volren.plan.render import check_run_time
+    from volren.plan.scene import scene_from_args
+    from volren.plan.views import views_from_args
 
     def check(*extra: str) -> None:
-        args = build_parser().parse_args(["render", "--views", "64", "--rig", "arc", "--width", "1280", "--height",
+        args = render_parser().parse_args(["render", "--views", "64", "--rig", "arc", "--width", "1280", "--height",
                                           "720", "--samples", "8", "--light-samples", "4",
                                           *extra])
         check_run_time(args, scene_from_args(args), views_from_args(args), "dssrm")

@@ -80,8 +80,8 @@ def test_a_density_that_renders_nothing_or_a_box_is_warned_of(capfd, tmp_path: P
 
 
 def test_builtin_scenes_get_no_density_warning(capsys) -> None:
-    from volren.cli import warn_density
     from volren.data import BUILTIN_SCENES, builtin_scene
+    from volren.plan.scene import warn_density
 
     for name in BUILTIN_SCENES:
         warn_density(builtin_scene(name, 64).volumes, transfer=False)
@@ -202,11 +202,12 @@ def test_a_corrupt_mesh_is_one_line_naming_its_cause(capfd, tmp_path: Path, name
 
 
 def test_the_cli_copies_of_fog_scene_names_and_the_pixel_cap_equal_their_sources() -> None:
-    from volren import camera, cli
+    from volren import camera
     from volren.data.fog_scenes import FOG_SCENES
+    from volren.plan import options
 
-    assert tuple(FOG_SCENES) == cli.FOG_SCENE_NAMES
-    assert cli.MAX_VIEW_PIXELS == camera.MAX_PIXELS
+    assert tuple(FOG_SCENES) == options.FOG_SCENE_NAMES
+    assert options.MAX_VIEW_PIXELS == camera.MAX_PIXELS
 
 
 def test_ctrl_c_while_the_cli_imports_is_one_line(monkeypatch, capsys) -> None:

@@ -11,10 +11,11 @@ import pytest
 
 from conftest import DEVICE
 from volren.camera import Camera
-from volren.cli import build_parser, renderer_from_args
 from volren.data import builtin_scene
 from volren.errors import VolrenError
 from volren.metrics import psnr
+from volren.plan import render_parser
+from volren.plan.renderer import renderer_from_args
 from volren.presets import QUALITIES, QUALITY_PRESETS, quality_config
 from volren.render import CMSRM, DSSRM, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
 from volren.upload import skip_grid
@@ -133,7 +134,7 @@ def test_presets_are_frozen_and_cover_every_method():
 
 def test_cli_quality_sets_the_preset_and_flags_override_it():
     def config(*argv):
-        args = build_parser().parse_args(["render", "--device", "cpu", *argv])
+        args = render_parser().parse_args(["render", "--device", "cpu", *argv])
         return renderer_from_args(args, args.method).config
 
     interactive = config("--quality", "interactive")

@@ -273,7 +273,7 @@ def _corners(to_world: np.ndarray) -> np.ndarray:
 def test_framing_distance_closed_form() -> None:
     """Cube [-1, 1]^3 seen along +z with a 90 degree square view: the near corners (z = 1, |x| = |y| = 1) need
     D = 1 + 1 / tan(45 deg) = 2, times the 10 % margin; a 2:1 image halves the x term; a stereo eye offset adds to x."""
-    from volren.cli import framing_distance
+    from volren.plan.views import framing_distance
 
     corners = _corners(np.eye(4))
     args = (corners, (0, 0, 0), np.array([0.0, 0.0, 1.0]), (0, 1, 0), 90.0)

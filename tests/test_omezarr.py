@@ -164,7 +164,7 @@ def test_cli_refuses_level_without_a_volume(tmp_path, capsys):
 ])
 def test_cli_memory_budget_that_would_do_nothing_is_one_line(tmp_path, capsys, flags, message):
     """--memory-budget beside --level did nothing, and 1e12 GiB was taken as given: one line each, exit 2."""
-    from volren.cli import host_memory
+    from volren.plan.volume import host_memory
 
     write_pyramid(tmp_path / "p.zarr")
     assert main(["render", "--volume", str(tmp_path / "p.zarr"), *flags, "--out", str(tmp_path / "o")]) == 2
@@ -233,10 +233,11 @@ def test_omero_channel_colours_are_the_default_and_the_flag_overrides_them(tmp_p
     meta["attributes"]["ome"]["omero"] = {"channels": [{"color": "00FFFF"}, {"color": "FF8000"}]}
     (path / "zarr.json").write_text(json.dumps(meta))
     assert load_volume(path).channel_colors == ((0.0, 1.0, 1.0), (1.0, 128 / 255, 0.0))
-    from volren.cli import build_parser, scene_from_args
+    from volren.plan import render_parser
+    from volren.plan.scene import scene_from_args
 
     for flags, blue0, green1 in (([], 1.0, 128 / 255), (["--channel-colors", "green,magenta"], 0.0, 0.0)):
-        vols = scene_from_args(build_parser().parse_args(["render", "--volume", str(path), *flags])).volumes
+        vols = scene_from_args(render_parser().parse_args(["render", "--volume", str(path), *flags])).volumes
         assert vols[0].emission[2] == pytest.approx(vols[0].density_scale * blue0)  # cyan / green
         assert vols[1].emission[1] == pytest.approx(vols[1].density_scale * green1)  # orange / magenta
 

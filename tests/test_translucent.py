@@ -190,13 +190,14 @@ def test_alpha_is_validated_and_other_methods_refuse():
 
 def test_mesh_alpha_option(tmp_path):
     """--mesh-alpha: none (opaque), one for every --mesh, one per --mesh; wrong counts and values refused."""
-    from volren.cli import CliError, build_parser, scene_from_args
+    from volren.plan import CliError, render_parser
+    from volren.plan.scene import scene_from_args
 
     path = tmp_path / "sheet.obj"
     path.write_text("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nf 1 2 3\nf 1 3 4\n")
 
     def alphas(*argv):
-        args = build_parser().parse_args(["render", "--scene", "cloud", "--resolution", "64", *map(str, argv)])
+        args = render_parser().parse_args(["render", "--scene", "cloud", "--resolution", "64", *map(str, argv)])
         return [o.alpha for o in scene_from_args(args).opaque if isinstance(o, TriangleMesh)]
 
     assert alphas("--mesh", path, "--mesh", path) == [1.0, 1.0]

@@ -157,3 +157,13 @@ def write_stats(out: Path, frames: list[Frame], extra: dict[str, Any]) -> Path:
     doc = {**extra, "frames": [{"index": f.index, **f.stats.to_dict()} for f in frames]}
     p.write_text(json.dumps(doc, indent=2, default=str) + "\n")
     return p
+
+
+def print_summary(method: str, scene: str, views: int, frames: int, wall: float, last, files: list,
+                  stats: Path) -> None:
+    """The lines a render ends with: what ran, the last frame's pass times and work, the files written."""
+    print(f"{method} on {last.device}: {views} view(s) of '{scene}', {frames} frame(s) in {wall:.2f} s")
+    print("  last frame, ms per pass: " + ", ".join(f"{k} {v:.1f}" for k, v in last.times_ms.items()))
+    print("  work: " + ", ".join(f"{k} {v:,}" for k, v in last.counters.items()))
+    shown = files if len(files) <= 8 else [*files[:6], f"... ({len(files) - 6} more)"]
+    print("  wrote " + ", ".join(str(f) for f in [*shown, stats]))

@@ -51,11 +51,12 @@ def _pngs(folder: Path) -> dict[str, bytes]:
 
 def in_process(argv: tuple[str, ...], threads: int | None) -> float:
     """[s] ``volren <argv>`` run in this process with ``threads`` CPU threads (None: all)."""
-    from volren.cli import build_parser, run_command
+    from volren.plan import plan_render, render_parser, render_plan
 
-    with cpu_thread_limit(threads), contextlib.redirect_stdout(io.StringIO()):  # not its summary amid the table
+    with cpu_thread_limit(threads), contextlib.redirect_stdout(io.StringIO()):  # not a line amid the table
         start = time.perf_counter()
-        run_command(build_parser().parse_args(list(argv)), "volren " + " ".join(argv))
+        args = render_parser().parse_args(list(argv))
+        render_plan(plan_render(args, args.method), "volren " + " ".join(argv))
         return time.perf_counter() - start
 
 

@@ -1,8 +1,8 @@
 """The batch engine: ``volren render|animate ... --workers N`` (or ``--ray-address ADDR``), and `run_jobs` for
-``volren batch``. Each job is a render or animate command line; the driver runs all its checks first (the CLI's
+``volren batch``. Each job is a render or animate command line; the driver runs all its checks first (the plan's
 `plan_render`, once, before Ray starts), splits its frames into work units (`Unit`: contiguous frames, every view of
 them: a stereo pair's eyes and a CACRM pair are never split), and hands the units to Ray actors, each holding one
-renderer (`volren.distributed.worker.UnitWorker`: the CLI's own functions rebuild the job from its argv, so the frames
+renderer (`volren.distributed.worker.UnitWorker`: the plan's functions rebuild the job from its argv, so the frames
 come from the same `RenderPlan.render` as in process). CUDA workers ask ``num_gpus`` = ``--gpus-per-worker``, CPU
 workers one CPU (and launch on one thread).
 
@@ -258,7 +258,7 @@ class JobState:
 
     def finish(self, extra: dict[str, Any]) -> list[Path]:
         """stats.json (and animate's animation.mp4) once every unit is complete; returns the files of the run."""
-        from volren.cli import frame_prefix
+        from volren.plan import frame_prefix
 
         entries = sorted(self.manifest["units"].values(), key=lambda e: e["frames"][0])
         frames = [s for e in entries for s in e["stats"]]
@@ -284,15 +284,15 @@ class JobState:
 
 
 def plan_job(index: int, job: Job, workers: int | None, unit_frames: int | None) -> JobState:
-    """A job's checks (the CLI's, in the driver, before any work) and its units."""
-    from volren import cli
+    """A job's checks (the plan's, in the driver, before any work) and its units."""
+    from volren.plan import plan_render, render_parser
 
     if not job.argv or job.argv[0] not in ("render", "animate"):
         raise VolrenError(f"a batch job is a render or animate command line, got '{' '.join(job.argv[:1])}'")
-    args = cli.build_parser().parse_args(list(job.argv))
+    args = render_parser().parse_args(list(job.argv))
     if Path(args.out) != Path(job.out):
         raise VolrenError(f"job {index}: its --out is {args.out}, not {job.out}")
-    plan = cli.plan_render(args, args.method)
+    plan = plan_render(args, args.method)
     volumes = len(plan.scene.volumes)
     warmup = warmup_frames(plan.renderer.config, volumes)
     frames = args.frames

@@ -39,8 +39,8 @@ manifest, so running the file again resumes where it stopped. The files are the 
 Everything is checked before any Ray start or render, each problem one `VolrenError` naming the file and the key:
 a file with no flag and no sweep, unknown keys (with the closest flag), wrong types, an empty [sweep] or axis, a flag
 two axes set, a top-level flag that every entry of an axis replaces, two jobs in one folder, and every
-expanded command line through the CLI's own parser and checks (`volren.cli.plan_render`, as ``volren render`` would
-run them).
+expanded command line through the plan's parser and checks (`volren.plan.plan_render`, as ``volren render``
+would run them).
 """
 
 from __future__ import annotations
@@ -112,9 +112,9 @@ class Flags:
     """The long flags of ``volren <command>`` and how each takes its value (argparse's own actions)."""
 
     def __init__(self, command: str) -> None:
-        from volren.cli import build_parser
+        from volren.plan import render_parser
 
-        parser = build_parser()
+        parser = render_parser()
         self.parser, self.command = parser, command
         sub = next(a for a in parser._actions if a.dest == "command").choices[command]
         self.actions: dict[str, argparse.Action] = {}
@@ -323,10 +323,10 @@ def _argv(flags: Flags, command: str, settings: dict[str, Setting], out: Path) -
 
 def _checked_job(fail, flags: Flags, command: str, settings: dict[str, Setting], out: Path, folder: str,
                  index: int, workers: int | None):
-    """The job of ``settings``, planned by the engine (`engine.plan_job`: the CLI's parser and every check
+    """The job of ``settings``, planned by the engine (`engine.plan_job`: the plan's parser and every check
     ``volren render`` makes before rendering, then its units); an error names the job-file key of the flag it is
     about."""
-    from volren import cli
+    from volren.plan import volume_sequence
 
     argv, origin = _argv(flags, command, settings, out)
 
@@ -341,7 +341,7 @@ def _checked_job(fail, flags: Flags, command: str, settings: dict[str, Setting],
     try:
         args = flags.parser.parse_args(argv)
         if all_frames:  # the sequence's length; one frame of a single volume file
-            played = cli.volume_sequence(args)
+            played = volume_sequence(args)
             argv[-2:-2] = ["--frames", str(1 if played is None else len(played))]
             args = flags.parser.parse_args(argv)
         return plan_job(index, Job(tuple(argv), out), workers, None)
@@ -398,10 +398,14 @@ def run_batch(args: argparse.Namespace) -> int:
               f"worker(s) (Ray start-up {report.ray_start_seconds:.1f} s): {report.units_run} unit(s) run, "
               f"{report.units_skipped} skipped, {report.units_retried} retried; index {index}")
         return 0
-    from volren.cli import run_render
+    from volren.output import print_summary
+    from volren.plan import render_plan
 
     for i, (folder, state) in enumerate(zip(batch.folders, batch.states, strict=True)):
         print(f"job {i + 1}/{len(batch.jobs)}: {folder}", file=sys.stderr)
-        run_render(state.plan.args, state.plan.args.method, "volren " + shlex.join(state.job.argv), plan=state.plan)
+        plan = state.plan
+        done = render_plan(plan, "volren " + shlex.join(state.job.argv))
+        print_summary(plan.method, plan.scene.name, len(plan.views), plan.args.frames, done.wall,
+                      done.frames[-1].stats, done.files, done.stats)
     print(f"{len(batch.jobs)} job(s) into {batch.out}; index {index}")
     return 0

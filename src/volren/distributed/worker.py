@@ -1,6 +1,6 @@
 """The batch engine's worker: one per Ray actor, holding one renderer (scene uploaded once, kernels loaded, light
-maps cached) for the job it last ran. It rebuilds everything from the job's command line with the CLI's own
-functions (`volren.cli.plan_render`), renders a unit's warm-up frames and then its frames through the same
+maps cached) for the job it last ran. It rebuilds everything from the job's command line with the plan's
+functions (`volren.plan.plan_render`), renders a unit's warm-up frames and then its frames through the same
 `RenderPlan.render` as ``volren render``, and returns each file's bytes: the driver alone writes into ``--out``
 (`volren.distributed.engine`), so a worker killed mid-unit leaves nothing behind and needs no shared file system.
 Imports no Ray: the engine wraps this class in ``ray.remote``."""
@@ -58,16 +58,16 @@ class UnitWorker:
         """The job's `RenderPlan` (kept while the job stays the same, unless ``fresh``) and the seconds it took."""
         start = time.perf_counter()
         if fresh or argv != self._argv:
-            from volren import cli
+            from volren.plan import plan_render, render_parser
 
-            args = cli.build_parser().parse_args([*argv, "--max-minutes", "0"])  # the driver ran the estimate
-            self._plan, self._argv, self._next = cli.plan_render(args, args.method), argv, -1
+            args = render_parser().parse_args([*argv, "--max-minutes", "0"])  # the driver ran the estimate
+            self._plan, self._argv, self._next = plan_render(args, args.method), argv, -1
         return self._plan, time.perf_counter() - start
 
     def run(self, argv: tuple[str, ...], unit: Unit, cwd: str | None = None) -> dict[str, Any]:
         """Render ``unit`` of the job ``argv``: its files' bytes, its frames' stats and where the time went. ``cwd``:
         the driver's folder, which relative paths (``--volume``, ``--mesh``) name, where this machine has it."""
-        from volren import cli
+        from volren.plan import write_plan_frame
 
         start = time.perf_counter()
         if cwd is not None and os.path.isdir(cwd):
@@ -84,7 +84,7 @@ class UnitWorker:
         with tempfile.TemporaryDirectory(prefix="volren-unit-") as tmp:
             for i in range(unit.start, unit.stop):
                 frame = plan.render(i)
-                for path in cli.write_plan_frame(plan, frame, Path(tmp)):
+                for path in write_plan_frame(plan, frame, Path(tmp)):
                     files[path.name] = path.read_bytes()
                 # as stats.json stores it (numbers numpy gave as text)
                 stats.append(json.loads(json.dumps({"index": frame.index, **frame.stats.to_dict()}, default=str)))
