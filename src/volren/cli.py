@@ -19,9 +19,9 @@ from pathlib import Path
 from typing import Any
 
 from volren.errors import VolrenError, VolrenWarning
+from volren.framing import framed_eye
 from volren.plan.argv import add_device, add_volume_args, command_parser
 from volren.plan.options import (
-    DEFAULT_EYE,
     DEFAULT_RESOLUTION,
     DEFAULT_SCENE,
     CliError,
@@ -30,7 +30,6 @@ from volren.plan.options import (
     warn,
 )
 from volren.plan.render import check_render_args, plan_render, render_plan
-from volren.plan.views import framing_distance
 from volren.plan.volume import _file_scene, _volume_from_args, check_channel_flags, volume_sequence
 
 
@@ -129,7 +128,6 @@ def served_volume(args: argparse.Namespace) -> dict:
     check_channel_flags(args)
     if args.volume is None:
         return {}
-    import numpy as np
 
     from volren.camera import Camera
     from volren.serve.loop import sequence_player
@@ -140,16 +138,12 @@ def served_volume(args: argparse.Namespace) -> dict:
     if loaded.channels:  # `channel_scene` renders each channel by a renderer of its own; the loop has one
         raise CliError(f"serve --volume {args.volume}: a multi-channel volume renders with render and animate only")
     scene = _file_scene(args)
-    corners = loaded.corners_world
-    look_at = (corners.min(axis=0) + corners.max(axis=0)) / 2
-    direction = np.array(DEFAULT_EYE) / np.linalg.norm(DEFAULT_EYE)
-    distance = framing_distance(corners, look_at, direction, (0.0, 1.0, 0.0), Camera.fov_y,
-                                args.max_width / args.max_height)
+    position, look_at, near = framed_eye(loaded.corners_world, (0.0, 1.0, 0.0), Camera.fov_y,
+                                         args.max_width / args.max_height)
     played = volume_sequence(args)
     animate = None if played is None or len(played) == 1 else sequence_player(
         len(played), lambda i: dataclasses.replace(scene, volumes=_file_scene(args, i).volumes))
-    camera = Camera(position=tuple(look_at + distance * direction), look_at=tuple(look_at),
-                    near=min(Camera.near, distance / 1000))  # as `views_from_args`: 1 cm would clip a 30 um stack
+    camera = Camera(position=position, look_at=look_at, near=near)  # as `views_from_args`
     return {"scene": scene, "camera": camera, "animate": animate}
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import sys
 
 from volren.errors import VolrenError
+from volren.framing import DEFAULT_EYE  # noqa: F401  (the default camera position; a volume file is framed from it)
 
 # Building the parser imports no renderer, Warp or numpy (`volren --help` and refusals answer at once), so the names
 # its choices and help list are spelled out here; tests/test_api.py checks they equal their sources'.
@@ -36,8 +37,6 @@ FROXEL_BYTES = 16
 """fog froxel: one vec4 in each of the lighting, history and integrated grids."""
 
 DEFAULT_SCENE = "smoke"
-DEFAULT_EYE = (0.0, 0.4, 3.2)
-"""[m] the default camera position; a volume file is seen from its direction, framed"""
 DEFAULT_RESOLUTION = 64
 """voxels per axis of a built-in volume scene (render, animate; demo: 128)"""
 ANIMATION_FPS = 30.0

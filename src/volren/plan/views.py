@@ -4,29 +4,12 @@ into mono, stereo or N viewers, and the occluders' depth images."""
 from __future__ import annotations
 
 import argparse
-import math
 
+from volren.framing import framed_eye, framing_distance
 from volren.plan.options import DEFAULT_EYE, CliError
 from volren.plan.volume import _volume_from_args
 
-
-def framing_distance(corners, look_at, direction, up, fov_y: float, aspect: float, eye_offset: float = 0.0) -> float:
-    """Distance from ``look_at`` along the unit ``direction`` (towards the eye) at which every corner lies inside the
-    view: a corner at (x, y) across and z towards the eye needs D >= z + |x| / tan(fov_x / 2) and likewise in y;
-    ``eye_offset`` widens x for eyes shifted sideways (stereo: ipd / 2). Ten percent of margin."""
-    import numpy as np
-
-    d = np.asarray(direction, dtype=float)
-    right = np.cross(-d, up)
-    if np.linalg.norm(right) < 1e-9:  # --up along the view: Camera refuses it next; any frame will do here
-        right = np.cross(-d, np.eye(3)[np.argmin(np.abs(d))])
-    right /= np.linalg.norm(right)
-    true_up = np.cross(right, -d)
-    rel = np.asarray(corners, dtype=float) - np.asarray(look_at, dtype=float)
-    tan_y = math.tan(math.radians(fov_y) / 2)
-    across = np.abs(rel @ right) + eye_offset
-    need = rel @ d + np.maximum(across / (tan_y * aspect), np.abs(rel @ true_up) / tan_y)
-    return 1.1 * float(need.max())
+__all__ = ["depth_images_from_args", "framing_distance", "views_from_args"]
 
 
 def views_from_args(args: argparse.Namespace, time: float = 0.0):
@@ -48,14 +31,10 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
         import numpy as np
 
         corners = _volume_from_args(args).corners_world
-        look_at = tuple(args.look_at or (corners.min(axis=0) + corners.max(axis=0)) / 2)
         # eyes 63 mm apart would each see a 30 um stack as a speck off to the side
         ipd = min(ipd, float(np.ptp(corners, axis=0).max())) if args.ipd is None else args.ipd
-        direction = np.array(position) / np.linalg.norm(position)
-        distance = framing_distance(corners, look_at, direction, args.up, args.fov, args.width / max(args.height, 1),
-                                    ipd / 2 if args.views == "stereo" else 0.0)
-        position = tuple(np.array(look_at) + distance * direction)
-        near = min(near, distance / 1000)  # a 100 um stack framed from 0.4 mm: the default 1 cm would clip it all
+        position, look_at, near = framed_eye(corners, args.up, args.fov, args.width / max(args.height, 1),
+                                             args.look_at, ipd / 2 if args.views == "stereo" else 0.0)
     cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
                  width=args.width, height=args.height, near=near if args.near is None else args.near, far=args.far)
     if args.overlap is not None and args.rig != "overlap":
