@@ -169,7 +169,14 @@ def test_load_places_a_file_as_the_cli_does(tmp_path):
     (lambda s, c: vr.render(s, c, sample=3), "method 'dssrm' has no setting sample"),
     (lambda s, c: vr.render(s, c, method="vpt", samples=3), "method 'vpt' has no setting samples"),
     (lambda s, c: vr.render(s, c, quality="ultra"), "unknown quality 'ultra'"),
-    (lambda s, c: vr.render(s.volumes[0], c), "scene must be a volren.Scene, got Volume: wrap it"),
+    (lambda s, c: vr.Renderer(device=DEVICE).render(s.volumes[0], c), "scene must be a volren.Scene, got Volume: wrap"),
+    (lambda s, c: vr.render(3), "render: scene must be a volren.Scene, a Volume, a file path or a built-in scene name, "
+     "got int"),
+    (lambda s, c: vr.render("nope.nrrd"), "render: scene 'nope.nrrd' is no file nor a built-in scene \\(smoke, "),
+    (lambda s, c: vr.render("hall"), "render: 'hall' is a fog scene, which method 'dssrm' does not render: give "
+     "method='fog'"),
+    (lambda s, c: vr.render(s, c, width=32), "render: width= and height= size the framed camera; the views= given"),
+    (lambda s, c: vr.render(s, height=0), r"render: height= must be a positive number of pixels, got 0"),
     (lambda s, c: vr.render(s, "stereo"), "views must be a volren.Camera or a list of them"),
     (lambda s, c: vr.render(s, [c, "x"]), r"views\[1\] must be a volren.Camera, got str"),
     (lambda s, c: vr.views(c, "three"), "--views must be mono, stereo or a positive integer"),
@@ -253,4 +260,45 @@ def test_render_is_a_function_with_its_own_signature_and_help():
     assert list(inspect.signature(vr.render).parameters)[:4] == ["scene", "views", "method", "quality"]
     text = pydoc.render_doc(vr.render, renderer=pydoc.plaintext)
     assert "render(scene" in text and "One frame of" in text and "dssrm" in METHODS
+    # issue 42 item 2: what it takes, and the framing without views, are in its help
+    assert "framed as the command line frames it" in text and "vr.render(vr.load(" in text
+    params = inspect.signature(vr.render).parameters
+    assert params["views"].default is None
+    assert all(params[k].kind is params[k].KEYWORD_ONLY and params[k].default is None for k in ("width", "height"))
     assert sys.modules["volren.render"].__name__ == "volren.render" and "render" in dir(vr)
+
+
+FAST = {"samples": 64, "light_samples": 4, "light_grid": 8}
+"""a short light march: these renders take about a second each"""
+
+
+def test_render_frames_a_micrometre_volume_without_views(tmp_path):
+    """Issue 42 item 2: vr.render(vr.load(f)) of a 32 um ball (the default Camera at 3.5 m would show nothing) is
+    framed whole: the ball in the centre, nothing in the corner; a Scene of it is framed alike."""
+    from tests.test_opacity_units import ball, imagej_tiff
+
+    volume = vr.load(imagej_tiff(tmp_path / "um.tif", ball(), 1.0, "um"))
+    frame = vr.render(volume, width=48, height=32, device=DEVICE, **FAST)
+    a = frame.images[0][..., 3]
+    assert a.shape == (32, 48) and a[16, 24] > 0.3 and a[0, 0] < 0.01, (a[16, 24], a[0, 0])
+    scene = vr.render(vr.Scene([volume]), width=48, height=32, device=DEVICE, **FAST)
+    assert np.array_equal(scene.images[0], frame.images[0])
+
+
+@pytest.mark.parametrize("what", ["smoke", "file"])
+def test_render_without_views_frames_as_volren_render_does(what, tmp_path, capsys):
+    """vr.render(name or path, width=, height=) is `volren render --scene NAME | --volume PATH --views mono` at the
+    same size, method and settings: the same scene and the same camera, so the same linear image."""
+    from tests.test_opacity_units import ball, imagej_tiff
+
+    from volren.cli import main
+
+    given = "smoke" if what == "smoke" else str(imagej_tiff(tmp_path / "um.tif", ball(), 2.0, "um"))
+    flags = ["--scene", given] if what == "smoke" else ["--volume", given]
+    assert main(["render", *flags, "--views", "mono", "--width", "48", "--height", "32", "--quality", "interactive",
+                 "--samples", "64", "--light-samples", "4", "--light-grid", "8", "--device", DEVICE, "--save-linear",
+                 "--out", str(tmp_path / "cli")]) == 0
+    capsys.readouterr()
+    frame = vr.render(given, width=48, height=32, device=DEVICE, **FAST)
+    assert len(frame.images) == 1 and frame.images[0][..., 3].max() > 0.3  # it shows something
+    np.testing.assert_allclose(frame.images[0], np.load(tmp_path / "cli" / "view0.npy"), rtol=0, atol=1e-6)

@@ -5,6 +5,8 @@ Heavy modules (Warp, the kernels) are imported inside the functions, so that ``i
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -65,6 +67,28 @@ def volume_from_file(loaded: LoadedVolume, name: str, **material: Any) -> Volume
                   emission_grid=loaded.emission_source, **material)
 
 
+def flame_defaults(volumes: tuple, lights, environment) -> tuple:
+    """A file's volumes with the default emission scale of their emission grids (`flame_emission_scale`, relative
+    to the white W = sum(Y(directional irradiance)) / pi + Y(mean environment radiance) of these lights; W = 3 / pi,
+    the default light's, where there is no light)."""
+    import numpy as np
+
+    from volren.blackbody import flame_emission_scale, luminance
+    from volren.scene import DirectionalLight
+
+    white = sum(float(luminance(lt.irradiance)) for lt in lights if isinstance(lt, DirectionalLight)) / math.pi
+    white += float(luminance(environment.mean_radiance()))
+    white = white if white > 0 else float(luminance(DirectionalLight().irradiance)) / math.pi
+    out = []
+    for v in volumes:
+        if v.emission_grid is not None:
+            voxel = abs(float(np.linalg.det(v.to_world[:3, :3]))) * 8.0 / v.density.size
+            scale = flame_emission_scale(v.emission_u, v.density, v.density_scale, *v.temperature_range, voxel, white)
+            v = dataclasses.replace(v, emission_scale=scale)
+        out.append(v)
+    return tuple(out)
+
+
 MATERIAL = ("density_scale", "albedo", "g", "emission")
 """`Volume` fields ``load`` takes besides the reader's options"""
 
@@ -89,6 +113,11 @@ def load(path: str | Path, **options: Any) -> Volume:
         raise VolrenError(f"load: {path} holds {len(loaded.channels)} channels and load returns one volume "
                           "(`volren render --volume` renders them all)")
     return volume_from_file(loaded, Path(path).name, **{k: v for k, v in options.items() if k in MATERIAL})
+
+
+SCENE_COUNT = 16
+"""instances in a scene of several (`volren.data.COUNTED_SCENES`) that ``volren render --scene`` and `render` of its
+name build without ``--count``"""
 
 
 def builtin_scene(name: str, resolution: int | None = None, *, count: int | None = None, seed: int | None = None,
@@ -171,9 +200,90 @@ class Renderer:
         return self._renderer.render(scene, _view_list(views), frame)
 
 
-def render(scene: Scene, views: Camera | Sequence[Camera], method: str = DEFAULT_METHOD,
-           quality: str = DEFAULT_QUALITY, device: str = "auto", **settings: Any) -> Frame:
-    """One frame of ``scene`` for ``views`` (a Camera or a list) by ``method`` at ``quality``, with ``settings``
-    (fields of the method's config, e.g. ``samples=720``) on top of the preset. For frames that build on each
-    other (GI, denoising, fog), keep a `Renderer`."""
+def render(scene: Scene | Volume | str | Path, views: Camera | Sequence[Camera] | None = None,
+           method: str = DEFAULT_METHOD, quality: str = DEFAULT_QUALITY, device: str = "auto", *,
+           width: int | None = None, height: int | None = None, **settings: Any) -> Frame:
+    """One frame of ``scene`` for ``views`` (a Camera or a list, e.g. from `volren.views`) by ``method`` at
+    ``quality``, with ``settings`` (fields of the method's config, e.g. ``samples=720``) on top of the preset.
+
+    ``scene`` is what ``volren render`` renders: a `Scene`; a `Volume` (e.g. from `load`), in a Scene with the
+    default light and environment, as ``--volume`` gives a file; a path of a file (``str`` or ``Path``, read as
+    `load` reads it, an emission grid's flame scale as ``--volume`` sets it); or a built-in scene's name
+    (`builtin_scene`, as ``--scene``; a fog scene needs ``method="fog"``, as on the command line).
+
+    Without ``views`` it is framed as the command line frames it, in one view of ``width`` x ``height`` pixels
+    (default 640 x 360, ``--width`` and ``--height``'s; `Camera`'s other defaults): a built-in volume scene from
+    (0, 0.4, 3.2) m looking at the origin, a fog scene from its own viewpoint, anything else (a file, a Volume, a
+    Scene of volumes) whole, looking at its volumes' box's centre from that direction (`volren.framing.framed_eye`),
+    whatever its units: ``vr.render(vr.load("stack.tif"))`` shows a micrometre stack. Given ``views``, ``width``
+    and ``height`` are refused (the cameras carry their size).
+
+    For frames that build on each other (GI, denoising, fog), keep a `Renderer`: its ``render`` takes a Scene and
+    views, always.
+
+    >>> frame = vr.render(vr.load("head.nrrd"), width=320, height=240)  # doctest: +SKIP
+    """
+    from volren.data.fog_scenes import FOG_SCENES
+
+    scene, name = _scene_of(scene)
+    if name in FOG_SCENES and method != "fog":
+        raise VolrenError(f"render: '{name}' is a fog scene, which method '{method}' does not render: give "
+                          "method='fog'")
+    if views is None:
+        views = framed_camera(scene, name, width, height)
+    elif width is not None or height is not None:
+        raise VolrenError("render: width= and height= size the framed camera; the views= given carry their own size")
     return Renderer(method, quality, device=device, **settings).render(scene, views)
+
+
+def _scene_of(value: Any) -> tuple[Scene, str | None]:
+    """(the Scene `render` renders for ``value``, the built-in scene's name or None)."""
+    from volren.data import BUILTIN_SCENES
+    from volren.data.fog_scenes import FOG_SCENES
+    from volren.scene import Scene, Volume
+
+    if isinstance(value, Scene):
+        return value, None
+    if isinstance(value, Volume):
+        return Scene((value,), name=Path(value.name).stem), None
+    names = [*BUILTIN_SCENES, *FOG_SCENES]
+    if isinstance(value, str) and value in names:
+        from volren.data import COUNTED_SCENES
+
+        return builtin_scene(value, count=SCENE_COUNT if value in COUNTED_SCENES else None), value
+    if not isinstance(value, str | Path):
+        raise VolrenError(f"render: scene must be a volren.Scene, a Volume, a file path or a built-in scene name, "
+                          f"got {type(value).__name__}")
+    if not Path(value).is_file():
+        hint = f" nor a built-in scene ({', '.join(names)})" if isinstance(value, str) else ""
+        raise VolrenError(f"render: scene '{value}' is no file{hint}")
+    volume = load(value)
+    scene = Scene((volume,), name=Path(value).stem)
+    return dataclasses.replace(scene, volumes=flame_defaults(scene.volumes, scene.lights, scene.environment)), None
+
+
+def framed_camera(scene: Scene, name: str | None = None, width: int | None = None,
+                  height: int | None = None) -> Camera:
+    """The one camera `render` uses without views, as ``volren render`` places it (`Camera`'s defaults else): for
+    the built-in scene ``name``, the default eye (0, 0.4, 3.2) m looking at the origin, or a fog scene's own
+    viewpoint (also for a Scene with fog named as one); else ``scene``'s volumes framed whole
+    (`volren.framing.framed_eye`, as for ``--volume``); a scene of no volumes, the default eye."""
+    import numpy as np
+
+    from volren.camera import Camera
+    from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera
+    from volren.framing import DEFAULT_EYE, framed_eye
+
+    for key, value in (("width", width), ("height", height)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise VolrenError(f"render: {key}= must be a positive number of pixels, got {value!r}")
+    size = {"width": Camera.width if width is None else width, "height": Camera.height if height is None else height}
+    fog = name if name in FOG_SCENES else scene.name if scene.fog is not None and scene.name in FOG_SCENES else None
+    if fog is not None:
+        viewpoint = fog_scene_camera(fog)
+        return Camera(position=viewpoint["position"], look_at=viewpoint["look_at"], **size)
+    if name is not None or not scene.volumes:
+        return Camera(position=DEFAULT_EYE, **size)
+    corners = np.concatenate([v.corners_world for v in scene.volumes])
+    position, look_at, near = framed_eye(corners, Camera.up, Camera.fov_y, size["width"] / size["height"])
+    return Camera(position=position, look_at=look_at, near=near, **size)

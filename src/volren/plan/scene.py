@@ -7,8 +7,11 @@ import argparse
 import dataclasses
 import math
 
+from volren._api import SCENE_COUNT, flame_defaults
 from volren.plan.options import DEFAULT_RESOLUTION, DEFAULT_SCENE, CliError, check_scene_name, warn
 from volren.plan.volume import _file_scene, check_channel_flags
+
+__all__ = ["emission_reading", "flame_defaults", "scene_from_args", "warn_density"]
 
 
 def scene_from_args(args: argparse.Namespace, time: float = 0.0):
@@ -38,7 +41,7 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
         if args.count is not None and name not in COUNTED_SCENES:
             raise CliError(f"--count applies to --scene {', '.join(COUNTED_SCENES)} only, not to scene '{name}'")
         resolution = DEFAULT_RESOLUTION if args.resolution is None else args.resolution
-        scene = builtin_scene(name, resolution, count=16 if args.count is None else args.count, seed=args.seed)
+        scene = builtin_scene(name, resolution, count=SCENE_COUNT if args.count is None else args.count, seed=args.seed)
     check_fire_flags(args, scene)
     volumes = _with_material(args, scene.volumes)
     warn_density(volumes, transfer=args.tf is not None)
@@ -80,28 +83,6 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
         volumes = flame_defaults(volumes, lights, environment)
     return dataclasses.replace(scene, volumes=volumes, lights=tuple(lights), environment=environment,
                                background=background, opaque=tuple(opaque))
-
-
-def flame_defaults(volumes: tuple, lights, environment) -> tuple:
-    """A file's volumes with the default emission scale of their emission grids (`flame_emission_scale`, relative
-    to the white W = sum(Y(directional irradiance)) / pi + Y(mean environment radiance) of these lights; W = 3 / pi,
-    the default light's, where there is no light)."""
-    import numpy as np
-
-    from volren.blackbody import flame_emission_scale, luminance
-    from volren.scene import DirectionalLight
-
-    white = sum(float(luminance(lt.irradiance)) for lt in lights if isinstance(lt, DirectionalLight)) / math.pi
-    white += float(luminance(environment.mean_radiance()))
-    white = white if white > 0 else float(luminance(DirectionalLight().irradiance)) / math.pi
-    out = []
-    for v in volumes:
-        if v.emission_grid is not None:
-            voxel = abs(float(np.linalg.det(v.to_world[:3, :3]))) * 8.0 / v.density.size
-            scale = flame_emission_scale(v.emission_u, v.density, v.density_scale, *v.temperature_range, voxel, white)
-            v = dataclasses.replace(v, emission_scale=scale)
-        out.append(v)
-    return tuple(out)
 
 
 def emission_reading(args: argparse.Namespace, scene) -> dict:
