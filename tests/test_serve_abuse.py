@@ -389,8 +389,8 @@ def test_a_parked_viewer_refines_on_once_it_acks():
 def test_settings_converge_after_a_burst():
     """Item 7: after a burst of 300 light changes from one viewer (500 before issue 44's message rate: past 400 at
     once a socket is closed), the other viewer's last settings message is the server's final state (before: 3 of 3
-    runs ended on a stale one). B's link is slow (each text message takes 5 ms to go out), so changes keep arriving
-    while one is on its way."""
+    runs ended on a stale one). B's link is slow (each text message takes 0.3 s to go out: the changes now apply at
+    most once a tick and 4 a second), so changes keep arriving while one is on its way."""
     async def test(client, loop):
         a, _ = await connect(client)
         b, _ = await connect(client)
@@ -398,7 +398,7 @@ def test_settings_converge_after_a_burst():
         send = viewer_b.text
 
         async def slow(text: str) -> None:
-            await asyncio.sleep(0.005)
+            await asyncio.sleep(0.3)  # longer than the coalesced changes' spacing: they land while one is on its way
             await send(text)
 
         viewer_b.text = slow

@@ -316,13 +316,17 @@ class RenderLoop:
                                 "stereo may change")
         self._check_mode(settings)
 
-    def apply(self, settings: Settings, viewer: Viewer) -> bool:
-        """Apply a settings message from ``viewer`` now; True when a shared setting changed (to tell the others)."""
+    def _take(self, settings: Settings, viewer: Viewer) -> dict[str, Any]:
+        """Check a settings message from ``viewer`` (`check`), apply its stereo mode (the viewer's own); its shared
+        settings, by name."""
         self.check(settings)
         if settings.stereo is not None and settings.stereo != viewer.stereo:
             viewer.resize(viewer.width, viewer.height, settings.stereo, self.limits)
-        changed = self.adopt({name: getattr(settings, name) for name in SHARED_SETTINGS
-                              if getattr(settings, name) is not None})
+        return {name: getattr(settings, name) for name in SHARED_SETTINGS if getattr(settings, name) is not None}
+
+    def apply(self, settings: Settings, viewer: Viewer) -> bool:
+        """Apply a settings message from ``viewer`` now; True when a shared setting changed (to tell the others)."""
+        changed = self.adopt(self._take(settings, viewer))
         self.wake()
         return bool(changed)
 
@@ -331,11 +335,7 @@ class RenderLoop:
         (the viewer's own), its shared settings join the viewer's pending ones (the newest value of each) and apply
         in turn (`settle`): at most one viewer's change per tick and SETTINGS_PER_S a second per viewer (issue 44
         item 4), so a flood of changes costs the others one renderer rebuild a tick at most."""
-        self.check(settings)
-        if settings.stereo is not None and settings.stereo != viewer.stereo:
-            viewer.resize(viewer.width, viewer.height, settings.stereo, self.limits)
-        viewer.pending.update({name: getattr(settings, name) for name in SHARED_SETTINGS
-                               if getattr(settings, name) is not None})
+        viewer.pending.update(self._take(settings, viewer))
         self.settle()
 
     @property
