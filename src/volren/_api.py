@@ -32,17 +32,12 @@ fifth of the box's side at density 1: optical depth 4), and makes a dense block 
 one voxel (a 64-voxel side: 0.3 a voxel)."""
 
 
-def box_longest_side(to_world: Any) -> float:
-    """[m] the longest side of the box that ``to_world`` maps the local cube [-1, 1]^3 onto."""
-    import numpy as np
-
-    return 2.0 * float(np.max(np.linalg.norm(np.asarray(to_world, dtype=np.float64)[:3, :3], axis=0)))
-
-
 def box_density_scale(to_world: Any) -> float:
     """[1/m] a loaded volume's default density_scale: `BOX_OPTICAL_DEPTH` / its box's longest side, so density 1
     has the same optical depth across the box in micrometres as in metres (ParaView's scalar opacity unit distance
     relative to the data's bounds; the rule the channels of a multi-channel file follow with their own constant)."""
+    from volren.scene import box_longest_side
+
     return BOX_OPTICAL_DEPTH / box_longest_side(to_world)
 
 

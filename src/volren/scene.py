@@ -69,6 +69,17 @@ def validate_density(density: np.ndarray, what: str = "density") -> np.ndarray:
     return arr
 
 
+def box_sides(to_world: np.ndarray) -> np.ndarray:
+    """[m] (x, y, z) sides of the box that ``to_world`` maps the local cube [-1, 1]^3 onto."""
+    return 2.0 * np.linalg.norm(np.asarray(to_world, dtype=np.float64)[:3, :3], axis=0)
+
+
+def box_longest_side(to_world: np.ndarray) -> float:
+    """[m] the longest side of that box (`box_sides`): what a loaded volume's or a channel's default opacity is
+    relative to."""
+    return float(np.max(box_sides(to_world)))
+
+
 def scale_translate(scale: float | Sequence[float] = 1.0, translate: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     """A ``to_world`` matrix mapping [-1, 1]^3 to a box of half-extent ``scale`` centred at ``translate``."""
     s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,))
@@ -166,7 +177,7 @@ class Volume:
     def __repr__(self) -> str:
         """A summary, not the voxels (issue 42: a 48^3 volume's repr was 1,936 characters of array)."""
         nx, ny, nz = self.resolution
-        size = 2.0 * np.linalg.norm(self.to_world[:3, :3], axis=0)
+        size = box_sides(self.to_world)
         centre = ", ".join(f"{c:.3g}" for c in self.center_world)
         lo, hi = float(self.density.min()), float(self.density.max())
         parts = [f"{self.name!r}", f"{nx}x{ny}x{nz} {self.density.dtype} (x, y, z)",

@@ -233,7 +233,7 @@ def warn_empty_render(plan, frame) -> None:
     volume is too thin, and what to set for each."""
     import numpy as np
 
-    from volren._api import box_longest_side
+    from volren.scene import box_longest_side
 
     volumes = plan.scene.volumes
     if getattr(plan.args, "volume", None) is None or len(volumes) != 1 or _warned:

@@ -133,11 +133,12 @@ def warn_density(volumes: tuple, transfer: bool) -> None:
     A density_scale of 0 asks for nothing and gets no warning."""
     import numpy as np
 
-    from volren._api import BOX_OPTICAL_DEPTH, box_longest_side
+    from volren._api import BOX_OPTICAL_DEPTH
+    from volren.scene import box_longest_side, box_sides
 
     for v in volumes:
         hi = float(v.density.max())
-        voxel = float(np.min(np.linalg.norm(v.to_world[:3, :3], axis=0) * 2 / np.array(v.density.shape[::-1])))
+        voxel = float(np.min(box_sides(v.to_world) / np.array(v.density.shape[::-1])))
         side = box_longest_side(v.to_world)
         if hi == 0:
             warn(f"volume '{v.name}' has an all-zero density: it renders nothing")

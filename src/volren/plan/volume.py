@@ -103,7 +103,8 @@ def opacity_entry(args: argparse.Namespace) -> dict:
     """stats.json's ``opacity`` of a one-channel ``--volume``: its ``density_scale`` [1/m] and the ``rule`` that
     set it: "--density-scale" (given, per metre) or "box" (`volren._api.box_density_scale`: ``optical_depth`` at
     density 1 across the box's ``longest_side`` [m])."""
-    from volren._api import BOX_OPTICAL_DEPTH, box_density_scale, box_longest_side
+    from volren._api import BOX_OPTICAL_DEPTH, box_density_scale
+    from volren.scene import box_longest_side
 
     if args.density_scale is not None:
         return {"rule": "--density-scale", "density_scale": args.density_scale}

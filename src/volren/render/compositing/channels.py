@@ -29,7 +29,7 @@ import numpy as np
 from volren.camera import Camera
 from volren.errors import VolrenError
 from volren.render.frame import Frame, Stats
-from volren.scene import RGB, Scene, Volume
+from volren.scene import RGB, Scene, Volume, box_longest_side
 
 NAMED_COLORS: dict[str, RGB] = {
     "green": (0.0, 1.0, 0.0), "magenta": (1.0, 0.0, 1.0), "cyan": (0.0, 1.0, 1.0), "yellow": (1.0, 1.0, 0.0),
@@ -81,7 +81,7 @@ def channel_volumes(
     if len(opacity) not in (1, count) or not all(np.isfinite(k) and k >= 0 for k in opacity):
         raise VolrenError(f"--channel-opacity must be one value >= 0 or one per channel ({count}), got {opacity}")
     opacity = opacity * count if len(opacity) == 1 else opacity
-    longest = 2.0 * float(np.max(np.linalg.norm(np.asarray(to_world)[:3, :3], axis=0)))  # [m] of the [-1, 1] box
+    longest = box_longest_side(to_world)  # [m]
     return tuple(
         Volume(density, to_world, density_scale=k / longest, albedo=(0.0, 0.0, 0.0),
                emission=tuple(float(v) * k / longest for v in rgb), name=f"{name}[c{c}]")
