@@ -388,6 +388,13 @@ async def run_mixed(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             "goals": "pass" if ratio <= GOAL_MIXED_P95 and age <= GOAL_MIXED_AGE else "fail"}
 
 
+def median_age(clients: list[dict[str, Any]]) -> float:
+    """[ms] the median of ``clients``' (`measure_window`'s clients_detail) median frame ages; inf when none got a
+    frame."""
+    ages = [a for c in clients if (a := c["age_median_ms"]) is not None]
+    return statistics.median(ages) if ages else math.inf
+
+
 async def run_fair(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     """Issue 44's fair run on the first volume case, as the attack measured it: ``small`` clients at ``small_size``
     sending a camera at ``camera_hz`` and acknowledging every frame, alone, then beside one client at ``big_size``,
@@ -413,10 +420,9 @@ async def run_fair(cfg: dict[str, Any], device: str) -> dict[str, Any]:
                     continue  # the same schedule as sharing by time: a tick under the target shrinks nobody
                 row = await measure_window(srv, 0, run_cfg, base, walk, clients)
                 detail = row["clients_detail"]
-                ages = [a for c in detail[:fair["small"]] if (a := c["age_median_ms"]) is not None]
                 rows.append({"schedule": schedule, "run": name, "tick_ms": row["tick_ms"],
                              "small_fps": statistics.mean(c["fps"] for c in detail[:fair["small"]]),
-                             "small_age_median_ms": statistics.median(ages) if ages else math.inf,
+                             "small_age_median_ms": median_age(detail[:fair["small"]]),
                              "big_frames": detail[-1]["frames"] if name != "alone" else 0,
                              "big_pixels": detail[-1]["pixels"] if name != "alone" else 0})
     alone = rows[0]["small_age_median_ms"]
@@ -537,9 +543,8 @@ async def run_neighbour(cfg: dict[str, Any], device: str) -> dict[str, Any]:
             while len(loop.viewers):  # the neighbour's sockets closing
                 await asyncio.sleep(0.01)
             detail = row["clients_detail"]
-            ages = [a for c in detail if (a := c["age_median_ms"]) is not None]
             rows.append({"attack": kind, "tick_ms": row["tick_ms"], "fps": statistics.mean(c["fps"] for c in detail),
-                         "age_median_ms": statistics.median(ages) if ages else math.inf,
+                         "age_median_ms": median_age(detail),
                          "neighbour": dict(zip(TALLY, tally[:], strict=True))})
             await asyncio.sleep(1.0)  # the connection rate's bucket refills a little between attacks
     return {"scene": scene_name, "method": method, "rows": rows}
