@@ -19,6 +19,7 @@ from volren.distributed import engine
 from volren.distributed.engine import DENOISE_WARMUP, MANIFEST, Job, run_jobs
 from volren.distributed.worker import UnitWorker
 from volren.errors import VolrenError
+from volren.plan.spec import RenderSpec
 
 SMALL = ("--width", "64", "--height", "48", "--resolution", "64", "--device", "cpu")
 ANIMATE = ("animate", *SMALL, "--frames", "4", "--jitter", "--save-linear")
@@ -55,7 +56,7 @@ def reference(tmp_path_factory) -> Path:
 
 
 def job(out: Path, *extra: str) -> Job:
-    return Job((*ANIMATE, *extra, "--out", str(out)), out)
+    return Job(RenderSpec.parse((*ANIMATE, *extra, "--out", str(out))))
 
 
 class InThreadRay:
@@ -236,8 +237,8 @@ def test_ctrl_c_leaves_complete_units_and_a_rerun_resumes(backend, reference, tm
     assert_same_run(reference, out)
     # another command into that folder starts clean: one line says so, no file of the first run stays
     capsys.readouterr()
-    report = run_jobs([Job(("render", *SMALL, "--views", "mono", "--out", str(out)), out)], workers=1, address=None,
-                      flag="--workers")
+    report = run_jobs([Job(RenderSpec.parse(("render", *SMALL, "--views", "mono", "--out", str(out))))], workers=1,
+                      address=None, flag="--workers")
     assert capsys.readouterr().err.count("starting clean") == 1
     assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "stats.json", "view0.png"]
 
@@ -269,7 +270,7 @@ def test_a_temporal_method_warms_up_to_the_single_machine_sequence(backend, tmp_
             "--method", "vpt", "--denoise", "ours", "--spp", "2", "--frames", "10", "--orbit", "30", "--save-linear")
     assert cli.main([*argv, "--out", str(tmp_path / "ref")]) == 0
     out = tmp_path / "out"
-    report = run_jobs([Job((*argv, "--out", str(out)), out)], workers=2, address=None, flag="--workers",
+    report = run_jobs([Job(RenderSpec.parse((*argv, "--out", str(out))))], workers=2, address=None, flag="--workers",
                       unit_frames=5)
     assert sorted((u.start, u.warmup) for u in report.units) == [(0, 0), (5, DENOISE_WARMUP)]
     from volren.metrics import psnr
@@ -296,7 +297,7 @@ def test_a_unit_failing_with_a_volren_error_fails_the_job_with_that_line(backend
     argv = ("render", "--width", "32", "--height", "24", "--device", "cpu", "--views", "mono", "--volume",
             "sim_####.npy", "--frames", "3", "--out", str(out))
     with pytest.raises(VolrenError) as err:
-        run_jobs([Job(argv, out)], workers=1, address=None, flag="--workers",
+        run_jobs([Job(RenderSpec.parse(argv))], workers=1, address=None, flag="--workers",
                  on_dispatch=lambda unit, pid: sent.append(unit.start))
     assert "sim_0002.npy" in str(err.value) and "\n" not in str(err.value)
     assert sent.count(2) == 1
@@ -308,8 +309,8 @@ def test_more_workers_than_the_cluster_holds_is_refused(backend, tmp_path):
     out = tmp_path / "out"
     refusal = r"^--workers: 3 worker\(s\) need 3 CPU\(s\), Ray has 2: give fewer --workers$"
     with pytest.raises(VolrenError, match=refusal):
-        run_jobs([Job(("render", *SMALL, "--views", "mono", "--frames", "3", "--out", str(out)), out)], workers=3,
-                 address=None, flag="--workers")
+        run_jobs([Job(RenderSpec.parse(("render", *SMALL, "--views", "mono", "--frames", "3", "--out", str(out))))],
+                 workers=3, address=None, flag="--workers")
 
 
 def test_a_new_cluster_in_the_same_process_starts_fresh_workers(monkeypatch, tmp_path):
@@ -321,7 +322,7 @@ def test_a_new_cluster_in_the_same_process_starts_fresh_workers(monkeypatch, tmp
     for i, fake in enumerate((InThreadRay(), InThreadRay())):
         monkeypatch.setattr(runtime, "connect", lambda *args, fake=fake, **kwargs: fake)
         argv = ("render", *SMALL, "--views", "mono", "--out", str(tmp_path / f"o{i}"))
-        report = run_jobs([Job(argv, tmp_path / f"o{i}")], workers=1, address=None, flag="--workers",
+        report = run_jobs([Job(RenderSpec.parse(argv))], workers=1, address=None, flag="--workers",
                           keep_workers=True)
         assert (report.units_run, fake.started) == (1, 1)
 
@@ -330,9 +331,9 @@ def test_idle_workers_are_stopped_unless_kept(in_thread_ray, tmp_path):
     """An idle actor holds its CPU (or GPU) of the cluster: left running, it kept a sharded server's actors waiting
     for ever in one process. Stopped at the end by default; kept (warm) only when asked."""
     argv = ("render", *SMALL, "--views", "mono", "--frames", "2")  # a unit for each of the 2 workers
-    run_jobs([Job((*argv, "--out", str(tmp_path / "a")), tmp_path / "a")], workers=2, address=None, flag="--workers")
+    run_jobs([Job(RenderSpec.parse((*argv, "--out", str(tmp_path / "a"))))], workers=2, address=None, flag="--workers")
     assert in_thread_ray.dead == {10_001, 10_002} and engine._POOL == []
-    run_jobs([Job((*argv, "--out", str(tmp_path / "b")), tmp_path / "b")], workers=2, address=None,
+    run_jobs([Job(RenderSpec.parse((*argv, "--out", str(tmp_path / "b"))))], workers=2, address=None,
              flag="--workers", keep_workers=True)
     assert len(engine._POOL) == 2 and in_thread_ray.dead == {10_001, 10_002}
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import time
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import pytest
 from volren.cli import main
 from volren.distributed.job import load_batch, write_index
 from volren.errors import VolrenError
+from volren.plan.spec import RenderSpec
 
 TINY = {"scene": "smoke", "width": 40, "height": 24, "samples": 24, "light-samples": 6, "light-grid": 8,
         "views": "mono"}
@@ -32,6 +34,13 @@ def job_file(tmp_path: Path, body: str = "", base: dict | None = None, name: str
     path = tmp_path / name
     path.write_text("\n".join(lines) + "\n" + body)
     return path
+
+
+def argv(job) -> tuple[str, ...]:
+    """The job's command line (its spec's ``line``, without "volren"), checked to be the line its spec is of."""
+    words = tuple(shlex.split(job.spec.line)[1:])
+    assert RenderSpec.parse(words) == job.spec
+    return words
 
 
 def flag_values(argv: tuple[str, ...], flag: str) -> list[str]:
@@ -54,9 +63,9 @@ light-irradiance = [3, 2.5, 1]
                              "method-cmsrm_light-low", "method-cmsrm_light-irradiance-3-2.5-1")
     assert batch.out == tmp_path / "batch" and batch.frames == (1,) * 4 and batch.views == (1,) * 4
     for job, folder in zip(batch.jobs, batch.folders, strict=True):
-        assert job.argv[0] == "render" and job.out == tmp_path / "batch" / folder
-        assert flag_values(job.argv, "--out") == [str(job.out)]
-    low, rgb = batch.jobs[2].argv, batch.jobs[3].argv
+        assert argv(job)[0] == "render" and job.out == tmp_path / "batch" / folder
+        assert flag_values(argv(job), "--out") == [str(job.out)]
+    low, rgb = argv(batch.jobs[2]), argv(batch.jobs[3])
     # an entry's value replaces the shared one (one flag, not two); what an entry does not set stays shared
     assert flag_values(low, "--light-irradiance") == ["1"] and flag_values(low, "--light-dir") == ["1,-1,0"]
     assert flag_values(rgb, "--light-irradiance") == ["3,2.5,1"] and flag_values(rgb, "--light-dir") == ["0,-1,0"]
@@ -67,7 +76,8 @@ light-irradiance = [3, 2.5, 1]
     entry = index["jobs"]["method-cmsrm_light-low"]
     assert entry["settings"] == {"sweep.method[1]": "cmsrm", "sweep.light[0].light-irradiance": 1,
                                  "sweep.light[0].light-dir": [1, -1, 0]}
-    assert entry["argv"] == ["volren", *low] and entry["frames"] == 1 and entry["views"] == 1
+    assert entry["command"] == shlex.join(["volren", *low]) and entry["frames"] == 1 and entry["views"] == 1
+    assert RenderSpec.from_json(entry["spec"]) == batch.jobs[2].spec  # the job runs again from its file
 
 
 def test_a_file_without_a_sweep_is_one_job_into_out_and_switches_and_repeatables_become_flags(tmp_path):
@@ -75,9 +85,9 @@ def test_a_file_without_a_sweep_is_one_job_into_out_and_switches_and_repeatables
             "sphere": [[0, 0, 0, 0.3], "0.5,0,0,0.2"], "views": "stereo"}
     batch = load_batch(job_file(tmp_path, base=base))
     (job,) = batch.jobs
-    assert batch.folders == (".",) and job.out == tmp_path / "batch" and job.argv[0] == "animate"
-    assert "--no-skip" in job.argv and "--jitter" not in job.argv
-    assert flag_values(job.argv, "--sphere") == ["0,0,0,0.3", "0.5,0,0,0.2"]
+    assert batch.folders == (".",) and job.out == tmp_path / "batch" and argv(job)[0] == "animate"
+    assert "--no-skip" in argv(job) and "--jitter" not in argv(job)
+    assert flag_values(argv(job), "--sphere") == ["0,0,0,0.3", "0.5,0,0,0.2"]
     assert batch.frames == (3,) and batch.views == (2,)
 
 
@@ -90,7 +100,7 @@ def test_frames_all_plays_every_frame_of_a_volume_sequence(tmp_path):
     body = f"[sweep]\nvolume = {toml_value([str(tmp_path / 'sim_####.npy'), str(tmp_path / 'sim_0001.npy')])}\n"
     batch = load_batch(job_file(tmp_path, body, base=base))
     assert batch.folders == ("volume-sim", "volume-sim-0001") and batch.frames == (3, 1)
-    assert flag_values(batch.jobs[0].argv, "--frames") == ["3"]
+    assert flag_values(argv(batch.jobs[0]), "--frames") == ["3"]
 
 
 @pytest.mark.parametrize(("body", "key", "message"), [
@@ -144,7 +154,7 @@ def test_a_flag_at_the_top_is_the_default_of_the_entries_that_do_not_set_it(tmp_
     flag that does nothing (the refusal is for a flag every entry replaces)."""
     body = "[[sweep.looks]]\nname = \"bright\"\nsamples = 16\n[[sweep.looks]]\nname = \"plain\"\nalbedo = 0.5\n"
     batch = load_batch(job_file(tmp_path, body))
-    assert [flag_values(job.argv, "--samples") for job in batch.jobs] == [["16"], ["24"]]
+    assert [flag_values(argv(job), "--samples") for job in batch.jobs] == [["16"], ["24"]]
 
 
 def test_an_empty_job_file_and_a_swept_top_flag_are_one_line_before_anything_runs(tmp_path, capsys, monkeypatch):
@@ -323,7 +333,7 @@ def test_run_jobs_refuses_plans_that_are_not_its_jobs(tmp_path):
     its jobs silently ignored (a batch that ran its first job only, or another's plans)."""
     from volren.distributed.engine import Job, JobState, run_jobs
 
-    jobs = [Job(("render", "--out", str(tmp_path / name)), tmp_path / name) for name in ("a", "b")]
+    jobs = [Job(RenderSpec.parse(("render", "--out", str(tmp_path / name)))) for name in ("a", "b")]
     plans = [JobState(job, None, [], {}) for job in jobs]  # never reached: no plan is run
     for given, planned in ((jobs[:1], plans), (jobs, plans[:1]), (jobs[::-1], plans)):
         with pytest.raises(ValueError, match=r"planned state\(s\) are not those of the \d job\(s\)"):

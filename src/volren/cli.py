@@ -188,7 +188,7 @@ def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     if getattr(args, "workers", None) is not None or getattr(args, "ray_address", None) is not None:
         from volren.distributed.engine import run_command_on_ray
 
-        return run_command_on_ray(args)
+        return run_command_on_ray(args, command)
     plan = plan_render(args, method)
     from volren.output import print_summary
 
@@ -286,7 +286,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = " ".join(["volren", *argv])
     try:
         args = build_parser().parse_args(argv)
-        args.argv = tuple(argv)  # what the batch engine's workers parse again (--workers)
         _warned.clear()
         with warnings.catch_warnings():
             warnings.simplefilter("always", VolrenWarning)  # `warn` says each once

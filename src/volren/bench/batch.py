@@ -27,46 +27,51 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from volren.bench import Suite, cpu_thread_limit
 from volren.progress import case_done
+
+if TYPE_CHECKING:
+    from volren.plan.spec import RenderSpec
 
 FULL = {"frames": 64, "size": (1280, 720), "resolution": 128, "workers": [1, 2], "overrides": []}
 QUICK = {"frames": 64, "size": (320, 180), "resolution": 64, "workers": [1, 2], "overrides": []}
 GOAL_OVERHEAD_MS, GOAL_RAY_RATIO = 50.0, 1.15
 
 
-def turntable(cfg: dict[str, Any], device: str, out: Path) -> tuple[str, ...]:
-    """The job's command line (without "volren")."""
+def turntable(cfg: dict[str, Any], device: str, out: Path) -> RenderSpec:
+    """The job: ``volren animate`` of the turntable into ``out``."""
+    from volren.plan.spec import RenderSpec
+
     width, height = cfg["size"]
-    return ("animate", "--frames", str(cfg["frames"]), "--orbit", "360", "--views", "mono", "--width", str(width),
-            "--height", str(height), "--resolution", str(cfg["resolution"]), "--device", device, *cfg["overrides"],
-            "--out", str(out))
+    return RenderSpec.parse(["animate", "--frames", str(cfg["frames"]), "--orbit", "360", "--views", "mono",
+                             "--width", str(width), "--height", str(height), "--resolution", str(cfg["resolution"]),
+                             "--device", device, *cfg["overrides"], "--out", str(out)])
 
 
 def _pngs(folder: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(folder.glob("*.png"))}
 
 
-def in_process(argv: tuple[str, ...], threads: int | None) -> float:
-    """[s] ``volren <argv>`` run in this process with ``threads`` CPU threads (None: all)."""
-    from volren.plan import plan_render, render_parser, render_plan
+def in_process(spec: RenderSpec, threads: int | None) -> float:
+    """[s] ``spec`` run in this process with ``threads`` CPU threads (None: all)."""
+    from volren.plan import plan_render, render_plan
 
     with cpu_thread_limit(threads), contextlib.redirect_stdout(io.StringIO()):  # not a line amid the table
         start = time.perf_counter()
-        args = render_parser().parse_args(list(argv))
-        render_plan(plan_render(args, args.method), "volren " + " ".join(argv))
+        args = spec.namespace()
+        render_plan(plan_render(args, args.method), spec.line)
         return time.perf_counter() - start
 
 
-def frame_seconds(argv: tuple[str, ...], frames: int) -> float:
+def frame_seconds(spec: RenderSpec, frames: int) -> float:
     """[s] one frame's in-process time: the worker's own code (`UnitWorker.run`: render, then encode the files) run
     here on one thread, setup excluded, averaged over the job's frames."""
     from volren.distributed.worker import Unit, UnitWorker
 
     with cpu_thread_limit(1):
-        result = UnitWorker().run(argv, Unit(0, 0, frames))
+        result = UnitWorker().run(spec, Unit(0, 0, frames))
     return result["render_seconds"] / frames
 
 
@@ -98,14 +103,14 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="volren-bench-batch-") as tmp:
         base = Path(tmp)
         ref = base / "in-process-1"
-        argv = turntable(cfg, device, ref)
-        in_process(argv, 1)  # warm-up: kernels compiled, the scene's first build
-        walls = {1: in_process(argv, 1), None: in_process(turntable(cfg, device, base / "in-process-all"), None)}
+        spec = turntable(cfg, device, ref)
+        in_process(spec, 1)  # warm-up: kernels compiled, the scene's first build
+        walls = {1: in_process(spec, 1), None: in_process(turntable(cfg, device, base / "in-process-all"), None)}
         for threads, wall in walls.items():
             rows.append({"case": "in process", "threads": threads or "all", "workers": None, "frames": frames,
                          "units": None, "wall_s": wall, "fps": frames / wall})
             case_done(f"in process, {threads or 'all'} thread(s)")
-        per_frame = frame_seconds(argv, frames)
+        per_frame = frame_seconds(spec, frames)
         reference = _pngs(ref)
         was_up = import_ray("bench batch", local=True).is_initialized()  # a session's cluster (the tests') is kept
         started = time.perf_counter()
@@ -115,7 +120,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         def on_ray(workers: int, out: Path, frames: int):
             share = min(1.0, gpus / workers) if device.startswith("cuda") and gpus else 1.0
             cfg_run = {**cfg, "frames": frames}
-            return run_jobs([Job(turntable(cfg_run, device, out), out)], workers=workers, address=None,
+            return run_jobs([Job(turntable(cfg_run, device, out))], workers=workers, address=None,
                             flag="bench batch", gpus_per_worker=share, keep_workers=True)
 
         try:

@@ -1,10 +1,10 @@
 """The batch engine: ``volren render|animate ... --workers N`` (or ``--ray-address ADDR``), and `run_jobs` for
-``volren batch``. Each job is a render or animate command line; the driver runs all its checks first (the plan's
-`plan_render`, once, before Ray starts), splits its frames into work units (`Unit`: contiguous frames, every view of
-them: a stereo pair's eyes and a CACRM pair are never split), and hands the units to Ray actors, each holding one
-renderer (`volren.distributed.worker.UnitWorker`: the plan's functions rebuild the job from its argv, so the frames
-come from the same `RenderPlan.render` as in process). CUDA workers ask ``num_gpus`` = ``--gpus-per-worker``, CPU
-workers one CPU (and launch on one thread).
+``volren batch``. Each job is a render or animate run as plain data (`volren.plan.spec.RenderSpec`); the driver
+runs all its checks first (the plan's `plan_render`, once, before Ray starts), splits its frames into work units
+(`Unit`: contiguous frames, every view of them: a stereo pair's eyes and a CACRM pair are never split), and hands the
+units to Ray actors, each holding one renderer (`volren.distributed.worker.UnitWorker`: the plan's functions build
+the job from the spec it receives, so the frames come from the same `RenderPlan.render` as in process). CUDA workers
+ask ``num_gpus`` = ``--gpus-per-worker``, CPU workers one CPU (and launch on one thread).
 
 Output: the files ``render``/``animate`` write, each written by the driver under a temporary name and moved in with
 ``os.replace``; ``batch.json`` (the manifest: the command, its settings, every complete unit with its files' SHA-256
@@ -59,10 +59,12 @@ from typing import Any
 from volren.distributed.runtime import check_address, terminate_like_ctrl_c
 from volren.distributed.worker import Unit, UnitWorker
 from volren.errors import VolrenError
+from volren.plan.spec import RenderSpec
 
 MANIFEST = "batch.json"
 """the manifest's name in --out (`volren.output.RUN_FILE` matches it: a new run replaces it)"""
-MANIFEST_VERSION = 1
+MANIFEST_VERSION = 2
+"""2: the command is the run's `RenderSpec` (1 held its command line)"""
 MAX_RETRIES = 3
 """retries of one unit whose worker died, before the job fails"""
 PART = ".volren-part-"
@@ -75,16 +77,18 @@ MANIFEST_EVERY_S = 1.0
 _POOL: list[tuple[Any, int, tuple[bool, float, str]]] = []
 """idle actors of this process's Ray connection (actor, pid, (resources, Ray job)), kept warm after a run for the
 next one (a bench's repeats, the tests); killed with the connection, on a failure, or when the next run needs fewer"""
-IGNORED_SETTINGS = ("workers", "ray_address", "gpus_per_worker", "max_minutes", "argv")
+IGNORED_SETTINGS = ("workers", "ray_address", "gpus_per_worker", "max_minutes")
 """what may differ between a run and the run it resumes: where and how long, not what is rendered"""
 
 
 @dataclass(frozen=True)
 class Job:
-    argv: tuple[str, ...]
-    """a ``volren render|animate ...`` command line without the leading "volren", incl. --out"""
-    out: Path
-    """that --out folder"""
+    spec: RenderSpec
+    """a ``volren render|animate`` run, its --out incl. (`RenderSpec.parse` makes one of a command line)"""
+
+    @property
+    def out(self) -> Path:
+        return Path(self.spec.out)
 
 
 @dataclass(frozen=True)
@@ -226,8 +230,8 @@ class JobState:
         for p in out.iterdir():
             if is_run_file(p):
                 p.unlink()
-        self.manifest = {"version": MANIFEST_VERSION, "command": ["volren", *self.job.argv],
-                         "settings": self.settings, "units": {}}
+        self.manifest = {"version": MANIFEST_VERSION, "command": self.job.spec.line,
+                         "spec": self.job.spec.to_json(), "settings": self.settings, "units": {}}
 
     def commit(self, unit: Unit, result: dict[str, Any], report: UnitReport) -> int:
         """Write a finished unit's files and record it; returns the files written (none for a unit already
@@ -277,7 +281,7 @@ class JobState:
         batch = {"units": [{"unit": k, **{n: e[n] for n in ("frames", "warmup", "worker", "attempts", "seconds",
                                                            "render_seconds")}}
                            for k, e in sorted(self.manifest["units"].items(), key=lambda kv: kv[1]["frames"][0])]}
-        doc = {"scene": entries[0]["scene"], "command": " ".join(self.manifest["command"]), **plan.value_mapping,
+        doc = {"scene": entries[0]["scene"], "command": self.manifest["command"], **plan.value_mapping,
                "frames": frames, "batch": batch | extra}
         write_atomically(out / "stats.json", (json.dumps(doc, indent=2, default=str) + "\n").encode())
         return files
@@ -285,13 +289,11 @@ class JobState:
 
 def plan_job(index: int, job: Job, workers: int | None, unit_frames: int | None) -> JobState:
     """A job's checks (the plan's, in the driver, before any work) and its units."""
-    from volren.plan import plan_render, render_parser
+    from volren.plan import plan_render
 
-    if not job.argv or job.argv[0] not in ("render", "animate"):
-        raise VolrenError(f"a batch job is a render or animate command line, got '{' '.join(job.argv[:1])}'")
-    args = render_parser().parse_args(list(job.argv))
-    if Path(args.out) != Path(job.out):
-        raise VolrenError(f"job {index}: its --out is {args.out}, not {job.out}")
+    if job.spec.command not in ("render", "animate"):
+        raise VolrenError(f"a batch job is a render or animate run, got '{job.spec.command}'")
+    args = job.spec.namespace()
     plan = plan_render(args, args.method)
     volumes = len(plan.scene.volumes)
     warmup = warmup_frames(plan.renderer.config, volumes)
@@ -416,7 +418,7 @@ def _run_units(states: list[JobState], queue: deque[Unit], reports: list[UnitRep
                     # a temporal unit that continues where this actor's renderer stopped skips its warm-up
                     unit = next((u for u in queue if (u.job, u.start) == last.get(actor)), queue[0])
                     queue.remove(unit)
-                    ref = actor.run.remote(states[unit.job].job.argv, unit, os.getcwd())
+                    ref = actor.run.remote(states[unit.job].job.spec, unit, os.getcwd())
                     pending[ref] = (actor, unit, time.perf_counter(), attempts.get((unit.job, unit.key), 0) + 1)
                     if on_dispatch is not None:
                         on_dispatch(unit, pids[actor])
@@ -466,22 +468,20 @@ def _run_units(states: list[JobState], queue: deque[Unit], reports: list[UnitRep
     return ray_start
 
 
-def run_command_on_ray(args: argparse.Namespace) -> int:
-    """``volren render|animate ... --workers N | --ray-address ADDR``: the same run on Ray (`run_jobs`)."""
+def run_command_on_ray(args: argparse.Namespace, command: str) -> int:
+    """``volren render|animate ... --workers N | --ray-address ADDR``: the same run on Ray (`run_jobs`); ``command``
+    the command line as given, for stats.json."""
     from volren.distributed.runtime import import_ray
 
     flag = "--workers" if args.workers is not None else "--ray-address"
-    argv = getattr(args, "argv", None)
-    if argv is None:
-        raise VolrenError(f"{flag}: runs from the volren command line only (Python: volren.distributed.engine)")
     if args.gpus_per_worker is not None:
         from volren.device import resolve_device
 
         if not resolve_device(args.device).startswith("cuda"):
             raise VolrenError("--gpus-per-worker shares a GPU among workers: the workers render on the CPU here")
     import_ray(flag, local=not args.ray_address)  # missing: one line before the checks' seconds of work
-    report = run_jobs([Job(tuple(argv), Path(args.out))], workers=args.workers, address=args.ray_address, flag=flag,
-                      gpus_per_worker=args.gpus_per_worker or 1.0)
+    report = run_jobs([Job(RenderSpec.from_args(args, command))], workers=args.workers, address=args.ray_address,
+                      flag=flag, gpus_per_worker=args.gpus_per_worker or 1.0)
     doc = json.loads((Path(args.out) / "stats.json").read_text())
     last = doc["frames"][-1]
     print(f"{args.method} on {last['device']}: {len(doc['frames'])} frame(s) of '{doc['scene']}' in "

@@ -61,6 +61,7 @@ from typing import Any
 
 from volren.distributed.engine import Job, JobState, plan_job
 from volren.errors import VolrenError
+from volren.plan.spec import RenderSpec
 
 COMMANDS = ("render", "animate")
 RESERVED = ("command", "out", "sweep")
@@ -339,12 +340,12 @@ def _checked_job(fail, flags: Flags, command: str, settings: dict[str, Setting],
     if all_frames and "volume" not in settings:
         refuse(f"--frames \"{ALL_FRAMES}\" plays a --volume sequence; this job has no --volume")
     try:
-        args = flags.parser.parse_args(argv)
+        args = flags.parser.parse_args(argv)  # the job file's flags read once, here: the job carries its spec
         if all_frames:  # the sequence's length; one frame of a single volume file
             played = volume_sequence(args)
-            argv[-2:-2] = ["--frames", str(1 if played is None else len(played))]
-            args = flags.parser.parse_args(argv)
-        return plan_job(index, Job(tuple(argv), out), workers, None)
+            args.frames = 1 if played is None else len(played)
+            argv[-2:-2] = ["--frames", str(args.frames)]
+        return plan_job(index, Job(RenderSpec.from_args(args, shlex.join(["volren", *argv]))), workers, None)
     except VolrenError as exc:
         refuse(str(exc))
 
@@ -352,7 +353,8 @@ def _checked_job(fail, flags: Flags, command: str, settings: dict[str, Setting],
 def write_index(batch: Batch) -> Path:
     """``<out>/jobs.json``: folder -> what varies and the command line (written beside and renamed over)."""
     index = {"source": str(batch.source), "command": batch.command,
-             "jobs": {folder: {"settings": vary, "frames": frames, "views": views, "argv": ["volren", *job.argv]}
+             "jobs": {folder: {"settings": vary, "frames": frames, "views": views, "command": job.spec.line,
+                               "spec": job.spec.to_json()}
                       for folder, vary, frames, views, job in zip(batch.folders, batch.varies, batch.frames,
                                                                   batch.views, batch.jobs, strict=True)}}
     batch.out.mkdir(parents=True, exist_ok=True)
@@ -381,7 +383,7 @@ def run_batch(args: argparse.Namespace) -> int:
     if args.dry_run:
         for folder, frames, views, units, job in zip(batch.folders, batch.frames, batch.views, batch.units,
                                                      batch.jobs, strict=True):
-            print(f"{folder}: {frames} frame(s) x {views} view(s), {units} unit(s): volren {shlex.join(job.argv)}")
+            print(f"{folder}: {frames} frame(s) x {views} view(s), {units} unit(s): {job.spec.line}")
         print(f"{len(batch.jobs)} job(s), {sum(batch.units)} unit(s) into {batch.out}")
         return 0
     if args.ray_address is not None:  # nothing answering there: refused before the batch's folder is touched
@@ -404,7 +406,7 @@ def run_batch(args: argparse.Namespace) -> int:
     for i, (folder, state) in enumerate(zip(batch.folders, batch.states, strict=True)):
         print(f"job {i + 1}/{len(batch.jobs)}: {folder}", file=sys.stderr)
         plan = state.plan
-        done = render_plan(plan, "volren " + shlex.join(state.job.argv))
+        done = render_plan(plan, state.job.spec.line)
         print_summary(plan.method, plan.scene.name, len(plan.views), plan.args.frames, done.wall,
                       done.frames[-1].stats, done.files, done.stats)
     print(f"{len(batch.jobs)} job(s) into {batch.out}; index {index}")

@@ -1,8 +1,9 @@
 """The batch engine's worker: one per Ray actor, holding one renderer (scene uploaded once, kernels loaded, light
-maps cached) for the job it last ran. It rebuilds everything from the job's command line with the plan's
-functions (`volren.plan.plan_render`), renders a unit's warm-up frames and then its frames through the same
-`RenderPlan.render` as ``volren render``, and returns each file's bytes: the driver alone writes into ``--out``
-(`volren.distributed.engine`), so a worker killed mid-unit leaves nothing behind and needs no shared file system.
+maps cached) for the job it last ran. It builds everything from the job's `RenderSpec` (plain data: no command
+line is parsed here) with the plan's functions (`volren.plan.plan_render`), renders a unit's warm-up frames and then
+its frames through the same `RenderPlan.render` as ``volren render``, and returns each file's bytes: the driver
+alone writes into ``--out`` (`volren.distributed.engine`), so a worker killed mid-unit leaves nothing behind and
+needs no shared file system.
 Imports no Ray: the engine wraps this class in ``ray.remote``."""
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ class UnitWorker:
     def __init__(self, threads: int | None = None) -> None:
         if threads is not None:
             os.environ["VOLREN_CPU_THREADS"] = str(threads)
-        self._argv: tuple[str, ...] | None = None
+        self._spec: Any = None
         self._plan: Any = None
         self._next = -1
         """the frame the renderer's history leads up to: a unit starting there needs no warm-up"""
@@ -54,27 +55,28 @@ class UnitWorker:
     def pid(self) -> int:
         return os.getpid()
 
-    def _planned(self, argv: tuple[str, ...], fresh: bool) -> tuple[Any, float]:
+    def _planned(self, spec: Any, fresh: bool) -> tuple[Any, float]:
         """The job's `RenderPlan` (kept while the job stays the same, unless ``fresh``) and the seconds it took."""
         start = time.perf_counter()
-        if fresh or argv != self._argv:
-            from volren.plan import plan_render, render_parser
+        if fresh or spec != self._spec:
+            from volren.plan import plan_render
 
-            args = render_parser().parse_args([*argv, "--max-minutes", "0"])  # the driver ran the estimate
-            self._plan, self._argv, self._next = plan_render(args, args.method), argv, -1
+            args = spec.namespace(max_minutes=0)  # the driver ran the estimate
+            self._plan, self._spec, self._next = plan_render(args, args.method), spec, -1
         return self._plan, time.perf_counter() - start
 
-    def run(self, argv: tuple[str, ...], unit: Unit, cwd: str | None = None) -> dict[str, Any]:
-        """Render ``unit`` of the job ``argv``: its files' bytes, its frames' stats and where the time went. ``cwd``:
-        the driver's folder, which relative paths (``--volume``, ``--mesh``) name, where this machine has it."""
+    def run(self, spec: Any, unit: Unit, cwd: str | None = None) -> dict[str, Any]:
+        """Render ``unit`` of the job ``spec`` (a `volren.plan.spec.RenderSpec`): its files' bytes, its frames'
+        stats and where the time went. ``cwd``: the driver's folder, which relative paths (``--volume``, ``--mesh``)
+        name, where this machine has it."""
         from volren.plan import write_plan_frame
 
         start = time.perf_counter()
         if cwd is not None and os.path.isdir(cwd):
             os.chdir(cwd)
-        continues = argv == self._argv and self._next == unit.start
+        continues = spec == self._spec and self._next == unit.start
         # a temporal renderer whose history belongs elsewhere starts afresh, as the single-machine run did
-        plan, setup = self._planned(argv, fresh=unit.temporal and not continues)
+        plan, setup = self._planned(spec, fresh=unit.temporal and not continues)
         first = unit.start if continues else unit.start - unit.warmup
         for i in range(first, unit.start):
             plan.render(i)

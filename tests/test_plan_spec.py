@@ -1,0 +1,75 @@
+"""`volren.plan.spec.RenderSpec`: a render as plain data, which batch jobs and Ray workers receive instead of a command
+line to parse again (issue 42 item 1): it round-trips through JSON and pickle typed as the parser types it, and the
+plan built from it is the plan of the command line it came from."""
+
+from __future__ import annotations
+
+import json
+import pickle
+from pathlib import Path
+
+import pytest
+
+from volren.errors import VolrenError
+from volren.plan import render_parser
+from volren.plan.spec import RenderSpec
+
+pytestmark = pytest.mark.timeout(60)
+
+WIDE = ("animate", "--volume", "sim_####.npy", "--channel-colors", "1,0,0;0,1,0", "--mesh", "a.obj", "--mesh", "b.obj",
+        "--mesh-alpha", "0.5", "--mesh-alpha", "0.25", "--rect-light", "1,2,3,4,5,6", "--sphere", "0,0,0,0.3",
+        "--camera-pos", "0,1,2", "--no-skip", "--frames", "3", "--switch-tf", "1:ct-bone", "--out", "o/x")
+
+
+def test_a_spec_round_trips_through_json_and_pickle_typed_as_the_parser_types_it():
+    spec = RenderSpec.parse(WIDE)
+    parsed = vars(render_parser().parse_args(list(WIDE)))
+    assert vars(spec.namespace()) == parsed  # every option, with its type: paths, tuples, lists of repeats
+    doc = json.loads(json.dumps(spec.to_json()))  # plain JSON: no path or tuple objects in it
+    back = RenderSpec.from_json(doc)
+    assert back == spec and vars(back.namespace()) == parsed
+    assert pickle.loads(pickle.dumps(spec)) == spec
+    ns = back.namespace()
+    assert ns.mesh == [Path("a.obj"), Path("b.obj")] and ns.mesh_alpha == [0.5, 0.25]
+    assert ns.rect_light == [(1.0, 2.0, 3.0, 4.0, 5.0, 6.0)] and ns.camera_pos == (0.0, 1.0, 2.0)
+    assert ns.channel_colors == ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)) and ns.volume == Path("sim_####.npy")
+    assert spec.out == Path("o/x") and spec.line == "volren " + " ".join(
+        f"'{w}'" if ";" in w or "#" in w else w for w in WIDE)
+
+
+def test_specs_of_the_same_render_compare_equal_and_changes_are_checked():
+    a = RenderSpec.parse(["render", "--width", "32", "--out", "o"])
+    b = RenderSpec.parse(["render", "--out", "o", "--width", "32", "--height", "360"])  # another order, a default
+    assert a.options == b.options
+    assert a != a.replace(width=33) and a.replace(width=33).namespace().width == 33
+    assert a.namespace(max_minutes=0).max_minutes == 0 and a.namespace().max_minutes == 60.0  # a fresh object
+    with pytest.raises(VolrenError, match="render has no option widht"):
+        a.namespace(widht=3)
+
+
+@pytest.mark.parametrize(("doc", "message"), [
+    ({"command": "serve", "options": {}}, "a render spec is one of demo, render, animate, got 'serve'"),
+    ({"command": "render", "options": {"width": 3}}, "the render spec's options differ from this volren's"),
+])
+def test_a_spec_from_another_file_is_refused_in_one_line(doc, message):
+    with pytest.raises(VolrenError, match=message):
+        RenderSpec.from_json(doc)
+    with pytest.raises(VolrenError, match="a render spec is one of demo, render, animate, got 'batch'"):
+        RenderSpec.parse(["batch", "x.toml"])
+
+
+def test_the_worker_renders_the_spec_as_volren_render_does(tmp_path):
+    """`UnitWorker` builds its plan from the spec it is handed (no command line), and its files are the in-process
+    run's, byte for byte."""
+    from volren.cli import main
+    from volren.distributed.worker import Unit, UnitWorker
+
+    small = ["--width", "40", "--height", "24", "--resolution", "64", "--samples", "24", "--light-grid", "8",
+             "--views", "mono", "--device", "cpu", "--frames", "2"]
+    assert main(["render", *small, "--out", str(tmp_path / "cli")]) == 0
+    spec = RenderSpec.parse(["render", *small, "--out", str(tmp_path / "unused")])
+    result = UnitWorker().run(RenderSpec.from_json(json.loads(json.dumps(spec.to_json()))), Unit(0, 0, 2))
+    cli_files = {p.name: p.read_bytes() for p in (tmp_path / "cli").glob("*.png")}
+    assert sorted(result["files"]) == sorted(cli_files) == ["frame0000_view0.png", "frame0001_view0.png"]
+    assert result["files"] == cli_files
+    assert not (tmp_path / "unused").exists()  # a worker writes nothing: the driver does
