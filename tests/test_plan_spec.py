@@ -4,6 +4,7 @@ plan built from it is the plan of the command line it came from."""
 
 from __future__ import annotations
 
+import io
 import json
 import pickle
 from pathlib import Path
@@ -73,3 +74,18 @@ def test_the_worker_renders_the_spec_as_volren_render_does(tmp_path):
     assert sorted(result["files"]) == sorted(cli_files) == ["frame0000_view0.png", "frame0001_view0.png"]
     assert result["files"] == cli_files
     assert not (tmp_path / "unused").exists()  # a worker writes nothing: the driver does
+
+
+def test_a_worker_handed_another_spec_renders_that_one():
+    """An actor keeps its plan while the job stays the same (scene uploaded once) and builds afresh for another."""
+    from PIL import Image
+
+    from volren.distributed.worker import Unit, UnitWorker
+
+    worker = UnitWorker()
+    small = ["render", "--height", "24", "--resolution", "64", "--samples", "16", "--light-grid", "8", "--views",
+             "mono", "--device", "cpu", "--out", "o"]
+    for width in (40, 24, 24):
+        result = worker.run(RenderSpec.parse([*small, "--width", str(width)]), Unit(0, 0, 1))
+        assert Image.open(io.BytesIO(result["files"]["view0.png"])).size == (width, 24)
+    assert result["setup_seconds"] < 0.05  # the third ran the second's plan again: nothing rebuilt

@@ -21,7 +21,7 @@ from aiohttp.test_utils import TestClient, TestServer
 from test_cli import assert_error, ok
 from test_serve import cam_msg, connect, next_frame
 from volren.bench.playback import play
-from volren.cli import build_parser, served_volume
+from volren.cli import build_parser, served_file
 from volren.data.loaders import LoadedVolume, TimePoint, load_volume
 from volren.data.sequence import KEEP, SequenceConfig, VolumeSequence, frame_files
 from volren.errors import VolrenError
@@ -240,7 +240,7 @@ def assert_serve_plays_in_a_loop(volume: Path) -> None:
     """`serve --volume VOLUME` (a sequence of FRAMES frames), played: frame 0 -> 1 -> ... -> FRAMES - 1 -> 0 -> 1, so
     the frame after the last is the first's image again, and every step in between shows another frame."""
     args = build_parser().parse_args(["serve", "--volume", str(volume), "--max-width", "128", "--max-height", "96"])
-    loop = RenderLoop(method="dssrm", limits=Limits(4, 128, 96), device="cpu", **served_volume(args),
+    loop = RenderLoop(method="dssrm", limits=Limits(4, 128, 96), device="cpu", **served_file(args),
                       overrides={"samples": 48, "light_samples": 12, "light_grid": 8})
 
     async def main() -> None:
@@ -281,7 +281,7 @@ def test_serve_refuses_a_multi_channel_volume(tmp_path: Path):
     np.save(tmp_path / "two.npy", np.stack([blob(0), blob(3)]))
     args = build_parser().parse_args(["serve", "--volume", str(tmp_path / "two.npy")])
     with pytest.raises(VolrenError, match="multi-channel volume renders with render and animate only"):
-        served_volume(args)
+        served_file(args)
 
 
 def test_a_4d_nifti_is_a_sequence_of_its_time_points(nifti4d: Path):

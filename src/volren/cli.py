@@ -7,7 +7,6 @@ Every user error (bad file, bad number, no GPU, ...) is printed as one line on s
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import json
 import os
@@ -19,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 from volren.errors import VolrenError, VolrenWarning
-from volren.framing import framed_eye
 from volren.plan.argv import add_device, add_volume_args, command_parser
 from volren.plan.options import (
     DEFAULT_RESOLUTION,
@@ -30,7 +28,7 @@ from volren.plan.options import (
     warn,
 )
 from volren.plan.render import check_render_args, plan_render, render_plan
-from volren.plan.volume import _file_scene, _volume_from_args, check_channel_flags, volume_sequence
+from volren.plan.served import served_volume
 
 
 def _show_warning(show, message, category, filename, lineno, file=None, line=None) -> None:
@@ -86,6 +84,18 @@ def add_serve_args(p: argparse.ArgumentParser) -> None:
     add_device(p)
 
 
+def served_file(args: argparse.Namespace) -> dict:
+    """`build_loop`'s scene, camera and play step for ``serve --volume`` (none without, `served_volume`): a sequence
+    plays its frames in a loop."""
+    served = served_volume(args)
+    if served is None:
+        return {}
+    from volren.serve.loop import sequence_player
+
+    animate = None if served.frames == 1 else sequence_player(served.frames, served.scene_at)
+    return {"scene": served.scene, "camera": served.camera, "animate": animate}
+
+
 def run_serve(args: argparse.Namespace) -> int:
     # the checks that need no data first: the imports below take seconds
     if not 1 <= args.port <= 65535:
@@ -115,36 +125,11 @@ def run_serve(args: argparse.Namespace) -> int:
                     tick_ms=args.tick_ms or None)
     name = args.scene or DEFAULT_SCENE
     loop = build_loop(name, args.method, args.quality, args.resolution or DEFAULT_RESOLUTION, args.device, limits,
-                      args.lock_settings, **served_volume(args), shards=args.shards, ray_address=args.ray_address)
+                      args.lock_settings, **served_file(args), shards=args.shards, ray_address=args.ray_address)
     name = args.volume.name if args.volume is not None else name
     serve(make_app(loop, name, token, hosts=(args.host, *args.allow_host), origins=tuple(args.allow_origin)),
           args.host, args.port, token, source)
     return 0
-
-
-def served_volume(args: argparse.Namespace) -> dict:
-    """`build_loop`'s scene, camera and play step for ``serve --volume`` (none without): the file's scene, framed as
-    `views_from_args` frames it for a --max-width x --max-height view; a sequence plays its frames in a loop."""
-    check_channel_flags(args)
-    if args.volume is None:
-        return {}
-
-    from volren.camera import Camera
-    from volren.serve.loop import sequence_player
-
-    if args.scene is not None or args.resolution is not None:
-        raise CliError("serve --volume shows the file: --scene and --resolution apply to built-in scenes")
-    loaded = _volume_from_args(args)
-    if loaded.channels:  # `channel_scene` renders each channel by a renderer of its own; the loop has one
-        raise CliError(f"serve --volume {args.volume}: a multi-channel volume renders with render and animate only")
-    scene = _file_scene(args)
-    position, look_at, near = framed_eye(loaded.corners_world, (0.0, 1.0, 0.0), Camera.fov_y,
-                                         args.max_width / args.max_height)
-    played = volume_sequence(args)
-    animate = None if played is None or len(played) == 1 else sequence_player(
-        len(played), lambda i: dataclasses.replace(scene, volumes=_file_scene(args, i).volumes))
-    camera = Camera(position=position, look_at=look_at, near=near)  # as `views_from_args`
-    return {"scene": scene, "camera": camera, "animate": animate}
 
 
 def build_parser() -> argparse.ArgumentParser:
