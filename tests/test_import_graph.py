@@ -112,3 +112,24 @@ def test_src_volren_has_no_import_cycle():
     found = cycles(graph)
     assert not found, "import cycles (each a set of modules that import each other): " + "; ".join(
         " <-> ".join(c) for c in found)
+
+
+FRONT_ENDS = ("volren", "volren._api", "volren._entry", "volren.cli", "volren.serve", "volren.distributed",
+              "volren.bench", "volren.notebook")
+"""the front ends (the package's own names are the API's): they build on the plan and everything below it"""
+
+
+def layer(module: str) -> int:
+    """0: data, scenes, renderers and their helpers; 1: the plan; 2: a front end."""
+    if any(module == f or (f != "volren" and module.startswith(f + ".")) for f in FRONT_ENDS):
+        return 2
+    return 1 if module == "volren.plan" or module.startswith("volren.plan.") else 0
+
+
+def test_arrows_go_one_way_data_scene_render_plan_front_ends():
+    """Nothing below the plan imports the plan or a front end, and the plan imports no front end (issue 42 item 3:
+    the plan had imported the API for a loaded file's defaults)."""
+    graph = import_graph()
+    assert layer("volren.plan.spec") == 1 and layer("volren.serve.loop") == 2 and layer("volren.render") == 0
+    up = sorted(f"{a} -> {b}" for a, targets in graph.items() for b in targets if layer(b) > layer(a))
+    assert not up, "imports against the layers (data -> scene -> render -> plan -> front ends): " + "; ".join(up)

@@ -6,82 +6,27 @@ Heavy modules (Warp, the kernels) are imported inside the functions, so that ``i
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from volren.errors import VolrenError
+from volren.plan.defaults import (  # noqa: F401  (the API's names too: vr.load and the plan share them)
+    BOX_OPTICAL_DEPTH,
+    SCENE_COUNT,
+    box_density_scale,
+    flame_defaults,
+    volume_from_file,
+)
 
 if TYPE_CHECKING:
     from volren.camera import Camera
-    from volren.data.loaders import LoadedVolume
     from volren.render.frame import Frame
     from volren.scene import Scene, Volume
 
 DEFAULT_METHOD = "dssrm"
 DEFAULT_QUALITY = "interactive"
 """what `volren serve` starts with; `volren render`'s default is ``default`` (the papers' settings)"""
-
-
-BOX_OPTICAL_DEPTH = 20.0
-"""K: a loaded volume's default optical depth at density 1 (the top of its value mapping) across its box's longest
-side, whatever its units (`box_density_scale`). 20 keeps the density_scale of 10 /m that files had before on the
-2 m box of a file that stores no placement (so those render as before), shows a sparse specimen (a ball filling a
-fifth of the box's side at density 1: optical depth 4), and makes a dense block opaque but not a solid wall of
-one voxel (a 64-voxel side: 0.3 a voxel)."""
-
-
-def box_density_scale(to_world: Any) -> float:
-    """[1/m] a loaded volume's default density_scale: `BOX_OPTICAL_DEPTH` / its box's longest side, so density 1
-    has the same optical depth across the box in micrometres as in metres (ParaView's scalar opacity unit distance
-    relative to the data's bounds; the rule the channels of a multi-channel file follow with their own constant)."""
-    from volren.scene import box_longest_side
-
-    return BOX_OPTICAL_DEPTH / box_longest_side(to_world)
-
-
-def volume_from_file(loaded: LoadedVolume, name: str, **material: Any) -> Volume:
-    """A loaded file as a Volume (`volren load`, ``volren render --volume``): its placement, its emission grid, and
-    its value range when that is Hounsfield units (CT transfer functions classify by HU; a constant file, lo = hi,
-    has no HU scale). Without a ``density_scale`` in ``material`` it is `box_density_scale` (its box sets its
-    opacity, whatever the file's units); given, it is per metre as everywhere. An emission grid whose values look like
-    kelvin (`volren.blackbody.kelvin_span`) is read as kelvin, temperature range (0, its hottest): T = v; else its
-    values are relative, 0+ to max at 1000-3000 K."""
-    from volren.blackbody import kelvin_span
-    from volren.scene import Volume
-
-    hu = loaded.hounsfield and loaded.value_range[1] > loaded.value_range[0]
-    if material.get("density_scale") is None:
-        material["density_scale"] = box_density_scale(loaded.to_world)
-    if loaded.emission_source is not None and "temperature_range" not in material:
-        span = kelvin_span(loaded.emission_source)
-        if span is not None:
-            material = {**material, "temperature_range": (0.0, span[1])}
-    return Volume(loaded.density, loaded.to_world, name=name, value_range=loaded.value_range if hu else None,
-                  emission_grid=loaded.emission_source, **material)
-
-
-def flame_defaults(volumes: tuple, lights, environment) -> tuple:
-    """A file's volumes with the default emission scale of their emission grids (`flame_emission_scale`, relative
-    to the white W = sum(Y(directional irradiance)) / pi + Y(mean environment radiance) of these lights; W = 3 / pi,
-    the default light's, where there is no light)."""
-    import numpy as np
-
-    from volren.blackbody import flame_emission_scale, luminance
-    from volren.scene import DirectionalLight
-
-    white = sum(float(luminance(lt.irradiance)) for lt in lights if isinstance(lt, DirectionalLight)) / math.pi
-    white += float(luminance(environment.mean_radiance()))
-    white = white if white > 0 else float(luminance(DirectionalLight().irradiance)) / math.pi
-    out = []
-    for v in volumes:
-        if v.emission_grid is not None:
-            voxel = abs(float(np.linalg.det(v.to_world[:3, :3]))) * 8.0 / v.density.size
-            scale = flame_emission_scale(v.emission_u, v.density, v.density_scale, *v.temperature_range, voxel, white)
-            v = dataclasses.replace(v, emission_scale=scale)
-        out.append(v)
-    return tuple(out)
 
 
 MATERIAL = ("density_scale", "albedo", "g", "emission")
@@ -108,11 +53,6 @@ def load(path: str | Path, **options: Any) -> Volume:
         raise VolrenError(f"load: {path} holds {len(loaded.channels)} channels and load returns one volume "
                           "(`volren render --volume` renders them all)")
     return volume_from_file(loaded, Path(path).name, **{k: v for k, v in options.items() if k in MATERIAL})
-
-
-SCENE_COUNT = 16
-"""instances in a scene of several (`volren.data.COUNTED_SCENES`) that ``volren render --scene`` and `render` of its
-name build without ``--count``"""
 
 
 def builtin_scene(name: str, resolution: int | None = None, *, count: int | None = None, seed: int | None = None,

@@ -49,7 +49,7 @@ class VersionAction(argparse.Action):
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
 
     def __call__(self, parser: argparse.ArgumentParser, namespace, values, option_string=None) -> None:
-        from volren import __version__
+        from volren._version import __version__
 
         print(f"volren {__version__}")
         parser.exit()

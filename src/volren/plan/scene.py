@@ -7,7 +7,7 @@ import argparse
 import dataclasses
 import math
 
-from volren._api import SCENE_COUNT, flame_defaults
+from volren.plan.defaults import SCENE_COUNT, flame_defaults
 from volren.plan.options import DEFAULT_RESOLUTION, DEFAULT_SCENE, CliError, check_scene_name, warn
 from volren.plan.volume import _file_scene, check_channel_flags
 
@@ -133,7 +133,7 @@ def warn_density(volumes: tuple, transfer: bool) -> None:
     A density_scale of 0 asks for nothing and gets no warning."""
     import numpy as np
 
-    from volren._api import BOX_OPTICAL_DEPTH
+    from volren.plan.defaults import BOX_OPTICAL_DEPTH
     from volren.scene import box_longest_side, box_sides
 
     for v in volumes:

@@ -83,7 +83,7 @@ def channel_scene(args: argparse.Namespace, loaded):
 
 def _file_scene(args: argparse.Namespace, frame: int = 0):
     """``--volume``'s scene (of frame ``frame`` of a sequence), before the material and light overrides."""
-    from volren._api import volume_from_file
+    from volren.plan.defaults import volume_from_file
     from volren.scene import Scene
 
     loaded = _volume_from_args(args, frame)
@@ -101,9 +101,9 @@ def _value_mapping(args: argparse.Namespace) -> dict:
 
 def opacity_entry(args: argparse.Namespace) -> dict:
     """stats.json's ``opacity`` of a one-channel ``--volume``: its ``density_scale`` [1/m] and the ``rule`` that
-    set it: "--density-scale" (given, per metre) or "box" (`volren._api.box_density_scale`: ``optical_depth`` at
+    set it: "--density-scale" (given, per metre) or "box" (`box_density_scale`: ``optical_depth`` at
     density 1 across the box's ``longest_side`` [m])."""
-    from volren._api import BOX_OPTICAL_DEPTH, box_density_scale
+    from volren.plan.defaults import BOX_OPTICAL_DEPTH, box_density_scale
     from volren.scene import box_longest_side
 
     if args.density_scale is not None:
