@@ -87,3 +87,19 @@ def test_every_page_of_docs_is_in_the_nav():
     config = (ROOT / "mkdocs.yml").read_text()
     pages = sorted(p.name for p in (ROOT / "docs").glob("*.md"))
     assert pages and all(f": {page}" in config for page in pages), pages
+
+
+def test_the_readmes_links_into_docs_find_their_page_and_anchor():
+    """README.md is outside the site: its links into docs/ are checked here, anchors by the site's own slugs
+    (GitHub's), so a section renamed or moved to the log fails."""
+    from pymdownx.slugs import slugify
+
+    slug = slugify(case="lower")
+    readme = (ROOT / "README.md").read_text()
+    links = re.findall(r"\]\((docs/[^)#\s]+)(?:#([^)\s]+))?\)", readme)
+    assert any(anchor for _, anchor in links)
+    for path, anchor in links:
+        assert (ROOT / path).exists(), path
+        if anchor:
+            headings = re.findall(r"^#{1,6} (.+)$", (ROOT / path).read_text(), flags=re.M)
+            assert anchor in {slug(h.replace("`", ""), "-") for h in headings}, f"{path}#{anchor}"
