@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 PIP_FLAGS := --disable-pip-version-check --quiet
 
-.PHONY: demo test lint cuda-check wheel-check mutations clean
+.PHONY: demo test lint cuda-check wheel-check docs mutations clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -16,7 +16,7 @@ $(VENV)/.installed: pyproject.toml | $(BIN)/python
 	touch $@
 
 $(VENV)/.installed-dev: pyproject.toml $(VENV)/.installed
-	$(BIN)/python -m pip install $(PIP_FLAGS) -e '.[dev,ray,peers]'
+	$(BIN)/python -m pip install $(PIP_FLAGS) -e '.[dev,ray,peers,docs]'
 	touch $@
 
 demo: $(VENV)/.installed
@@ -34,6 +34,10 @@ cuda-check: $(VENV)/.installed-dev
 wheel-check: $(VENV)/.installed-dev
 	bash scripts/wheel_check.sh $(BIN)/python
 
+# The documentation site into site/ (mkdocs.yml): offline, strict, every relative link and anchor checked.
+docs: $(VENV)/.installed-dev
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
+
 test: lint cuda-check
 	$(BIN)/python -m pytest -n 2 --dist loadgroup -q
 
@@ -42,4 +46,4 @@ mutations: $(VENV)/.installed-dev
 	$(BIN)/python scripts/mutations.py
 
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) out site .pytest_cache

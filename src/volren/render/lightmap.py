@@ -20,10 +20,10 @@ changes, so across a coarse axis its interpolation falls below it. A 16 x 2 x 1 
 1.18x too bright (uniform; 1.14 with a varying density) where the path leaves by a side within a node spacing; the
 mean extinction gives 0.998 (1.007). Interpolating T instead of the optical depth overshoots where T is convex in
 depth (1.14x on the box above). The price is one path length per sample and light (a slab test): at most about 10%
-of DSSRM's march on the CPU, below what the VM's timing resolves (docs/BENCHMARKS.md). A surface's shadow lookup,
-at the box entry (a face), interpolates only across the light's direction, over shadow edges, where blending T is
-the closer to point-sampled shadows (smoke over a floor: 45.8 dB for T, 42.2 for tau, against shadow rays), so it
-blends the corners' T along its chord (`sample_light_map_across`).
+of DSSRM's march on the CPU, below what the VM's timing resolves (docs/BENCHMARKS-LOG.md, issue 47). A surface's
+shadow lookup, at the box entry (a face), interpolates only across the light's direction, over shadow edges, where
+blending T is the closer to point-sampled shadows (smoke over a floor: 45.8 dB for T, 42.2 for tau, against shadow
+rays), so it blends the corners' T along its chord (`sample_light_map_across`).
 
 Empty-space skipping (not in the papers; on with the renderer's ``skip_empty``): the march towards the light leaves
 out steps in empty cells of each volume's skip grid, as the view march does (`volren.kernels.common.

@@ -36,7 +36,7 @@ kernel takes its cell as zero without the fetch, and the lanes that re-interpola
 for bit with fewer gathers (smoke 64^3 at the close-up, N = 100: 1,244,432 -> 395,895; smoke 256^3 at N = 64 with
 the adaptive LOD's coarse level, where every tile is routed here: 8.1 M -> 0.80 M). The steps are still walked one
 by one (the texel kernel jumps idle runs), which is what the kernel costs in empty space: its march there is 1.4-5.5x
-the texel kernel's (docs/BENCHMARKS.md, issue 24's fifth session).
+the texel kernel's (docs/BENCHMARKS-LOG.md, issue 24's fifth session).
 """
 
 from __future__ import annotations
