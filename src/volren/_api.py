@@ -129,7 +129,7 @@ def views(camera: Camera, mode: str | int = "stereo", *, ipd: float = 0.063) -> 
     viewers on an arc), as ``--views`` gives them."""
     from volren.camera import make_views
 
-    return make_views(_camera(camera, "views: camera"), mode, ipd)
+    return make_views(_camera(camera, "views: camera"), mode, ipd, lambda _: "views: mode")
 
 
 def _camera(value: Any, what: str) -> Camera:
@@ -196,9 +196,10 @@ def render(scene: Scene | Volume | Channels | VolumeSequence | str | Path,
            quality: str = DEFAULT_QUALITY, device: str = "auto", *, width: int | None = None,
            height: int | None = None, frames: int | Iterable[int] | None = None, resolution: int | None = None,
            count: int | None = None, environment: Any = None, **settings: Any) -> Frame | list[Frame]:
-    """``scene`` by ``method`` at ``quality``, with ``settings`` (fields of the method's config, e.g.
-    ``samples=720``, ``light_grid=16``, ``mode="mip"``, ``transfer="ct-bone"`` for ``--tf``, ``jitter=True``,
-    ``gi=vr.GIConfig(method="sresir")``) on top of the preset, as ``volren render`` renders it.
+    """One frame of ``scene`` (a list of them with ``frames=``) by ``method`` at ``quality``, with ``settings``
+    (fields of the method's config, e.g. ``samples=720``, ``light_grid=16``, ``mode="mip"``, ``transfer="ct-bone"``
+    for ``--tf``, ``jitter=True``, ``gi=vr.GIConfig(method="sresir")``) on top of the preset, as ``volren render``
+    renders it.
 
     ``scene`` is what ``volren render`` renders: a `Scene`; a `Volume` (e.g. from `load`), in a Scene with the
     default light and environment, as ``--volume`` gives a file; `Channels` (a multi-channel file from `load`: each
@@ -229,7 +230,6 @@ def render(scene: Scene | Volume | Channels | VolumeSequence | str | Path,
     >>> frame = vr.render(vr.load("head.nrrd"), width=320, height=180)  # doctest: +SKIP
     >>> frames = vr.render(vr.load("sim_####.npy"), frames=range(3))  # doctest: +SKIP
     """
-    from volren.camera import Camera
     from volren.data.fog_scenes import FOG_SCENES
 
     source = _source(scene, resolution, count, settings.get("seed"))
@@ -243,7 +243,7 @@ def render(scene: Scene | Volume | Channels | VolumeSequence | str | Path,
         views = framed_views(source.at(0), source.name, "mono" if views is None else views, width, height)
     elif width is not None or height is not None:
         raise VolrenError("render: width= and height= size the framed views; the cameras given carry their own size")
-    elif isinstance(views, Camera | list | tuple):
+    else:
         views = _view_list(views)
     renderer = Renderer(method, quality, device=device, **settings)
     if indices is None:
@@ -386,7 +386,7 @@ def framed_views(scene: Scene | Channels, name: str | None, views: str | int, wi
         ipd = framed_ipd(np.concatenate([v.corners_world for v in scene.volumes]))
     stereo = isinstance(views, str) and views.strip().lower() == "stereo"
     camera = framed_camera(scene, name, width, height, eye_offset=ipd / 2 if stereo else 0.0)
-    cameras = make_views(camera, views, ipd)
+    cameras = make_views(camera, views, ipd, keyword)
     if len(cameras) > 1 and not stereo:  # N viewers: on the arc, as ``--rig arc``
         cameras = arc_viewers(camera, len(cameras), fog_scene_walk_area(scene.name) if fog else None)
     return cameras
