@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tests.conftest import DEVICE
 
 import volren as vr
-from tests.conftest import DEVICE
 from volren.cli import main
 
 W, H = 96, 64
@@ -182,6 +182,10 @@ def test_python_renders_the_readme_example_as_the_cli_does(files, tmp_path, line
     out = tmp_path / "cli"
     assert main(["render", *(a.replace("{d}", str(files)) for a in args), *SIZE, "--out", str(out)]) == 0
     cli = pngs(out)
+    import imageio.v3 as iio
+
+    shown = iio.imread(sorted(out.glob("*view0.png"))[0]).astype(float)
+    assert shown[..., :3].std() > 0.5, f"{line}: the CLI's image is one flat colour: a parity of nothing"
     result = python(files)
     frames = result if isinstance(result, list) else [result]
     ours: dict[str, bytes] = {}
