@@ -169,13 +169,14 @@ def test_load_places_a_file_as_the_cli_does(tmp_path):
     (lambda s, c: vr.render(s, c, sample=3), "method 'dssrm' has no setting sample"),
     (lambda s, c: vr.render(s, c, method="vpt", samples=3), "method 'vpt' has no setting samples"),
     (lambda s, c: vr.render(s, c, quality="ultra"), "unknown quality 'ultra'"),
-    (lambda s, c: vr.Renderer(device=DEVICE).render(s.volumes[0], c), "scene must be a volren.Scene or Channels, got Volume: wrap"),
-    (lambda s, c: vr.render(3), "render: scene must be a volren.Scene, a Volume, Channels, a VolumeSequence, a file path or "
-     "a built-in scene name, got int"),
+    (lambda s, c: vr.Renderer(device=DEVICE).render(s.volumes[0], c),
+     "scene must be a volren.Scene or Channels, got Volume: wrap"),
+    (lambda s, c: vr.render(3), "render: scene must be a volren.Scene, a Volume, Channels, a VolumeSequence, a file "
+     "path or a built-in scene name, got int"),
     (lambda s, c: vr.render("nope.nrrd"), "render: scene 'nope.nrrd' is no file nor a built-in scene \\(smoke, "),
     (lambda s, c: vr.render("hall"), "render: 'hall' is a fog scene, which method 'dssrm' does not render: give "
      "method='fog'"),
-    (lambda s, c: vr.render(s, c, width=32), "render: width= and height= size the framed views; the cameras given carry"),
+    (lambda s, c: vr.render(s, c, width=32), "render: width= and height= size the framed views; the cameras given"),
     (lambda s, c: vr.render(s, height=0), r"render: height= must be a positive number of pixels, got 0"),
     (lambda s, c: vr.render(s, "three"), "views= must be mono, stereo or a positive integer, got 'three'"),
     (lambda s, c: vr.render(s, object()), "views must be a volren.Camera or a list of them"),
