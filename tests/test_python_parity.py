@@ -6,8 +6,7 @@ The examples are an explicit table (the README's command block is being regroupe
 written): each row names the README line it stands for, its CLI arguments at a small size, and its Python
 counterpart. README lines not here and why: ``animate`` (orbit, light orbit, --switch-tf: no Python counterpart),
 ``--sphere``/``--ground``/``--mesh``/``--depth-image`` (opaque geometry: `vr.Scene(opaque=...)`, whose types are not
-in the public API), ``--rect-light`` (the same), ``--rig wander``/``overlap`` (viewer rigs), ``.vdb`` files (need
-OpenVDB to write; their reading is the loader's, shared)."""
+in the public API), ``--rect-light`` (the same), ``--rig wander``/``overlap`` (viewer rigs)."""
 
 from __future__ import annotations
 
@@ -99,6 +98,9 @@ EXAMPLES: list[tuple[str, list[str], Callable[[Path], object], dict]] = [
       "--clip=-1,1,-1,0.3,-1,1", "--views", "mono"],
      lambda d: py("phantom", "mono", resolution=64, method="vpt", transfer="ct-muscle", spp=1,
                   clip=(-1, 1, -1, 0.3, -1, 1)), {}),
+    ("render --volume fire.vdb --emission-grid temperature --views mono  # kelvin: glows",
+     ["--volume", "{d}/fire.vdb", "--emission-grid", "temperature", "--views", "mono", *MARCH],
+     lambda d: py(vr.load(d / "fire.vdb", emission_grid="temperature"), **SMALL), {}),
     ("render --volume beads.tif --views mono  # 0.5 um pixels",
      ["--volume", "{d}/beads.tif", "--views", "mono", *MARCH],
      lambda d: py(vr.load(d / "beads.tif"), **SMALL), {}),
@@ -132,10 +134,13 @@ EXAMPLES: list[tuple[str, list[str], Callable[[Path], object], dict]] = [
 @pytest.fixture(scope="module")
 def files(tmp_path_factory) -> Path:
     """The examples' files, small: a NRRD, a raw uint16 stack, an environment map, a micrometre TIFF, a numbered
-    .npy sequence, a 4-D NIfTI, a two-channel TIFF and OME-Zarr."""
+    .npy sequence, a 4-D NIfTI, a two-channel TIFF and OME-Zarr, an OpenVDB flame."""
     import nibabel as nib
     import nrrd
     import tifffile
+
+    from volren.bench.load import write_with_openvdb
+    from volren.data.procedural import fire_fields
 
     d = tmp_path_factory.mktemp("parity")
     z, y, x = np.mgrid[0:16, 0:20, 0:24]
@@ -156,6 +161,11 @@ def files(tmp_path_factory) -> Path:
     cells = (cells * 3000).astype(np.uint16)  # (C, Z, Y, X), 12-bit
     tifffile.imwrite(d / "cells.tif", cells.transpose(1, 0, 2, 3), imagej=True, metadata={"axes": "ZCYX"})
     write_zarr(d / "cells.zarr", cells)
+    soot, temperature = (f[::4, ::4, ::4] for f in fire_fields(64))
+    voxel = np.diag([2 / 16, 2 / 16, 2 / 16, 1.0]).tolist()
+    write_with_openvdb({"fire.vdb": [{"name": "density", "array": soot, "matrix": voxel},
+                                     {"name": "temperature", "array": 300.0 + 2200.0 * temperature, "matrix": voxel}]},
+                       d)
     return d
 
 

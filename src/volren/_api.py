@@ -68,6 +68,7 @@ def load(path: str | Path, **options: Any) -> Volume | Channels | VolumeSequence
     from volren.data.sequence import SequenceConfig, frame_files
     from volren.data.sequence import VolumeSequence as Reader
     from volren.plan.volume import VolumeSequence, check_memory_budget, file_channels
+    from volren.scene import Scene
 
     reader = [n for n, p in inspect.signature(load_volume).parameters.items() if p.kind is p.KEYWORD_ONLY]
     unknown = [k for k in options if k not in reader and k not in MATERIAL and k not in CHANNEL_OPTIONS]
@@ -93,7 +94,13 @@ def load(path: str | Path, **options: Any) -> Volume | Channels | VolumeSequence
         if given:
             raise VolrenError(f"load: {', '.join(given)} apply to a multi-channel file only (a (C, Z, Y, X) array, a "
                               f"TIFF or OME-Zarr with a channel axis); {path} holds one channel")
-        return volume_from_file(loaded, path.name, **material)
+        volume = volume_from_file(loaded, path.name, **material)
+        if volume.emission_grid is None:
+            return volume
+        # a flame's emission scale for the default light and environment it renders in (`render` of a Volume), as
+        # ``--volume FILE --emission-grid NAME`` sets it
+        scene = Scene((volume,))
+        return flame_defaults(scene.volumes, scene.lights, scene.environment)[0]
 
     files = None if options.get("time_point") is not None else frame_files(path)
     if files is None:

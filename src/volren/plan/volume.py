@@ -104,8 +104,7 @@ def check_memory_budget(budget: float | None, level: int | None, words: Callable
 def channel_scene(args: argparse.Namespace, loaded):
     """A multi-channel ``--volume``: one volume per channel glowing in its colour, unlit
     (`volren.render.compositing.channels`); material and light flags would do nothing and are refused."""
-
-    unused = [flag for flag, value in (
+    unused = [name for name, value in (
         ("--density-scale", args.density_scale), ("--albedo", args.albedo), ("--g", args.g),
         ("--emission", args.emission), ("--light-dir", args.light_dir), ("--light-irradiance", args.light_irradiance),
         ("--rect-light", args.rect_light or None), ("--ambient", args.ambient), ("--environment", args.environment),
