@@ -109,6 +109,6 @@ def test_cli_renders_a_double_grid_like_the_float32_npy(tmp_path, capfd):
     assert 0.05 < reference[..., 3].max() < 0.999
     image = _linear_render(capfd, tmp_path / "vdb", SIM, *scale)
     np.testing.assert_allclose(image, reference, rtol=0, atol=1e-6)
-    line = render_error(capfd, tmp_path, ["--volume", CHOICES], "choices.vdb", "--grid NAME: heat (double), "
+    line = render_error(capfd, tmp_path, ["--volume", CHOICES], "choices.vdb", "--grid NAME): heat (double), "
                         "flame (float)")
     assert "count" not in line
