@@ -126,7 +126,7 @@ def test_presets_are_frozen_and_cover_every_method():
     with pytest.raises(TypeError):
         QUALITY_PRESETS["interactive"]["dssrm"]["samples"] = 1  # type: ignore[index]
     assert quality_config("dssrm", "default") == DSSRMConfig()
-    with pytest.raises(VolrenError, match="--quality: unknown quality 'fast'"):
+    with pytest.raises(VolrenError, match="unknown quality 'fast'"):
         quality_config("dssrm", "fast")
     with pytest.raises(VolrenError, match="no setting spp"):
         quality_config("dssrm", "interactive", spp=4)

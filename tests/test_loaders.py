@@ -241,7 +241,8 @@ def test_unplaced_formats_keep_their_aspect(tmp_path: Path) -> None:
     import nrrd
 
     nrrd.write(str(tmp_path / "p.nrrd"), a, {"spacings": [1.0, 1.0, 3.0]}, index_order="C")
-    with pytest.raises(VolrenError, match=r"p\.nrrd: this volume stores its own voxel spacing; --spacing applies"):
+    with pytest.raises(VolrenError, match=r"p\.nrrd: this volume stores its own voxel spacing; spacing \(CLI: "
+                       r"--spacing\) applies"):
         load_volume(tmp_path / "p.nrrd", spacing=(1, 1, 1))
     with pytest.raises(VolrenError, match=r"spacing must be three positive voxel sizes x,y,z"):
         load_volume(tmp_path / "a.npy", spacing=(1, 0, 1))

@@ -1,4 +1,4 @@
-"""Issue 45 item 1: a loaded volume's default opacity comes from its own box (`volren.plan.defaults.box_density_scale`:
+"""Issue 45 item 1: a loaded volume's default opacity comes from its own box (`volren.plan.volume.box_density_scale`:
 optical depth 20 at density 1 across the box's longest side), so a specimen in micrometres shows as the same array in
 metres does; ``--density-scale`` (``density_scale=``) given is per metre as before; stats.json says which rule set
 it; a default render that is still empty says why in one line. 32^3 volumes at 32x32 pixels: about a second each."""

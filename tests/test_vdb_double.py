@@ -72,17 +72,18 @@ def test_every_grid_offered_as_a_choice_reads():
         load_volume(CHOICES)
     message = str(err.value)
     assert "\n" not in message and str(CHOICES) in message
-    offered = re.fullmatch(r".*several scalar grids and none named 'density'; pick one with --grid NAME: (.*)",
-                           message).group(1)
+    offered = re.fullmatch(r".*several scalar grids and none named 'density'; pick one with grid=NAME "
+                           r"\(CLI: --grid NAME\): (.*)", message).group(1)
     assert offered == "heat (double), flame (float)"
     expected = {"heat": grids.HEAT, "flame": grids.FLAME}
     for name in re.findall(r"(\w+) \(\w+\)", offered):
         np.testing.assert_array_equal(load_volume(CHOICES, grid=name).density, expected[name].astype(np.float32))
-    with pytest.raises(VolrenError, match=r"grid 'count' is of type Tree_int32_5_4_3; --grid needs a scalar float "
-                       r"or double grid: pick one of heat \(double\), flame \(float\)$"):
+    with pytest.raises(VolrenError, match=r"grid 'count' is of type Tree_int32_5_4_3; grid= \(CLI: --grid\) needs a "
+                       r"scalar float or double grid: pick one of heat \(double\), flame \(float\)$"):
         load_volume(CHOICES, grid="count")
-    with pytest.raises(VolrenError, match=r"no grid named 'density' \(--grid\); pick one of heat \(double\), flame "
-                       r"\(float\); its other grids, count \(int32\), are not scalar float or double grids$"):
+    with pytest.raises(VolrenError, match=r"no grid named 'density' \(grid=, CLI: --grid\); pick one of heat "
+                       r"\(double\), flame \(float\); its other grids, count \(int32\), are not scalar float or "
+                       r"double grids$"):
         load_volume(CHOICES, grid="density")
 
 
@@ -108,6 +109,6 @@ def test_cli_renders_a_double_grid_like_the_float32_npy(tmp_path, capfd):
     assert 0.05 < reference[..., 3].max() < 0.999
     image = _linear_render(capfd, tmp_path / "vdb", SIM, *scale)
     np.testing.assert_allclose(image, reference, rtol=0, atol=1e-6)
-    line = render_error(capfd, tmp_path, ["--volume", CHOICES], "choices.vdb", "--grid NAME: heat (double), "
+    line = render_error(capfd, tmp_path, ["--volume", CHOICES], "choices.vdb", "--grid NAME): heat (double), "
                         "flame (float)")
     assert "count" not in line

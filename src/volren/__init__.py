@@ -30,6 +30,8 @@ _EXPORTS: dict[str, str] = {
     "Renderer": "volren._api",
     "Scene": "volren.scene",
     "Volume": "volren.scene",
+    "Channels": "volren.render.compositing.channels",
+    "VolumeSequence": "volren.plan.volume",
     "DirectionalLight": "volren.scene",
     "PointLight": "volren.scene",
     "SpotLight": "volren.scene",

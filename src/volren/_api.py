@@ -6,21 +6,22 @@ Heavy modules (Warp, the kernels) are imported inside the functions, so that ``i
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from volren.errors import VolrenError
-from volren.plan.defaults import (  # noqa: F401  (the API's names too: vr.load and the plan share them)
-    BOX_OPTICAL_DEPTH,
-    SCENE_COUNT,
-    box_density_scale,
-    flame_defaults,
-    volume_from_file,
-)
+from volren.errors import VolrenError, keyword
+from volren.plan.options import SCENE_COUNT
+from volren.plan.scene import flame_defaults
+
+# the API's names for the plan's rules (tests and docs name them here)
+from volren.plan.volume import BOX_OPTICAL_DEPTH, box_density_scale, volume_from_file  # noqa: F401
 
 if TYPE_CHECKING:
     from volren.camera import Camera
+    from volren.data.loaders import LoadedVolume
+    from volren.plan.volume import VolumeSequence
+    from volren.render.compositing.channels import Channels
     from volren.render.frame import Frame
     from volren.scene import Scene, Volume
 
@@ -31,28 +32,80 @@ DEFAULT_QUALITY = "interactive"
 
 MATERIAL = ("density_scale", "albedo", "g", "emission")
 """`Volume` fields ``load`` takes besides the reader's options"""
+CHANNEL_OPTIONS = ("channel_colors", "channel_opacity")
+"""what ``load`` takes for a multi-channel file (``--channel-colors``, ``--channel-opacity``)"""
 
 
-def load(path: str | Path, **options: Any) -> Volume:
-    """A density file placed in the world, as ``volren render --volume`` reads it. ``options``: the reader's
-    (`volren.data.loaders.load_volume`: ``spacing`` and ``units`` to place a file that stores no placement, ``shape``
-    and ``dtype`` for raw files, ...) and material fields of `Volume` (``density_scale``, ``albedo``, ``g``,
-    ``emission``) to replace its defaults. ``density_scale`` [1/m] defaults to `box_density_scale`: density 1 has
-    optical depth `BOX_OPTICAL_DEPTH` across the box's longest side, so a specimen in micrometres shows as one in
-    metres does."""
+def load(path: str | Path, **options: Any) -> Volume | Channels | VolumeSequence:
+    """What ``volren render --volume PATH`` reads, placed in the world as it places it:
+
+    - one volume: a `Volume`;
+    - a multi-channel file (a (C, Z, Y, X) ``.npy``, an ImageJ ZCYX or OME-TIFF CZYX stack, an OME-Zarr with a
+      ``c`` axis): `Channels`, one unlit volume per channel glowing in its colour, which `render` adds as the CLI
+      does (``channel_colors``: names ``["green", "magenta"]``, r, g, b triples or the flag's ``"green,magenta"``;
+      default the file's OME-Zarr colours, else green, magenta, cyan, ...; ``channel_opacity``: optical depth at
+      density 1 across the box's longest side, one for all or one per channel, default 4);
+    - a sequence: numbered files (``"sim_####.npy"``: # the zero-padded frame number; ``"sim_%04d.vdb"``; a glob
+      ``"sim_*.npy"``; a folder of numbered files) or a 4-D NIfTI's time points (without ``time_point``): a lazy
+      `VolumeSequence` (``len``, ``seq[i]`` a Volume or Channels read then, the next frames read ahead), which
+      ``render(seq, frames=...)`` renders and `Viewer` plays.
+
+    ``options``: the reader's (`volren.data.loaders.load_volume`): ``spacing`` (x, y, z) and ``units`` (m, cm, mm,
+    um) to place a file that stores no placement; ``shape`` (X, Y, Z) and ``dtype`` for raw files; ``grid`` and
+    ``emission_grid`` of a ``.vdb``; ``time_point`` of a 4-D NIfTI (one volume); an OME-Zarr's ``level`` (0 =
+    finest) or ``memory_budget`` [GiB] (the finest level that fits; default 1), as ``--level`` and
+    ``--memory-budget``; the channel options above; and material fields of `Volume` (``density_scale``,
+    ``albedo``, ``g``, ``emission``) to replace its defaults (not for channels: they glow unlit).
+    ``density_scale`` [1/m] defaults to `box_density_scale`: density 1 has optical depth `BOX_OPTICAL_DEPTH` across
+    the box's longest side, so a specimen in micrometres shows as one in metres does.
+
+    >>> vr.load("cells.tif", channel_colors=["green", "magenta"])  # doctest: +SKIP
+    Channels('cells', 2 channels of 24x24x16 float32 (x, y, z), box ... m at (0, 0, 0), green opacity 4, ...)
+    """
     import inspect
 
     from volren.data.loaders import load_volume
+    from volren.data.sequence import SequenceConfig, frame_files
+    from volren.data.sequence import VolumeSequence as Reader
+    from volren.plan.volume import VolumeSequence, check_memory_budget, file_channels
+    from volren.scene import Scene
 
     reader = [n for n, p in inspect.signature(load_volume).parameters.items() if p.kind is p.KEYWORD_ONLY]
-    unknown = [k for k in options if k not in reader and k not in MATERIAL]
+    unknown = [k for k in options if k not in reader and k not in MATERIAL and k not in CHANNEL_OPTIONS]
     if unknown:
-        raise VolrenError(f"load: unknown argument {unknown[0]}: choose from {', '.join([*reader, *MATERIAL])}")
-    loaded = load_volume(path, **{k: v for k, v in options.items() if k in reader})
-    if loaded.channels:
-        raise VolrenError(f"load: {path} holds {len(loaded.channels)} channels and load returns one volume "
-                          "(`volren render --volume` renders them all)")
-    return volume_from_file(loaded, Path(path).name, **{k: v for k, v in options.items() if k in MATERIAL})
+        raise VolrenError(f"load: unknown argument {unknown[0]}: choose from "
+                          f"{', '.join([*reader, *MATERIAL, *CHANNEL_OPTIONS])}")
+    check_memory_budget(options.get("memory_budget"), options.get("level"), keyword)
+    read = {k: v for k, v in options.items() if k in reader}
+    if read.get("memory_budget") is not None:
+        read["memory_budget"] = read["memory_budget"] * 2**30  # GiB, as --memory-budget; the reader counts bytes
+    material = {k: v for k, v in options.items() if k in MATERIAL}
+    colors, opacity = options.get("channel_colors"), options.get("channel_opacity")
+    path = Path(path)
+
+    def made(loaded: LoadedVolume) -> Volume | Channels:
+        if loaded.channels:
+            if material:
+                raise VolrenError(f"load: {path} holds {len(loaded.channels)} channels, which glow in their colours, "
+                                  f"unlit: {', '.join(map(keyword, material))} would do nothing (give "
+                                  "channel_colors=, channel_opacity=)")
+            return file_channels(loaded, path, colors, opacity, keyword)
+        given = [keyword(k) for k in CHANNEL_OPTIONS if options.get(k) is not None]
+        if given:
+            raise VolrenError(f"load: {', '.join(given)} apply to a multi-channel file only (a (C, Z, Y, X) array, a "
+                              f"TIFF or OME-Zarr with a channel axis); {path} holds one channel")
+        volume = volume_from_file(loaded, path.name, **material)
+        if volume.emission_grid is None:
+            return volume
+        # a flame's emission scale for the default light and environment it renders in (`render` of a Volume), as
+        # ``--volume FILE --emission-grid NAME`` sets it
+        scene = Scene((volume,))
+        return flame_defaults(scene.volumes, scene.lights, scene.environment)[0]
+
+    files = None if options.get("time_point") is not None else frame_files(path)
+    if files is None:
+        return made(load_volume(path, **read))
+    return VolumeSequence(path, Reader(SequenceConfig(files), lambda f: load_volume(f, **read)), made)
 
 
 def builtin_scene(name: str, resolution: int | None = None, *, count: int | None = None, seed: int | None = None,
@@ -83,7 +136,7 @@ def views(camera: Camera, mode: str | int = "stereo", *, ipd: float = 0.063) -> 
     viewers on an arc), as ``--views`` gives them."""
     from volren.camera import make_views
 
-    return make_views(_camera(camera, "views: camera"), mode, ipd)
+    return make_views(_camera(camera, "views: camera"), mode, ipd, lambda _: "views: mode")
 
 
 def _camera(value: Any, what: str) -> Camera:
@@ -118,91 +171,241 @@ class Renderer:
 
         config = quality_config(method, quality, **settings)  # refuses an unknown method, quality or setting
         self.method, self.quality = method, quality
-        self._renderer = METHODS[method][0](config, device=device)
+        self._make = lambda: METHODS[method][0](config, device=device)
+        self._renderer = self._make()
+        self._channels: Any = None
+        """`AdditiveChannels` for `Channels`, made at the first (one renderer per channel, as the CLI's)"""
 
     def __getattr__(self, name: str) -> Any:
         if name == "_renderer":  # not set: __init__ failed
             raise AttributeError(name)
         return getattr(self._renderer, name)
 
-    def render(self, scene: Scene, views: Camera | Sequence[Camera], frame: int = 0) -> Frame:
-        """Frame ``frame`` of ``scene`` for each of ``views`` (one Camera or a list, e.g. from `volren.views`)."""
+    def render(self, scene: Scene | Channels, views: Camera | Sequence[Camera], frame: int = 0) -> Frame:
+        """Frame ``frame`` of ``scene`` for each of ``views`` (one Camera or a list, e.g. from `volren.views`). A
+        `Channels` is rendered as ``volren render --volume`` renders a multi-channel file: each channel by a renderer
+        of its own, the images added (`volren.render.compositing.channels.AdditiveChannels`)."""
+        from volren.render.compositing.channels import AdditiveChannels, Channels
         from volren.scene import Scene, Volume
 
+        if isinstance(scene, Channels):
+            if self._channels is None or len(self._channels.renderers) != len(scene):
+                self._channels = AdditiveChannels(self._make, len(scene))
+            return self._channels.render(scene.scene, _view_list(views), frame)
         if not isinstance(scene, Scene):
             hint = ": wrap it as volren.Scene([volume])" if isinstance(scene, Volume) else ""
-            raise VolrenError(f"scene must be a volren.Scene, got {type(scene).__name__}{hint}")
+            raise VolrenError(f"scene must be a volren.Scene or Channels, got {type(scene).__name__}{hint}")
         return self._renderer.render(scene, _view_list(views), frame)
 
 
-def render(scene: Scene | Volume | str | Path, views: Camera | Sequence[Camera] | None = None,
-           method: str = DEFAULT_METHOD, quality: str = DEFAULT_QUALITY, device: str = "auto", *,
-           width: int | None = None, height: int | None = None, **settings: Any) -> Frame:
-    """One frame of ``scene`` for ``views`` (a Camera or a list, e.g. from `volren.views`) by ``method`` at
-    ``quality``, with ``settings`` (fields of the method's config, e.g. ``samples=720``) on top of the preset.
+def render(scene: Scene | Volume | Channels | VolumeSequence | str | Path,
+           views: Camera | Sequence[Camera] | str | int | None = None, method: str = DEFAULT_METHOD,
+           quality: str = DEFAULT_QUALITY, device: str = "auto", *, width: int | None = None,
+           height: int | None = None, frames: int | Iterable[int] | None = None, resolution: int | None = None,
+           count: int | None = None, environment: Any = None, **settings: Any) -> Frame | list[Frame]:
+    """One frame of ``scene`` (a list of them with ``frames=``) by ``method`` at ``quality``, with ``settings``
+    (fields of the method's config, e.g. ``samples=720``, ``light_grid=16``, ``mode="mip"``, ``transfer="ct-bone"``
+    for ``--tf``, ``jitter=True``, ``gi=vr.GIConfig(method="sresir")``) on top of the preset, as ``volren render``
+    renders it.
 
     ``scene`` is what ``volren render`` renders: a `Scene`; a `Volume` (e.g. from `load`), in a Scene with the
-    default light and environment, as ``--volume`` gives a file; a path of a file (``str`` or ``Path``, read as
-    `load` reads it, an emission grid's flame scale as ``--volume`` sets it); or a built-in scene's name
-    (`builtin_scene`, as ``--scene``; a fog scene needs ``method="fog"``, as on the command line).
+    default light and environment, as ``--volume`` gives a file; `Channels` (a multi-channel file from `load`: each
+    channel rendered alone, the images added, as ``--volume`` does; dvr, mip or mida); a `VolumeSequence` (from
+    `load`: frame i of the render is its frame i); a path of a file or sequence (``str`` or ``Path``, read as `load`
+    reads it, an emission grid's flame scale as ``--volume`` sets it); or a built-in scene's name (`builtin_scene`
+    with ``resolution`` and ``count``, as ``--scene``; a fog scene needs ``method="fog"``, as on the command line).
+    ``environment``: replaces the scene's, as ``--environment`` or ``--ambient`` (a name such as ``"sky"``, an
+    image file, a radiance or r, g, b, or an `Environment`).
 
-    Without ``views`` it is framed as the command line frames it, in one view of ``width`` x ``height`` pixels
+    ``views``: a Camera or a list of them (e.g. from `volren.views`), or framed as the command line frames its
+    ``--views``: ``"mono"`` (the default), ``"stereo"`` or N viewers on an arc, each ``width`` x ``height`` pixels
     (default 640 x 360, ``--width`` and ``--height``'s; `Camera`'s other defaults): a built-in volume scene from
     (0, 0.4, 3.2) m looking at the origin, a fog scene from its own viewpoint, anything else (a file, a Volume, a
     Scene of volumes) whole, looking at its volumes' box's centre from that direction (`volren.framing.framed_eye`),
-    whatever its units: ``vr.render(vr.load("stack.tif"))`` shows a micrometre stack. Given ``views``, ``width``
-    and ``height`` are refused (the cameras carry their size).
+    whatever its units (``vr.render(vr.load("stack.tif"))`` shows a micrometre stack; a stereo pair's eyes at most
+    its box's size apart). Given cameras, ``width`` and ``height`` are refused (the cameras carry their size).
 
-    For frames that build on each other (GI, denoising, fog), keep a `Renderer`: its ``render`` takes a Scene and
-    views, always.
+    ``frames``: without it, one `Frame` (a sequence: every frame, a list); given, a list of Frames (``--frames N``),
+    rendered by one renderer, so temporal methods build on the frames before: an int N (frames 0 .. N-1) or the frame
+    numbers (``range(2, 5)``: a sequence's frames 2, 3, 4; their index seeds the jitter). Frame i of a sequence
+    shows its volume i, of an animated fog scene its time i / 30 s. ``frame.save(folder, exposure=, tonemap=)``
+    writes what ``volren render --out folder --exposure --tonemap`` writes (for one frame of a run of one).
 
-    >>> frame = vr.render(vr.load("head.nrrd"), width=320, height=240)  # doctest: +SKIP
+    For frames that build on each other across calls (GI, denoising, fog), keep a `Renderer`: its ``render`` takes a
+    Scene (or Channels) and views, always.
+
+    >>> frame = vr.render(vr.load("head.nrrd"), width=320, height=180)  # doctest: +SKIP
+    >>> frames = vr.render(vr.load("sim_####.npy"), frames=range(3))  # doctest: +SKIP
     """
     from volren.data.fog_scenes import FOG_SCENES
 
-    scene, name = _scene_of(scene)
-    if name in FOG_SCENES and method != "fog":
-        raise VolrenError(f"render: '{name}' is a fog scene, which method '{method}' does not render: give "
+    source = _source(scene, resolution, count, settings.get("seed"))
+    if source.name in FOG_SCENES and method != "fog":
+        raise VolrenError(f"render: '{source.name}' is a fog scene, which method '{method}' does not render: give "
                           "method='fog'")
-    if views is None:
-        views = framed_camera(scene, name, width, height)
+    if environment is not None:
+        source = dataclasses.replace(source, environment=_environment(environment, source))
+    indices = _frame_numbers(frames, source.length)
+    if views is None or (isinstance(views, str | int) and not isinstance(views, bool)):
+        views = framed_views(source.at(0), source.name, "mono" if views is None else views, width, height)
     elif width is not None or height is not None:
-        raise VolrenError("render: width= and height= size the framed camera; the views= given carry their own size")
-    return Renderer(method, quality, device=device, **settings).render(scene, views)
+        raise VolrenError("render: width= and height= size the framed views; the cameras given carry their own size")
+    else:
+        views = _view_list(views)
+    renderer = Renderer(method, quality, device=device, **settings)
+    if indices is None:
+        return renderer.render(source.at(0), views, 0)
+    return [renderer.render(source.at(i), views, i) for i in indices]
 
 
-def _scene_of(value: Any) -> tuple[Scene, str | None]:
-    """(the Scene `render` renders for ``value``, the built-in scene's name or None)."""
-    from volren.data import BUILTIN_SCENES
-    from volren.data.fog_scenes import FOG_SCENES
+@dataclasses.dataclass(frozen=True)
+class _Source:
+    """What `render` renders, frame by frame."""
+
+    scene: Any
+    """frame 0's Scene or Channels"""
+    name: str | None = None
+    """the built-in scene's name"""
+    frame: Any = None
+    """frame i's Scene or Channels (a sequence, an animated fog scene); None: ``scene`` always"""
+    length: int | None = None
+    """a sequence's frame count"""
+    file: bool = False
+    """read from a file here: its emission grid's flame scale as ``--volume`` sets it (`flame_defaults`)"""
+    environment: Any = None
+    """the environment that replaces the scene's"""
+
+    def at(self, i: int) -> Any:
+        """Frame i's Scene (or Channels), with the environment and the flame scale set as the CLI sets them."""
+        from volren.scene import Scene
+
+        scene = self.scene if self.frame is None or i == 0 else self.frame(i)
+        if not isinstance(scene, Scene):
+            return scene  # Channels: unlit, no flame
+        if self.environment is not None:
+            scene = dataclasses.replace(scene, environment=self.environment)
+        if self.file:
+            scene = dataclasses.replace(scene, volumes=flame_defaults(scene.volumes, scene.lights, scene.environment))
+        return scene
+
+
+def _source(value: Any, resolution: int | None, count: int | None, seed: int | None) -> _Source:
+    """`render`'s ``scene`` as a `_Source`; ``resolution``, ``count`` and ``seed`` (the setting: ``--seed`` seeds a
+    built-in volume scene's noise too) build a built-in scene of that name."""
+    from volren.data import BUILTIN_SCENES, COUNTED_SCENES
+    from volren.data.fog_scenes import ANIMATED_FOG_SCENES, FOG_SCENES
+    from volren.plan.options import ANIMATION_FPS
+    from volren.plan.volume import VolumeSequence
+    from volren.render.compositing.channels import Channels
     from volren.scene import Scene, Volume
 
-    if isinstance(value, Scene):
-        return value, None
-    if isinstance(value, Volume):
-        return Scene((value,), name=Path(value.name).stem), None
     names = [*BUILTIN_SCENES, *FOG_SCENES]
     if isinstance(value, str) and value in names:
-        from volren.data import COUNTED_SCENES
+        if value in FOG_SCENES:
+            time = (lambda i: builtin_scene(value, time=i / ANIMATION_FPS)) if value in ANIMATED_FOG_SCENES else None
+            if resolution is not None or count is not None:
+                raise VolrenError(f"render: fog scene '{value}' takes no resolution= or count=")
+            return _Source(builtin_scene(value), value, time)
+        counted = SCENE_COUNT if count is None and value in COUNTED_SCENES else count
+        return _Source(builtin_scene(value, resolution, count=counted, seed=seed), value)
+    if resolution is not None or count is not None:
+        raise VolrenError("render: resolution= and count= build a built-in scene: give its name, not "
+                          f"a {type(value).__name__}")
+    if isinstance(value, Scene | Channels):
+        return _Source(value)
+    if isinstance(value, Volume):
+        return _Source(Scene((value,), name=Path(value.name).stem))
+    if isinstance(value, VolumeSequence):
+        def frame(i: int) -> Scene | Channels:
+            got = value[i]
+            return got if isinstance(got, Channels) else Scene((got,), name=value.path.stem)
 
-        return builtin_scene(value, count=SCENE_COUNT if value in COUNTED_SCENES else None), value
+        return _Source(frame(0), frame=frame, length=len(value), file=True)
     if not isinstance(value, str | Path):
-        raise VolrenError(f"render: scene must be a volren.Scene, a Volume, a file path or a built-in scene name, "
-                          f"got {type(value).__name__}")
-    if not Path(value).is_file():
+        raise VolrenError(f"render: scene must be a volren.Scene, a Volume, Channels, a VolumeSequence, a file path or "
+                          f"a built-in scene name, got {type(value).__name__}")
+    from volren.data.sequence import frame_files
+
+    if not Path(value).exists() and frame_files(value) is None:
         hint = f" nor a built-in scene ({', '.join(names)})" if isinstance(value, str) else ""
         raise VolrenError(f"render: scene '{value}' is no file{hint}")
-    volume = load(value)
-    scene = Scene((volume,), name=Path(value).stem)
-    return dataclasses.replace(scene, volumes=flame_defaults(scene.volumes, scene.lights, scene.environment)), None
+    loaded = load(value)
+    if isinstance(loaded, Volume):
+        return _Source(Scene((loaded,), name=Path(value).stem), file=True)
+    return _source(loaded, None, None, None)
+
+
+def _environment(value: Any, source: _Source) -> Any:
+    """``render``'s ``environment=``: as ``--environment`` (a name or an image file) or ``--ambient`` (a radiance
+    or r, g, b), or an `Environment`; refused for channels, as the CLI refuses the flags."""
+    from volren.plan.scene import named_environment
+    from volren.render.compositing.channels import Channels
+    from volren.scene import Environment
+
+    if isinstance(source.scene, Channels):
+        raise VolrenError("render: a multi-channel volume glows in its channel colours, unlit: environment= would do "
+                          "nothing")
+    if isinstance(value, Environment):
+        return value
+    if isinstance(value, str | Path):
+        return named_environment(value)
+    return Environment(value)
+
+
+def _frame_numbers(frames: Any, length: int | None) -> list[int] | None:
+    """``render``'s ``frames=`` as frame numbers (None: one frame, returned alone); a sequence's, all of them."""
+    if frames is None:
+        return None if length is None else list(range(length))
+    if isinstance(frames, int) and not isinstance(frames, bool):
+        if frames < 1:
+            raise VolrenError(f"render: frames= must be >= 1, got {frames}")
+        numbers = list(range(frames))
+    else:
+        try:
+            numbers = list(frames)
+        except TypeError:
+            raise VolrenError(f"render: frames= must be a count or frame numbers, got {type(frames).__name__}") \
+                from None
+        if not numbers or not all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in numbers):
+            raise VolrenError(f"render: frames= must be a count or frame numbers >= 0, got {frames!r}")
+    if length is not None and max(numbers) >= length:
+        raise VolrenError(f"render: frames= {frames!r}: the sequence has {length} frames (0 to {length - 1})")
+    return numbers
+
+
+def framed_views(scene: Scene | Channels, name: str | None, views: str | int, width: int | None = None,
+                 height: int | None = None) -> list[Camera]:
+    """The views `render` frames for ``views`` (mono, stereo or N), as ``volren render --views`` places them:
+    `framed_camera`, whose stereo eyes are at most the box's size apart (`volren.plan.views.framed_ipd`) and whose
+    distance leaves room for them; N viewers on the arc (a fog scene's within its walkable area)."""
+    from volren.camera import make_views
+    from volren.data.fog_scenes import FOG_SCENES, fog_scene_walk_area
+    from volren.plan.views import framed_ipd
+    from volren.render.compositing.channels import Channels
+    from volren.viewers import arc_viewers
+
+    scene = scene.scene if isinstance(scene, Channels) else scene
+    fog = name in FOG_SCENES or (scene.fog is not None and scene.name in FOG_SCENES)
+    ipd = 0.063
+    if name is None and not fog and scene.volumes:
+        import numpy as np
+
+        ipd = framed_ipd(np.concatenate([v.corners_world for v in scene.volumes]))
+    stereo = isinstance(views, str) and views.strip().lower() == "stereo"
+    camera = framed_camera(scene, name, width, height, eye_offset=ipd / 2 if stereo else 0.0)
+    cameras = make_views(camera, views, ipd, keyword)
+    if len(cameras) > 1 and not stereo:  # N viewers: on the arc, as ``--rig arc``
+        cameras = arc_viewers(camera, len(cameras), fog_scene_walk_area(scene.name) if fog else None)
+    return cameras
 
 
 def framed_camera(scene: Scene, name: str | None = None, width: int | None = None,
-                  height: int | None = None) -> Camera:
+                  height: int | None = None, *, eye_offset: float = 0.0) -> Camera:
     """The one camera `render` uses without views, as ``volren render`` places it (`Camera`'s defaults else): for
     the built-in scene ``name``, the default eye (0, 0.4, 3.2) m looking at the origin, or a fog scene's own
     viewpoint (also for a Scene with fog named as one); else ``scene``'s volumes framed whole
-    (`volren.framing.framed_eye`, as for ``--volume``); a scene of no volumes, the default eye."""
+    (`volren.framing.framed_eye`, as for ``--volume``; ``eye_offset`` [m] leaves room for eyes shifted sideways:
+    stereo's ipd / 2); a scene of no volumes, the default eye."""
     import numpy as np
 
     from volren.camera import Camera
@@ -220,5 +423,6 @@ def framed_camera(scene: Scene, name: str | None = None, width: int | None = Non
     if name is not None or not scene.volumes:
         return Camera(position=DEFAULT_EYE, **size)
     corners = np.concatenate([v.corners_world for v in scene.volumes])
-    position, look_at, near = framed_eye(corners, Camera.up, Camera.fov_y, size["width"] / size["height"])
+    position, look_at, near = framed_eye(corners, Camera.up, Camera.fov_y, size["width"] / size["height"],
+                                         eye_offset=eye_offset)
     return Camera(position=position, look_at=look_at, near=near, **size)

@@ -5,11 +5,12 @@ Camera space looks down -z with +y up (OpenGL). Pixel (row 0, col 0) is the top-
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from volren.errors import VolrenError
+from volren.errors import VolrenError, flag
 from volren.scene import as_vec3
 
 MAX_VIEWS = 1024
@@ -126,8 +127,10 @@ def orbit_views(camera: Camera, count: int, spread_deg: float = 10.0) -> list[Ca
     return views
 
 
-def make_views(camera: Camera, views: str | int = "stereo", ipd: float = 0.063) -> list[Camera]:
-    """The view list for ``mono`` (1), ``stereo`` (2 eyes) or an integer N (N viewers on an arc)."""
+def make_views(camera: Camera, views: str | int = "stereo", ipd: float = 0.063,
+               words: Callable[[str], str] = flag) -> list[Camera]:
+    """The view list for ``mono`` (1), ``stereo`` (2 eyes) or an integer N (N viewers on an arc); a bad ``views``
+    is refused naming the option in ``words`` (`volren.errors.flag`: ``--views``; `keyword`: ``views=``)."""
     if isinstance(views, str):
         key = views.strip().lower()
         if key == "mono":
@@ -135,7 +138,7 @@ def make_views(camera: Camera, views: str | int = "stereo", ipd: float = 0.063) 
         if key == "stereo":
             return StereoRig(camera, ipd).eyes()
         if not (key.isascii() and key.isdecimal()):
-            raise VolrenError(f"--views must be mono, stereo or a positive integer, got '{views}'")
+            raise VolrenError(f"{words('views')} must be mono, stereo or a positive integer, got '{views}'")
         views = int(key)
     return orbit_views(camera, int(views))
 

@@ -31,7 +31,7 @@ import math
 import threading
 import weakref
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import ipywidgets
 import numpy as np
@@ -45,10 +45,13 @@ from volren.presets import QUALITIES
 from volren.render import METHODS
 from volren.render.base import LightMapMarchConfig
 from volren.render.marching.modes import MODES
-from volren.scene import Scene
+from volren.scene import Scene, Volume
 from volren.serve.loop import DENSITY_TF, RenderLoop, scene_methods
 from volren.serve.protocol import MAX_ISO, MIN_ISO, CameraMessage, ProtocolError, Settings, unpack_frame
 from volren.serve.viewers import Limits
+
+if TYPE_CHECKING:
+    from volren.plan.volume import VolumeSequence
 
 ORBIT_RAD_PER_PX = 0.01
 """[rad per CSS pixel] of a drag, as viewer.js"""
@@ -62,7 +65,7 @@ FRAME_TIMEOUT_S = 180.0
 """[s] `get_frame` outside a kernel waits this long for a frame: the first one compiles Warp's kernels when its cache
 is cold (30-90 s a module on two CPU cores)"""
 SETTINGS = {"method": "method", "preset": "quality", "tf": "tf", "mode": "mode", "iso_value": "iso_value",
-            "stereo": "stereo"}
+            "stereo": "stereo", "playing": "playing"}
 """the viewer's setting traits -> the fields of serve's settings message they are applied as"""
 DEFAULT_EYE = (0.0, 0.4, 3.2)
 """the default camera of `volren serve` and `volren render` for the unit box [-1, 1]^3, scaled to the scene's"""
@@ -155,9 +158,10 @@ class Viewer(RemoteFrameBuffer):
     (both eyes side by side when ``stereo``); the widget's size in the page replaces it once it is shown. ``quality``
     is the preset the render starts with (the `preset` trait; jupyter_rfb's own ``quality`` is the JPEG quality of
     the frames it streams); ``settings`` are config fields on top of it (``samples=64``, ``light_grid=16``) for
-    whichever method is on. `method`, `preset`, `tf`, `mode`, `iso_value` and `stereo` are traits: set them
-    (``viewer.method = "cmsrm"``) or show `controls` beside the widget. ``camera``: the start view (default:
-    `default_camera`)."""
+    whichever method is on. `method`, `preset`, `tf`, `mode`, `iso_value`, `stereo` and `playing` are traits: set
+    them (``viewer.method = "cmsrm"``) or show `controls` beside the widget. ``camera``: the start view (default:
+    `default_camera`). ``scene``: a Scene, a Volume, or a `VolumeSequence` (from `volren.load`), shown at frame 0
+    and stepped through while ``playing`` is True, as ``volren serve --volume PATTERN`` plays it."""
 
     method = Unicode("dssrm")
     preset = Unicode("interactive")
@@ -169,13 +173,14 @@ class Viewer(RemoteFrameBuffer):
     """the light-map marchers' sci-vis mode: dvr, mip, mida or iso (`volren.render.marching.modes`)"""
     iso_value = Float(LightMapMarchConfig.iso_value)
     """[density] of mode iso"""
+    playing = Bool(False)
+    """a `VolumeSequence` plays: its next frame each tick, looping (the serve page's play control)"""
 
-    def __init__(self, scene: Scene, method: str = "dssrm", quality: str = "interactive", stereo: bool = False,
-                 width: int = 480, height: int = 270, *, camera: Camera | None = None, device: str = "auto",
-                 ipd: float = 0.063, tf: str = DENSITY_TF, mode: str = "dvr",
+    def __init__(self, scene: Scene | Volume | VolumeSequence, method: str = "dssrm", quality: str = "interactive",
+                 stereo: bool = False, width: int = 480, height: int = 270, *, camera: Camera | None = None,
+                 device: str = "auto", ipd: float = 0.063, tf: str = DENSITY_TF, mode: str = "dvr",
                  iso_value: float = LightMapMarchConfig.iso_value, **settings: Any) -> None:
-        if not isinstance(scene, Scene):
-            raise VolrenError(f"Viewer: scene must be a volren Scene, got {type(scene).__name__}")
+        scene, animate = _shown(scene)
         self._limits = Limits(max_viewers=1)
         self._loop: RenderLoop | None = None
         methods = scene_methods(scene)
@@ -215,7 +220,7 @@ class Viewer(RemoteFrameBuffer):
         self._thread.start()
         try:
             self._call(self._start, scene, method, quality, Settings(tf=tf, mode=mode, iso_value=iso_value), camera,
-                       (width, height, stereo), device, ipd, settings)
+                       (width, height, stereo), device, ipd, settings, animate)
         except BaseException:
             self.close()
             raise
@@ -240,9 +245,10 @@ class Viewer(RemoteFrameBuffer):
         return done.result()
 
     def _start(self, scene: Scene, method: str, quality: str, shared: Settings, camera: Camera,
-               size: tuple[int, int, bool], device: str, ipd: float, settings: dict[str, Any]) -> None:
+               size: tuple[int, int, bool], device: str, ipd: float, settings: dict[str, Any],
+               animate: Callable[[], Scene] | None) -> None:
         loop = RenderLoop(scene, method, quality, limits=self._limits, camera=camera, device=device, ipd=ipd,
-                          overrides=settings, encode=_raw_pixels)
+                          overrides=settings, encode=_raw_pixels, animate=animate)
         self._client = loop.viewers.add(self._deliver, self._text)
         self._loop = loop
         self._client.resize(*size, self._limits)
@@ -381,7 +387,7 @@ class Viewer(RemoteFrameBuffer):
             if not (math.isfinite(value) and MIN_ISO <= value <= MAX_ISO):
                 raise VolrenError(f"Viewer: iso_value must be a finite density in [{MIN_ISO:g}, {MAX_ISO:g}], got "
                                   f"{value}")
-        elif name != "stereo":
+        elif name not in ("stereo", "playing"):
             _check_choice(name, value, self._choices(name))
         if self._loop is not None and value != getattr(self, name):
             self._call(self._apply, Settings(**{SETTINGS[name]: value}))
@@ -434,6 +440,29 @@ class Viewer(RemoteFrameBuffer):
         if not self._thread.is_alive():
             self._aio.close()
         _OPEN.discard(self)
+
+
+def _shown(value: Any) -> tuple[Scene, Callable[[], Scene] | None]:
+    """The Viewer's scene and what plays (`RenderLoop`'s ``animate``): a Scene as it is; a Volume in a Scene with
+    the default light, as `volren.render` shows it; a `VolumeSequence`'s frame 0, then its frames in turn while
+    ``playing`` (as ``volren serve --volume PATTERN``)."""
+    from volren.plan.volume import VolumeSequence
+    from volren.render.compositing.channels import Channels
+    from volren.serve.loop import sequence_player
+
+    if isinstance(value, Scene):
+        return value, None
+    if isinstance(value, Volume):
+        return Scene((value,), name=value.name), None
+    if isinstance(value, VolumeSequence):
+        first = value[0]
+        if isinstance(first, Volume):
+            scene = Scene((first,), name=value.path.stem)
+            return scene, sequence_player(len(value), lambda i: dataclasses.replace(scene, volumes=(value[i],)))
+    if isinstance(value, Channels | VolumeSequence):  # a sequence of channels too
+        raise VolrenError("Viewer: a multi-channel volume renders each channel by a renderer of its own, which the "
+                          "live loop does not (as volren serve): render it with volren.render")
+    raise VolrenError(f"Viewer: scene must be a volren Scene, Volume or VolumeSequence, got {type(value).__name__}")
 
 
 def _check_choice(name: str, value: Any, choices: Any) -> str:

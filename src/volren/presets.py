@@ -64,7 +64,7 @@ def quality_options(method: str, quality: str) -> dict[str, Any]:
     from volren.render import METHODS
 
     if quality not in QUALITY_PRESETS:
-        raise VolrenError(f"--quality: unknown quality '{quality}': choose from {', '.join(QUALITIES)}")
+        raise VolrenError(f"unknown quality '{quality}': choose from {', '.join(QUALITIES)}")
     if method not in METHODS:
         raise VolrenError(f"unknown method '{method}': choose from {', '.join(METHODS)}")
     return dict(QUALITY_PRESETS[quality].get(method, {}))

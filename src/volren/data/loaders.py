@@ -555,8 +555,8 @@ def load_volume(
     else:
         grid = _read_file(path, shape, dtype, **options)
     if grid.index_to_file is not None and spacing is not None and not grid.spacing_replaces:
-        raise VolrenError(f"{path}: this volume stores its own voxel spacing; --spacing applies to .npy, .npz, raw, "
-                          ".tif and .nvdb")
+        raise VolrenError(f"{path}: this volume stores its own voxel spacing; spacing (CLI: --spacing) applies to "
+                          ".npy, .npz, raw, .tif and .nvdb")
     grid, parts = _split_channels(path, grid)
     channels = tuple(validate_density(_normalise(g)[0], f"volume file {path} channel {c}") for c, g in enumerate(parts))
     data, value_range = (channels[0], None) if channels else _normalise(grid)

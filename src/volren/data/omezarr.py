@@ -86,13 +86,15 @@ def _choose_level(path: Path, shapes: list[tuple[int, ...]], level: int | None, 
     """``level`` if given, else the finest level whose float32 voxels fit in ``budget`` bytes."""
     if level is not None:
         if not 0 <= level < len(shapes):
-            raise VolrenError(f"{path}: --level {level} is out of range: the pyramid has levels 0 to {len(shapes) - 1}")
+            raise VolrenError(f"{path}: level {level} is out of range: the pyramid has levels 0 to {len(shapes) - 1} "
+                              "(CLI: --level)")
         return level
     sizes = [4 * int(np.prod(s, dtype=np.int64)) for s in shapes]
     fitting = [i for i, n in enumerate(sizes) if n <= budget]
     if not fitting:
         raise VolrenError(f"{path}: even the coarsest level ({len(shapes) - 1}, {sizes[-1] / 2**30:.2f} GiB of "
-                          f"float32) exceeds the memory budget of {budget / 2**30:.2f} GiB; raise --memory-budget")
+                          f"float32) exceeds the memory budget of {budget / 2**30:.2f} GiB; raise memory_budget (CLI: "
+                          "--memory-budget)")
     return min(fitting)
 
 
@@ -114,7 +116,8 @@ def read_zarr(path: Path, *, level: int | None = None, memory_budget: float | No
         raise VolrenError(f"{path}: not a readable Zarr store ({one_line(exc)})") from None
     if isinstance(node, zarr.Array):
         if level is not None:
-            raise VolrenError(f"{path}: a plain Zarr array has no pyramid levels; --level applies to OME-Zarr")
+            raise VolrenError(f"{path}: a plain Zarr array has no pyramid levels; level applies to OME-Zarr (CLI: "
+                              "--level)")
         return Grid(np.asarray(node[...]))
     try:
         return _read_multiscale(path, node, level, budget)

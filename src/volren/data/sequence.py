@@ -186,6 +186,11 @@ class VolumeSequence:
         return len(self.config.files)
 
     @property
+    def first(self) -> _Reference:
+        """The first frame's grid shape, placement, value mapping and channel count: every frame's."""
+        return self._first
+
+    @property
     def held(self) -> tuple[int, ...]:
         """The frames held now (read, or being read), in no particular order."""
         return tuple(self._held)

@@ -120,9 +120,11 @@ def _describe(names: list[tuple[str, str]]) -> str:
     return ", ".join(f"{n} ({t.removeprefix('Tree_').split('_')[0]})" for n, t in names) or "(none)"
 
 
-def _find_grid(path: Path, vdb, name: str | None, flag: str) -> int:
+def _find_grid(path: Path, vdb, name: str | None, option: str) -> int:
     """Index of the grid ``name``; None picks ``density``, else the only scalar (float or double) grid. A refusal
-    offers as choices only the grids that can be read; the others are named as such."""
+    offers as choices only the grids that can be read; the others are named as such; it names the ``option``
+    (``grid``, ``emission_grid``) as a keyword and as the CLI's flag."""
+    cli = "--" + option.replace("_", "-")
     names = _grid_names(vdb)
     scalar = [i for i, (_, t) in enumerate(names) if _value_type(t) is not None]
     readable = _describe([names[i] for i in scalar])
@@ -135,14 +137,16 @@ def _find_grid(path: Path, vdb, name: str | None, flag: str) -> int:
         if not scalar:
             raise VolrenError(f"{path}: no scalar float or double grid to read as the density; the file holds "
                               f"{_describe(names)}")
-        raise VolrenError(f"{path}: several scalar grids and none named 'density'; pick one with {flag} NAME: "
+        raise VolrenError(f"{path}: several scalar grids and none named 'density'; pick one with {option}=NAME (CLI: "
+                          f"{cli} NAME): "
                           f"{readable}")
     match = [i for i, (n, _) in enumerate(names) if n == name]
     choices = f"pick one of {readable}" if scalar else "the file has no scalar float or double grid"
     if not match:
-        raise VolrenError(f"{path}: no grid named {name!r} ({flag}); {choices}{rest}")
+        raise VolrenError(f"{path}: no grid named {name!r} ({option}=, CLI: {cli}); {choices}{rest}")
     if match[0] not in scalar:
-        raise VolrenError(f"{path}: grid {name!r} is of type {names[match[0]][1]}; {flag} needs a scalar float or "
+        raise VolrenError(f"{path}: grid {name!r} is of type {names[match[0]][1]}; {option}= (CLI: {cli}) needs a "
+                          "scalar float or "
                           f"double grid: {choices}")
     return match[0]
 
@@ -418,26 +422,27 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
     vdb = _open(path)
     data = _map(path)
     try:
-        index = _find_grid(path, vdb, grid, "--grid")
+        index = _find_grid(path, vdb, grid, "grid")
         density_grid = vdb.grid(index)
         to_world = _index_to_world(path, density_grid)
         leaves, origins, tiles, dtype = _leaves(path, data, vdb, index)
         lo, hi = _active_box(path, density_grid, origins, tiles)
         emission = None
         if emission_grid is not None:
-            other_index = _find_grid(path, vdb, emission_grid, "--emission-grid")
+            other_index = _find_grid(path, vdb, emission_grid, "emission_grid")
             other = vdb.grid(other_index)
             if not np.allclose(_index_to_world(path, other), to_world, rtol=1e-9, atol=0.0):
-                raise VolrenError(f"{path}: grid {emission_grid!r} (--emission-grid) has another index-to-world "
-                                  f"transform than the density grid {density_grid.name!r}")
+                raise VolrenError(f"{path}: grid {emission_grid!r} (emission_grid=, CLI: --emission-grid) has another "
+                                  f"index-to-world transform than the density grid {density_grid.name!r}")
         _check_size(path, lo, hi, 1 if emission_grid is None else 2)
         values = _densify(leaves, origins, tiles, dtype, lo, hi, density_grid.float_background(),
                           f"{path}: grid {density_grid.name!r}")
         if emission_grid is not None:
             emission = _densify(*_leaves(path, data, vdb, other_index), lo, hi, other.float_background(),
-                                f"{path}: grid {emission_grid!r} (--emission-grid)")
+                                f"{path}: grid {emission_grid!r} (emission_grid=, CLI: --emission-grid)")
             if not np.all(np.isfinite(emission)):
-                raise VolrenError(f"{path}: grid {emission_grid!r} (--emission-grid) holds NaN/Inf values")
+                raise VolrenError(f"{path}: grid {emission_grid!r} (emission_grid=, CLI: --emission-grid) holds "
+                                  "NaN/Inf values")
     finally:
         vdb.close()  # the sparse trees go before the caller validates (and copies) the dense grid
         data.close()

@@ -39,6 +39,9 @@ FROXEL_BYTES = 16
 DEFAULT_SCENE = "smoke"
 DEFAULT_RESOLUTION = 64
 """voxels per axis of a built-in volume scene (render, animate; demo: 128)"""
+SCENE_COUNT = 16
+"""instances in a scene of several (`volren.data.COUNTED_SCENES`) that ``volren render --scene`` and `render` of its
+name build without ``--count``"""
 ANIMATION_FPS = 30.0
 """frames per second of scene time for animated scenes rendered with --frames"""
 ANIMATE_FRAMES = 60

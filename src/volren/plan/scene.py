@@ -6,10 +6,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+from pathlib import Path
 
-from volren.plan.defaults import SCENE_COUNT, flame_defaults
-from volren.plan.options import DEFAULT_RESOLUTION, DEFAULT_SCENE, CliError, check_scene_name, warn
-from volren.plan.volume import _file_scene, check_channel_flags
+from volren.plan.options import DEFAULT_RESOLUTION, DEFAULT_SCENE, SCENE_COUNT, CliError, check_scene_name, warn
+from volren.plan.volume import BOX_OPTICAL_DEPTH, _file_scene, check_channel_flags
 
 __all__ = ["emission_reading", "flame_defaults", "scene_from_args", "warn_density"]
 
@@ -71,18 +71,46 @@ def scene_from_args(args: argparse.Namespace, time: float = 0.0):
     if args.ambient is not None:
         environment = Environment(args.ambient)
     elif args.environment is not None:
-        from volren.data.environments import ENVIRONMENTS
-        from volren.imageio import load_image
-
-        if str(args.environment) in ENVIRONMENTS:
-            environment = ENVIRONMENTS[str(args.environment)]()
-        else:
-            environment = Environment(image=load_image(args.environment)[..., :3])
+        environment = named_environment(args.environment)
     background = args.background if args.background is not None else scene.background
     if getattr(args, "volume", None) is not None and getattr(args, "emission_scale", None) is None:
         volumes = flame_defaults(volumes, lights, environment)
     return dataclasses.replace(scene, volumes=volumes, lights=tuple(lights), environment=environment,
                                background=background, opaque=tuple(opaque))
+
+
+def flame_defaults(volumes: tuple, lights, environment) -> tuple:
+    """A file's volumes with the default emission scale of their emission grids (`flame_emission_scale`, relative
+    to the white W = sum(Y(directional irradiance)) / pi + Y(mean environment radiance) of these lights; W = 3 / pi,
+    the default light's, where there is no light)."""
+    import numpy as np
+
+    from volren.blackbody import flame_emission_scale, luminance
+    from volren.scene import DirectionalLight
+
+    white = sum(float(luminance(lt.irradiance)) for lt in lights if isinstance(lt, DirectionalLight)) / math.pi
+    white += float(luminance(environment.mean_radiance()))
+    white = white if white > 0 else float(luminance(DirectionalLight().irradiance)) / math.pi
+    out = []
+    for v in volumes:
+        if v.emission_grid is not None:
+            voxel = abs(float(np.linalg.det(v.to_world[:3, :3]))) * 8.0 / v.density.size
+            scale = flame_emission_scale(v.emission_u, v.density, v.density_scale, *v.temperature_range, voxel, white)
+            v = dataclasses.replace(v, emission_scale=scale)
+        out.append(v)
+    return tuple(out)
+
+
+def named_environment(name: str | Path):
+    """``--environment`` (``environment=``): a built-in environment's name (``sky``), else an equirectangular image
+    file (``.npy`` linear, PNG or JPEG sRGB)."""
+    from volren.data.environments import ENVIRONMENTS
+    from volren.imageio import load_image
+    from volren.scene import Environment
+
+    if str(name) in ENVIRONMENTS:
+        return ENVIRONMENTS[str(name)]()
+    return Environment(image=load_image(name)[..., :3])
 
 
 def emission_reading(args: argparse.Namespace, scene) -> dict:
@@ -133,7 +161,6 @@ def warn_density(volumes: tuple, transfer: bool) -> None:
     A density_scale of 0 asks for nothing and gets no warning."""
     import numpy as np
 
-    from volren.plan.defaults import BOX_OPTICAL_DEPTH
     from volren.scene import box_longest_side, box_sides
 
     for v in volumes:

@@ -9,7 +9,7 @@ from volren.framing import framed_eye, framing_distance
 from volren.plan.options import DEFAULT_EYE, CliError
 from volren.plan.volume import _volume_from_args
 
-__all__ = ["depth_images_from_args", "framing_distance", "views_from_args"]
+__all__ = ["depth_images_from_args", "framed_ipd", "framing_distance", "views_from_args"]
 
 
 def views_from_args(args: argparse.Namespace, time: float = 0.0):
@@ -28,11 +28,8 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
         default = fog_scene_camera(args.scene)
         position, look_at = default["position"], default["look_at"]
     elif getattr(args, "volume", None) is not None and args.camera_pos is None:
-        import numpy as np
-
         corners = _volume_from_args(args).corners_world
-        # eyes 63 mm apart would each see a 30 um stack as a speck off to the side
-        ipd = min(ipd, float(np.ptp(corners, axis=0).max())) if args.ipd is None else args.ipd
+        ipd = framed_ipd(corners) if args.ipd is None else args.ipd
         position, look_at, near = framed_eye(corners, args.up, args.fov, args.width / max(args.height, 1),
                                              args.look_at, ipd / 2 if args.views == "stereo" else 0.0)
     cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
@@ -54,6 +51,14 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
         x, y, z = cam.look_at
         area = WalkArea((x - 3.0, z - 3.0), (x + 3.0, z + 3.0), floor=y - 3.0)
     return wandering_viewers(cam, count, area, time=time, seed=args.seed)
+
+
+def framed_ipd(corners, ipd: float = 0.063) -> float:
+    """[m] the eye distance of a framed volume's stereo pair: ``ipd``, at most its box's longest extent (eyes 63 mm
+    apart would each see a 30 um stack as a speck off to the side)."""
+    import numpy as np
+
+    return min(ipd, float(np.ptp(np.asarray(corners), axis=0).max()))
 
 
 def depth_images_from_args(args: argparse.Namespace, view_count: int) -> list | None:

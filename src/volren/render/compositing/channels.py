@@ -21,15 +21,15 @@ napari's additive MIP. Iso is refused: a surface lit by nothing would be black.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from volren.camera import Camera
-from volren.errors import VolrenError
+from volren.errors import VolrenError, flag
 from volren.render.frame import Frame, Stats
-from volren.scene import RGB, Scene, Volume, box_longest_side
+from volren.scene import RGB, Environment, Scene, Volume, box_longest_side, box_sides
 
 NAMED_COLORS: dict[str, RGB] = {
     "green": (0.0, 1.0, 0.0), "magenta": (1.0, 0.0, 1.0), "cyan": (0.0, 1.0, 1.0), "yellow": (1.0, 1.0, 0.0),
@@ -42,24 +42,32 @@ DEFAULT_OPACITY = 4.0
 """k: optical depth at density 1 across the volume's longest side"""
 
 
-def parse_channel_colors(text: str) -> tuple[RGB, ...]:
+def parse_channel_colors(text: str, words: Callable[[str], str] = flag) -> tuple[RGB, ...]:
     """``--channel-colors``: names (``green,magenta``) or ``r,g,b`` triples in [0, 1] separated by ``;``
     (``1,0,0;0,1,0``; names may mix in: ``red;0,0.5,1``)."""
     items = text.split(";") if ";" in text else text.split(",") if text.replace(",", "").isalpha() else [text]
-    colors = []
-    for item in (i.strip().lower() for i in items):
-        if item in NAMED_COLORS:
-            colors.append(NAMED_COLORS[item])
-            continue
+    return tuple(_color(item, words) for item in items)
+
+
+def _color(item: str | Sequence[float], words: Callable[[str], str] = flag) -> RGB:
+    """One channel colour: a name of `NAMED_COLORS`, ``"r,g,b"`` or (r, g, b), each in [0, 1]."""
+    if isinstance(item, str):
+        if item.strip().lower() in NAMED_COLORS:
+            return NAMED_COLORS[item.strip().lower()]
         try:
             rgb = tuple(float(v) for v in item.split(","))
         except ValueError:
             rgb = ()
-        if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
-            raise VolrenError(f"--channel-colors: '{item}' is neither a colour name ({', '.join(NAMED_COLORS)}) nor "
-                              "r,g,b in [0, 1]; separate channels by ';' (or names by ',')")
-        colors.append(rgb)
-    return tuple(colors)
+    else:
+        try:
+            rgb = tuple(float(v) for v in item)
+        except (TypeError, ValueError):
+            rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+        shown = item.strip().lower() if isinstance(item, str) else item
+        raise VolrenError(f"{words('channel_colors')}: '{shown}' is neither a colour name ({', '.join(NAMED_COLORS)}) "
+                          "nor r,g,b in [0, 1]; separate channels by ';' (or names by ',')")
+    return rgb  # type: ignore[return-value]
 
 
 def channel_volumes(
@@ -69,17 +77,24 @@ def channel_volumes(
     colors: Sequence[RGB] | None = None,
     opacity: Sequence[float] | None = None,
     name: str = "volume",
+    words: Callable[[str], str] = flag,
 ) -> tuple[Volume, ...]:
     """One emissive `Volume` per channel at ``to_world`` (module docstring): colour ``colors[c]`` (default
-    `PALETTE`), opacity ``opacity[c]`` (default `DEFAULT_OPACITY`, one value for all or one per channel)."""
+    `PALETTE`; a name of `NAMED_COLORS` or r, g, b), opacity ``opacity[c]`` (default `DEFAULT_OPACITY`, one value
+    for all or one per channel); errors name the options in ``words`` (`volren.errors.flag` or `keyword`)."""
     count = len(channels)
     if colors is None:
         colors = [NAMED_COLORS[PALETTE[c % len(PALETTE)]] for c in range(count)]
+    elif isinstance(colors, str):
+        colors = parse_channel_colors(colors, words)
+    else:
+        colors = [_color(c, words) for c in colors]
     if len(colors) != count:
-        raise VolrenError(f"--channel-colors gives {len(colors)} colour(s) for a volume of {count} channels")
-    opacity = [DEFAULT_OPACITY] if opacity is None else list(opacity)
+        raise VolrenError(f"{words('channel_colors')} gives {len(colors)} colour(s) for a volume of {count} channels")
+    opacity = [DEFAULT_OPACITY] if opacity is None else list(np.atleast_1d(opacity))
     if len(opacity) not in (1, count) or not all(np.isfinite(k) and k >= 0 for k in opacity):
-        raise VolrenError(f"--channel-opacity must be one value >= 0 or one per channel ({count}), got {opacity}")
+        raise VolrenError(f"{words('channel_opacity')} must be one value >= 0 or one per channel ({count}), got "
+                          f"{[float(k) for k in opacity]}")
     opacity = opacity * count if len(opacity) == 1 else opacity
     longest = box_longest_side(to_world)  # [m]
     return tuple(
@@ -87,6 +102,56 @@ def channel_volumes(
                emission=tuple(float(v) * k / longest for v in rgb), name=f"{name}[c{c}]")
         for c, (density, rgb, k) in enumerate(zip(channels, colors, opacity, strict=True))
     )
+
+
+@dataclass(frozen=True, repr=False)
+class Channels:
+    """A multi-channel volume, as `volren.load` reads a multi-channel TIFF, (C, Z, Y, X) array or OME-Zarr: one
+    unlit, emissive `Volume` per channel at one placement (`channel_volumes`: its colour and opacity), which
+    `volren.render` renders as ``volren render --volume`` does, each channel marched alone and the images added
+    (`AdditiveChannels`; methods dssrm, cmsrm, cacrm, reference; modes dvr, mip, mida)."""
+
+    volumes: tuple[Volume, ...]
+    """channel c's volume: density normalised by the channel's own range, emission its colour x its extinction"""
+    name: str = "channels"
+    """the scene's name (the file's stem)"""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "volumes", tuple(self.volumes))
+        if not self.volumes or not all(isinstance(v, Volume) for v in self.volumes):
+            raise VolrenError("Channels holds one volren.Volume per channel, at least one")
+
+    def __len__(self) -> int:
+        return len(self.volumes)
+
+    def __getitem__(self, c: int) -> Volume:
+        return self.volumes[c]
+
+    @property
+    def colors(self) -> tuple[RGB, ...]:
+        """Each channel's colour (`channel_color`)."""
+        return tuple(tuple(round(float(v), 6) for v in channel_color(vol)) for vol in self.volumes)
+
+    @property
+    def opacity(self) -> tuple[float, ...]:
+        """Each channel's optical depth at density 1 across the box's longest side (``--channel-opacity``)."""
+        return tuple(vol.density_scale * box_longest_side(vol.to_world) for vol in self.volumes)
+
+    @property
+    def scene(self) -> Scene:
+        """The channels as ``volren render --volume`` renders them: no lights, a black environment (they glow)."""
+        return Scene(self.volumes, lights=(), environment=Environment((0.0, 0.0, 0.0)), name=self.name)
+
+    def __repr__(self) -> str:
+        """A summary: the grid and box (`Volume.__repr__`'s words) and each channel's colour and opacity."""
+        first = self.volumes[0]
+        nx, ny, nz = first.resolution
+        centre = ", ".join(f"{c:.3g}" for c in first.center_world)
+        names = {rgb: n for n, rgb in reversed(NAMED_COLORS.items())}
+        shown = [f"{names.get(rgb, rgb)} opacity {k:.3g}" for rgb, k in zip(self.colors, self.opacity, strict=True)]
+        return (f"Channels({self.name!r}, {len(self)} channels of {nx}x{ny}x{nz} {first.density.dtype} (x, y, z), "
+                f"box {' x '.join(f'{e:.3g}' for e in box_sides(first.to_world))} m at ({centre}), "
+                f"{', '.join(shown)})")
 
 
 def add_channels(frames: Sequence[Frame]) -> Frame:
