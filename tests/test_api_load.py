@@ -12,7 +12,7 @@ import pytest
 from tests.conftest import DEVICE
 
 import volren as vr
-from volren.errors import VolrenError
+from volren.errors import VolrenError, VolrenWarning
 
 SMALL = {"samples": 32, "light_samples": 8, "light_grid": 16, "device": DEVICE, "width": 64, "height": 48}
 Z, Y, X = np.mgrid[0:16, 0:20, 0:32]
@@ -168,3 +168,23 @@ def test_the_viewer_plays_a_sequence(tmp_path):
         viewer.close()
     with pytest.raises(VolrenError, match="Viewer: a multi-channel volume renders each channel"):
         vr.Viewer(vr.load(tmp_path / "s0.npy") and vr.Channels((seq[0], seq[1])), device=DEVICE)
+
+
+@pytest.mark.timeout(120)
+def test_iso_without_a_value_takes_otsus_threshold_as_the_cli_does(tmp_path, capsys):
+    """``mode="iso"`` without ``iso_value=`` is not a silent 0.5: Otsu's threshold of the densities, said in one
+    warning, the value ``volren render --mode iso`` picks (a CT of values 0 to 2200 has its surface far above 0.5)."""
+    from volren.cli import main
+
+    z, y, x = np.mgrid[-1:1:32j, -1:1:32j, -1:1:32j]
+    np.save(tmp_path / "ct.npy", np.where(x * x + y * y + z * z < 0.4, 2200.0, 0.0).astype(np.float32))
+    said = r"mode='iso' without iso_value=: the isosurface is at density ([-\d.e+]+)"
+    with pytest.warns(VolrenWarning, match=said) as caught:
+        frame = vr.render(tmp_path / "ct.npy", mode="iso", width=48, height=32, light_grid=8, device=DEVICE)
+    value = float(str(caught[0].message).split("density ")[1].split(",")[0])
+    assert 0 < value < 2200  # between the two materials (Otsu's first bin above 0 for two values)
+    assert main(["render", "--volume", str(tmp_path / "ct.npy"), "--mode", "iso", "--width", "48", "--height", "32",
+                 "--views", "mono", "--light-grid", "8", "--device", DEVICE, "--out", str(tmp_path / "cli")]) == 0
+    assert f"density {value:.4g}" in capsys.readouterr().err
+    alpha = frame.images[0][..., 3]
+    assert alpha[16, 24] > 0.99 and alpha[0, 0] == 0.0  # the ball's surface in the middle, nothing in the corner

@@ -252,10 +252,29 @@ def render(scene: Scene | Volume | Channels | VolumeSequence | str | Path,
         raise VolrenError("render: width= and height= size the framed views; the cameras given carry their own size")
     else:
         views = _view_list(views)
+    if settings.get("mode") == "iso" and "iso_value" not in settings:
+        settings["iso_value"] = _otsu_iso_value(source.at(0))
     renderer = Renderer(method, quality, device=device, **settings)
     if indices is None:
         return renderer.render(source.at(0), views, 0)
     return [renderer.render(source.at(i), views, i) for i in indices]
+
+
+def _otsu_iso_value(scene: Any) -> float:
+    """``mode="iso"`` without ``iso_value=``: Otsu's threshold of the scene's densities, said in one line, as
+    ``--mode iso`` without ``--iso-value`` chooses it (a fixed 0.5 would miss a CT in Hounsfield units)."""
+    import warnings
+
+    from volren.errors import VolrenWarning
+    from volren.render.marching.modes import otsu_iso_value
+
+    densities = [v.density for v in getattr(scene, "volumes", ())]
+    if not densities:
+        raise VolrenError("render: mode='iso' needs iso_value= for a scene without volumes")
+    value = otsu_iso_value(densities)
+    warnings.warn(f"render: mode='iso' without iso_value=: the isosurface is at density {value:.4g}, Otsu's "
+                  "threshold of the densities (give iso_value= to choose)", VolrenWarning, stacklevel=3)
+    return value
 
 
 @dataclasses.dataclass(frozen=True)
