@@ -1,0 +1,133 @@
+"""Bricked volumes (issue 41): a page table over a grid of bricks of B^3 trilinear cells, each brick stored in a pool
+with a one-voxel apron, (B+1)^3 voxels, so that the 8 corners of every cell lie in one brick: a sample reads the
+same 8 values as the dense path (`volren.kernels.common.gather_cell`) and interpolates them the same way, so it is
+bit-identical to it, with one page-table load more.
+
+Page table: one int32 per brick, x fastest. An entry ``e >= 0`` is a resident brick, the ``e``-th (B+1)^3 block of the
+pool; ``e < 0`` is a brick whose (B+1)^3 voxels all hold one value, ``constants[-1 - e]`` (OpenVDB tiles), with
+``constants[0] = 0``, so ``EMPTY`` (-1) costs no pool memory and no pool load. Brick b covers cells [b B, b B + B)
+and voxels [b B, b B + B] per axis; at the high border of a grid whose cell count is not a multiple of B the apron
+repeats the last voxel (never read: `grid_cell` keeps cells below res - 1).
+
+B is a power of two (the brick of a cell is a shift, its place in the brick a mask: integer division by a runtime B
+was the dearer instruction). Offsets are int32, as the dense path's: a pool holds fewer than 2^31 voxels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from volren.errors import VolrenError
+from volren.kernels.common import cell_fraction, grid_cell, grid_coords, interpolate_cell, vec8
+
+EMPTY = -1
+"""page-table entry of a brick whose voxels are all 0 (``constants[0]``)"""
+BRICK_SIZES = (8, 16, 32)
+"""the brick edges [cells] the bench compares (issue 41: "e.g. 8^3 to 32^3")"""
+MAX_POOL_VOXELS = 2**31 - 1
+
+
+@wp.struct
+class BrickVolumeGPU:
+    pool: wp.array(dtype=float)
+    """resident bricks, (B+1)^3 voxels each, [z, y, x] within a brick"""
+    table: wp.array(dtype=wp.int32)
+    """one entry per brick, [z, y, x] over the brick grid (module docstring)"""
+    constants: wp.array(dtype=float)
+    """values of the constant bricks; constants[0] = 0 (`EMPTY`)"""
+    res: wp.vec3i
+    """voxels per axis (x, y, z) of the grid the bricks tile"""
+    bricks: wp.vec3i
+    """bricks per axis (x, y, z)"""
+    shift: int
+    """log2 B"""
+    edge: int
+    """B + 1: voxels per brick edge, apron included"""
+
+
+@wp.func
+def brick_gather_cell(bv: BrickVolumeGPU, cell: wp.vec3i) -> vec8:
+    """The 8 voxels around ``cell`` (its lowest corner), as `gather_cell` returns them from the dense grid."""
+    mask = (1 << bv.shift) - 1
+    b = wp.vec3i(cell[0] >> bv.shift, cell[1] >> bv.shift, cell[2] >> bv.shift)
+    entry = bv.table[(b[2] * bv.bricks[1] + b[1]) * bv.bricks[0] + b[0]]
+    if entry < 0:
+        c = bv.constants[-1 - entry]
+        return vec8(c, c, c, c, c, c, c, c)
+    sy = bv.edge
+    sz = bv.edge * bv.edge
+    i = entry * sz * bv.edge + (cell[2] & mask) * sz + (cell[1] & mask) * sy + (cell[0] & mask)
+    return vec8(bv.pool[i], bv.pool[i + 1], bv.pool[i + sy], bv.pool[i + sy + 1],
+                bv.pool[i + sz], bv.pool[i + sz + 1], bv.pool[i + sz + sy], bv.pool[i + sz + sy + 1])
+
+
+@wp.func
+def sample_bricks(bv: BrickVolumeGPU, p: wp.vec3) -> float:
+    """Trilinear sample at local ``p`` in [-1, 1]^3, clamped at the border: `sample_grid` over bricks."""
+    f = grid_coords(bv.res, p)
+    cell = grid_cell(bv.res, f)
+    return interpolate_cell(brick_gather_cell(bv, cell), cell_fraction(f, cell))
+
+
+@dataclass(frozen=True)
+class BrickVolume:
+    """A bricked grid on the host (module docstring): upload with `upload`."""
+
+    pool: np.ndarray
+    """float32 (resident, B+1, B+1, B+1)"""
+    table: np.ndarray
+    """int32 (bricks z, bricks y, bricks x)"""
+    constants: np.ndarray
+    """float32; constants[0] = 0"""
+    res: tuple[int, int, int]
+    """voxels (z, y, x) of the grid, as its numpy shape"""
+    brick: int
+    """B: cells per brick edge"""
+
+    @property
+    def nbytes(self) -> int:
+        return self.pool.nbytes + self.table.nbytes + self.constants.nbytes
+
+    def upload(self, device: str) -> BrickVolumeGPU:
+        bv = BrickVolumeGPU()
+        bv.pool = wp.array(self.pool.reshape(-1), dtype=float, device=device)
+        bv.table = wp.array(self.table.reshape(-1), dtype=wp.int32, device=device)
+        bv.constants = wp.array(self.constants, dtype=float, device=device)
+        bv.res = wp.vec3i(self.res[2], self.res[1], self.res[0])
+        bv.bricks = wp.vec3i(self.table.shape[2], self.table.shape[1], self.table.shape[0])
+        bv.shift = self.brick.bit_length() - 1
+        bv.edge = self.brick + 1
+        return bv
+
+
+def brick_volume(grid: np.ndarray, brick: int) -> BrickVolume:
+    """Brick a dense [z, y, x] grid into bricks of ``brick``^3 cells (a power of two) with a one-voxel apron: a brick
+    whose apron block holds one value becomes a constant (`EMPTY` for 0), the others go into the pool in brick order."""
+    if brick < 2 or brick & (brick - 1):
+        raise VolrenError(f"brick size must be a power of two >= 2, got {brick}")
+    if grid.ndim != 3 or min(grid.shape) < 2:
+        raise VolrenError(f"bricks need a 3-D grid of at least 2 voxels per axis, got shape {grid.shape}")
+    grid = np.asarray(grid, dtype=np.float32)
+    counts = tuple(-(-(n - 1) // brick) for n in grid.shape)  # bricks per axis: cells (n - 1) / B, rounded up
+    pad = [(0, c * brick + 1 - n) for c, n in zip(counts, grid.shape, strict=True)]
+    padded = np.pad(grid, pad, mode="edge") if any(p for _, p in pad) else np.ascontiguousarray(grid)
+    e, s = brick + 1, padded.strides
+    # every brick's (B+1)^3 apron block as a view: neighbouring blocks share their faces
+    blocks = np.lib.stride_tricks.as_strided(padded, shape=(*counts, e, e, e),
+                                             strides=(s[0] * brick, s[1] * brick, s[2] * brick, *s), writeable=False)
+    lo, hi = blocks.min(axis=(3, 4, 5)), blocks.max(axis=(3, 4, 5))
+    constant = lo == hi
+    values = lo[constant]
+    others = np.unique(values[values != 0.0])
+    constants = np.concatenate([np.zeros(1, np.float32), others]).astype(np.float32)
+    table = np.empty(counts, dtype=np.int32)
+    table[constant] = -1 - np.where(values != 0.0, np.searchsorted(others, values) + 1, 0)
+    resident = np.nonzero(~constant)
+    if len(resident[0]) * e**3 > MAX_POOL_VOXELS:
+        raise VolrenError(f"{len(resident[0])} resident bricks of {e}^3 voxels exceed the int32 pool offsets")
+    table[resident] = np.arange(len(resident[0]), dtype=np.int32)
+    pool = np.ascontiguousarray(blocks[resident])
+    return BrickVolume(pool=pool, table=table, constants=constants, res=grid.shape, brick=brick)
