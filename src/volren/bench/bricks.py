@@ -14,7 +14,8 @@ kernel, generic over the source (`sample_density` overloads):
 
 Access patterns: ``rays`` (coherent: a pinhole camera's rays through the box, dt = half a voxel, every step sampled)
 and ``random`` (uniform random points in the box: cache-hostile). Samples per second is the median over ``repeats``
-launches after a warm-up launch (compiled, caches warm), device-synchronised, on one launch (one CPU thread on the
+launches after a warm-up launch (compiled, caches warm), device-synchronised, the representations' launches taken in
+turn (round robin, so that a shared machine's changing load falls on all alike), on one launch (one CPU thread on the
 CPU, so the ratios are per thread). Bytes per active voxel: the representation's device bytes (dense array; pool,
 page table and constants; NanoVDB's whole grid buffer) over the voxels with density != 0, the same denominator for
 all. Build: seconds from the numpy array to the representation on the device (uploads included). Max abs diff: over
@@ -31,6 +32,7 @@ import math
 import statistics
 import time
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -45,8 +47,8 @@ from volren.progress import case_done
 
 FULL = {"fields": ["cloud", "smoke", "two-balls"], "resolution": 128, "sparse_resolution": 512, "rays": 512,
         "random_points": 1 << 24, "bricks": list(BRICK_SIZES), "repeats": 7, "check_threads": 1 << 14, "seed": 0}
-QUICK = {"fields": ["cloud", "smoke", "two-balls"], "resolution": 96, "sparse_resolution": 256, "rays": 64,
-         "random_points": 1 << 19, "bricks": list(BRICK_SIZES), "repeats": 5, "check_threads": 1 << 12, "seed": 0}
+QUICK = {"fields": ["cloud", "smoke", "two-balls"], "resolution": 96, "sparse_resolution": 256, "rays": 96,
+         "random_points": 1 << 20, "bricks": list(BRICK_SIZES), "repeats": 9, "check_threads": 1 << 12, "seed": 0}
 PATTERNS = ("rays", "random")
 RAYS = wp.constant(0)
 RANDOM = wp.constant(1)
@@ -95,12 +97,12 @@ def sample_density(src: DenseGridGPU, p: wp.vec3) -> float:
 
 
 @wp.func
-def sample_density(src: BrickVolumeGPU, p: wp.vec3) -> float:
+def sample_density(src: BrickVolumeGPU, p: wp.vec3) -> float:  # noqa: F811 (a Warp overload, chosen by src's type)
     return sample_bricks(src, p)
 
 
 @wp.func
-def sample_density(src: NanoVolumeGPU, p: wp.vec3) -> float:
+def sample_density(src: NanoVolumeGPU, p: wp.vec3) -> float:  # noqa: F811 (a Warp overload)
     f = grid_coords(src.res, p)
     if src.clamp == 0:
         f = wp.vec3((p[0] + 1.0) * 0.5 * float(src.res[0]) - 0.5, (p[1] + 1.0) * 0.5 * float(src.res[1]) - 0.5,
@@ -267,17 +269,18 @@ def pattern(kind: str, res: int, cfg: dict[str, Any]) -> tuple[SamplePattern, in
     return pat, threads
 
 
-def timed(launch: Callable[[], None], device: str, repeats: int) -> float:
-    """Median seconds of ``repeats`` synchronised launches after a warm-up one."""
-    launch()
-    synchronize(device)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        launch()
-        synchronize(device)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+def timed(launches: list[Callable[[], None]], device: str, repeats: int) -> list[float]:
+    """Median seconds of each launch over ``repeats`` synchronised rounds after a warm-up round; a round runs every
+    launch once, so that a change of load on a shared machine falls on all of them alike."""
+    times: list[list[float]] = [[] for _ in launches]
+    for r in range(repeats + 1):
+        for launch, out in zip(launches, times, strict=True):
+            start = time.perf_counter()
+            launch()
+            synchronize(device)
+            if r:
+                out.append(time.perf_counter() - start)
+    return [statistics.median(t) for t in times]
 
 
 def built(make: Callable[[], tuple], device: str) -> tuple[tuple, float]:
@@ -316,18 +319,15 @@ def field_rows(name: str, cfg: dict[str, Any], device: str) -> tuple[list[dict[s
         pat, threads = pattern(kind, res, cfg)
         sums = wp.zeros(threads, dtype=float, device=device)
         reference, total = record(sources[0][2], pat, threads, cfg, device)
-        dense_rate = None
-        for method, brick, src, nbytes, seconds, _keep in sources:
+        medians = timed([partial(wp.launch, sum_samples, dim=threads, inputs=[src, pat, sums], device=device)
+                         for _, _, src, *_ in sources], device, cfg["repeats"])
+        for (method, brick, src, nbytes, seconds, _keep), median in zip(sources, medians, strict=True):
             values, _ = record(src, pat, threads, cfg, device)
-            median = timed(lambda src=src: wp.launch(sum_samples, dim=threads, inputs=[src, pat, sums],
-                                                     device=device), device, cfg["repeats"])
-            rate = total / median
-            dense_rate = dense_rate or rate
             rows.append({**info, "method": method, "brick": brick, "pattern": kind, "samples": total,
-                         "msamples_per_s": rate / 1e6, "ratio": rate / dense_rate, "bytes": nbytes,
+                         "msamples_per_s": total / median / 1e6, "ratio": medians[0] / median, "bytes": nbytes,
                          "bytes_per_active": nbytes / max(active, 1), "build_s": seconds,
                          "max_abs_diff": float(np.abs(values - reference).max())})
-            case_done(f"{name} {kind} {method}{f' B={brick}' if method == 'bricks' else ''}")
+        case_done(f"{name}, {kind}: {len(sources)} representations")
     # wp.Volume at unclamped index coordinates: NanoVDB's own border (random points reach the outer half voxel)
     src, _, _volume = nanovdb_source(grid, device, clamp=False)
     pat, threads = pattern("random", res, cfg)

@@ -103,6 +103,20 @@ class BrickVolume:
         return bv
 
 
+def apron_reduce(padded: np.ndarray, brick: int, op: np.ufunc) -> np.ndarray:
+    """``op`` (np.minimum, np.maximum) over each brick's apron block of a grid of c B + 1 voxels per axis, one axis at
+    a time (a box reduction is separable): along each axis the B-voxel blocks reduce through a reshape (a view), then
+    meet the apron plane at the next multiple of B. Reducing the strided (B+1)^3 views directly was 14x slower
+    (0.18 s against 0.013 s for a 257^3 grid at B = 8)."""
+    out = padded
+    for axis in (0, 1, 2):  # z first: its blocks are whole slabs; x, where a block is B floats, comes last, B^2 smaller
+        count = (out.shape[axis] - 1) // brick
+        lead = (slice(None),) * axis
+        blocks = out[(*lead, slice(0, count * brick))].reshape(*out.shape[:axis], count, brick, *out.shape[axis + 1:])
+        out = op(op.reduce(blocks, axis=axis + 1), out[(*lead, slice(brick, None, brick))])
+    return out
+
+
 def brick_volume(grid: np.ndarray, brick: int) -> BrickVolume:
     """Brick a dense [z, y, x] grid into bricks of ``brick``^3 cells (a power of two) with a one-voxel apron: a brick
     whose apron block holds one value becomes a constant (`EMPTY` for 0), the others go into the pool in brick order."""
@@ -118,7 +132,7 @@ def brick_volume(grid: np.ndarray, brick: int) -> BrickVolume:
     # every brick's (B+1)^3 apron block as a view: neighbouring blocks share their faces
     blocks = np.lib.stride_tricks.as_strided(padded, shape=(*counts, e, e, e),
                                              strides=(s[0] * brick, s[1] * brick, s[2] * brick, *s), writeable=False)
-    lo, hi = blocks.min(axis=(3, 4, 5)), blocks.max(axis=(3, 4, 5))
+    lo, hi = apron_reduce(padded, brick, np.minimum), apron_reduce(padded, brick, np.maximum)
     constant = lo == hi
     values = lo[constant]
     others = np.unique(values[values != 0.0])
