@@ -120,28 +120,70 @@ def apron_reduce(padded: np.ndarray, brick: int, op: np.ufunc) -> np.ndarray:
 def brick_volume(grid: np.ndarray, brick: int) -> BrickVolume:
     """Brick a dense [z, y, x] grid into bricks of ``brick``^3 cells (a power of two) with a one-voxel apron: a brick
     whose apron block holds one value becomes a constant (`EMPTY` for 0), the others go into the pool in brick order."""
+    if grid.ndim != 3:
+        raise VolrenError(f"bricks need a 3-D grid, got shape {grid.shape}")
+    return brick_volume_sparse(grid.shape, [((0, 0, 0), grid)], brick)
+
+
+def brick_volume_sparse(shape: tuple[int, ...], regions: list[tuple[tuple[int, int, int], np.ndarray]],
+                        brick: int) -> BrickVolume:
+    """Brick a grid of ``shape`` voxels (z, y, x) that is 0 outside ``regions`` (each its first voxel (z, y, x) and
+    a dense block) without a dense copy of the grid: each region is widened to the apron blocks it touches and
+    bricked alone (a sparse file's active boxes, an OpenVDB file's leaves in groups). Regions must not share a brick.
+    Beyond the grid's high border the apron repeats the last voxel (never read; it keeps a constant brick constant)."""
     if brick < 2 or brick & (brick - 1):
         raise VolrenError(f"brick size must be a power of two >= 2, got {brick}")
-    if grid.ndim != 3 or min(grid.shape) < 2:
-        raise VolrenError(f"bricks need a 3-D grid of at least 2 voxels per axis, got shape {grid.shape}")
-    grid = np.asarray(grid, dtype=np.float32)
-    counts = tuple(-(-(n - 1) // brick) for n in grid.shape)  # bricks per axis: cells (n - 1) / B, rounded up
-    pad = [(0, c * brick + 1 - n) for c, n in zip(counts, grid.shape, strict=True)]
-    padded = np.pad(grid, pad, mode="edge") if any(p for _, p in pad) else np.ascontiguousarray(grid)
-    e, s = brick + 1, padded.strides
-    # every brick's (B+1)^3 apron block as a view: neighbouring blocks share their faces
-    blocks = np.lib.stride_tricks.as_strided(padded, shape=(*counts, e, e, e),
-                                             strides=(s[0] * brick, s[1] * brick, s[2] * brick, *s), writeable=False)
-    lo, hi = apron_reduce(padded, brick, np.minimum), apron_reduce(padded, brick, np.maximum)
-    constant = lo == hi
-    values = lo[constant]
-    others = np.unique(values[values != 0.0])
+    if len(shape) != 3 or min(shape) < 2:
+        raise VolrenError(f"bricks need a 3-D grid of at least 2 voxels per axis, got shape {tuple(shape)}")
+    counts = tuple(-(-(n - 1) // brick) for n in shape)  # bricks per axis: cells (n - 1) / B, rounded up
+    table = np.full(counts, EMPTY, dtype=np.int32)
+    claimed = np.zeros(counts, dtype=bool)
+    e = brick + 1
+    values, pools, kinds = [], [], []  # per region: constant bricks' values, resident blocks, and where they go
+    for origin, block in regions:
+        block = np.asarray(block, dtype=np.float32)
+        # bricks b whose apron voxels [b B, b B + B] meet the region's [o, o + size - 1], per axis
+        first = [max(-(-o // brick) - 1, 0) for o in origin]
+        last = [min((o + m - 1) // brick, c - 1) for o, m, c in zip(origin, block.shape, counts, strict=True)]
+        if any(f > lst for f, lst in zip(first, last, strict=True)):
+            continue
+        where = tuple(slice(f, lst + 1) for f, lst in zip(first, last, strict=True))
+        if claimed[where].any():
+            raise VolrenError("regions share a brick: merge them")
+        claimed[where] = True
+        # the widened region on the voxel grid, [first B, (last + 1) B], edge-padded past the grid
+        lo_v = [f * brick for f in first]
+        size = [(lst + 1 - f) * brick + 1 for f, lst in zip(first, last, strict=True)]
+        inside = [min(s, n - v) for s, n, v in zip(size, shape, lo_v, strict=True)]
+        local = np.zeros(inside, dtype=np.float32)
+        src = tuple(slice(max(v - o, 0), min(v + s - o, m))
+                    for v, s, o, m in zip(lo_v, inside, origin, block.shape, strict=True))
+        dst = tuple(slice(max(o - v, 0), max(o - v, 0) + (sl.stop - sl.start))
+                    for v, o, sl in zip(lo_v, origin, src, strict=True))
+        local[dst] = block[src]
+        pad = [(0, s - i) for s, i in zip(size, inside, strict=True)]
+        padded = np.pad(local, pad, mode="edge") if any(p for _, p in pad) else local
+        lo, hi = apron_reduce(padded, brick, np.minimum), apron_reduce(padded, brick, np.maximum)
+        constant = lo == hi
+        st = padded.strides
+        # every brick's (B+1)^3 apron block as a view: neighbouring blocks share their faces
+        blocks = np.lib.stride_tricks.as_strided(padded, shape=(*lo.shape, e, e, e), writeable=False,
+                                                 strides=(st[0] * brick, st[1] * brick, st[2] * brick, *st))
+        values.append(lo[constant])
+        pools.append(blocks[np.nonzero(~constant)])
+        kinds.append((where, constant))
+    others = np.unique(np.concatenate([np.zeros(0, np.float32), *values]))
+    others = others[others != 0.0]
     constants = np.concatenate([np.zeros(1, np.float32), others]).astype(np.float32)
-    table = np.empty(counts, dtype=np.int32)
-    table[constant] = -1 - np.where(values != 0.0, np.searchsorted(others, values) + 1, 0)
-    resident = np.nonzero(~constant)
-    if len(resident[0]) * e**3 > MAX_POOL_VOXELS:
-        raise VolrenError(f"{len(resident[0])} resident bricks of {e}^3 voxels exceed the int32 pool offsets")
-    table[resident] = np.arange(len(resident[0]), dtype=np.int32)
-    pool = np.ascontiguousarray(blocks[resident])
-    return BrickVolume(pool=pool, table=table, constants=constants, res=grid.shape, brick=brick)
+    resident = sum(len(p) for p in pools)
+    if resident * e**3 > MAX_POOL_VOXELS:
+        raise VolrenError(f"{resident} resident bricks of {e}^3 voxels exceed the int32 pool offsets")
+    start = 0
+    for (where, constant), value, pool in zip(kinds, values, pools, strict=True):
+        entries = np.empty(constant.shape, dtype=np.int32)
+        entries[constant] = -1 - np.where(value != 0.0, np.searchsorted(others, value) + 1, 0)
+        entries[~constant] = np.arange(start, start + len(pool), dtype=np.int32)
+        table[where] = entries
+        start += len(pool)
+    pool = np.concatenate(pools) if pools else np.zeros((0, e, e, e), np.float32)
+    return BrickVolume(pool=pool, table=table, constants=constants, res=tuple(shape), brick=brick)
