@@ -51,6 +51,7 @@ def field_with_every_kind_of_brick() -> np.ndarray:
     grid = rng.random((21, 19, 35), dtype=np.float32)
     grid[rng.random(grid.shape) < 0.2] = 0.0  # scattered zeros inside resident bricks
     grid[:10, :10, :10] = 0.0  # the apron block of brick (0, 0, 0): voxels 0..8
+    grid[:8, 10:16, :8] = 0.0  # brick (0, 1, 0) is 0 but for its apron planes (x = 8, y = 16, z = 8): resident
     grid[:, :, 24:] = 0.75  # bricks x = 3 and 4 (voxels 24..34) in every row
     return grid
 
@@ -121,13 +122,14 @@ def test_empty_and_constant_bricks_hold_no_pool_memory_and_read_their_value():
 
 @pytest.mark.timeout(60)
 def test_bricks_built_from_regions_equal_those_of_the_dense_grid_without_a_dense_copy():
-    """A grid that is 0 outside three blocks (one at the high corner, one over a brick border, one constant) bricked
+    """A grid that is 0 outside three blocks (one at the high corner, one over a brick border, one constant starting
+    on a brick border, so that only the apron of the brick before it meets it) bricked
     from the blocks alone: the same table kinds, pool bytes and gathered cells as bricking the dense grid."""
     rng = np.random.default_rng(5)
     shape = (37, 30, 41)
     regions = [((25, 20, 33), rng.random((12, 10, 8), dtype=np.float32)),
-               ((3, 5, 6), rng.random((6, 7, 5), dtype=np.float32)),
-               ((17, 0, 0), np.full((6, 8, 8), 0.5, np.float32))]
+               ((3, 12, 18), rng.random((6, 7, 5), dtype=np.float32)),
+               ((16, 0, 0), np.full((6, 8, 8), 0.5, np.float32))]  # z = 16: the apron plane of brick z = 1
     grid = np.zeros(shape, np.float32)
     for (z, y, x), block in regions:
         grid[z:z + block.shape[0], y:y + block.shape[1], x:x + block.shape[2]] = block
