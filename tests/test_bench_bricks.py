@@ -196,6 +196,7 @@ def test_bricks_suite_compares_the_representations_on_the_same_samples(tmp_path)
     # up to the border, the balls are not near it
     assert info["cloud"]["nanovdb_unclamped_max_abs_diff"] > 0.05
     assert info["two-balls"]["nanovdb_unclamped_max_abs_diff"] < 1e-6
+    assert doc["summary"][-1]["unclamped_max_abs_diff"] == info["cloud"]["nanovdb_unclamped_max_abs_diff"]
     summary = doc["summary"]
     assert [s["choice"] for s in summary].count("chosen") == 1
     chosen = next(s for s in summary if s["choice"] == "chosen")
