@@ -9,8 +9,8 @@ pool; ``e < 0`` is a brick whose (B+1)^3 voxels all hold one value, ``constants[
 and voxels [b B, b B + B] per axis; at the high border of a grid whose cell count is not a multiple of B the apron
 repeats the last voxel (never read: `grid_cell` keeps cells below res - 1).
 
-B is a power of two (the brick of a cell is a shift, its place in the brick a mask: integer division by a runtime B
-was the dearer instruction). Offsets are int32, as the dense path's: a pool holds fewer than 2^31 voxels.
+B is a power of two, so that the brick of a cell is a shift and its place in the brick a mask (no integer division
+per sample). Offsets are int32, as the dense path's: a pool holds fewer than 2^31 voxels.
 """
 
 from __future__ import annotations
