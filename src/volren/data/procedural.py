@@ -7,7 +7,8 @@ every resolution. Grids are float32 ``[z, y, x]`` in [0, 1]; voxel i of n sits a
 
 Materials are calibrated on the fields built here (seeds 0-2, resolution 64, rays along z as the default camera
 looks): the optical depth ``density_scale * integral(density)`` of the densest columns is about 3-5 for smoke,
-cloud and puffs and at most about 3.4 through the phantom, so images are neither blown out nor invisible.
+cloud and puffs, so images are neither blown out nor invisible, and about 1 through the phantom, so its inside
+shows (`PHANTOM_DENSITY_SCALE`).
 """
 
 from __future__ import annotations
@@ -533,9 +534,11 @@ class BuiltinScene:
 BUILTIN_SCENES: dict[str, BuiltinScene] = {
     s.name: s
     for s in (
-        BuiltinScene("smoke", "rising fBm smoke plume, grey, mildly forward scattering (g 0.2)", _smoke_scene),
+        BuiltinScene("smoke", "rising fBm smoke plume, grey, mildly forward scattering (g 0.2), lit from the "
+                     "upper left under a cool sky", _smoke_scene),
         BuiltinScene("cloud", "cumulus billow with a flat base, bright (albedo 0.97, g 0.5)", _cloud_scene),
-        BuiltinScene("phantom", "3D modified Shepp-Logan head phantom, CT-like and semi-transparent", _phantom_scene),
+        BuiltinScene("phantom", "3D modified Shepp-Logan head phantom, CT-like and semi-transparent: its "
+                     "ventricles show through the skull", _phantom_scene),
         BuiltinScene("multi", "grid of 4, 16 or 36 cloud puffs (each n/2 per axis) in the x-y plane", _multi_scene),
         BuiltinScene("instances", "4, 16 or 36 smoke and cloud instances (each n/2 per axis) in rows receding in "
                      "depth, disjoint boxes, lit from overhead", _instances_scene),

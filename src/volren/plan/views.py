@@ -24,6 +24,8 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0, scene=None):
     from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera, fog_scene_walk_area
     from volren.viewers import WalkArea, arc_viewers, overlap_viewers, wandering_viewers
 
+    if not 0 < args.fov < 180:  # refused before framing divides by tan(fov / 2)
+        raise CliError(f"--fov must lie in (0, 180) degrees, got {args.fov:g}")
     position, look_at, near, ipd = DEFAULT_EYE, (0.0, 0.0, 0.0), 0.01, 0.063
     fog_scene = getattr(args, "scene", None) in FOG_SCENES
     if fog_scene:
