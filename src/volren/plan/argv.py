@@ -340,7 +340,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     o = p.add_argument_group("output")
     o.add_argument("--out", type=out_folder, default=Path("out"), help="output folder")
     o.add_argument("--save-linear", action="store_true", help="also write linear (H, W, 4) float32 .npy images")
-    o.add_argument("--exposure", type=float, default=1.0 if demo else 0.0, help=f"PNG exposure in stops, in "
+    o.add_argument("--exposure", type=float, default=0.0, help=f"PNG exposure in stops, in "
                    f"[-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
     o.add_argument("--tonemap", default="none", choices=TONEMAPS, help="PNG tone map")
     if not demo:
