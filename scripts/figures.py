@@ -18,7 +18,7 @@ import numpy as np
 from PIL import Image
 
 from volren.camera import Camera, make_views
-from volren.data import builtin_scene
+from volren.data import builtin_scene, classic_look
 from volren.imageio import composite, to_srgb8
 from volren.metrics import error_heatmap, psnr
 from volren.progress import progress
@@ -35,7 +35,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for banding.png/json (default: out/figures)")
     out = ap.parse_args().out
     out.mkdir(parents=True, exist_ok=True)
-    scene = builtin_scene("phantom", 128)
+    scene = classic_look(builtin_scene("phantom", 128))  # the opacity and light banding.json was measured under
     views = make_views(Camera(position=(0.9, 0.6, 2.0), look_at=(0.0, 0.1, 0.0), width=320, height=240, fov_y=50),
                        "stereo")
     common = {"light_grid": 64, "hybrid": False}

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from volren.camera import Camera
-from volren.data import builtin_scene
+from volren.data import builtin_scene, classic_look
 from volren.data.procedural import phantom_density
 from volren.render import DSSRM, DSSRMConfig, Reference, ReferenceConfig
 from volren.scene import DirectionalLight, Environment, Scene, Volume, scale_translate
@@ -20,8 +20,9 @@ DEVICE = os.environ.get("VOLREN_TEST_DEVICE", "cpu")
 
 def hard_phantom(resolution: int = 64) -> Scene:
     """The built-in phantom with the hard-edged skull it had before issue 13's partial-volume edges: the case with the
-    most fine detail, on which the VSA weights were fitted and the detail-keeping tests were measured."""
-    scene = builtin_scene("phantom", resolution)
+    most fine detail, on which the VSA weights were fitted and the detail-keeping tests were measured, under the
+    opacity and light they were measured with (`classic_look`)."""
+    scene = classic_look(builtin_scene("phantom", resolution))
     hard = dataclasses.replace(scene.volumes[0], density=phantom_density(resolution, edge_voxels=0.0))
     return dataclasses.replace(scene, volumes=(hard,))
 

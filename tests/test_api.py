@@ -109,7 +109,7 @@ def test_render_and_save_write_what_volren_render_writes(tmp_path, capsys):
 
     args = ["render", "--scene", "smoke", "--resolution", "64", "--quality", "high", "--samples", "16",
             "--light-samples", "8", "--light-grid", "16", "--width", "32", "--height", "24", "--device", DEVICE,
-            "--out", str(tmp_path / "cli")]
+            "--camera-pos", "0,0.4,3.2", "--out", str(tmp_path / "cli")]
     assert main(args) == 0
     capsys.readouterr()
     scene = vr.builtin_scene("smoke", 64)

@@ -10,7 +10,7 @@ import pytest
 
 from conftest import DEVICE, homogeneous_volume, scene_of
 from volren.camera import Camera
-from volren.data import builtin_scene
+from volren.data import builtin_scene, classic_look
 from volren.metrics import psnr
 from volren.render import CACRM, CMSRM, DSSRM, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
 from volren.render.compositing.surface_light import AO_CONE_RAYS, SURFACE_BRUTE_FORCE, SURFACE_LIGHT_MAP, surface_light
@@ -138,7 +138,7 @@ def surface_radiance(renderer, scene, cam: Camera) -> np.ndarray:
 
 
 def smoke_over_floor(floor_y: float, lights: bool, ambient: float):
-    scene = builtin_scene("smoke", 64)
+    scene = classic_look(builtin_scene("smoke", 64))  # the light the floors were measured under, its shadow in view
     return dataclasses.replace(scene, opaque=(Plane((0, floor_y, 0), (0, 1, 0), 1.0),),
                                lights=scene.lights if lights else (), environment=Environment(ambient))
 

@@ -421,15 +421,15 @@ def framed_views(scene: Scene | Channels, name: str | None, views: str | int, wi
 def framed_camera(scene: Scene, name: str | None = None, width: int | None = None,
                   height: int | None = None, *, eye_offset: float = 0.0) -> Camera:
     """The one camera `render` uses without views, as ``volren render`` places it (`Camera`'s defaults else): for
-    the built-in scene ``name``, the default eye (0, 0.4, 3.2) m looking at the origin, or a fog scene's own
-    viewpoint (also for a Scene with fog named as one); else ``scene``'s volumes framed whole
-    (`volren.framing.framed_eye`, as for ``--volume``; ``eye_offset`` [m] leaves room for eyes shifted sideways:
-    stereo's ipd / 2); a scene of no volumes, the default eye."""
+    the built-in volume scene ``name``, its content framed (`volren.framing.framed_content`, as for ``--scene``), or a
+    fog scene's own viewpoint (also for a Scene with fog named as one); else ``scene``'s volumes framed whole
+    (`volren.framing.framed_eye`, as for ``--volume``); ``eye_offset`` [m] leaves room for eyes shifted sideways
+    (stereo's ipd / 2); a scene of no volumes, the default eye."""
     import numpy as np
 
     from volren.camera import Camera
     from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera
-    from volren.framing import DEFAULT_EYE, framed_eye
+    from volren.framing import DEFAULT_EYE, framed_content, framed_eye
 
     for key, value in (("width", width), ("height", height)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
@@ -439,8 +439,12 @@ def framed_camera(scene: Scene, name: str | None = None, width: int | None = Non
     if fog is not None:
         viewpoint = fog_scene_camera(fog)
         return Camera(position=viewpoint["position"], look_at=viewpoint["look_at"], **size)
-    if name is not None or not scene.volumes:
+    if not scene.volumes:
         return Camera(position=DEFAULT_EYE, **size)
+    if name is not None:
+        position, look_at, near = framed_content(scene.volumes, Camera.up, Camera.fov_y,
+                                                 size["width"] / size["height"], eye_offset)
+        return Camera(position=position, look_at=look_at, near=near, **size)
     corners = np.concatenate([v.corners_world for v in scene.volumes])
     position, look_at, near = framed_eye(corners, Camera.up, Camera.fov_y, size["width"] / size["height"],
                                          eye_offset=eye_offset)

@@ -286,7 +286,9 @@ class DirectionalLight:
         n = np.linalg.norm(d)
         if n < 1e-9:
             raise VolrenError("light direction must not be the zero vector")
-        object.__setattr__(self, "direction", tuple(float(v) for v in d / n))
+        # a unit direction is kept as it is: dividing it by its norm again can move the last bit, and a copy
+        # (dataclasses.replace) would no longer equal its light (the light-map cache recomputed for it)
+        object.__setattr__(self, "direction", tuple(float(v) for v in (d if abs(n - 1.0) < 1e-12 else d / n)))
         e = as_rgb(self.irradiance, "light irradiance")
         if min(e) < 0:
             raise VolrenError(f"light irradiance must be >= 0, got {e}")

@@ -37,9 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from volren.bench import Suite, measure, sized
+from volren.bench import Suite, bench_scene, measure, sized
 from volren.camera import Camera, make_views
-from volren.data import builtin_scene
 from volren.metrics import psnr, ssim
 from volren.render import (
     CACRM,
@@ -206,7 +205,7 @@ def translucent_mesh(scene: Scene, cfg: dict[str, Any], renderers: dict[str, Ren
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     rows, summary = [], []
     for name in cfg["scenes"]:
-        scene = builtin_scene(name, cfg["resolution"])
+        scene = bench_scene(name, cfg["resolution"])
         renderers = methods(cfg["light_grid"], device)
         reference = Reference(ReferenceConfig(samples=cfg["reference"], light_samples=cfg["reference"]), device)
         matched = equal_gathers(scene, [make_views(path_camera(f, cfg["frames"], cfg["quality_size"]), "stereo")
@@ -255,7 +254,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
         })
     if cfg.get("mesh_scene"):
         reference = Reference(ReferenceConfig(samples=cfg["reference"], light_samples=cfg["reference"]), device)
-        mesh_rows, mesh_summary = translucent_mesh(builtin_scene(cfg["mesh_scene"], cfg["resolution"]), cfg,
+        mesh_rows, mesh_summary = translucent_mesh(bench_scene(cfg["mesh_scene"], cfg["resolution"]), cfg,
                                                    methods(cfg["light_grid"], device), reference)
         rows += mesh_rows
         summary.append(mesh_summary)

@@ -11,9 +11,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from volren.bench import Suite, cpu_thread_limit, measure
+from volren.bench import Suite, bench_scene, cpu_thread_limit, measure
 from volren.camera import Camera, make_views
-from volren.data import builtin_scene
 from volren.render import DSSRM, DSSRMConfig
 
 FULL = {"resolution": 256, "light_grid": 128, "sizes": [(1920, 1080), (2560, 1440), (3840, 2160)], "repeats": 5}
@@ -34,7 +33,7 @@ def rates(row: dict[str, Any]) -> dict[str, Any]:
 
 def run(quick: bool, device: str) -> dict[str, Any]:
     cfg = QUICK if quick else FULL
-    scene = builtin_scene("smoke", cfg["resolution"])
+    scene = bench_scene("smoke", cfg["resolution"])
     rows = []
     thread_modes = [None, 1] if device == "cpu" else [None]
     for width, height in cfg["sizes"]:

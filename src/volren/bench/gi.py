@@ -27,9 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from volren.bench import Suite, sized
+from volren.bench import Suite, bench_scene, sized
 from volren.camera import Camera
-from volren.data import builtin_scene
 from volren.data.environments import sky_environment
 from volren.errors import VolrenError
 from volren.metrics import psnr, ssim
@@ -57,7 +56,7 @@ SETTLE = 1.25
 
 
 def gi_scene(name: str, resolution: int) -> Scene:
-    scene = builtin_scene(name, resolution, count=4)
+    scene = bench_scene(name, resolution, count=4)
     return dataclasses.replace(scene, environment=sky_environment())
 
 

@@ -17,9 +17,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from volren.bench import Suite, measure, sized
+from volren.bench import Suite, bench_scene, measure, sized
 from volren.bench.oit import stereo
-from volren.data import builtin_scene
 from volren.data.environments import sky_environment
 from volren.render import CACRM, DSSRM, CACRMConfig, DSSRMConfig, Renderer
 from volren.render.gi.ambient import GIConfig
@@ -41,7 +40,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     rows, summary = [], []
     passes: list[str] = []
     for n in cfg["counts"]:
-        scene = dataclasses.replace(builtin_scene("instances", cfg["resolution"], count=n),
+        scene = dataclasses.replace(bench_scene("instances", cfg["resolution"], count=n),
                                     environment=sky_environment())
         for size in cfg["sizes"]:
             frame_ms = {}

@@ -19,9 +19,8 @@ import statistics
 import time
 from typing import Any
 
-from volren.bench import NOT_PASSES, Suite
+from volren.bench import NOT_PASSES, Suite, bench_scene
 from volren.camera import Camera, make_views
-from volren.data import builtin_scene
 from volren.data.fog_scenes import fog_scene, fog_scene_camera
 from volren.metrics import psnr
 from volren.presets import quality_config
@@ -60,7 +59,7 @@ def summary(timings: list[tuple[float, float, Any]]) -> dict[str, Any]:
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     """Every run's renderer is warmed up first, then the runs take turns frame by frame (``repeats`` rounds), so
     other jobs on a shared machine slow them alike."""
-    scene = builtin_scene("smoke", cfg["resolution"])
+    scene = bench_scene("smoke", cfg["resolution"])
     width, height = cfg["size"]
     views = make_views(Camera(position=EYE, width=width, height=height), cfg["views"])
     reference = Reference(ReferenceConfig(samples=cfg["reference"], light_samples=cfg["reference"]), device)

@@ -39,9 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from volren.bench import Suite, measure, sized
+from volren.bench import Suite, bench_scene, measure, sized
 from volren.camera import Camera, make_views
-from volren.data import builtin_scene
 from volren.render import DSSRM, DSSRMConfig, Reference, ReferenceConfig
 from volren.scene import Scene
 
@@ -110,7 +109,7 @@ def quality_rows(cfg: dict[str, Any], device: str) -> list[dict[str, Any]]:
     rows = []
     for name in cfg["scenes"]:
         for n in cfg["counts"]:
-            scene = builtin_scene(name, cfg["resolution"], count=n)
+            scene = bench_scene(name, cfg["resolution"], count=n)
             single = nearest_instance(scene)
             refs = reference.render(scene, views).images
             single_refs = reference.render(single, views).images
@@ -129,7 +128,7 @@ def quality_rows(cfg: dict[str, Any], device: str) -> list[dict[str, Any]]:
 def speed_rows(cfg: dict[str, Any], device: str) -> list[dict[str, Any]]:
     rows = []
     for n in cfg["counts"]:
-        scene = builtin_scene("instances", cfg["resolution"], count=n)
+        scene = bench_scene("instances", cfg["resolution"], count=n)
         for size in cfg["sizes"]:
             views = stereo(size)
             pixels = sum(c.width * c.height for c in views)

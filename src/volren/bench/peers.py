@@ -33,9 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from volren.bench import Suite
+from volren.bench import Suite, bench_scene
 from volren.camera import Camera
-from volren.data import builtin_scene
 from volren.device import cpu_threads
 from volren.errors import VolrenError
 from volren.imageio import composite, to_srgb8
@@ -204,7 +203,7 @@ def run_size(scene: Scene, cfg: dict[str, Any], width: int, height: int, device:
 
 
 def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
-    scene = builtin_scene(cfg["scene"], cfg["resolution"])
+    scene = bench_scene(cfg["scene"], cfg["resolution"])
     load = os.getloadavg()[0]
     rows = [run_size(scene, cfg, w, h, device) for w, h in cfg["sizes"]]
     figures = {f"{row['size']}-volren-left-vtk-right.png": row.pop("figure") for row in rows}

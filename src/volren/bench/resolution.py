@@ -17,9 +17,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from volren.bench import Suite, measure, sized
+from volren.bench import Suite, bench_scene, measure, sized
 from volren.camera import Camera, make_views
-from volren.data import builtin_scene
 from volren.metrics import psnr, ssim
 from volren.render import CMSRM, DSSRM, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
 
@@ -35,7 +34,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     rows, ratios = [], []
     smallest = cfg["sizes"][0]
     for name in cfg["scenes"]:
-        scene = builtin_scene(name, cfg["resolution"])
+        scene = bench_scene(name, cfg["resolution"])
         ref_cam = Camera(position=CAMERA, width=smallest[0], height=smallest[1])
         reference = Reference(ReferenceConfig(samples=cfg["reference"], light_samples=cfg["reference"]), device)
         left_ref = reference.render(scene, [make_views(ref_cam, "stereo")[0]]).images[0]

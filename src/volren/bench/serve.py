@@ -327,7 +327,7 @@ def make_loop(method: str, scene_name: str, cfg: dict[str, Any], shared: bool, d
               limits: Any = None) -> tuple[Any, Camera, bool]:
     """A playing render loop of a built-in scene at the interactive quality, its start camera and whether its
     clients walk (fog) rather than orbit."""
-    from volren.data import builtin_scene
+    from volren.bench import bench_scene
     from volren.data.fog_scenes import FOG_SCENES, fog_scene, fog_scene_camera
     from volren.serve.loop import RenderLoop, animator
     from volren.serve.viewers import Limits
@@ -337,7 +337,7 @@ def make_loop(method: str, scene_name: str, cfg: dict[str, Any], shared: bool, d
         spot = fog_scene_camera(scene_name)
         base = Camera(position=spot["position"], look_at=spot["look_at"])
     else:
-        scene = builtin_scene(scene_name, cfg["resolution"])
+        scene = bench_scene(scene_name, cfg["resolution"])
         base = Camera(position=(0.0, 0.4, 3.2))
     w, h = cfg["size"]
     # the shared/naive comparison renders the same pixels in both: the pixel budget only, no time shares
@@ -642,9 +642,9 @@ GOAL_SHARD_FPS = 0.85
 def two_rig_scene(resolution: int, apart: float) -> tuple[Scene, list[Camera]]:
     """The smoke twice, at x = -``apart`` and +``apart`` [m] (two rigs far apart: their footprints do not overlap),
     and each rig's base camera (the CLI's default view, moved to its smoke)."""
-    from volren.data import builtin_scene
+    from volren.bench import bench_scene
 
-    scene = builtin_scene("smoke", resolution)
+    scene = bench_scene("smoke", resolution)
     vol = scene.volumes[0]
     moved = []
     for x in (-apart, apart):

@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from volren.bench import Suite, measure, sized
+from volren.bench import Suite, bench_scene, measure, sized
 from volren.camera import Camera
-from volren.data import BUILTIN_SCENES, builtin_scene
+from volren.data import BUILTIN_SCENES
 from volren.errors import VolrenError
 from volren.progress import case_done
 from volren.render import VPT, VPTConfig
@@ -85,7 +85,7 @@ def denoiser_rows(cfg: dict[str, Any], device: str) -> tuple[list[dict], dict[st
     from volren.animate import Sequence, frame_scene, frame_views
     from volren.metrics import flip, psnr
 
-    scene = builtin_scene("phantom", cfg["resolution"])
+    scene = bench_scene("phantom", cfg["resolution"])
     cam = Camera(position=(1.6, 1.2, 2.4), width=cfg["denoise_size"][0], height=cfg["denoise_size"][1], fov_y=40.0)
     seq = Sequence(frames=cfg["rotation_frames"], orbit=90.0, light_orbit=180.0)
     reference = VPT(VPTConfig(spp=cfg["reference_spp"], transfer="ct-muscle"), device)
@@ -168,7 +168,7 @@ def run_config(cfg: dict[str, Any], device: str) -> dict[str, Any]:
     rows, summary = [], []
     cam = Camera(position=(1.6, 1.2, 2.4), width=cfg["size"][0], height=cfg["size"][1], fov_y=40.0)
     for scene_name, transfer in cases:
-        scene = builtin_scene(scene_name, cfg["resolution"])
+        scene = bench_scene(scene_name, cfg["resolution"])
         name = case_name(scene_name, transfer)
         for spp in cfg["spp"]:
             for global_majorant in (False, True) if spp == cfg["spp"][0] else (False,):

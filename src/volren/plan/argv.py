@@ -231,9 +231,11 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                      help=".npy linear depth (H, W), or (views, H, W), of geometry drawn elsewhere; inf = none "
                                               "(default: none)")
     cam = p.add_argument_group("views")
-    cam.add_argument("--camera-pos", type=vec3, help="eye position x,y,z [m] (default 0,0.4,3.2; fog scenes: their "
-                     "own viewpoint)")
-    cam.add_argument("--look-at", type=vec3, help="x,y,z (default 0,0,0; fog scenes: their own)")
+    cam.add_argument("--camera-pos", type=vec3, help="eye position x,y,z [m] (default: built-in volume scenes and "
+                     "--volume framed, the eye in the direction of 0,0.4,3.2 from the centre of their medium or box, "
+                     "far enough that it fills the view; fog scenes: their own viewpoint; with --look-at: 0,0.4,3.2)")
+    cam.add_argument("--look-at", type=vec3, help="x,y,z (default: the framed centre; fog scenes: their own; with "
+                     "--camera-pos: 0,0,0)")
     cam.add_argument("--up", type=vec3, default=(0.0, 1.0, 0.0), help="x,y,z")
     cam.add_argument("--fov", type=float, default=45.0, help="vertical field of view [degrees], in (0, 180)")
     cam.add_argument("--width", type=int, default=640, help=f"[px] in [1, {MAX_IMAGE_SIDE}],"
@@ -338,7 +340,7 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     o = p.add_argument_group("output")
     o.add_argument("--out", type=out_folder, default=Path("out"), help="output folder")
     o.add_argument("--save-linear", action="store_true", help="also write linear (H, W, 4) float32 .npy images")
-    o.add_argument("--exposure", type=float, default=1.0 if demo else 0.0, help=f"PNG exposure in stops, in "
+    o.add_argument("--exposure", type=float, default=0.0, help=f"PNG exposure in stops, in "
                    f"[-{MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}]")
     o.add_argument("--tonemap", default="none", choices=TONEMAPS, help="PNG tone map")
     if not demo:

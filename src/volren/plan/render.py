@@ -142,7 +142,7 @@ class RenderPlan:
                 volumes = flame_defaults(volumes, scene.lights, scene.environment)
             scene = dataclasses.replace(self.scene, volumes=volumes)
         if self.walking and i:
-            views = views_from_args(args, i / ANIMATION_FPS)
+            views = views_from_args(args, i / ANIMATION_FPS, self.scene)
         if self.sequence is not None:
             from volren.animate import frame_config, frame_scene, frame_views
 
@@ -195,7 +195,7 @@ def plan_render(args: argparse.Namespace, method: str) -> RenderPlan:
     value_mapping = _value_mapping(args)
     animated = getattr(args, "scene", None) in ANIMATED_FOG_SCENES
     walking = args.rig == "wander" and args.views not in ("mono", "stereo")
-    views = views_from_args(args)
+    views = views_from_args(args, scene=scene)
     occluder_depth = depth_images_from_args(args, len(views))
     renderer = renderer_from_args(args, method)
     value_mapping |= iso_value_from_data(args, scene, renderer)

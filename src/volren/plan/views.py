@@ -1,27 +1,31 @@
-"""A render's views: one camera from the options (a fog scene's viewpoint, or a volume file framed whole), made
-into mono, stereo or N viewers, and the occluders' depth images."""
+"""A render's views: one camera from the options (a fog scene's viewpoint, a volume file framed whole, a built-in
+volume scene framed by its content), made into mono, stereo or N viewers, and the occluders' depth images."""
 
 from __future__ import annotations
 
 import argparse
 
-from volren.framing import framed_eye, framing_distance
+from volren.framing import framed_content, framed_eye, framing_distance
 from volren.plan.options import DEFAULT_EYE, CliError
 from volren.plan.volume import _volume_from_args
 
 __all__ = ["depth_images_from_args", "framed_ipd", "framing_distance", "views_from_args"]
 
 
-def views_from_args(args: argparse.Namespace, time: float = 0.0):
+def views_from_args(args: argparse.Namespace, time: float = 0.0, scene=None):
     """The viewers: one camera from the arguments (a fog scene's own viewpoint by default), made into mono, stereo
     or N views by ``--rig``; in a fog scene the arc and the wandering viewers keep to its walkable space (the arc
     only when the camera stands in it), elsewhere viewers wander 3 m around the look-at point; wandering viewers are
     placed for ``time`` [s]. A volume file is framed: the camera looks at its world box's centre from the default
-    direction (0, 0.4, 3.2), far enough that the whole box is in view."""
+    direction (0, 0.4, 3.2), far enough that the whole box is in view. A built-in volume scene (``scene``, the
+    planned one; built here when None) without --camera-pos and --look-at is framed by its content, both eyes of a
+    stereo pair (`volren.framing.framed_content`)."""
     from volren.camera import Camera, make_views
     from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera, fog_scene_walk_area
     from volren.viewers import WalkArea, arc_viewers, overlap_viewers, wandering_viewers
 
+    if not 0 < args.fov < 180:  # refused before framing divides by tan(fov / 2)
+        raise CliError(f"--fov must lie in (0, 180) degrees, got {args.fov:g}")
     position, look_at, near, ipd = DEFAULT_EYE, (0.0, 0.0, 0.0), 0.01, 0.063
     fog_scene = getattr(args, "scene", None) in FOG_SCENES
     if fog_scene:
@@ -32,6 +36,14 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0):
         ipd = framed_ipd(corners) if args.ipd is None else args.ipd
         position, look_at, near = framed_eye(corners, args.up, args.fov, args.width / max(args.height, 1),
                                              args.look_at, ipd / 2 if args.views == "stereo" else 0.0)
+    elif args.camera_pos is None and args.look_at is None:  # a built-in volume scene
+        if scene is None:
+            from volren.plan.scene import scene_from_args
+
+            scene = scene_from_args(args, time)
+        eye_offset = (ipd if args.ipd is None else args.ipd) / 2 if args.views == "stereo" else 0.0
+        position, look_at, near = framed_content(scene.volumes, args.up, args.fov,
+                                                 args.width / max(args.height, 1), eye_offset)
     cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
                  width=args.width, height=args.height, near=near if args.near is None else args.near, far=args.far)
     if args.overlap is not None and args.rig != "overlap":
