@@ -219,9 +219,10 @@ def render(scene: Scene | Volume | Channels | VolumeSequence | str | Path,
 
     ``views``: a Camera or a list of them (e.g. from `volren.views`), or framed as the command line frames its
     ``--views``: ``"mono"`` (the default), ``"stereo"`` or N viewers on an arc, each ``width`` x ``height`` pixels
-    (default 640 x 360, ``--width`` and ``--height``'s; `Camera`'s other defaults): a built-in volume scene from
-    (0, 0.4, 3.2) m looking at the origin, a fog scene from its own viewpoint, anything else (a file, a Volume, a
-    Scene of volumes) whole, looking at its volumes' box's centre from that direction (`volren.framing.framed_eye`),
+    (default 640 x 360, ``--width`` and ``--height``'s; `Camera`'s other defaults): a built-in volume scene by where
+    its medium is (`volren.framing.framed_content`), from the direction of (0, 0.4, 3.2), a fog scene from its own
+    viewpoint, anything else (a file, a Volume, a Scene of volumes) whole, looking at its volumes' box's centre from
+    that direction (`volren.framing.framed_eye`),
     whatever its units (``vr.render(vr.load("stack.tif"))`` shows a micrometre stack; a stereo pair's eyes at most
     its box's size apart). Given cameras, ``width`` and ``height`` are refused (the cameras carry their size).
 
