@@ -45,7 +45,8 @@ def test_the_site_builds_strictly_with_every_page(tmp_path):
                  "BENCHMARKS-LOG/index.html", "gallery/index.html"):
         assert (site / page).is_file(), page
     api = (site / "API" / "index.html").read_text()
-    public = ("load", "render", "builtin_scene", "views", "Renderer", "Scene", "Volume", "Camera", "Frame", "Viewer")
+    public = ("load", "render", "builtin_scene", "views", "Renderer", "Scene", "Volume", "Camera", "Frame", "Viewer",
+              "Channels", "VolumeSequence")
     for name in public:
         assert re.search(rf'id="volren\.[\w.]*\b{name}"', api), f"the API page lacks {name}"
     assert "placed in the world as it places it" in api  # vr.load's docstring, read by mkdocstrings
