@@ -13,7 +13,7 @@ from volren.data import BUILTIN_SCENES, builtin_scene
 from volren.render import CACRM, CMSRM, DSSRM, VPT, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
 from volren.render.compositing.channels import AdditiveChannels, channel_volumes
 from volren.render.vpt.tracer import VPTConfig
-from volren.scene import Environment, Scene, Volume
+from volren.scene import DirectionalLight, Environment, Scene, Volume
 from volren.upload import BRICK, upload_scene
 
 N = 64
@@ -33,8 +33,17 @@ def images(make, scene: Scene, cams) -> tuple[np.ndarray, np.ndarray]:
     out = []
     for bricked in (True, False):
         r = make()
-        r.bricked = bricked
-        out.append(np.stack(r.render(scene, list(cams)).images))
+        inner = getattr(r, "renderers", [r])  # AdditiveChannels: a renderer per channel
+        for one in inner:
+            one.bricked = bricked
+        frame = r.render(scene, list(cams))
+        out.append(np.stack(frame.images))
+        for one in inner:  # each took the upload asked for: bricks in the pool, or none
+            assert (one._device_scene.active_bricks > 0) == bricked
+        for info in frame.stats.info.get("channels", [frame.stats.info]):  # and its stats say so
+            bricks = info["bricks"]
+            assert (bricks["active"] > 0) == bricked
+            assert bricks["pool_bytes"] == 4 * (BRICK + 1) ** 3 * bricks["active"]
     return out[0], out[1]
 
 
@@ -75,17 +84,33 @@ def test_channels_equal_the_dense_ones():
     assert np.abs(bricked - dense).max() == 0.0
 
 
+def ball_and_slab() -> Scene:
+    """N^3 voxels, zero but for a ball inside one brick and a constant slab (0.25) over the last quarter in x."""
+    z, y, x = np.mgrid[0:N, 0:N, 0:N].astype(np.float32)
+    # non-zero at voxels 19..29 per axis: inside brick 1's apron block [16, 32], off its faces
+    grid = np.clip(1.0 - np.sqrt((x - 24) ** 2 + (y - 24) ** 2 + (z - 24) ** 2) / 6.0, 0.0, None)
+    grid[:, :, 48:] = 0.25  # x bricks 3 are constant; x bricks 2 (voxels [32, 48]) hold the slab's face
+    return Scene((Volume(grid.astype(np.float32), density_scale=8.0),), lights=(DirectionalLight(),),
+                 environment=Environment((0.1, 0.1, 0.1)))
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("method", ["dssrm", "reference"])
+def test_constant_bricks_render_as_the_dense_grid(method):
+    """The built-in scenes' constant bricks are all empty: here non-empty ones (OpenVDB tiles) read their value."""
+    scene = ball_and_slab()
+    bricked, dense = images(lambda: METHODS[method]("dvr"), scene, [framed_camera(scene, None, *SIZE)])
+    assert dense[..., 3].max() > 0.05
+    assert np.abs(bricked - dense).max() == 0.0
+
+
 @pytest.mark.timeout(120)
 def test_sparse_volume_holds_pool_memory_only_for_its_active_bricks():
     """A 64^3 grid, zero but for a ball inside one brick and a constant slab: the pool holds the ball's brick and the
     bricks whose apron meets the slab's face; the slab's other bricks and the empty ones are page-table entries only,
     and the upload says so (issue 41 item 1)."""
-    n = 64
-    z, y, x = np.mgrid[0:n, 0:n, 0:n].astype(np.float32)
-    # non-zero at voxels 19..29 per axis: inside brick 1's apron block [16, 32], off its faces
-    grid = np.clip(1.0 - np.sqrt((x - 24) ** 2 + (y - 24) ** 2 + (z - 24) ** 2) / 6.0, 0.0, None)
-    grid[:, :, 48:] = 0.25  # x bricks 3 are constant; x bricks 2 (voxels [32, 48]) hold the slab's face
-    scene = Scene((Volume(grid.astype(np.float32)),), lights=(), environment=Environment((0.0, 0.0, 0.0)))
+    n = N
+    scene = ball_and_slab()
     ds = upload_scene(scene, DEVICE)
     dense = upload_scene(scene, DEVICE, bricked=False)
     bricks = -(-(n - 1) // BRICK)  # per axis

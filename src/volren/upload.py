@@ -131,7 +131,8 @@ class DeviceScene:
     """per volume (offset into ``max_density``, resolution (x, y, z)) of its culling level"""
     levels: list[list[VolumeGPU]]
     """per volume, its struct at each uploaded mip level (level 0 only unless uploaded with ``mip_levels``);
-    levels differ only in ``offset`` and ``res``: same box, material and light map"""
+    levels differ only in where their density lies (``offset``, ``res``, their bricks): same box, material and
+    light map"""
     ambient_grid: wp.array
     """packed per-voxel ambient radiance (vec3) of the GI passes (`volren.render.gi.ambient`); read only when ``gi``"""
     table: wp.array | None = None

@@ -247,6 +247,8 @@ class Renderer:
         clock = PassClock(self.device)
         self._frame_info: dict[str, Any] = {}
         ds = self._prepare(scene, clock, frame)
+        # what the density costs on the device (issue 41 items 1 and 4): memory goes with the resident bricks
+        self._frame_info["bricks"] = {"active": ds.active_bricks, "pool_bytes": ds.pool_bytes}
         targets = self._view_targets(views)
         surface = self._surface_light(ds) if scene.opaque else None
         for v, (cam, buffers) in enumerate(zip(views, targets, strict=True)):
