@@ -13,6 +13,7 @@ from test_physics import single_scattering_closed_form
 from volren.camera import Camera
 from volren.data import builtin_scene
 from volren.errors import VolrenError
+from volren.kernels.common import VolumeGPU
 from volren.render import VPT, Reference, ReferenceConfig, VPTConfig
 from volren.render.environment import EnvironmentLight, environment_light, sample_environment
 from volren.render.vpt.majorants import MajorantGrid, build_majorants, majorant_struct, track
@@ -26,12 +27,20 @@ RAYS = 4096
 
 @wp.kernel
 def track_kernel(grid: MajorantGrid, majorants: wp.array(dtype=float), density: wp.array(dtype=float),
-                 res: wp.vec3i, inv_scale: float, table: wp.array(dtype=wp.vec4), o: wp.vec3, d: wp.vec3, t1: float,
+                 vol: VolumeGPU, inv_scale: float, table: wp.array(dtype=wp.vec4), o: wp.vec3, d: wp.vec3, t1: float,
                  ratio: int, out: wp.array(dtype=float)):
     i = wp.tid()
-    value, _state, _n = track(grid, majorants, density, 0, res, inv_scale, table, 0, table.shape[0], o, d, 0.0, t1,
+    value, _state, _n = track(grid, majorants, density, vol, inv_scale, table, 0, table.shape[0], o, d, 0.0, t1,
                               ratio, wp.rand_init(1234, i))
     out[i] = value
+
+
+def dense_volume(shape: tuple[int, ...]) -> VolumeGPU:
+    """A `VolumeGPU` reading a dense grid of ``shape`` (z, y, x) at offset 0 (`gather_density`'s dense case)."""
+    vol = VolumeGPU()
+    vol.offset, vol.res, vol.brick_shift = 0, wp.vec3i(*shape[::-1]), 0
+    vol.table = wp.zeros(1, dtype=wp.int32, device=DEVICE)
+    return vol
 
 
 def run_track(density: np.ndarray, max_extinction: float, o, d, t1: float, ratio: int, global_majorant=False):
@@ -41,7 +50,7 @@ def run_track(density: np.ndarray, max_extinction: float, o, d, t1: float, ratio
     wp.launch(track_kernel, dim=RAYS, device=DEVICE, inputs=[
         majorant_struct(m, 0), wp.array(np.concatenate([lv.reshape(-1) for lv in m.levels]), dtype=float,
                                         device=DEVICE),
-        wp.array(density.reshape(-1), dtype=float, device=DEVICE), wp.vec3i(*density.shape[::-1]), 1.0 / m.scale,
+        wp.array(density.reshape(-1), dtype=float, device=DEVICE), dense_volume(density.shape), 1.0 / m.scale,
         wp.array(table[:, :4], dtype=wp.vec4, device=DEVICE), wp.vec3(*o), wp.vec3(*d), t1, ratio, out])
     return out.numpy()
 

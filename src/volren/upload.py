@@ -1,8 +1,11 @@
 """Upload a `Scene` and `Camera`s to a Warp device: packed density grids, per-volume structs, lights.
 
 Several volumes of different resolutions share one flat density array (each ``VolumeGPU`` holds its offset), so a
-kernel can walk every volume of the scene in one launch. After every density level it holds each fire volume's
-emission grid and blackbody table (`pack_emission`): every kernel that reads densities can then read them too.
+kernel can walk every volume of the scene in one launch. Densities are uploaded as bricks (issue 41 item 1): each
+level's brick pool and constant-brick values go into the density array, its page table into one packed int32 table
+(`volren.kernels.bricks`, `volren.kernels.common.gather_density`). After every density level the density array
+holds each fire volume's emission grid and blackbody table (`pack_emission`), dense: every kernel that reads
+densities can then read them too.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import warp as wp
 from volren.camera import Camera
 from volren.device import check_allocation
 from volren.errors import VolrenError
+from volren.kernels.bricks import brick_volume
 from volren.kernels.common import (
     LIGHT_DIRECTIONAL,
     LIGHT_POINT,
@@ -33,6 +37,8 @@ from volren.scene import SPOT_FALLOFFS, DirectionalLight, RectLight, Scene, Sphe
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
 MAX_LIGHT_GRID = 1024
+BRICK = 16
+"""[cells] edge B of the density bricks: the choice of docs/bench/bricks-decision.md (issue 41 item 1)"""
 
 
 def opaque_structs(scene: Scene) -> list[OpaqueGPU]:
@@ -98,6 +104,8 @@ class DeviceScene:
     scene: Scene
     device: str
     density: wp.array
+    """packed floats: per volume and level its brick pool and constant-brick values (or its dense grid), then the
+    emission grids and blackbody tables"""
     volumes: wp.array
     lights: wp.array
     light_res: list[tuple[int, int, int]]
@@ -123,9 +131,18 @@ class DeviceScene:
     """per volume (offset into ``max_density``, resolution (x, y, z)) of its culling level"""
     levels: list[list[VolumeGPU]]
     """per volume, its struct at each uploaded mip level (level 0 only unless uploaded with ``mip_levels``);
-    levels differ only in ``offset`` and ``res``: same box, material and light map"""
+    levels differ only in where their density lies (``offset``, ``res``, their bricks): same box, material and
+    light map"""
     ambient_grid: wp.array
     """packed per-voxel ambient radiance (vec3) of the GI passes (`volren.render.gi.ambient`); read only when ``gi``"""
+    table: wp.array | None = None
+    """packed int32 brick page tables of every bricked volume and level (each `VolumeGPU` holds its ``table``
+    slice: ``table_offset``, ``bricks``)"""
+    pool_bytes: int = 0
+    """[bytes] resident bricks of every volume and level in ``density`` (apron included): what density costs
+    beyond the page tables and constants; 0 for dense uploads"""
+    active_bricks: int = 0
+    """resident (non-constant) bricks of every volume and level; empty and constant bricks hold no pool memory"""
     gi: bool = False
     skip_empty: bool = True
     """marches skip steps in empty max-density cells (set from the renderer's config each frame)"""
@@ -245,7 +262,43 @@ def volume_struct(
     s.diagonal = vol.diagonal
     s.emission_grid_offset, s.emission_grid_res = 0, wp.vec3i(*vol.resolution)
     s.emission_table_offset, s.emission_table_size = 0, 0  # no emission grid until `pack_emission` sets one
+    s.brick_shift, s.brick_edge, s.bricks, s.table_offset, s.constants_offset = 0, 0, wp.vec3i(0), 0, 0  # dense
     return s
+
+
+@dataclass
+class DensityPacking:
+    """The density array and page tables `upload_scene` fills, level by level (`pack_density`)."""
+
+    grids: list[np.ndarray]
+    tables: list[np.ndarray]
+    offset: int = 0
+    """floats in ``grids`` so far"""
+    table_offset: int = 0
+    """entries in ``tables`` so far"""
+    pool_voxels: int = 0
+    active_bricks: int = 0
+
+
+def pack_density(s: VolumeGPU, grid: np.ndarray, packing: DensityPacking, bricked: bool) -> None:
+    """Append ``grid`` (a [z, y, x] density level) to ``packing`` and point ``s`` at it: bricked (`BRICK`^3 cells with
+    an apron; pool, then the constant bricks' values, the table into ``packing.tables``), or dense where ``bricked``
+    is False or the grid has under 2 voxels on an axis (a mip level near the top: no trilinear cell to brick)."""
+    s.offset = packing.offset
+    if not bricked or min(grid.shape) < 2:
+        packing.grids.append(grid.reshape(-1))
+        packing.offset += grid.size
+        return
+    bv = brick_volume(grid, BRICK)
+    s.brick_shift, s.brick_edge = BRICK.bit_length() - 1, BRICK + 1
+    s.bricks, s.table_offset = wp.vec3i(*bv.table.shape[::-1]), packing.table_offset
+    s.constants_offset = packing.offset + bv.pool.size
+    packing.grids += [bv.pool.reshape(-1), bv.constants]
+    packing.tables.append(bv.table.reshape(-1))
+    packing.offset += bv.pool.size + bv.constants.size
+    packing.table_offset += bv.table.size
+    packing.pool_voxels += bv.pool.size
+    packing.active_bricks += len(bv.pool)
 
 
 def pack_emission(vol: Volume, structs: list[VolumeGPU], offset: int, grids: list[np.ndarray]) -> int:
@@ -314,14 +367,17 @@ def upload_lights(ds: DeviceScene, scene: Scene) -> DeviceScene | None:
     return replace(ds, scene=scene, lights=light_structs(scene, ds.device))
 
 
-def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_levels: bool = False) -> DeviceScene:
+def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_levels: bool = False, *,
+                 bricked: bool = True) -> DeviceScene:
     """Pack and copy ``scene`` to ``device``; light grids get ``light_grid`` voxels on their longest axis. With
-    ``mip_levels`` every level of each volume's mip pyramid is packed too (for LOD marching)."""
+    ``mip_levels`` every level of each volume's mip pyramid is packed too (for LOD marching). Densities go up as
+    bricks (`pack_density`); ``bricked=False`` uploads them dense, the path before issue 41, kept only so that tests
+    and benchmarks can compare the two (the images are equal)."""
     n_lights = len(scene.lights)
     structs = []
-    grids = []
+    packing = DensityPacking(grids=[], tables=[])
+    grids = packing.grids
     levels = []
-    offset = 0
     light_offset = 0
     ambient_offset = 0
     light_res = []
@@ -329,19 +385,21 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         lres = light_grid_resolution(vol.resolution, light_grid)
         per_level = []
         for grid in vol.mip_pyramid if mip_levels else vol.mip_pyramid[:1]:
-            per_level.append(volume_struct(vol, offset, grid.shape[::-1], light_offset, lres, ambient_offset))
-            grids.append(grid.reshape(-1))
-            offset += grid.size
+            per_level.append(volume_struct(vol, 0, grid.shape[::-1], light_offset, lres, ambient_offset))
+            pack_density(per_level[-1], grid, packing, bricked)
         levels.append(per_level)
         structs.append(per_level[0])
         light_res.append(lres)
         light_offset += 2 * n_lights * int(np.prod(lres))  # sigma_bar and tau_in per light (render/lightmap.py)
         ambient_offset += int(np.prod(lres))
+    offset = packing.offset
     for vol, per_level in zip(scene.volumes, levels, strict=True):
         offset = pack_emission(vol, per_level, offset, grids)
     if offset > MAX_PACKED or light_offset > MAX_PACKED:
         raise VolrenError(f"scene too large: {offset} voxels (at most {MAX_PACKED} in all volumes together)")
-    check_allocation(4 * (offset + light_offset), device, f"scene '{scene.name}' (density and light maps)")
+    # what is uploaded: bricks (pool, constants, page tables) where bricked, not the dense grids
+    check_allocation(4 * (offset + packing.table_offset + light_offset), device,
+                     f"scene '{scene.name}' (density and light maps)")
     max_levels = [coarse_max_level(v) for v in scene.volumes] if mip_levels else []
     max_grids, max_offset = [], 0
     for grid in max_levels:
@@ -355,9 +413,13 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
             max_offset += cells.size
     try:
         density = wp.array(np.concatenate(grids) if grids else np.zeros(1), dtype=float, device=device)
+        table = wp.array(np.concatenate(packing.tables) if packing.tables else np.zeros(1, np.int32),
+                         dtype=wp.int32, device=device)
         lightmap = wp.zeros(max(light_offset, 1), dtype=float, device=device)  # no extinction: T = 1
     except (RuntimeError, MemoryError) as exc:
         raise VolrenError(f"cannot allocate the scene on {device}: {exc}") from exc
+    for s in (s for per_level in levels for s in per_level):
+        s.table = table
     analytic = opaque_structs(scene)
     meshes = [wp.Mesh(points=wp.array(o.vertices, dtype=wp.vec3, device=device),
                       indices=wp.array(o.faces.reshape(-1), dtype=wp.int32, device=device))
@@ -383,4 +445,7 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
                              device=device),
         levels=levels,
         ambient_grid=wp.zeros(1, dtype=wp.vec3, device=device),
+        table=table,
+        pool_bytes=4 * packing.pool_voxels,
+        active_bricks=packing.active_bricks,
     )

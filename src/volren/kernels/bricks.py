@@ -21,7 +21,15 @@ import numpy as np
 import warp as wp
 
 from volren.errors import VolrenError
-from volren.kernels.common import cell_fraction, grid_cell, grid_coords, interpolate_cell, vec8
+from volren.kernels.common import (
+    brick_cell,
+    brick_entry,
+    cell_fraction,
+    grid_cell,
+    grid_coords,
+    interpolate_cell,
+    vec8,
+)
 
 EMPTY = -1
 """page-table entry of a brick whose voxels are all 0 (``constants[0]``)"""
@@ -51,17 +59,11 @@ class BrickVolumeGPU:
 @wp.func
 def brick_gather_cell(bv: BrickVolumeGPU, cell: wp.vec3i) -> vec8:
     """The 8 voxels around ``cell`` (its lowest corner), as `gather_cell` returns them from the dense grid."""
-    mask = (1 << bv.shift) - 1
-    b = wp.vec3i(cell[0] >> bv.shift, cell[1] >> bv.shift, cell[2] >> bv.shift)
-    entry = bv.table[(b[2] * bv.bricks[1] + b[1]) * bv.bricks[0] + b[0]]
+    entry = brick_entry(bv.table, 0, bv.bricks, bv.shift, cell)
     if entry < 0:
         c = bv.constants[-1 - entry]
         return vec8(c, c, c, c, c, c, c, c)
-    sy = bv.edge
-    sz = bv.edge * bv.edge
-    i = entry * sz * bv.edge + (cell[2] & mask) * sz + (cell[1] & mask) * sy + (cell[0] & mask)
-    return vec8(bv.pool[i], bv.pool[i + 1], bv.pool[i + sy], bv.pool[i + sy + 1],
-                bv.pool[i + sz], bv.pool[i + sz + 1], bv.pool[i + sz + sy], bv.pool[i + sz + sy + 1])
+    return brick_cell(bv.pool, entry * bv.edge * bv.edge * bv.edge, bv.edge, bv.shift, cell)
 
 
 @wp.func

@@ -39,9 +39,21 @@ class VolumeGPU:
     to_local: wp.mat44
     to_world: wp.mat44
     offset: int
-    """first voxel of this volume in the packed density array"""
+    """first float of this volume's brick pool in the packed density array (a dense grid: its first voxel)"""
     res: wp.vec3i
     """voxels per axis (x, y, z)"""
+    table: wp.array(dtype=wp.int32)
+    """the scene's packed brick page tables (`volren.kernels.bricks`; issue 41 item 1), shared by its volumes"""
+    table_offset: int
+    """first entry of this volume's page table in ``table``"""
+    bricks: wp.vec3i
+    """bricks per axis (x, y, z) of its page table"""
+    brick_shift: int
+    """log2 B of its bricks of B^3 cells; 0: a dense [z, y, x] grid at ``offset`` (`gather_density`)"""
+    brick_edge: int
+    """B + 1: voxels per brick edge, apron included"""
+    constants_offset: int
+    """first value of its constant bricks in the packed density array (page-table entry -1 - k reads value k)"""
     light_offset: int
     """first voxel of this volume's light grids in the packed light-map array (one grid per light)"""
     light_res: wp.vec3i
@@ -242,6 +254,43 @@ def gather_cell(data: wp.array(dtype=float), offset: int, res: wp.vec3i, cell: w
 
 
 @wp.func
+def brick_entry(table: wp.array(dtype=wp.int32), table_offset: int, bricks: wp.vec3i, shift: int,
+                cell: wp.vec3i) -> int:
+    """The page-table entry of the brick holding ``cell`` (`volren.kernels.bricks`): >= 0 a pool slot, < 0 a
+    constant brick."""
+    b = wp.vec3i(cell[0] >> shift, cell[1] >> shift, cell[2] >> shift)
+    return table[table_offset + (b[2] * bricks[1] + b[1]) * bricks[0] + b[0]]
+
+
+@wp.func
+def brick_cell(pool: wp.array(dtype=float), first: int, edge: int, shift: int, cell: wp.vec3i) -> vec8:
+    """The 8 voxels around ``cell`` in the resident apron brick whose first voxel is ``pool[first]`` (B = 1 << shift
+    cells, ``edge`` = B + 1 voxels per edge): the cell's corners all lie in it, in `gather_cell`'s order."""
+    mask = (1 << shift) - 1
+    sy = edge
+    sz = edge * edge
+    i = first + (cell[2] & mask) * sz + (cell[1] & mask) * sy + (cell[0] & mask)
+    return vec8(pool[i], pool[i + 1], pool[i + sy], pool[i + sy + 1],
+                pool[i + sz], pool[i + sz + 1], pool[i + sz + sy], pool[i + sz + sy + 1])
+
+
+@wp.func
+def gather_density(density: wp.array(dtype=float), vol: VolumeGPU, cell: wp.vec3i) -> vec8:
+    """The 8 density voxels around ``cell`` of ``vol``: the one density read of every renderer (issue 41 item 1),
+    through the volume's brick page table, or from its dense grid where ``brick_shift`` is 0 (grids under 2 voxels on
+    an axis, and `volren.upload.upload_scene` with ``bricked=False`` for the equality tests). Both give the same 8
+    values; a constant brick reads one value and no pool voxel."""
+    if vol.brick_shift == 0:
+        return gather_cell(density, vol.offset, vol.res, cell)
+    entry = brick_entry(vol.table, vol.table_offset, vol.bricks, vol.brick_shift, cell)
+    if entry < 0:
+        c = density[vol.constants_offset - 1 - entry]
+        return vec8(c, c, c, c, c, c, c, c)
+    return brick_cell(density, vol.offset + entry * vol.brick_edge * vol.brick_edge * vol.brick_edge,
+                      vol.brick_edge, vol.brick_shift, cell)
+
+
+@wp.func
 def cell_fraction(f: wp.vec3, cell: wp.vec3i) -> wp.vec3:
     return wp.vec3(f[0] - float(cell[0]), f[1] - float(cell[1]), f[2] - float(cell[2]))
 
@@ -269,6 +318,14 @@ def sample_grid(data: wp.array(dtype=float), offset: int, res: wp.vec3i, p: wp.v
     f = grid_coords(res, p)
     cell = grid_cell(res, f)
     return interpolate_cell(gather_cell(data, offset, res, cell), cell_fraction(f, cell))
+
+
+@wp.func
+def sample_density(density: wp.array(dtype=float), vol: VolumeGPU, p: wp.vec3) -> float:
+    """Trilinear density of ``vol`` at local ``p`` in [-1, 1]^3, clamped at the border (`gather_density`)."""
+    f = grid_coords(vol.res, p)
+    cell = grid_cell(vol.res, f)
+    return interpolate_cell(gather_density(density, vol, cell), cell_fraction(f, cell))
 
 
 @wp.func
@@ -401,7 +458,7 @@ def density_inside(vol: VolumeGPU, x: wp.vec3, density: wp.array(dtype=float)) -
     """The volume's density at world ``x``, or -1 where ``x`` lies outside its box."""
     p = wp.transform_point(vol.to_local, x)
     if inside_box(p):
-        return sample_grid(density, vol.offset, vol.res, p)
+        return sample_density(density, vol, p)
     return -1.0
 
 
@@ -523,7 +580,7 @@ def optical_depth_skipping(
                     p = p + step
                 i = j
                 continue
-        rho_sum += sample_grid(density, vol.offset, vol.res, p)
+        rho_sum += sample_density(density, vol, p)
         p = p + step
         i += 1
     r = chord_depth(vol, rho_sum, dt, n - skipped)

@@ -145,7 +145,10 @@ class Renderer:
         self.config = config
         self.device = resolve_device(device)
         self._device_scene: DeviceScene | None = None
-        self._upload_key: tuple[int | None, bool] | None = None
+        self._upload_key: tuple[int | None, bool, bool] | None = None
+        self.bricked = True
+        """densities uploaded as bricks (issue 41 item 1); False uploads them dense, the same image: only the
+        equality tests and benchmarks set it, to compare the two"""
         self.on_rows: Callable[[int], None] | None = None
         """Progress hook: called with the number of image rows the view pass just finished."""
         self._targets: list[ViewBuffers] = []
@@ -184,14 +187,14 @@ class Renderer:
         """The scene on the device, uploaded once per scene object (the cache holds the scene, so ids stay valid); a
         scene that differs from the last only in its lights (`volren serve`'s light drag) uploads only the lights."""
         ds = self._device_scene
-        key = (light_grid, mip_levels)
+        key = (light_grid, mip_levels, self.bricked)
         if ds is not None and ds.scene is not scene and self._upload_key == key and only_lights_differ(ds.scene, scene):
             with clock.measure("upload_lights"):
                 self._device_scene = upload_lights(ds, scene)
             return self._device_scene
         if ds is None or ds.scene is not scene or self._upload_key != key:
             with clock.measure("upload"):
-                ds = upload_scene(scene, self.device, light_grid, mip_levels)
+                ds = upload_scene(scene, self.device, light_grid, mip_levels, bricked=self.bricked)
             self._device_scene, self._upload_key = ds, key
         return ds
 
@@ -244,6 +247,8 @@ class Renderer:
         clock = PassClock(self.device)
         self._frame_info: dict[str, Any] = {}
         ds = self._prepare(scene, clock, frame)
+        # what the density costs on the device (issue 41 items 1 and 4): memory goes with the resident bricks
+        self._frame_info["bricks"] = {"active": ds.active_bricks, "pool_bytes": ds.pool_bytes}
         targets = self._view_targets(views)
         surface = self._surface_light(ds) if scene.opaque else None
         for v, (cam, buffers) in enumerate(zip(views, targets, strict=True)):

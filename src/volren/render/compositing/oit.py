@@ -59,7 +59,7 @@ from volren.kernels.common import (
     emitted_radiance,
     half_depth,
     march_step_count,
-    sample_grid,
+    sample_density,
     state_accumulator,
     with_accumulator,
 )
@@ -257,7 +257,7 @@ def march_joint(
                     if layers.t_in[i] <= mid and mid < layers.t_out[i]:
                         vol = volumes[layers.volume[i]]
                         p = wp.transform_point(vol.to_local, x)
-                        rho = sample_grid(medium.density, vol.offset, vol.res, p)
+                        rho = sample_density(medium.density, vol, p)
                         taken += 1
                         if rho > 0.0:
                             shaded += 1

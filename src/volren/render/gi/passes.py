@@ -22,7 +22,7 @@ from volren.kernels.common import (
     VolumeGPU,
     count,
     counter_row,
-    sample_grid,
+    sample_density,
     transmittance_bvh,
     voxel_center,
 )
@@ -392,12 +392,12 @@ def major_kernel(
     p = voxel_center(i, j, k, res)
     h = 1.0 / float(wp.max(wp.max(vol.res[0], vol.res[1]), vol.res[2]))
     g = wp.vec3(
-        sample_grid(sc.density, vol.offset, vol.res, p + wp.vec3(h, 0.0, 0.0))
-        - sample_grid(sc.density, vol.offset, vol.res, p - wp.vec3(h, 0.0, 0.0)),
-        sample_grid(sc.density, vol.offset, vol.res, p + wp.vec3(0.0, h, 0.0))
-        - sample_grid(sc.density, vol.offset, vol.res, p - wp.vec3(0.0, h, 0.0)),
-        sample_grid(sc.density, vol.offset, vol.res, p + wp.vec3(0.0, 0.0, h))
-        - sample_grid(sc.density, vol.offset, vol.res, p - wp.vec3(0.0, 0.0, h)),
+        sample_density(sc.density, vol, p + wp.vec3(h, 0.0, 0.0))
+        - sample_density(sc.density, vol, p - wp.vec3(h, 0.0, 0.0)),
+        sample_density(sc.density, vol, p + wp.vec3(0.0, h, 0.0))
+        - sample_density(sc.density, vol, p - wp.vec3(0.0, h, 0.0)),
+        sample_density(sc.density, vol, p + wp.vec3(0.0, 0.0, h))
+        - sample_density(sc.density, vol, p - wp.vec3(0.0, 0.0, h)),
     )
     # A world gradient is the local one times the inverse transform's transpose.
     m = vol.to_local

@@ -54,7 +54,7 @@ from volren.kernels.common import (
     count,
     counter_row,
     first_skip_check,
-    gather_cell,
+    gather_density,
     grid_cell,
     grid_coords,
     half_depth,
@@ -525,14 +525,14 @@ def coupled_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int6
             for e in range(2):
                 get[e] = int(live[e] != 0 and empty[e] == 0 and not (same and empty[1 - e] != 0))
             if get[0] + get[1] == 2 and same:
-                voxels = gather_cell(medium.density, vol.offset, vol.res, cell[0])
+                voxels = gather_density(medium.density, vol, cell[0])
                 for e in range(2):
                     rho[e] = interpolate_cell(voxels, cell_fraction(f[e], cell[0]))
                 shared += 1
             else:
                 for e in range(2):
                     if get[e] != 0:
-                        rho[e] = interpolate_cell(gather_cell(medium.density, vol.offset, vol.res, cell[e]),
+                        rho[e] = interpolate_cell(gather_density(medium.density, vol, cell[e]),
                                                   cell_fraction(f[e], cell[e]))
             for e in range(2):
                 if live[e] != 0:

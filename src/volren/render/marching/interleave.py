@@ -49,7 +49,7 @@ from volren.kernels.common import (
     cell_fraction,
     count,
     counter_row,
-    gather_cell,
+    gather_density,
     grid_cell,
     grid_coords,
     half_depth,
@@ -247,7 +247,7 @@ def quad_march_kernel(job: CoupledJob, counter_rows: wp.array2d(dtype=wp.int64),
                     cells[lane] = vec8()
                     blank[lane] = 1
                 else:
-                    cells[lane] = gather_cell(medium.density, vol.offset, vol.res, cell)
+                    cells[lane] = gather_density(medium.density, vol, cell)
                 origins[lane] = origin
                 own[lane] = float(0.0)
                 if blank[lane] == 0:

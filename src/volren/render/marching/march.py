@@ -24,7 +24,7 @@ from volren.kernels.common import (
     light_irradiance,
     light_travel_dir,
     march_step_count,
-    sample_grid,
+    sample_density,
     sample_grid_rgb,
     skip_cell_ray,
     skip_lookup,
@@ -199,7 +199,7 @@ def march_volume_light_map(
                 i = j
                 continue
         p = o_l + t * d_l
-        rho = sample_grid(medium.density, vol.offset, vol.res, p)
+        rho = sample_density(medium.density, vol, p)
         taken += 1
         if params.mode == MODE_DVR:
             if rho > 0.0:

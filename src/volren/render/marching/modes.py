@@ -42,7 +42,7 @@ from volren.kernels.common import (
     VolumeGPU,
     light_irradiance,
     light_travel_dir,
-    sample_grid,
+    sample_density,
 )
 
 MODES = ("dvr", "mip", "mida", "iso")
@@ -154,7 +154,7 @@ def iso_crossing(density: wp.array(dtype=float), vol: VolumeGPU, o_l: wp.vec3, d
     b = hi
     for _k in range(ISO_BISECTIONS):
         m = 0.5 * (a + b)
-        if sample_grid(density, vol.offset, vol.res, o_l + m * d_l) >= iso_value:
+        if sample_density(density, vol, o_l + m * d_l) >= iso_value:
             b = m
         else:
             a = m
@@ -170,8 +170,8 @@ def iso_normal(density: wp.array(dtype=float), vol: VolumeGPU, p: wp.vec3) -> wp
     for a in range(3):
         h = wp.vec3(0.0)
         h[a] = 1.0 / float(vol.res[a])
-        g[a] = (sample_grid(density, vol.offset, vol.res, p + h)
-                - sample_grid(density, vol.offset, vol.res, p - h)) * float(vol.res[a])
+        g[a] = (sample_density(density, vol, p + h)
+                - sample_density(density, vol, p - h)) * float(vol.res[a])
     g_w = wp.transform_vector(wp.transpose(vol.to_local), g)
     return -wp.normalize(g_w)
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from volren.kernels.common import INF, box_hit, sample_grid
+from volren.kernels.common import INF, VolumeGPU, box_hit, sample_density
 
 MACROCELL = 8
 """voxels per macrocell axis"""
@@ -171,8 +171,7 @@ def track(
     grid: MajorantGrid,
     majorants: wp.array(dtype=float),
     density: wp.array(dtype=float),
-    offset: int,
-    res: wp.vec3i,
+    vol: VolumeGPU,
     inv_scale: float,
     table: wp.array(dtype=wp.vec4),
     first: int,
@@ -212,7 +211,7 @@ def track(
                 t = t_exit
                 break
             lookups += 1
-            ext = tf_extinction(table, first, size, sample_grid(density, offset, res, o + t * d) * inv_scale)
+            ext = tf_extinction(table, first, size, sample_density(density, vol, o + t * d) * inv_scale)
             if ratio == 0:
                 if wp.randf(state) * mu < ext:
                     return t, state, lookups

@@ -70,7 +70,7 @@ from volren.kernels.common import (
     light_irradiance,
     light_travel_dir,
     occluder_t,
-    sample_grid,
+    sample_density,
 )
 from volren.render.base import Renderer, frame_seed
 from volren.render.compositing.surfaces import SURFACE_EPSILON, mesh_group, nearest_surface, occluded
@@ -228,7 +228,7 @@ def track_volumes(sc: VPTScene, params: VPTParams, x: wp.vec3, d: wp.vec3, t_max
         t0 = wp.max(span[0], 0.0)
         t1 = wp.min(span[1], best)
         if t1 > t0 and value > 0.0:
-            w, s2, n = track(sc.grids[v], sc.majorants, sc.density, vol.offset, vol.res, sc.inv_scale[v], sc.table,
+            w, s2, n = track(sc.grids[v], sc.majorants, sc.density, vol, sc.inv_scale[v], sc.table,
                              v * sc.table_size, sc.table_size, o, dl, t0, t1, ratio, state)
             state = s2
             lookups += n
@@ -265,7 +265,7 @@ def material(sc: VPTScene, v: int, x: wp.vec3):
     E the table's emission plus the volume's blackbody emission; the gradient by central differences."""
     vol = sc.volumes[v]
     p = wp.transform_point(vol.to_local, x)
-    rho = sample_grid(sc.density, vol.offset, vol.res, p)
+    rho = sample_density(sc.density, vol, p)
     u = rho * sc.inv_scale[v]
     n = sc.table_size
     f = wp.clamp(u, 0.0, 1.0) * float(n - 1)
@@ -281,8 +281,8 @@ def material(sc: VPTScene, v: int, x: wp.vec3):
     for axis in range(3):
         h = wp.vec3(0.0)
         h[axis] = 1.0 / float(vol.res[axis])
-        grad[axis] = (sample_grid(sc.density, vol.offset, vol.res, p + h)
-                      - sample_grid(sc.density, vol.offset, vol.res, p - h)) * float(vol.res[axis]) * 0.5
+        grad[axis] = (sample_density(sc.density, vol, p + h)
+                      - sample_density(sc.density, vol, p - h)) * float(vol.res[axis]) * 0.5
     m = vol.to_local
     world = (grad[0] * wp.vec3(m[0, 0], m[0, 1], m[0, 2]) + grad[1] * wp.vec3(m[1, 0], m[1, 1], m[1, 2])
              + grad[2] * wp.vec3(m[2, 0], m[2, 1], m[2, 2]))
