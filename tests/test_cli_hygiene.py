@@ -168,6 +168,36 @@ def test_an_interrupted_launch_stops_its_other_bands(monkeypatch) -> None:
     assert done < rows // 8 // 2, f"{done} rows rendered after the interrupt"  # less than half a band
 
 
+def test_a_failed_band_returns_only_once_no_launch_runs(monkeypatch) -> None:
+    """A band that raises (a serve render abandoned, Ctrl-C) makes `launch_rows` raise only after the other bands'
+    launches in flight have ended: the caller may then free what they read (a bricked volume's page table is reached
+    only through its volume struct: freed under a running launch, the process crashed)."""
+    monkeypatch.setenv("VOLREN_CPU_THREADS", "2")
+    monkeypatch.setattr(device, "STOP_SECONDS", 1e-4)  # a launch of one row each, whatever this machine's speed
+    init_warp()
+    rows, cols = 256, 64
+    out = wp.zeros((rows, cols), dtype=wp.float32, device="cpu")
+    counters = wp.zeros((MAX_BANDS, 1), dtype=wp.int64, device="cpu")
+    launch_rows(slow_rows_kernel, 1, cols, [out, 20000], "cpu", counters)  # compiled and timed first
+    running, launch = [0], wp.launch
+
+    def counted(*args, **kwargs):
+        running[0] += 1
+        try:
+            launch(*args, **kwargs)
+            time.sleep(0.02)  # the launch's tail, where the race was
+        finally:
+            running[0] -= 1
+
+    def abandon(_rows: int) -> None:
+        raise RuntimeError("abandoned")
+
+    monkeypatch.setattr(wp, "launch", counted)
+    with pytest.raises(RuntimeError, match="abandoned"):
+        launch_rows(slow_rows_kernel, rows, cols, [out, 20000], "cpu", counters, progress=abandon)
+    assert running[0] == 0, f"{running[0]} launch(es) still running when launch_rows raised"
+
+
 def test_a_bench_suite_reports_each_measured_case(capfd) -> None:
     from types import SimpleNamespace
 

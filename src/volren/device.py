@@ -162,6 +162,9 @@ def launch_rows(
             raise failed[0]
     except BaseException:  # Ctrl-C or a failed band (a serve render abandoned): the others stop after their launch
         stop.set()
+        # and are waited for (at most one launch, about STOP_SECONDS): a caller that went on while a launch ran
+        # could free what it reads (a bricked volume's page table, reached only through its volume struct) and crash
+        wait(futures)
         raise
 
 
