@@ -304,3 +304,57 @@ def test_render_without_views_frames_as_volren_render_does(what, tmp_path, capsy
     frame = vr.render(given, width=48, height=32, device=DEVICE, **FAST)
     assert len(frame.images) == 1 and frame.images[0][..., 3].max() > 0.3  # it shows something
     np.testing.assert_allclose(frame.images[0], np.load(tmp_path / "cli" / "view0.npy"), rtol=0, atol=1e-6)
+
+
+@pytest.mark.timeout(60)
+def test_frames_zero_is_refused_in_one_line():
+    volume = vr.Volume(np.ones((4, 4, 4), np.float32))
+    with pytest.raises(VolrenError, match=r"^render: frames= must be >= 1, got 0$"):
+        vr.render(volume, frames=0, device=DEVICE)
+
+
+@pytest.mark.timeout(120)
+def test_a_micrometre_stereo_pair_sees_the_ball_in_each_eye(tmp_path):
+    """views="stereo" of a 32 um ball: its eyes at most the box's size apart (`framed_ipd`), not 63 mm (which
+    would frame the pair from so far back that the ball is a speck), and each eye shows the ball large."""
+    from tests.test_opacity_units import ball, imagej_tiff
+
+    from volren._api import framed_views
+
+    volume = vr.load(imagej_tiff(tmp_path / "um.tif", ball(), 1.0, "um"))
+    left, right = framed_views(vr.Scene([volume]), None, "stereo", 48, 32)
+    extent = float(np.ptp(volume.corners_world, axis=0).max())
+    assert extent < 1e-3
+    np.testing.assert_allclose(np.linalg.norm(np.subtract(left.position, right.position)), extent, rtol=1e-6)
+    frame = vr.render(volume, "stereo", width=48, height=32, device=DEVICE, **FAST)
+    assert [int((image[..., 3] > 0.3).sum()) > 80 for image in frame.images] == [True, True]  # 130 each
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("name", ["courtyard", "dynamic"])
+def test_n_fog_viewers_stand_where_one_can_walk(name):
+    """views=N of a fog scene: N viewers on the arc, each moved into the scene's walkable area as ``--views N``
+    places them (the plain arc puts the outer ones inside walls)."""
+    from volren._api import framed_views
+    from volren.data.fog_scenes import fog_scene_walk_area
+
+    cameras = framed_views(vr.builtin_scene(name), name, 3)
+    area = fog_scene_walk_area(name)
+    assert len({c.position for c in cameras}) == 3
+    assert [bool(area.walkable(c.position[0], c.position[2])) for c in cameras] == [True, True, True]
+
+
+@pytest.mark.timeout(60)
+def test_frame_i_of_an_animated_fog_scene_is_its_time_i_over_30_s():
+    """``render("dynamic", method="fog", frames=...)``: frame 30 shows the scene one second on, as ``volren animate``
+    plays it at 30 fps (not 30 s on)."""
+    from volren._api import _source
+
+    def geometry(scene) -> list[np.ndarray]:
+        return [np.asarray(o.vertices) for o in scene.opaque]
+
+    source = _source("dynamic", None, None, None)
+    for frame, seconds in ((0, 0.0), (30, 1.0), (45, 1.5)):
+        want = geometry(vr.builtin_scene("dynamic", time=seconds))
+        assert all(np.array_equal(a, b) for a, b in zip(geometry(source.at(frame)), want, strict=True))
+    assert not all(np.array_equal(a, b) for a, b in zip(geometry(source.at(30)), geometry(source.at(0)), strict=True))

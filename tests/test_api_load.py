@@ -188,3 +188,61 @@ def test_iso_without_a_value_takes_otsus_threshold_as_the_cli_does(tmp_path, cap
     assert f"density {value:.4g}" in capsys.readouterr().err
     alpha = frame.images[0][..., 3]
     assert alpha[16, 24] > 0.99 and alpha[0, 0] == 0.0  # the ball's surface in the middle, nothing in the corner
+
+
+@pytest.mark.timeout(120)
+def test_a_renderer_given_channels_of_another_count_renders_every_channel():
+    """One `vr.Renderer` handed two channels, then three: the three render as a fresh renderer renders them (one
+    renderer per channel), the third channel's colour in the picture."""
+    from volren.render.compositing.channels import channel_volumes
+
+    blobs = [ball(cx).astype(np.float32) for cx in (6.0, 16.0, 26.0)]
+    colors = ((0.0, 1.0, 0.0), (1.0, 0.0, 1.0), (0.0, 0.0, 1.0))
+    two = vr.Channels(channel_volumes(blobs[:2], np.eye(4), colors=colors[:2]))
+    three = vr.Channels(channel_volumes(blobs, np.eye(4), colors=colors))
+    from volren._api import framed_views
+
+    cameras = framed_views(three, None, "mono", 48, 32)
+    kept = vr.Renderer(device=DEVICE, samples=32)
+    kept.render(two, cameras)
+    got = kept.render(three, cameras).images[0]
+    want = vr.Renderer(device=DEVICE, samples=32).render(three, cameras).images[0]
+    assert np.array_equal(got, want)
+    assert want[:, 32:, 2].sum() > 2 * want[:, 32:, 0].sum()  # the blue channel on the right
+
+
+@pytest.mark.timeout(120)
+def test_environment_as_a_radiance_lights_the_volume_as_that_environment():
+    """``environment=(r, g, b)`` (``--ambient``) is that radiance's `Environment`: the same image as passing it, and
+    brighter than black."""
+    volume = vr.Volume(ball(16.0).astype(np.float32), density_scale=20.0)
+    grey = vr.render(volume, environment=(0.5, 0.5, 0.5), **SMALL).images[0]
+    same = vr.render(volume, environment=vr.Environment((0.5, 0.5, 0.5)), **SMALL).images[0]
+    black = vr.render(volume, environment=0.0, **SMALL).images[0]
+    assert np.array_equal(grey, same)
+    assert grey[..., :3].sum() > 1.05 * black[..., :3].sum()
+
+
+def test_channels_of_no_volume_are_refused_in_one_line():
+    with pytest.raises(VolrenError, match=r"^Channels holds one volren.Volume per channel, at least one$"):
+        vr.Channels([])
+
+
+@pytest.mark.timeout(60)
+def test_a_sequence_refuses_options_its_frames_cannot_take_when_loaded(tmp_path):
+    """``vr.load("sim_####.npy", channel_colors=...)`` of one-channel frames is refused by ``load`` itself, as for one
+    file, not later at the first frame asked for."""
+    for i in range(2):
+        np.save(tmp_path / f"sim_{i:04d}.npy", ball(8 + 6 * i).astype(np.float32))
+    with pytest.raises(VolrenError, match=r"load: channel_colors= apply to a multi-channel file only"):
+        vr.load(tmp_path / "sim_####.npy", channel_colors="green")
+
+
+@pytest.mark.timeout(60)
+def test_a_sequence_is_indexed_by_frame_numbers_only(tmp_path):
+    for i in range(2):
+        np.save(tmp_path / f"sim_{i:04d}.npy", ball(8 + 6 * i).astype(np.float32))
+    seq = vr.load(tmp_path / "sim_####.npy")
+    for key, name in ((True, "bool"), (1.0, "float"), (slice(0, 1), "slice")):
+        with pytest.raises(VolrenError, match=f"^a VolumeSequence is indexed by a frame number, got {name}$"):
+            seq[key]

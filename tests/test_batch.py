@@ -364,3 +364,33 @@ def test_a_unit_is_committed_once(tmp_path):
     assert state.commit(unit, result, report) == 1
     assert state.commit(unit, {**result, "files": {"frame0000_view0.png": b"second"}}, report) == 0
     assert (out / "frame0000_view0.png").read_bytes() == b"first"
+
+
+@pytest.mark.timeout(60)
+def test_a_manifest_of_another_version_starts_clean_and_the_manifest_holds_the_spec(tmp_path, capsys):
+    """batch.json records the job's spec (it can run again from the file); a batch.json of version 1 (a command line,
+    no spec) is not resumed, however alike its settings: its files are removed and the run starts clean."""
+    out = tmp_path / "out"
+    state = engine.plan_job(0, job(out), 2, None)
+    state.open_output()
+    unit = state.units[0]
+    report = engine.UnitReport(0, unit.key, unit.start, unit.stop, unit.warmup, "w", 1, 0.1, 0.0, 0.0, 0.1)
+    state.commit(unit, {"files": {"frame0000_view0.png": b"old"}, "scene": "smoke", "stats": []}, report)
+    state.save_manifest()
+    saved = json.loads((out / MANIFEST).read_text())
+    assert saved["version"] == engine.MANIFEST_VERSION == 2
+    assert RenderSpec.from_json(saved["spec"]) == state.job.spec
+    assert engine.plan_job(0, job(out), 2, None).open_output() is None  # the same version: resumed, nothing said
+    assert "starting clean" not in capsys.readouterr().err
+    (out / MANIFEST).write_text(json.dumps({**saved, "version": 1}))
+    again = engine.plan_job(0, job(out), 2, None)
+    again.open_output()
+    assert again.manifest["units"] == {} and not (out / "frame0000_view0.png").exists()
+    assert f"its {MANIFEST} is of another command: starting clean" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(30)
+def test_a_demo_spec_is_no_batch_job():
+    """The engine runs render and animate specs; a demo spec (no --out to resume) is refused in one line."""
+    with pytest.raises(VolrenError, match=r"^a batch job is a render or animate run, got 'demo'$"):
+        engine.plan_job(0, Job(RenderSpec.parse(["demo", "--device", "cpu"])), 2, None)

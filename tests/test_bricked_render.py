@@ -120,3 +120,20 @@ def test_sparse_volume_holds_pool_memory_only_for_its_active_bricks():
     assert ds.density.shape[0] == active * (BRICK + 1) ** 3 + 2  # the pool, then the constants 0 and 0.25
     assert ds.table.shape[0] == bricks**3
     assert dense.density.shape[0] == n**3 and dense.pool_bytes == 0 and dense.active_bricks == 0
+
+
+@pytest.mark.timeout(300)
+def test_two_unlike_volumes_each_read_their_own_page_table():
+    """Two volumes of different grids side by side (the built-in instance scenes repeat one grid, so a volume reading
+    the other's page table looks the same there): the bricked image equals the dense one, each ball where it lies."""
+    z, y, x = np.mgrid[0:N, 0:N, 0:N].astype(np.float32)
+    volumes = []
+    for i, (cx, cz) in enumerate(((20.0, 44.0), (44.0, 20.0))):
+        grid = np.clip(1.0 - np.sqrt((x - cx) ** 2 + (y - 32) ** 2 + (z - cz) ** 2) / 10.0, 0.0, None)
+        place = np.eye(4)
+        place[0, 3] = 2.2 * i - 1.1
+        volumes.append(Volume(grid.astype(np.float32), density_scale=8.0, to_world=place))
+    scene = Scene(tuple(volumes), lights=(DirectionalLight(),), environment=Environment((0.1, 0.1, 0.1)))
+    bricked, dense = images(lambda: METHODS["dssrm"]("dvr"), scene, [framed_camera(scene, None, *SIZE)])
+    assert dense[..., 3].max() > 0.05
+    assert np.abs(bricked - dense).max() == 0.0

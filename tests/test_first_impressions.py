@@ -166,3 +166,75 @@ def test_demo_plume_fills_each_eye(tmp_path):
         wide, tall, borders = _box(image)
         assert wide > 0.22 and tall > FILL and borders == 0
         assert _left_over_right(image) > 1.1
+
+
+@pytest.mark.timeout(30)
+def test_an_empty_volume_is_framed_by_its_box():
+    """`framed_content` of a volume of all zeros (nothing to frame by) frames its box, as `framed_eye` does; beside a
+    volume with content, the empty one's box stays in view too."""
+    from volren.camera import Camera
+    from volren.framing import framed_content, framed_eye
+
+    moved = np.eye(4)
+    moved[0, 3] = 2.0
+    empty = vr.Volume(np.zeros((8, 8, 8), np.float32), to_world=moved)
+    got = framed_content([empty], Camera.up, Camera.fov_y, 1.5)
+    want = framed_eye(empty.corners_world, Camera.up, Camera.fov_y, 1.5)
+    np.testing.assert_allclose(got[0], want[0])
+    np.testing.assert_allclose(got[1], want[1])
+    dot = np.zeros((8, 8, 8), np.float32)
+    dot[4, 4, 4] = 1.0
+    both = framed_content([empty, vr.Volume(dot)], Camera.up, Camera.fov_y, 1.5)
+    assert both[1][0] > 0.9  # the look-at point between the dot at 0 and the empty box about 2 m to the right
+
+
+@pytest.mark.timeout(60)
+def test_a_stereo_pair_of_a_builtin_scene_stands_back_to_leave_room_for_the_eyes():
+    """`framed_content` with eyes ``eye_offset`` aside (stereo: ipd / 2) frames the content points as `framed_eye`
+    does with that offset: further back than one eye, so that the eye on either side still sees the medium whole."""
+    from volren.camera import Camera
+    from volren.framing import content_points, framed_content, framed_eye
+
+    volumes = vr.builtin_scene("smoke", 64).volumes
+    one = framed_content(volumes, Camera.up, Camera.fov_y, 0.5)  # a tall view: the width sets the distance
+    pair = framed_content(volumes, Camera.up, Camera.fov_y, 0.5, eye_offset=0.25)
+    want = framed_eye(content_points(volumes), Camera.up, Camera.fov_y, 0.5, eye_offset=0.25)
+    np.testing.assert_allclose(pair[0], want[0])
+    distance = [np.linalg.norm(np.subtract(p, a)) for p, a, _ in (one, pair)]
+    assert distance[1] > distance[0] + 0.5, distance  # 0.25 m aside at tan(fov_x / 2) = 0.21: ~1.2 m further
+
+
+@pytest.mark.timeout(60)
+def test_benchmarks_render_the_scenes_in_the_light_their_figures_were_recorded_under():
+    """`volren.bench.bench_scene` (`classic_look`): the smoke, phantom and multi scenes under the old light from
+    behind the camera (3 W/m^2) and the old dim sky, the phantom at its old opacity (density scale 6); a scene with a
+    light of its own (fire) as it is."""
+    from volren.bench import bench_scene
+    from volren.data.procedural import CLASSIC_LIGHTS
+
+    for name in ("smoke", "phantom", "multi"):
+        scene = bench_scene(name, 64)
+        assert scene.lights == CLASSIC_LIGHTS and scene.lights[0].irradiance == (3.0, 3.0, 3.0)
+        assert scene.environment.radiance == (0.05, 0.065, 0.09)
+    assert bench_scene("phantom", 64).volumes[0].density_scale == 6.0
+    assert vr.builtin_scene("phantom", 64).volumes[0].density_scale == 2.0  # the first picture's
+    assert [v.density_scale for v in bench_scene("multi", 64).volumes] == [
+        v.density_scale for v in vr.builtin_scene("multi", 64).volumes]
+    fire = vr.builtin_scene("fire", 64)
+    bench_fire = bench_scene("fire", 64)
+    assert bench_fire.lights == fire.lights and bench_fire.environment.radiance == fire.environment.radiance
+
+
+@pytest.mark.timeout(30)
+def test_content_points_lie_where_the_density_is():
+    """`content_points` of a 96 x 24 x 12 grid (x, y, z) with one dense voxel at x = 81, y = 12, z = 2: the centre of
+    its block (2 voxels along x, where 96 > `CONTENT_BLOCKS`; 1 along y and z) in the world, x right, z towards the
+    eye, whatever the placement's offset."""
+    from volren.framing import content_points
+
+    grid = np.zeros((12, 24, 96), np.float32)
+    grid[2, 12, 81] = 1.0  # [z, y, x]
+    place = np.eye(4)
+    place[:3, 3] = (1.0, 2.0, 3.0)
+    points = content_points([vr.Volume(grid, to_world=place)])
+    np.testing.assert_allclose(points, [[1.0 - 1 + 162 / 96, 2.0 - 1 + 25 / 24, 3.0 - 1 + 5 / 12]])

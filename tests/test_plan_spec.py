@@ -89,3 +89,41 @@ def test_a_worker_handed_another_spec_renders_that_one():
         result = worker.run(RenderSpec.parse([*small, "--width", str(width)]), Unit(0, 0, 1))
         assert Image.open(io.BytesIO(result["files"]["view0.png"])).size == (width, 24)
     assert result["setup_seconds"] < 0.05  # the third ran the second's plan again: nothing rebuilt
+
+
+@pytest.mark.timeout(30)
+def test_a_replaced_spec_keeps_the_line_its_user_gave():
+    """`RenderSpec.replace` changes options, never the command line stats.json and messages quote."""
+    a = RenderSpec.parse(["render", "--width", "32", "--out", "o"])
+    assert a.replace(width=33).line == a.line == "volren render --width 32 --out o"
+
+
+@pytest.mark.timeout(120)
+def test_a_worker_renders_its_unit_whatever_the_jobs_estimate():
+    """The driver checked the whole job against --max-minutes; a worker handed one unit of it renders that unit
+    instead of refusing the job again (400 frames of 320x180 is past the probe threshold, 1e-6 min under any)."""
+    from PIL import Image
+
+    from volren.distributed.worker import Unit, UnitWorker
+
+    spec = RenderSpec.parse(["render", "--width", "320", "--height", "180", "--resolution", "64", "--samples", "8",
+                             "--light-grid", "8", "--views", "mono", "--device", "cpu", "--frames", "400",
+                             "--max-minutes", "0.000001", "--out", "o"])
+    result = UnitWorker().run(spec, Unit(0, 0, 1))
+    assert Image.open(io.BytesIO(result["files"]["frame0000_view0.png"])).size == (320, 180)
+
+
+@pytest.mark.timeout(180)
+def test_a_worker_warms_up_for_another_jobs_unit_that_starts_where_its_last_one_stopped():
+    """A temporal method's history belongs to its job: an actor that ran frames 0-1 of one job and is handed frame 2 of
+    another renders that job's frames 0-1 first, as a fresh actor does, instead of carrying the first job's history."""
+    from volren.distributed.worker import Unit, UnitWorker
+
+    base = ["animate", "--width", "32", "--height", "24", "--resolution", "64", "--device", "cpu", "--views", "mono",
+            "--method", "vpt", "--denoise", "ours", "--spp", "1", "--frames", "3", "--out", "o"]
+    first, other = RenderSpec.parse([*base, "--orbit", "30"]), RenderSpec.parse([*base, "--orbit", "90"])
+    worker = UnitWorker()
+    worker.run(first, Unit(0, 0, 2, 0, True))
+    got = worker.run(other, Unit(1, 2, 3, 2, True))
+    want = UnitWorker().run(other, Unit(1, 2, 3, 2, True))
+    assert got["files"] == want["files"] and got["warmup_seconds"] > 0

@@ -331,3 +331,27 @@ def test_animate_and_serve_play_a_4d_nifti(capfd, nifti4d: Path, tmp_path: Path)
     with imageio.get_reader(out / "animation.mp4") as movie:
         assert movie.count_frames() == FRAMES
     assert_serve_plays_in_a_loop(nifti4d / "seq.nii.gz")
+
+
+@pytest.mark.timeout(60)
+def test_serve_frames_the_file_for_its_largest_viewer_image(tmp_path: Path):
+    """``serve --volume`` starts every viewer where ``vr.render`` frames the file at --max-width x --max-height: a
+    tall image needs the eye further back than a wide one; --resolution (a built-in scene's) is refused."""
+    import volren as vr
+    from volren._api import framed_camera
+
+    path = tmp_path / "b.npy"
+    np.save(path, blob(0)[:, :, : N // 2])  # a box twice as wide as it is deep
+    eyes = []
+    for width, height in ((256, 64), (64, 256)):
+        args = build_parser().parse_args(["serve", "--volume", str(path), "--max-width", str(width),
+                                          "--max-height", str(height)])
+        camera = served_file(args)["camera"]
+        want = framed_camera(vr.Scene((vr.load(path),)), width=width, height=height)
+        np.testing.assert_allclose(camera.position, want.position, rtol=1e-9)
+        np.testing.assert_allclose(camera.look_at, want.look_at, rtol=1e-9, atol=1e-12)
+        eyes.append(np.linalg.norm(np.subtract(camera.position, camera.look_at)))
+    assert eyes[1] > 1.5 * eyes[0]
+    args = build_parser().parse_args(["serve", "--volume", str(path), "--resolution", "128"])
+    with pytest.raises(VolrenError, match="serve --volume shows the file: --scene and --resolution apply to built-in"):
+        served_file(args)
