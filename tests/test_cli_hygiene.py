@@ -142,9 +142,9 @@ def slow_rows_kernel(out: wp.array2d(dtype=wp.float32), work: int, counter_rows:
     out[row0 + i, j] = 1.0 + 0.0 * acc
 
 
-def test_an_interrupted_launch_stops_its_other_bands(monkeypatch) -> None:
-    """Ctrl-C in Python (a notebook): the bands still running stop after their current launch, not at the frame's
-    end (the pool would otherwise go on rendering it while the next call waits)."""
+def slow_rows(monkeypatch) -> tuple:
+    """(rows, cols, out, counters) of `slow_rows_kernel` on two band threads, a launch of one row each (whatever
+    this machine's speed), compiled and timed by a first launch."""
     monkeypatch.setenv("VOLREN_CPU_THREADS", "2")
     monkeypatch.setattr(device, "STOP_SECONDS", 1e-4)  # a launch of one row each, whatever this machine's speed
     init_warp()
@@ -152,6 +152,13 @@ def test_an_interrupted_launch_stops_its_other_bands(monkeypatch) -> None:
     out = wp.zeros((rows, cols), dtype=wp.float32, device="cpu")
     counters = wp.zeros((MAX_BANDS, 1), dtype=wp.int64, device="cpu")
     launch_rows(slow_rows_kernel, 1, cols, [out, 20000], "cpu", counters)  # compiled and timed first
+    return rows, cols, out, counters
+
+
+def test_an_interrupted_launch_stops_its_other_bands(monkeypatch) -> None:
+    """Ctrl-C in Python (a notebook): the bands still running stop after their current launch, not at the frame's
+    end (the pool would otherwise go on rendering it while the next call waits)."""
+    rows, cols, out, counters = slow_rows(monkeypatch)
 
     calls = []
 
@@ -172,13 +179,7 @@ def test_a_failed_band_returns_only_once_no_launch_runs(monkeypatch) -> None:
     """A band that raises (a serve render abandoned, Ctrl-C) makes `launch_rows` raise only after the other bands'
     launches in flight have ended: the caller may then free what they read (a bricked volume's page table is reached
     only through its volume struct: freed under a running launch, the process crashed)."""
-    monkeypatch.setenv("VOLREN_CPU_THREADS", "2")
-    monkeypatch.setattr(device, "STOP_SECONDS", 1e-4)  # a launch of one row each, whatever this machine's speed
-    init_warp()
-    rows, cols = 256, 64
-    out = wp.zeros((rows, cols), dtype=wp.float32, device="cpu")
-    counters = wp.zeros((MAX_BANDS, 1), dtype=wp.int64, device="cpu")
-    launch_rows(slow_rows_kernel, 1, cols, [out, 20000], "cpu", counters)  # compiled and timed first
+    rows, cols, out, counters = slow_rows(monkeypatch)
     running, launch = [0], wp.launch
 
     def counted(*args, **kwargs):

@@ -114,14 +114,13 @@ class Flags:
 
     def __init__(self, command: str) -> None:
         from volren.plan import render_parser
+        from volren.plan.argv import command_options
 
-        parser = render_parser()
-        self.parser, self.command = parser, command
-        sub = next(a for a in parser._actions if a.dest == "command").choices[command]
+        self.parser, self.command = render_parser(), command
         self.actions: dict[str, argparse.Action] = {}
-        for action in sub._actions:
+        for action in command_options(command):
             names = [o[2:] for o in action.option_strings if o.startswith("--")]
-            if names and names[0] != "help" and names[0] not in BATCH_FLAGS:
+            if names and names[0] not in BATCH_FLAGS:
                 self.actions[names[0]] = action
 
     def kind(self, flag: str) -> str:

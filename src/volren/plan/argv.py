@@ -380,3 +380,10 @@ def command_parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersActio
 def render_parser() -> argparse.ArgumentParser:
     """The parser of ``volren demo | render | animate`` command lines: the CLI's own for those commands."""
     return command_parser()[0]
+
+
+def command_options(command: str) -> list[argparse.Action]:
+    """The actions (options) of ``volren <command>``'s sub-parser (demo, render or animate), --help aside: what a
+    batch file's keys and a `volren.plan.spec.RenderSpec` are checked and typed by."""
+    sub = next(a for a in render_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return [a for a in sub.choices[command]._actions if a.dest != "help"]

@@ -22,11 +22,10 @@ COMMANDS = ("demo", "render", "animate")
 @functools.cache
 def _schema(command: str) -> dict[str, tuple[bool, bool]]:
     """Per option of ``command``: (it repeats, its values are paths), from the parser's actions (no parsing)."""
-    from volren.plan.argv import out_folder, render_parser
+    from volren.plan.argv import command_options, out_folder
 
-    sub = next(a for a in render_parser()._actions if isinstance(a, argparse._SubParsersAction))
     return {a.dest: (isinstance(a, argparse._AppendAction), a.type in (Path, out_folder))
-            for a in sub.choices[command]._actions if a.dest != "help"}
+            for a in command_options(command)}
 
 
 def _plain(value: Any) -> Any:
