@@ -13,15 +13,9 @@ import warp as wp
 from volren.bench.bricks import SPEED_TOLERANCE, two_balls_field, two_balls_regions
 from volren.device import init_warp
 from volren.errors import VolrenError
-from volren.kernels.bricks import (
-    EMPTY,
-    BrickVolumeGPU,
-    brick_gather_cell,
-    brick_volume,
-    brick_volume_sparse,
-    sample_bricks,
-)
+from volren.kernels.bricks import BrickVolumeGPU, brick_gather_cell, sample_bricks, upload_bricks
 from volren.kernels.common import gather_cell, sample_grid, vec8
+from volren.sparse import EMPTY, brick_dense, brick_regions
 
 init_warp()
 
@@ -65,7 +59,7 @@ def upload_dense(grid: np.ndarray) -> tuple[wp.array, wp.vec3i]:
 def test_page_table_gather_equals_the_dense_gather_bit_for_bit_at_every_cell(brick):
     grid = field_with_every_kind_of_brick()
     data, res = upload_dense(grid)
-    bv = brick_volume(grid, brick).upload("cpu")
+    bv = upload_bricks(brick_dense(grid, brick), "cpu")
     cells = (grid.shape[2] - 1, grid.shape[1] - 1, grid.shape[0] - 1)
     n = int(np.prod(cells))
     dense, bricked = wp.zeros(n, dtype=vec8, device="cpu"), wp.zeros(n, dtype=vec8, device="cpu")
@@ -80,7 +74,7 @@ def test_page_table_gather_equals_the_dense_gather_bit_for_bit_at_every_cell(bri
 def test_page_table_samples_equal_dense_bit_for_bit_inside_and_clamped_outside():
     grid = field_with_every_kind_of_brick()
     data, res = upload_dense(grid)
-    bv = brick_volume(grid, 8).upload("cpu")
+    bv = upload_bricks(brick_dense(grid, 8), "cpu")
     rng = np.random.default_rng(4)
     p = rng.uniform(-1.2, 1.2, (20000, 3)).astype(np.float32)  # a sixth of each axis beyond the box: clamped
     p[:8] = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [1.2, 1.2, 1.2], [-1.2, 0.0, 1.2], [1.0, -1.0, 0.3],
@@ -96,7 +90,7 @@ def test_page_table_samples_equal_dense_bit_for_bit_inside_and_clamped_outside()
 @pytest.mark.timeout(60)
 def test_empty_and_constant_bricks_hold_no_pool_memory_and_read_their_value():
     grid = field_with_every_kind_of_brick()
-    bricks = brick_volume(grid, 8)
+    bricks = brick_dense(grid, 8)
     assert bricks.table.shape == (3, 3, 5)  # ceil(20 / 8), ceil(18 / 8), ceil(34 / 8) bricks of cells
     assert bricks.table[0, 0, 0] == EMPTY and bricks.constants[0] == 0.0
     constant = bricks.table[:, :, 3:]  # voxels 24..32 and 32..34 (apron repeated): all 0.75
@@ -112,7 +106,7 @@ def test_empty_and_constant_bricks_hold_no_pool_memory_and_read_their_value():
     assert np.array_equal(bricks.pool[first], grid[0:9, 0:9, 8:17])
     # read through the device function: the empty brick's cells give 0, the constant ones 0.75
     data, res = upload_dense(grid)
-    bv = bricks.upload("cpu")
+    bv = upload_bricks(bricks, "cpu")
     cells = (34, 18, 20)
     out, ref = wp.zeros(34 * 18 * 20, dtype=vec8, device="cpu"), wp.zeros(34 * 18 * 20, dtype=vec8, device="cpu")
     wp.launch(gather_every_cell, dim=cells, inputs=[data, res, bv, ref, out], device="cpu")
@@ -133,7 +127,7 @@ def test_bricks_built_from_regions_equal_those_of_the_dense_grid_without_a_dense
     grid = np.zeros(shape, np.float32)
     for (z, y, x), block in regions:
         grid[z:z + block.shape[0], y:y + block.shape[1], x:x + block.shape[2]] = block
-    dense, sparse = brick_volume(grid, 8), brick_volume_sparse(shape, regions, 8)
+    dense, sparse = brick_dense(grid, 8), brick_regions(shape, regions, 8)
     assert np.array_equal(dense.table < 0, sparse.table < 0) and dense.nbytes == sparse.nbytes
     assert np.array_equal(dense.constants[sparse.table[sparse.table < 0] * -1 - 1],
                           dense.constants[dense.table[dense.table < 0] * -1 - 1])
@@ -141,17 +135,18 @@ def test_bricks_built_from_regions_equal_those_of_the_dense_grid_without_a_dense
     cells = (40, 29, 36)
     n = 40 * 29 * 36
     got = [wp.zeros(n, dtype=vec8, device="cpu") for _ in range(3)]
-    wp.launch(gather_every_cell, dim=cells, inputs=[data, res, sparse.upload("cpu"), got[0], got[1]], device="cpu")
-    wp.launch(gather_every_cell, dim=cells, inputs=[data, res, dense.upload("cpu"), got[0], got[2]], device="cpu")
+    for bricks, out in ((sparse, got[1]), (dense, got[2])):
+        wp.launch(gather_every_cell, dim=cells, inputs=[data, res, upload_bricks(bricks, "cpu"), got[0], out],
+                  device="cpu")
     assert np.array_equal(got[1].numpy(), got[0].numpy()) and np.array_equal(got[2].numpy(), got[0].numpy())
     with pytest.raises(VolrenError, match="share a brick"):
-        brick_volume_sparse(shape, [((0, 0, 0), np.ones((2, 2, 2), np.float32)),
+        brick_regions(shape, [((0, 0, 0), np.ones((2, 2, 2), np.float32)),
                                     ((4, 4, 4), np.ones((2, 2, 2), np.float32))], 8)
 
 
 def test_brick_sizes_must_be_powers_of_two():
     with pytest.raises(VolrenError, match="power of two"):
-        brick_volume(np.zeros((9, 9, 9), np.float32), 12)
+        brick_dense(np.zeros((9, 9, 9), np.float32), 12)
 
 
 def balls_200() -> np.ndarray:
@@ -189,7 +184,7 @@ def test_bricks_suite_compares_the_representations_on_the_same_samples(tmp_path)
     grid = two_balls_field(64)
     active = int(np.count_nonzero(grid))
     assert balls["dense", None]["bytes_per_active"] == pytest.approx(64**3 * 4 / active)
-    assert balls["bricks", 8]["bytes_per_active"] == brick_volume(grid, 8).nbytes / active
+    assert balls["bricks", 8]["bytes_per_active"] == brick_dense(grid, 8).nbytes / active
     assert balls["bricks", 8]["bytes_per_active"] < balls["dense", None]["bytes_per_active"] / 5
     info = {f["field"]: f for f in doc["settings"]["fields_info"]}
     # NanoVDB at unclamped index coordinates fades to its background over the outer half voxel: the cloud is dense
@@ -208,7 +203,7 @@ def test_bricks_suite_compares_the_representations_on_the_same_samples(tmp_path)
     regions = two_balls_regions(200, 10)
     active = sum(int(np.count_nonzero(b)) for _, b in regions)
     b8 = next(s for s in summary if (s["method"], s["brick"]) == ("bricks", 8))
-    assert b8["bpav_issue_file"] == pytest.approx(brick_volume(balls_200(), 8).nbytes / active)
+    assert b8["bpav_issue_file"] == pytest.approx(brick_dense(balls_200(), 8).nbytes / active)
     dense = next(s for s in summary if s["method"] == "dense")
     assert dense["bpav_issue_file"] == pytest.approx(4 * 200**3 / active)
     assert "| bricks | 16 |" in table and table in md_path.read_text()

@@ -18,7 +18,6 @@ import warp as wp
 from volren.camera import Camera
 from volren.device import check_allocation
 from volren.errors import VolrenError
-from volren.kernels.bricks import brick_volume
 from volren.kernels.common import (
     LIGHT_DIRECTIONAL,
     LIGHT_POINT,
@@ -33,6 +32,7 @@ from volren.kernels.common import (
     VolumeGPU,
 )
 from volren.scene import SPOT_FALLOFFS, DirectionalLight, RectLight, Scene, Sphere, SpotLight, TriangleMesh, Volume
+from volren.sparse import brick_dense
 
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
@@ -289,7 +289,7 @@ def pack_density(s: VolumeGPU, grid: np.ndarray, packing: DensityPacking, bricke
         packing.grids.append(grid.reshape(-1))
         packing.offset += grid.size
         return
-    bv = brick_volume(grid, BRICK)
+    bv = brick_dense(grid, BRICK)
     s.brick_shift, s.brick_edge = BRICK.bit_length() - 1, BRICK + 1
     s.bricks, s.table_offset = wp.vec3i(*bv.table.shape[::-1]), packing.table_offset
     s.constants_offset = packing.offset + bv.pool.size

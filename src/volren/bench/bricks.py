@@ -25,7 +25,7 @@ Fields: ``cloud`` (band-limited noise, positive in most voxels: most bricks resi
 scene's plume, a few percent active) and ``two-balls`` (two balls of radius 0.1 of the box in opposite corners of a
 larger index box). And the issue's file itself (two balls of radius 100 voxels in a 2000^3 index box, 8.4 M active
 voxels; ``issue_file``), which has no dense copy here: each sparse representation is built from the balls' blocks
-alone (`brick_volume_sparse`, `nanovdb_source_sparse`) for its bytes per active voxel and build time (a flat page
+alone (`brick_regions`, `nanovdb_source_sparse`) for its bytes per active voxel and build time (a flat page
 table grows with the index box: 4 bytes per B^3 cells of it).
 
 The choice (summary table): among the sparse representations equal to dense within 1e-6 (the issue's bar for
@@ -50,9 +50,10 @@ import warp as wp
 from volren.bench import Suite, sized
 from volren.data import density_field
 from volren.device import synchronize
-from volren.kernels.bricks import BRICK_SIZES, BrickVolumeGPU, brick_volume, brick_volume_sparse, sample_bricks
+from volren.kernels.bricks import BRICK_SIZES, BrickVolumeGPU, sample_bricks, upload_bricks
 from volren.kernels.common import box_hit, grid_coords, sample_grid
 from volren.progress import case_done
+from volren.sparse import brick_dense, brick_regions
 
 FULL = {"fields": ["cloud", "smoke", "two-balls"], "resolution": 256, "sparse_resolution": 512, "rays": 512,
         "random_points": 1 << 24, "bricks": list(BRICK_SIZES), "repeats": 7, "check_threads": 1 << 14, "seed": 0,
@@ -245,8 +246,8 @@ def dense_source(grid: np.ndarray, device: str) -> tuple[DenseGridGPU, int]:
 
 
 def brick_source(grid: np.ndarray, brick: int, device: str) -> tuple[BrickVolumeGPU, int]:
-    bricks = brick_volume(grid, brick)
-    return bricks.upload(device), bricks.nbytes
+    bricks = brick_dense(grid, brick)
+    return upload_bricks(bricks, device), bricks.nbytes
 
 
 def nanovdb_source(grid: np.ndarray, device: str, *, clamp: bool = True) -> tuple[NanoVolumeGPU, int, wp.Volume]:
@@ -387,7 +388,7 @@ def geomean(values: list[float]) -> float:
 def issue_file(cfg: dict[str, Any], device: str) -> dict[tuple[str, int | None], dict[str, Any]]:
     """The issue's file (two balls of radius R voxels in opposite corners of an n^3 index box, ``issue_file`` =
     [n, R]; issue 41: n = 2000, R = 100, 8.4 M active voxels), too large for a dense copy: each sparse
-    representation built from the two balls' blocks alone (`brick_volume_sparse`, `nanovdb_source_sparse`), its
+    representation built from the two balls' blocks alone (`brick_regions`, `nanovdb_source_sparse`), its
     device bytes per active voxel and build seconds; dense: the bytes it would take."""
     n, radius = cfg["issue_file"]
     regions = two_balls_regions(n, radius)
@@ -396,8 +397,8 @@ def issue_file(cfg: dict[str, Any], device: str) -> dict[tuple[str, int | None],
         ("dense", None): {"bpav_issue_file": 4.0 * n**3 / active, "build_issue_file_s": None}}
     for brick in cfg["bricks"]:
         def make(brick: int = brick) -> tuple[BrickVolumeGPU, int]:
-            bricks = brick_volume_sparse((n, n, n), regions, brick)
-            return bricks.upload(device), bricks.nbytes
+            bricks = brick_regions((n, n, n), regions, brick)
+            return upload_bricks(bricks, device), bricks.nbytes
 
         (_, nbytes), seconds = built(make, device, cfg["build_repeats"])
         out["bricks", brick] = {"bpav_issue_file": nbytes / active, "build_issue_file_s": seconds}
