@@ -23,6 +23,7 @@ import numpy as np
 
 from volren.blackbody import blackbody_table
 from volren.errors import VolrenError
+from volren.sparse import SparseGrid
 
 RGB = tuple[float, float, float]
 
@@ -44,8 +45,16 @@ def as_vec3(value: Sequence[float], what: str) -> np.ndarray:
     return arr
 
 
-def validate_density(density: np.ndarray, what: str = "density") -> np.ndarray:
-    """Return ``density`` as C-ordered float32 ``[z, y, x]`` or raise a one-line error saying what is wrong."""
+def validate_density(density: np.ndarray | SparseGrid, what: str = "density") -> np.ndarray | SparseGrid:
+    """Return ``density`` as C-ordered float32 ``[z, y, x]`` (a `SparseGrid` as it is) or raise a one-line error
+    saying what is wrong."""
+    if isinstance(density, SparseGrid):
+        lo, hi = float(density.min()), float(density.max())
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            raise VolrenError(f"{what} has NaN/Inf values; clean the data first")
+        if lo < 0:
+            raise VolrenError(f"{what} has negative values (down to {lo:.3g}); densities must be >= 0")
+        return density
     arr = np.asarray(density)
     if arr.ndim != 3:
         raise VolrenError(f"{what} must be a 3D array [z, y, x], got {arr.ndim} dimension(s) with shape {arr.shape}")
@@ -121,7 +130,8 @@ class Volume:
     trilinear between centres, clamped at the border.
     """
 
-    density: np.ndarray
+    density: np.ndarray | SparseGrid
+    """[z, y, x], dense or bricked (`volren.sparse.SparseGrid`: a sparse file loaded without a dense copy)"""
     to_world: np.ndarray = field(default_factory=lambda: np.eye(4))
     density_scale: float = 10.0
     """[1/m] per unit density: sigma_t = density_scale * density."""
@@ -135,7 +145,7 @@ class Volume:
     value_range: tuple[float, float] | None = None
     """the Hounsfield units that density 0 and 1 stand for (a CT, as the loader normalised it): transfer functions
     with a Hounsfield form classify by HU; None: not HU, transfer functions read density / its maximum."""
-    emission_grid: np.ndarray | None = None
+    emission_grid: np.ndarray | SparseGrid | None = None
     """[z, y, x] source of blackbody emission, the density's shape (module docstring, "Fire"): a value v > 0 is at
     K0 + (K1 - K0) v / max(v) kelvin (``temperature_range``); v <= 0 emits nothing. None: no fire."""
     temperature_range: tuple[float, float] = (1000.0, 3000.0)
@@ -190,7 +200,12 @@ class Volume:
         return f"Volume({', '.join(parts)})"
 
     def _check_fire(self) -> None:
-        if self.emission_grid is not None:
+        if isinstance(self.emission_grid, SparseGrid):
+            if self.emission_grid.shape != self.density.shape:
+                raise VolrenError(f"volume '{self.name}': emission grid has shape {self.emission_grid.shape}, the "
+                                  f"density {self.density.shape}: they must match")
+            validate_density(self.emission_grid.map(np.abs), f"volume '{self.name}': emission grid")
+        elif self.emission_grid is not None:
             grid = np.asarray(self.emission_grid)
             if grid.shape != self.density.shape:
                 raise VolrenError(f"volume '{self.name}': emission grid has shape {grid.shape}, the density "
@@ -213,9 +228,13 @@ class Volume:
         if self.emission_grid is None:
             return None
         peak = float(self.emission_grid.max())
-        if peak <= 0:
-            return np.zeros_like(self.emission_grid)
-        return np.clip(self.emission_grid / np.float32(peak), 0.0, 1.0).astype(np.float32)
+
+        def normalised(v: np.ndarray) -> np.ndarray:
+            return np.clip(v / np.float32(peak), 0.0, 1.0).astype(np.float32) if peak > 0 else np.zeros_like(v)
+
+        if isinstance(self.emission_grid, SparseGrid):
+            return self.emission_grid.map(normalised)
+        return normalised(self.emission_grid)
 
     @cached_property
     def emission_table(self) -> np.ndarray | None:
@@ -252,11 +271,18 @@ class Volume:
         return float(max(np.linalg.norm(c[i] - c[7 - i]) for i in range(4)))
 
     @cached_property
-    def mip_pyramid(self) -> tuple[np.ndarray, ...]:
-        """Level 0 is the grid; each next level halves every axis by a 2x2x2 mean, down to one voxel (for LOD)."""
+    def mip_pyramid(self) -> tuple[np.ndarray | SparseGrid, ...]:
+        """Level 0 is the grid; each next level halves every axis by a 2x2x2 mean, down to one voxel (for LOD). A
+        sparse grid's levels are sparse (`SparseGrid.downsample`) while they have a trilinear cell on every axis,
+        then dense (a few voxels)."""
         levels = [self.density]
         while max(levels[-1].shape) > 1:
-            levels.append(_downsample(levels[-1], "mean"))
+            level = levels[-1]
+            if isinstance(level, SparseGrid):
+                coarse = tuple(-(-n // 2) if n > 1 else 1 for n in level.shape)
+                levels.append(level.downsample() if min(coarse) >= 2 else _downsample(level.to_dense(), "mean"))
+            else:
+                levels.append(_downsample(level, "mean"))
         return tuple(levels)
 
     @cached_property
@@ -265,8 +291,11 @@ class Volume:
 
         Level 0 holds, per voxel, the max over its 3x3x3 neighbourhood: a trilinear sample anywhere in the voxel's
         cell reads only voxels of that neighbourhood, so ``max_pyramid[0]`` bounds every sample there. Each next
-        level is the 2x2x2 max of the previous one.
+        level is the 2x2x2 max of the previous one. Dense grids only: a sparse grid's bounds come from its bricks
+        (`SparseGrid.cell_ranges`).
         """
+        if isinstance(self.density, SparseGrid):
+            raise VolrenError(f"volume '{self.name}': a sparse grid has no voxel max pyramid (its bricks bound it)")
         levels = [_dilate_max(self.density)]
         while max(levels[-1].shape) > 1:
             levels.append(_downsample(levels[-1], "max"))

@@ -31,8 +31,18 @@ from volren.kernels.common import (
     OpaqueGPU,
     VolumeGPU,
 )
-from volren.scene import SPOT_FALLOFFS, DirectionalLight, RectLight, Scene, Sphere, SpotLight, TriangleMesh, Volume
-from volren.sparse import brick_dense
+from volren.scene import (
+    SPOT_FALLOFFS,
+    DirectionalLight,
+    RectLight,
+    Scene,
+    Sphere,
+    SpotLight,
+    TriangleMesh,
+    Volume,
+    _downsample,
+)
+from volren.sparse import SparseGrid, brick_dense
 
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
@@ -64,14 +74,23 @@ MIN_LIGHT_NODES = 8
 DSSRM 1.024 of the reference; 8 nodes: 1.007."""
 
 
-def light_grid_resolution(res: tuple[int, int, int], light_grid: int | None) -> tuple[int, int, int]:
+SPARSE_LIGHT_GRID = 256
+"""[nodes] on the longest axis of a sparse grid's default light map: half its resolution would make a 2000^3 index
+box's map 1000^3 nodes (8 GB per light), dense over the box where the density is not"""
+
+
+def light_grid_resolution(res: tuple[int, int, int], light_grid: int | None, sparse: bool = False
+                          ) -> tuple[int, int, int]:
     """Light-map nodes per axis (x, y, z; `volren.render.lightmap`): ``light_grid`` on the longest axis (aspect
-    kept), or half the density resolution when None (the papers' 128^3 light grid for 256^3 density), and on every
+    kept), or half the density resolution when None (the papers' 128^3 light grid for 256^3 density; for a
+    ``sparse`` grid at most `SPARSE_LIGHT_GRID`), and on every
     axis at least `MIN_LIGHT_NODES` (or one per voxel where it has fewer, and never more than ``light_grid``) and 2
     (the two faces)."""
     if light_grid is not None and not 2 <= light_grid <= MAX_LIGHT_GRID:
         raise VolrenError(f"light grid resolution must lie in [2, {MAX_LIGHT_GRID}], got {light_grid}")
     longest = max(res)
+    if light_grid is None and sparse and longest > 2 * SPARSE_LIGHT_GRID:
+        light_grid = SPARSE_LIGHT_GRID
     wanted = [(n + 1) // 2 if light_grid is None else round(n * light_grid / longest) for n in res]
     floor = MIN_LIGHT_NODES if light_grid is None else min(light_grid, MIN_LIGHT_NODES)
     return tuple(max(2, min(n, floor), w) for n, w in zip(res, wanted, strict=True))
@@ -173,7 +192,13 @@ CULL_GRID = 16
 
 
 def coarse_max_level(vol: Volume) -> np.ndarray:
-    """The finest max-pyramid level with at most CULL_GRID cells on every axis."""
+    """The finest max-pyramid level with at most CULL_GRID cells on every axis (a sparse grid's from its bricks'
+    `SparseGrid.cell_ranges`, the pyramid's level log2 B, max-pooled on)."""
+    if isinstance(vol.density, SparseGrid):
+        level = vol.density.cell_ranges()[1]
+        while max(level.shape) > CULL_GRID:
+            level = _downsample(level, "max")
+        return level
     for level in vol.max_pyramid:
         if max(level.shape) <= CULL_GRID:
             return level
@@ -220,7 +245,7 @@ def _block_max(grid: np.ndarray, cell: int) -> np.ndarray:
     return grid
 
 
-def skip_grid(density: np.ndarray, cell: int = SKIP_CELL) -> np.ndarray:
+def skip_grid(density: np.ndarray | SparseGrid, cell: int = SKIP_CELL) -> tuple[np.ndarray, int]:
     """The empty-space-skipping grid of a [z, y, x] density: one value per block of ``cell``^3 voxels.
 
     A non-empty block holds its max density dilated by one voxel (edges clamped): a trilinear sample reads the 2x2x2
@@ -228,8 +253,15 @@ def skip_grid(density: np.ndarray, cell: int = SKIP_CELL) -> np.ndarray:
     density anywhere in its footprint and up to half a voxel beyond it (the rule of `Volume.max_pyramid`). An empty
     block holds -r, r >= 0 the chessboard radius of the cube of empty blocks centred on it (blocks outside the grid
     count as empty; r <= `MAX_SKIP_RADIUS`): a ray may leave that whole cube at once (proximity clouds, Cohen and
-    Sheffer 1994), so one lookup skips a long empty run."""
-    peak = _block_max(density, cell)
+    Sheffer 1994), so one lookup skips a long empty run.
+
+    Returns the grid and its cell [voxels]: ``cell``, or for a `SparseGrid` its brick edge B, the blocks' bounds read
+    from the page table (`SparseGrid.cell_ranges`), so that a sparse file's skip grid never needs a dense copy and
+    costs 1/B^3 of its index box (2000^3 voxels: 2 M cells at B = 16, 125 M at 4)."""
+    if isinstance(density, SparseGrid):
+        peak, cell = density.cell_ranges()[1], density.brick
+    else:
+        peak = _block_max(density, cell)
     occupied = peak > 0
     radius = np.zeros(peak.shape, np.int32)
     for r in range(1, min(max(peak.shape), MAX_SKIP_RADIUS + 1)):
@@ -237,7 +269,7 @@ def skip_grid(density: np.ndarray, cell: int = SKIP_CELL) -> np.ndarray:
         if occupied.all():
             break
         radius[~occupied] = r
-    return np.where(peak > 0, peak, -radius).astype(np.float32)
+    return np.where(peak > 0, peak, -radius).astype(np.float32), cell
 
 
 def volume_struct(
@@ -261,8 +293,10 @@ def volume_struct(
     s.emission = wp.vec3(*vol.emission)
     s.diagonal = vol.diagonal
     s.emission_grid_offset, s.emission_grid_res = 0, wp.vec3i(*vol.resolution)
+    s.emission_brick_shift, s.emission_bricks, s.emission_brick_table = 0, wp.vec3i(0), 0
+    s.emission_constants_offset = 0
     s.emission_table_offset, s.emission_table_size = 0, 0  # no emission grid until `pack_emission` sets one
-    s.brick_shift, s.brick_edge, s.bricks, s.table_offset, s.constants_offset = 0, 0, wp.vec3i(0), 0, 0  # dense
+    s.brick_shift, s.bricks, s.table_offset, s.constants_offset = 0, wp.vec3i(0), 0, 0  # dense
     return s
 
 
@@ -280,39 +314,68 @@ class DensityPacking:
     active_bricks: int = 0
 
 
-def pack_density(s: VolumeGPU, grid: np.ndarray, packing: DensityPacking, bricked: bool) -> None:
-    """Append ``grid`` (a [z, y, x] density level) to ``packing`` and point ``s`` at it: bricked (`BRICK`^3 cells with
-    an apron; pool, then the constant bricks' values, the table into ``packing.tables``), or dense where ``bricked``
-    is False or the grid has under 2 voxels on an axis (a mip level near the top: no trilinear cell to brick)."""
-    s.offset = packing.offset
-    if not bricked or min(grid.shape) < 2:
+def pack_grid(grid: np.ndarray | SparseGrid, packing: DensityPacking, bricked: bool) -> BrickPlace:
+    """Append ``grid`` (a [z, y, x] density level or emission grid) to ``packing``: bricked (`BRICK`^3 cells with an
+    apron; pool, then the constant bricks' values, the table into ``packing.tables``; a `SparseGrid` as it is), or
+    dense where ``bricked`` is False or the grid has under 2 voxels on an axis (a mip level near the top: no trilinear
+    cell to brick). Returns where it went."""
+    offset = packing.offset
+    if isinstance(grid, SparseGrid):
+        bv = grid
+    elif not bricked or min(grid.shape) < 2:
         packing.grids.append(grid.reshape(-1))
         packing.offset += grid.size
-        return
-    bv = brick_dense(grid, BRICK)
-    s.brick_shift, s.brick_edge = BRICK.bit_length() - 1, BRICK + 1
-    s.bricks, s.table_offset = wp.vec3i(*bv.table.shape[::-1]), packing.table_offset
-    s.constants_offset = packing.offset + bv.pool.size
+        return BrickPlace(offset, 0, 0, (0, 0, 0), 0)
+    else:
+        bv = brick_dense(grid, BRICK)
+    place = BrickPlace(offset, bv.brick.bit_length() - 1, packing.table_offset, bv.table.shape[::-1],
+                       offset + bv.pool.size)
     packing.grids += [bv.pool.reshape(-1), bv.constants]
     packing.tables.append(bv.table.reshape(-1))
     packing.offset += bv.pool.size + bv.constants.size
     packing.table_offset += bv.table.size
     packing.pool_voxels += bv.pool.size
     packing.active_bricks += len(bv.pool)
+    return place
 
 
-def pack_emission(vol: Volume, structs: list[VolumeGPU], offset: int, grids: list[np.ndarray]) -> int:
-    """Append ``vol``'s normalised emission grid and blackbody table (flattened) to ``grids`` at ``offset`` of the
-    packed density array and point every one of its mip levels' ``structs`` at them (a fire grid is sampled at full
-    resolution whatever the level); returns the offset after them. Nothing for a volume without an emission grid."""
+@dataclass(frozen=True)
+class BrickPlace:
+    """Where `pack_grid` put a grid in the packed arrays."""
+
+    offset: int
+    """first float of its pool (a dense grid: its first voxel)"""
+    shift: int
+    """log2 B; 0: dense"""
+    table_offset: int
+    bricks: tuple[int, int, int]
+    """bricks per axis (x, y, z)"""
+    constants_offset: int
+
+
+def pack_density(s: VolumeGPU, grid: np.ndarray | SparseGrid, packing: DensityPacking, bricked: bool) -> None:
+    """Append ``grid`` (a density level) to ``packing`` (`pack_grid`) and point ``s`` at it."""
+    place = pack_grid(grid, packing, bricked)
+    s.offset, s.brick_shift = place.offset, place.shift
+    s.bricks, s.table_offset = wp.vec3i(*place.bricks), place.table_offset
+    s.constants_offset = place.constants_offset
+
+
+def pack_emission(vol: Volume, structs: list[VolumeGPU], packing: DensityPacking, bricked: bool) -> None:
+    """Append ``vol``'s normalised emission grid (bricked as the density, `pack_grid`) and blackbody table to
+    ``packing`` and point every one of its mip levels' ``structs`` at them (a fire grid is sampled at full resolution
+    whatever the level). Nothing for a volume without an emission grid."""
     if vol.emission_u is None:
-        return offset
+        return
+    place = pack_grid(vol.emission_u, packing, bricked)
     table = vol.emission_table.reshape(-1)
     for s in structs:
-        s.emission_grid_offset, s.emission_table_offset = offset, offset + vol.emission_u.size
-        s.emission_table_size = len(vol.emission_table)
-    grids += [vol.emission_u.reshape(-1), table]
-    return offset + vol.emission_u.size + table.size
+        s.emission_grid_offset, s.emission_brick_shift = place.offset, place.shift
+        s.emission_bricks, s.emission_brick_table = wp.vec3i(*place.bricks), place.table_offset
+        s.emission_constants_offset = place.constants_offset
+        s.emission_table_offset, s.emission_table_size = packing.offset, len(vol.emission_table)
+    packing.grids.append(table)
+    packing.offset += table.size
 
 
 def volume_bvh(scene: Scene, device: str) -> wp.Bvh:
@@ -382,9 +445,9 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     ambient_offset = 0
     light_res = []
     for vol in scene.volumes:
-        lres = light_grid_resolution(vol.resolution, light_grid)
+        lres = light_grid_resolution(vol.resolution, light_grid, sparse=isinstance(vol.density, SparseGrid))
         per_level = []
-        for grid in vol.mip_pyramid if mip_levels else vol.mip_pyramid[:1]:
+        for grid in vol.mip_pyramid if mip_levels else [vol.density]:
             per_level.append(volume_struct(vol, 0, grid.shape[::-1], light_offset, lres, ambient_offset))
             pack_density(per_level[-1], grid, packing, bricked)
         levels.append(per_level)
@@ -392,9 +455,9 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         light_res.append(lres)
         light_offset += 2 * n_lights * int(np.prod(lres))  # sigma_bar and tau_in per light (render/lightmap.py)
         ambient_offset += int(np.prod(lres))
-    offset = packing.offset
     for vol, per_level in zip(scene.volumes, levels, strict=True):
-        offset = pack_emission(vol, per_level, offset, grids)
+        pack_emission(vol, per_level, packing, bricked)
+    offset = packing.offset
     if offset > MAX_PACKED or light_offset > MAX_PACKED:
         raise VolrenError(f"scene too large: {offset} voxels (at most {MAX_PACKED} in all volumes together)")
     # what is uploaded: bricks (pool, constants, page tables) where bricked, not the dense grids
@@ -406,9 +469,9 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         max_grids.append((max_offset, grid.shape[::-1]))
         max_offset += grid.size
     for vol, per_level in zip(scene.volumes, levels, strict=True):
-        for level, s in zip(vol.mip_pyramid, per_level, strict=False):
-            cells = skip_grid(level)
-            s.skip_offset, s.skip_res, s.skip_cell = max_offset, wp.vec3i(*cells.shape[::-1]), SKIP_CELL
+        for level, s in zip(vol.mip_pyramid if mip_levels else [vol.density], per_level, strict=False):
+            cells, cell = skip_grid(level)
+            s.skip_offset, s.skip_res, s.skip_cell = max_offset, wp.vec3i(*cells.shape[::-1]), cell
             max_levels.append(cells)
             max_offset += cells.size
     try:

@@ -50,8 +50,6 @@ class VolumeGPU:
     """bricks per axis (x, y, z) of its page table"""
     brick_shift: int
     """log2 B of its bricks of B^3 cells; 0: a dense [z, y, x] grid at ``offset`` (`gather_density`)"""
-    brick_edge: int
-    """B + 1: voxels per brick edge, apron included"""
     constants_offset: int
     """first value of its constant bricks in the packed density array (page-table entry -1 - k reads value k)"""
     light_offset: int
@@ -76,6 +74,12 @@ class VolumeGPU:
     """first voxel of this volume's normalised emission grid u (`volren.scene.Volume.emission_u`, full resolution at
     every mip level) in the packed density array"""
     emission_grid_res: wp.vec3i
+    emission_brick_shift: int
+    """log2 B of the emission grid's bricks (its page table at ``emission_brick_table`` in ``table``, its constants
+    at ``emission_constants_offset``); 0: dense at ``emission_grid_offset``"""
+    emission_bricks: wp.vec3i
+    emission_brick_table: int
+    emission_constants_offset: int
     emission_table_offset: int
     """first float of its blackbody table (3 per entry) in the packed density array"""
     emission_table_size: int
@@ -275,19 +279,28 @@ def brick_cell(pool: wp.array(dtype=float), first: int, edge: int, shift: int, c
 
 
 @wp.func
+def gather_grid(data: wp.array(dtype=float), offset: int, res: wp.vec3i, table: wp.array(dtype=wp.int32),
+                table_offset: int, bricks: wp.vec3i, shift: int, constants_offset: int, cell: wp.vec3i) -> vec8:
+    """The 8 voxels around ``cell`` of a packed grid: through its brick page table (`volren.sparse`; pool at
+    ``offset``, constants at ``constants_offset``), or from its dense [z, y, x] voxels at ``offset`` where ``shift``
+    is 0. Both give the same 8 values; a constant brick reads one value and no pool voxel."""
+    if shift == 0:
+        return gather_cell(data, offset, res, cell)
+    entry = brick_entry(table, table_offset, bricks, shift, cell)
+    if entry < 0:
+        c = data[constants_offset - 1 - entry]
+        return vec8(c, c, c, c, c, c, c, c)
+    edge = (1 << shift) + 1
+    return brick_cell(data, offset + entry * edge * edge * edge, edge, shift, cell)
+
+
+@wp.func
 def gather_density(density: wp.array(dtype=float), vol: VolumeGPU, cell: wp.vec3i) -> vec8:
     """The 8 density voxels around ``cell`` of ``vol``: the one density read of every renderer (issue 41 item 1),
     through the volume's brick page table, or from its dense grid where ``brick_shift`` is 0 (grids under 2 voxels on
-    an axis, and `volren.upload.upload_scene` with ``bricked=False`` for the equality tests). Both give the same 8
-    values; a constant brick reads one value and no pool voxel."""
-    if vol.brick_shift == 0:
-        return gather_cell(density, vol.offset, vol.res, cell)
-    entry = brick_entry(vol.table, vol.table_offset, vol.bricks, vol.brick_shift, cell)
-    if entry < 0:
-        c = density[vol.constants_offset - 1 - entry]
-        return vec8(c, c, c, c, c, c, c, c)
-    return brick_cell(density, vol.offset + entry * vol.brick_edge * vol.brick_edge * vol.brick_edge,
-                      vol.brick_edge, vol.brick_shift, cell)
+    an axis, and `volren.upload.upload_scene` with ``bricked=False`` for the equality tests)."""
+    return gather_grid(density, vol.offset, vol.res, vol.table, vol.table_offset, vol.bricks, vol.brick_shift,
+                       vol.constants_offset, cell)
 
 
 @wp.func
@@ -349,7 +362,11 @@ def blackbody_emission(vol: VolumeGPU, data: wp.array(dtype=float), p: wp.vec3, 
     n = vol.emission_table_size
     if n == 0 or rho <= 0.0:
         return wp.vec3(0.0)
-    u = sample_grid(data, vol.emission_grid_offset, vol.emission_grid_res, p)
+    g = grid_coords(vol.emission_grid_res, p)
+    cell = grid_cell(vol.emission_grid_res, g)
+    u = interpolate_cell(gather_grid(data, vol.emission_grid_offset, vol.emission_grid_res, vol.table,
+                                     vol.emission_brick_table, vol.emission_bricks, vol.emission_brick_shift,
+                                     vol.emission_constants_offset, cell), cell_fraction(g, cell))
     if u <= 0.0:
         return wp.vec3(0.0)
     f = wp.min(u, 1.0) * float(n - 1)

@@ -85,32 +85,73 @@ class SparseGrid:
         hi[resident] = flat.max(axis=1)[self.table[resident]] if len(flat) else 0.0
         return lo, hi
 
-    def max(self) -> float:
-        return float(self.brick_ranges[1].max())
+    def max(self, axis: None = None, out: None = None) -> np.float32:
+        """The largest voxel (``np.max(grid)`` calls this; only the whole grid's)."""
+        return np.float32(self.brick_ranges[1].max())
 
-    def min(self) -> float:
-        return float(self.brick_ranges[0].min())
+    def min(self, axis: None = None, out: None = None) -> np.float32:
+        return np.float32(self.brick_ranges[0].min())
 
-    def read(self, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> np.ndarray:
-        """float32 ``[z, y, x]`` voxels of the box [lo, hi) (z, y, x), indices clamped to the grid (as sampling
-        clamps), copied brick by brick: each voxel from the brick whose cells start at it (the last voxel from the
-        apron of the last brick)."""
-        size = [h - low for low, h in zip(lo, hi, strict=True)]
-        if min(size) < 1 or int(np.prod(size, dtype=np.int64)) > MAX_DENSE_READ:
-            raise VolrenError(f"cannot read a box of {size} voxels from a sparse grid (at most {MAX_DENSE_READ})")
+    def take(self, iz: np.ndarray, iy: np.ndarray, ix: np.ndarray) -> np.ndarray:
+        """float32 ``[z, y, x]`` voxels at the outer product of the index arrays (clamped to the grid, as sampling
+        clamps), gathered brick by brick: each voxel from the brick whose cells start at it (the grid's last voxel
+        from the apron of the last brick)."""
+        size = (len(iz), len(iy), len(ix))
+        if int(np.prod(size, dtype=np.int64)) > MAX_DENSE_READ:
+            raise VolrenError(f"cannot read a box of {list(size)} voxels from a sparse grid (at most {MAX_DENSE_READ})")
         out = np.empty(size, np.float32)
         per_axis = []
-        for low, h, n, count in zip(lo, hi, self.shape, self.table.shape, strict=True):
-            idx = np.clip(np.arange(low, h), 0, n - 1)
+        for idx, n, count in zip((iz, iy, ix), self.shape, self.table.shape, strict=True):
+            idx = np.clip(np.asarray(idx, np.int64), 0, n - 1)
             b = np.minimum(idx // self.brick, count - 1)
             per_axis.append([(int(c), np.flatnonzero(b == c), idx[b == c] - c * self.brick) for c in np.unique(b)])
         for cz, dz, pz in per_axis[0]:
             for cy, dy, py in per_axis[1]:
                 for cx, dx, px in per_axis[2]:
                     e = int(self.table[cz, cy, cx])
-                    where = np.ix_(dz, dy, dx)
-                    out[where] = self.pool[e][np.ix_(pz, py, px)] if e >= 0 else self.constants[-1 - e]
+                    out[np.ix_(dz, dy, dx)] = self.pool[e][np.ix_(pz, py, px)] if e >= 0 else self.constants[-1 - e]
         return out
+
+    def read(self, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> np.ndarray:
+        """float32 ``[z, y, x]`` voxels of the box [lo, hi) (z, y, x), indices clamped to the grid (`take`)."""
+        if any(h <= low for low, h in zip(lo, hi, strict=True)):
+            raise VolrenError(f"cannot read the empty box {lo}..{hi} from a sparse grid")
+        return self.take(*(np.arange(low, h) for low, h in zip(lo, hi, strict=True)))
+
+    def __getitem__(self, key: tuple[slice, slice, slice]) -> np.ndarray:
+        """``grid[::s, ::s, ::s]`` (and any three slices) as a dense array, as numpy slices a dense grid: the
+        strided reads of the code that looks at a grid's values (Otsu's threshold, the flame's brightness)."""
+        if not (isinstance(key, tuple) and len(key) == 3 and all(isinstance(k, slice) for k in key)):
+            raise TypeError(f"a SparseGrid takes three slices, got {key!r}")
+        return self.take(*(np.arange(*k.indices(n)) for k, n in zip(key, self.shape, strict=True)))
+
+    def map(self, op) -> SparseGrid:
+        """The grid with ``op`` (a float32 array -> array, element-wise, e.g. a normalisation) applied to every voxel:
+        to the pool and the constants, so the bricks and page table stay (an EMPTY brick must stay 0: op(0) = 0)."""
+        constants = np.asarray(op(self.constants), np.float32)
+        if constants[0] != 0:
+            raise VolrenError("SparseGrid.map: the operation must keep 0 at 0 (empty bricks stay empty)")
+        return SparseGrid(pool=np.asarray(op(self.pool), np.float32), table=self.table, constants=constants,
+                          shape=self.shape, brick=self.brick)
+
+    def cell_ranges(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per cell of B^3 voxels (ceil(n / B) per axis, z, y, x) the min and max of every trilinear sample in it and
+        up to half a voxel beyond (its voxels and a one-voxel border: the rule of `volren.scene.Volume.max_pyramid`
+        and of the majorants' macrocells): a brick's range covers voxels [c B, c B + B], and the voxel before is in
+        the brick before, so each range meets its lower neighbours' along each axis. The last cell of an axis whose
+        last voxel is an apron's (n - 1 a multiple of B) repeats its brick's range. Read from the page table and the
+        pool's blocks, never a dense copy."""
+        out = []
+        for rng, op in zip(self.brick_ranges, (np.minimum, np.maximum), strict=True):
+            for axis in range(3):
+                before = np.concatenate([np.take(rng, [0], axis), np.take(rng, range(rng.shape[axis] - 1), axis)],
+                                        axis)
+                rng = op(rng, before)
+                cells = -(-self.shape[axis] // self.brick)
+                if cells > rng.shape[axis]:
+                    rng = np.concatenate([rng, np.take(rng, [-1], axis)], axis)
+            out.append(rng.astype(np.float32))
+        return out[0], out[1]
 
     def to_dense(self) -> np.ndarray:
         """The whole grid as a dense array (for tests and small grids; `read` refuses big ones)."""
