@@ -172,7 +172,7 @@ def _world(loaded, zyx) -> np.ndarray:
 def test_density_and_placement_match_what_openvdb_wrote(vdb_dir):
     """Exact values; every voxel centre at OpenVDB's world position scale * (ijk + index) + translation [m]."""
     loaded = load_volume(vdb_dir / "two.vdb")
-    np.testing.assert_array_equal(loaded.density, DENSITY)
+    np.testing.assert_array_equal(loaded.density.to_dense(), DENSITY)
     assert loaded.emission_source is None and loaded.value_range is None
     for zyx in [(0, 0, 0), (6, 4, 8), (2, 3, 5)]:
         expected = np.array(SCALE) * (np.array(IJK) + zyx[::-1]) + TRANSLATION
@@ -194,8 +194,8 @@ def test_spacing_replaces_the_vdb_placement_as_for_nvdb(vdb_dir):
 
 
 def test_grid_choice(vdb_dir):
-    np.testing.assert_array_equal(load_volume(vdb_dir / "two.vdb", grid="temperature").density, TEMPERATURE)
-    np.testing.assert_array_equal(load_volume(vdb_dir / "smoke.vdb").density, DENSITY)  # the only float grid
+    np.testing.assert_array_equal(load_volume(vdb_dir / "two.vdb", grid="temperature").density.to_dense(), TEMPERATURE)
+    np.testing.assert_array_equal(load_volume(vdb_dir / "smoke.vdb").density.to_dense(), DENSITY)  # the only float grid
     with pytest.raises(VolrenError, match=r"several scalar grids.*--grid NAME\): heat \(float\), flame \(float\)$"):
         load_volume(vdb_dir / "several.vdb")
     with pytest.raises(VolrenError, match=r"two\.vdb: no grid named 'fuel' \(grid=, CLI: --grid\); pick one of density "
@@ -210,7 +210,7 @@ def test_grid_choice(vdb_dir):
 
 def test_a_grid_of_hundreds_of_leaves_reads_every_voxel(vdb_dir):
     loaded = load_volume(vdb_dir / "many.vdb")
-    np.testing.assert_array_equal(loaded.density, MANY)
+    np.testing.assert_array_equal(loaded.density.to_dense(), MANY)
     corner = np.array(SCALE) * np.array([100 + 63, -20 + 35, 3 + 39]) + TRANSLATION
     np.testing.assert_allclose(_world(loaded, (39, 35, 63)), corner, atol=1e-12)
 
@@ -218,8 +218,8 @@ def test_a_grid_of_hundreds_of_leaves_reads_every_voxel(vdb_dir):
 def test_half_precision_reads_as_float32(vdb_dir):
     loaded = load_volume(vdb_dir / "half.vdb")
     assert loaded.density.dtype == np.float32
-    np.testing.assert_array_equal(loaded.density, DENSITY.astype(np.float16).astype(np.float32))
-    assert not np.array_equal(loaded.density, DENSITY)  # it really was stored as half
+    np.testing.assert_array_equal(loaded.density.to_dense(), DENSITY.astype(np.float16).astype(np.float32))
+    assert not np.array_equal(loaded.density.to_dense(), DENSITY)  # it really was stored as half
 
 
 def test_openvdb_wrote_blosc_and_zip_reads_the_same(vdb_dir, tmp_path):
@@ -229,7 +229,7 @@ def test_openvdb_wrote_blosc_and_zip_reads_the_same(vdb_dir, tmp_path):
         f.read_grids()
         assert f.grid(0).metadata["file_compression"].startswith("blosc")
         (tmp_path / "zip.vdb").write_bytes(f.to_bytes(compression=tinyvdb.COMPRESS_ZIP, level=5))
-    np.testing.assert_array_equal(load_volume(tmp_path / "zip.vdb").density, DENSITY)
+    np.testing.assert_array_equal(load_volume(tmp_path / "zip.vdb").density.to_dense(), DENSITY)
 
 
 def test_sparse_grid_densified_over_its_active_box(vdb_dir):
@@ -237,22 +237,19 @@ def test_sparse_grid_densified_over_its_active_box(vdb_dir):
     lo, hi = [int(a.min()) for a in nz], [int(a.max()) for a in nz]
     loaded = load_volume(vdb_dir / "sparse.vdb")
     crop = SPARSE[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1, lo[2]:hi[2] + 1]
-    np.testing.assert_array_equal(loaded.density, crop)
+    np.testing.assert_array_equal(loaded.density.to_dense(), crop)
     assert loaded.density.shape != SPARSE.shape
-    marker = np.argwhere(loaded.density == 7.0)[0]
+    marker = np.argwhere(loaded.density.to_dense() == 7.0)[0]
     np.testing.assert_allclose(_world(loaded, marker), 0.1 * np.array([-8 + 6, 4 + 9, 0 + 10]) + TRANSLATION,
                                atol=1e-12)
 
 
-def test_memory_check_refuses_before_allocating(vdb_dir, monkeypatch):
+def test_page_table_check_refuses_before_allocating(vdb_dir, monkeypatch):
     import volren.data.vdb as vdb
 
-    monkeypatch.setattr(vdb, "MAX_DENSE_VOXELS", DENSITY.size - 1)
-    with pytest.raises(VolrenError, match=r"two\.vdb: a dense copy of 1 grid\(s\) of 9x5x7 voxels is too large"):
+    monkeypatch.setattr(vdb, "MAX_TABLE_BRICKS", 0)
+    with pytest.raises(VolrenError, match=r"two\.vdb: the active box of 9x5x7 voxels needs 1 bricks' page table"):
         load_volume(vdb_dir / "two.vdb")
-    monkeypatch.setattr(vdb, "MAX_DENSE_VOXELS", DENSITY.size)  # the density fits, density + emission does not
-    with pytest.raises(VolrenError, match=r"2 grid\(s\)"):
-        load_volume(vdb_dir / "two.vdb", emission_grid="temperature")
 
 
 @pytest.mark.parametrize("name, fragment", [("empty.vdb", "grid 'density' has no active voxels"),
@@ -265,9 +262,9 @@ def test_empty_and_truncated_files_are_one_line_errors(vdb_dir, name, fragment):
 
 def test_emission_grid_lines_up_with_the_density(vdb_dir):
     loaded = load_volume(vdb_dir / "two.vdb", emission_grid="temperature")
-    np.testing.assert_array_equal(loaded.density, DENSITY)
-    np.testing.assert_array_equal(loaded.emission_source, TEMPERATURE)  # raw values (kelvin-like), not normalised
-    np.testing.assert_array_equal(read_vdb_grid_like(vdb_dir / "two.vdb", "temperature"), TEMPERATURE)
+    np.testing.assert_array_equal(loaded.density.to_dense(), DENSITY)
+    np.testing.assert_array_equal(loaded.emission_source.to_dense(), TEMPERATURE)  # raw values (kelvin-like), not normalised
+    np.testing.assert_array_equal(read_vdb_grid_like(vdb_dir / "two.vdb", "temperature").to_dense(), TEMPERATURE)
     sparse_box = read_vdb_grid_like(vdb_dir / "sparse.vdb", "density")
     assert sparse_box.shape == load_volume(vdb_dir / "sparse.vdb").density.shape
     with pytest.raises(VolrenError, match=r"'temperature' \(emission_grid=, CLI: --emission-grid\) has another "
@@ -343,7 +340,7 @@ def test_pruned_interior_tiles_read_as_their_value(vdb_dir, tmp_path, compressio
             path = tmp_path / f"{compression}.vdb"
             path.write_bytes(f.to_bytes(compression=flags, level=5))
     loaded = load_volume(path)
-    np.testing.assert_array_equal(loaded.density, _active_crop(PRUNED))
+    np.testing.assert_array_equal(loaded.density.to_dense(), _active_crop(PRUNED))
     lo = np.add(PRUNED_IJK, (4, 4, 4))  # the active box's first voxel (x, y, z)
     np.testing.assert_allclose(_world(loaded, (0, 0, 0)), np.array(SCALE) * lo + TRANSLATION, atol=1e-12)
 
@@ -351,30 +348,34 @@ def test_pruned_interior_tiles_read_as_their_value(vdb_dir, tmp_path, compressio
 def test_pruned_half_precision_tiles(vdb_dir):
     loaded = load_volume(vdb_dir / "pruned-half.vdb")
     assert _tile_counts(vdb_dir / "pruned-half.vdb") == (0, 15)
-    np.testing.assert_array_equal(loaded.density, _active_crop(PRUNED).astype(np.float16).astype(np.float32))
+    np.testing.assert_array_equal(loaded.density.to_dense(), _active_crop(PRUNED).astype(np.float16).astype(np.float32))
 
 
 def test_upper_node_tile_fills_128_cubed(vdb_dir):
     assert _tile_counts(vdb_dir / "coarse.vdb") == (1, 0)
-    np.testing.assert_array_equal(load_volume(vdb_dir / "coarse.vdb").density, COARSE)
+    np.testing.assert_array_equal(load_volume(vdb_dir / "coarse.vdb").density.to_dense(), COARSE)
 
 
 def test_temperature_floor_tiles(vdb_dir):
     """300 K ambient everywhere but a hot core: the floor's whole 8^3 blocks are tiles, read back exactly."""
     assert _tile_counts(vdb_dir / "floor.vdb")[1] >= 100
-    np.testing.assert_array_equal(load_volume(vdb_dir / "floor.vdb").density, FLOOR)
+    np.testing.assert_array_equal(load_volume(vdb_dir / "floor.vdb").density.to_dense(), FLOOR)
 
 
 def test_root_tiles_fill_the_density_box_and_their_own_box_is_8192_wide(vdb_dir):
     """Ambient temperature as root tiles (4096^3 each) densified over the smoke's box, which straddles the inactive
     one and an active one; on its own its active box is the two active root tiles, too large to densify."""
     loaded = load_volume(vdb_dir / "ambient.vdb", emission_grid="temperature")
-    np.testing.assert_array_equal(loaded.density, SMOKE)
+    np.testing.assert_array_equal(loaded.density.to_dense(), SMOKE)
     expected = np.full(SMOKE.shape, 300.0, np.float32)
     expected[:, :, :8] = 0.0  # index x < 0: the inactive root tile
-    np.testing.assert_array_equal(loaded.emission_source, expected)
-    with pytest.raises(VolrenError, match=r"ambient\.vdb: a dense copy of 1 grid\(s\) of 8192x4096x4096 voxels"):
-        load_volume(vdb_dir / "ambient.vdb", grid="temperature")
+    np.testing.assert_array_equal(loaded.emission_source.to_dense(), expected)
+    # on its own: 8192 x 4096 x 4096 voxels in two root tiles, 300 K and 1200 K, as constant bricks but for the one
+    # layer whose apron meets the other tile (bricks of x 4080-4096): 256 x 256 of 33.5 M in the pool
+    ambient = load_volume(vdb_dir / "ambient.vdb", grid="temperature").density
+    assert ambient.shape == (4096, 4096, 8192) and len(ambient.pool) == 256 * 256 and ambient.max() == 1200.0
+    assert np.all(ambient.table[:, :, 255] >= 0) and np.all(ambient.table[:, :, :255] < 0)
+    assert ambient.read((4000, 7, 4094), (4001, 8, 4098)).tolist() == [[[300.0, 300.0, 1200.0, 1200.0]]]
 
 
 def _flame_box(canvas: np.ndarray) -> np.ndarray:
@@ -401,11 +402,11 @@ def test_fire_outside_the_smoke_box_is_cropped_not_wrapped(vdb_dir):
     assert tiles == {"density": [0, 0], "below": [0, 3], "above": [0, 2], "far-below": [1, 0]}
     for name, canvas in (("below", BELOW), ("above", ABOVE)):
         loaded = load_volume(path, emission_grid=name)
-        np.testing.assert_array_equal(loaded.density, FLAME)
+        np.testing.assert_array_equal(loaded.density.to_dense(), FLAME)
         expected = _flame_box(canvas)
         assert 0 < np.count_nonzero(expected) < expected.size // 10  # a sliver of the box overlaps the fire
-        np.testing.assert_array_equal(loaded.emission_source, expected, err_msg=name)
-    assert not load_volume(path, emission_grid="far-below").emission_source.any()
+        np.testing.assert_array_equal(loaded.emission_source.to_dense(), expected, err_msg=name)
+    assert load_volume(path, emission_grid="far-below").emission_source.max() == 0
 
 
 def test_fire_below_the_smoke_does_not_glow_on_its_far_side(vdb_dir):
@@ -417,7 +418,7 @@ def test_fire_below_the_smoke_does_not_glow_on_its_far_side(vdb_dir):
     path = vdb_dir / "flame.vdb"
     for name in ("below", "far-below"):
         loaded = load_volume(path, emission_grid=name)
-        fire = Volume(loaded.density, density_scale=1.0, albedo=0.0, emission_grid=loaded.emission_source,
+        fire = Volume(loaded.density, density_scale=1.0, albedo=0.0, emission_grid=loaded.emission_source.to_dense(),
                       temperature_range=(1000.0, 2000.0), emission_scale=5.0)
         image = renderer.render(scene_of(fire), [camera]).images[0]
         assert image[..., 3].min() > 0.5  # the smoke covers the picture

@@ -35,10 +35,10 @@ def test_double_grid_reads_as_float32_values_tiles_and_placement():
     assert _types(SIM) == ["Tree_double_5_4_3"] * 2  # what OpenVDB wrote: doubles, as C++ simulations do
     loaded = load_volume(SIM)
     assert loaded.density.dtype == np.float32 and loaded.density.shape == grids.SHAPE
-    np.testing.assert_array_equal(loaded.density, grids.DENSITY.astype(np.float32))  # leaves and tiles (0.5)
-    assert not np.array_equal(loaded.density.astype(np.float64), grids.DENSITY)  # rounded from real doubles
-    np.testing.assert_allclose(loaded.density, grids.DENSITY, rtol=1e-7, atol=0)
-    assert loaded.density[grids.MARKER] == 7.0 and np.count_nonzero(loaded.density == 7.0) == 1
+    np.testing.assert_array_equal(loaded.density.to_dense(), grids.DENSITY.astype(np.float32))  # leaves and tiles (0.5)
+    assert not np.array_equal(loaded.density.to_dense().astype(np.float64), grids.DENSITY)  # rounded from real doubles
+    np.testing.assert_allclose(loaded.density.to_dense(), grids.DENSITY, rtol=1e-7, atol=0)
+    assert loaded.density.to_dense()[grids.MARKER] == 7.0 and np.count_nonzero(loaded.density.to_dense() == 7.0) == 1
     marker = np.array(grids.SCALE) * (np.array(grids.IJK) + grids.MARKER[::-1]) + grids.CENTRED
     np.testing.assert_allclose(_world(loaded, grids.MARKER), marker, atol=1e-12)
     assert loaded.value_range is None  # floats are densities as they are
@@ -55,14 +55,15 @@ def test_double_grid_tiles_are_read_at_double_width():
         nodes = [tree.node(i) for i in range(tree.num_nodes)]
         assert sum(n.active_voxel_count for n in nodes if n.level == 2) == 2  # two active 8^3 tiles
         assert {len(n.data) for n in nodes if n.level == 3} == {8 * 512}  # tinyvdb's leaves: float64
-    density = load_volume(SIM).density
+    density = load_volume(SIM).density.to_dense()
     np.testing.assert_array_equal(density[5:13, 3:11, 4:20], 0.5)
 
 
 def test_double_emission_grid_lines_up():
     loaded = load_volume(SIM, emission_grid="temperature")
-    np.testing.assert_array_equal(loaded.emission_source, grids.TEMPERATURE.astype(np.float32))  # kelvin, raw
-    np.testing.assert_array_equal(load_volume(SIM, grid="temperature").density, grids.TEMPERATURE.astype(np.float32))
+    np.testing.assert_array_equal(loaded.emission_source.to_dense(), grids.TEMPERATURE.astype(np.float32))  # kelvin, raw
+    temperature = load_volume(SIM, grid="temperature").density.to_dense()
+    np.testing.assert_array_equal(temperature, grids.TEMPERATURE.astype(np.float32))
 
 
 def test_every_grid_offered_as_a_choice_reads():
@@ -77,7 +78,8 @@ def test_every_grid_offered_as_a_choice_reads():
     assert offered == "heat (double), flame (float)"
     expected = {"heat": grids.HEAT, "flame": grids.FLAME}
     for name in re.findall(r"(\w+) \(\w+\)", offered):
-        np.testing.assert_array_equal(load_volume(CHOICES, grid=name).density, expected[name].astype(np.float32))
+        got = load_volume(CHOICES, grid=name).density.to_dense()
+        np.testing.assert_array_equal(got, expected[name].astype(np.float32))
     with pytest.raises(VolrenError, match=r"grid 'count' is of type Tree_int32_5_4_3; grid= \(CLI: --grid\) needs a "
                        r"scalar float or double grid: pick one of heat \(double\), flame \(float\)$"):
         load_volume(CHOICES, grid="count")

@@ -61,18 +61,25 @@ def content_points(volumes) -> np.ndarray:
     zeros gives its box's corners."""
     import numpy as np
 
+    from volren.sparse import SparseGrid
+
     points = []
     for v in volumes:
-        density = np.asarray(v.density)
-        top = float(density.max())
+        top = float(v.density.max())
         if top <= 0:
             points.append(v.corners_world)
             continue
-        mask = density > CONTENT_SHARE * top
-        shape = mask.shape  # (z, y, x)
+        shape = v.density.shape  # (z, y, x)
         starts = [np.arange(0, n, -(-n // CONTENT_BLOCKS)) for n in shape]
-        for axis, s in enumerate(starts):
-            mask = np.logical_or.reduceat(mask, s, axis=axis)
+        if isinstance(v.density, SparseGrid):  # a block holds content if a brick of it holds a dense enough voxel
+            mask = v.density.cell_ranges()[1] > CONTENT_SHARE * top  # cells of B voxels
+            first = [np.minimum(s // v.density.brick, m - 1) for s, m in zip(starts, mask.shape, strict=True)]
+            for axis, s in enumerate(first):
+                mask = np.logical_or.reduceat(mask, s, axis=axis)
+        else:
+            mask = np.asarray(v.density) > CONTENT_SHARE * top
+            for axis, s in enumerate(starts):
+                mask = np.logical_or.reduceat(mask, s, axis=axis)
         z, y, x = np.nonzero(mask)
         # a block's centre in local [-1, 1]: (start + end) / 2 voxels
         local = [-1.0 + (s[i] + np.append(s[1:], n)[i]) / n for s, n, i in zip(starts[::-1], shape[::-1], (x, y, z),

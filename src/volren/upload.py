@@ -42,13 +42,11 @@ from volren.scene import (
     Volume,
     _downsample,
 )
-from volren.sparse import SparseGrid, brick_dense
+from volren.sparse import BRICK, SparseGrid, brick_dense
 
 MAX_PACKED = 2**31 - 1
 """Kernels index the packed arrays with 32-bit ints."""
 MAX_LIGHT_GRID = 1024
-BRICK = 16
-"""[cells] edge B of the density bricks: the choice of docs/bench/bricks-decision.md (issue 41 item 1)"""
 
 
 def opaque_structs(scene: Scene) -> list[OpaqueGPU]:

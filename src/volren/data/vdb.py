@@ -1,10 +1,12 @@
 """OpenVDB ``.vdb`` files (Houdini, Blender, EmberGen smoke and fire, C++ simulations) through tinyvdb: ZIP / Blosc,
 float, double (read as float32) and half precision.
 
-A grid is densified over its active voxels' index bounding box (OpenVDB's ``file_bbox_min`` / ``file_bbox_max``
-stats, which ``openvdb::io::File::write`` stores for every grid; else the box of its active leaves and tiles), inactive
-voxels reading as the background value. Active tiles (the constant regions ``prune()`` stores in the internal nodes
-and the root instead of leaves: 8^3, 128^3 and 4096^3 voxels) fill their region with their value. Placement is the
+A grid is read as bricks (`volren.sparse.SparseGrid`, issue 41 item 2) over its active voxels' index bounding box
+(OpenVDB's ``file_bbox_min`` / ``file_bbox_max`` stats, which ``openvdb::io::File::write`` stores for every grid; else
+the box of its active leaves and tiles), without a dense copy: memory goes with the active voxels, not the box.
+Inactive voxels read as the background value. Active tiles (the constant regions ``prune()`` stores in the internal
+nodes and the root instead of leaves: 8^3, 128^3 and 4096^3 voxels) fill their region with their value: constant
+bricks, no pool memory. Placement is the
 grid's index-to-world map (OpenVDB's row-vector convention, world = [i j k 1] M): translation, non-unit and
 non-uniform voxel sizes, or a general affine map. OpenVDB states no length unit; volren reads it as metres (Blender
 and Houdini work in metres) unless ``units`` says otherwise.
@@ -20,9 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from volren.errors import VolrenError
+from volren.sparse import BRICK, BrickBuilder, SparseGrid
 
-MAX_DENSE_VOXELS = 1 << 30
-"""A dense copy of a sparse grid larger than this (4 GiB of float32) is refused before anything is allocated."""
+MAX_TABLE_BRICKS = 1 << 30
+"""[bricks] of the page table over a grid's active box: 4 GiB of int32 entries (a 16384^3 box at B = 16)"""
 _SCALAR_TREES = {"Tree_float_": np.dtype("<f4"), "Tree_double_": np.dtype("<f8")}
 """type-name prefixes of the scalar grids volren reads, and the values tinyvdb decodes their leaves to: float (half
 precision is a float grid stored with ``is_saved_as_half_float``, as OpenVDB 10 writes it) and double (C++
@@ -60,11 +63,10 @@ class _Tiles:
 
 @dataclass(frozen=True)
 class VdbGrid:
-    """One grid densified over an index box."""
+    """One grid over an index box, as bricks."""
 
-    data: np.ndarray
-    """float32 ``[z, y, x]``: dense index (0, 0, 0) is file index ``lo``; a view into the leaf-aligned box (not
-    contiguous unless the box is leaf-aligned)."""
+    data: SparseGrid
+    """float32 ``[z, y, x]``: index (0, 0, 0) is file index ``lo``"""
     lo: tuple[int, int, int]
     """inclusive index bounds (x, y, z) of the box."""
     hi: tuple[int, int, int]
@@ -375,49 +377,55 @@ def _float32(values: np.ndarray, what: str) -> np.ndarray:
     return values.astype(np.float32, copy=False)
 
 
-def _densify(leaves: list, origins: np.ndarray, tiles: _Tiles, dtype: np.dtype, lo: np.ndarray, hi: np.ndarray,
-             background: float, what: str) -> np.ndarray:
-    """float32 ``[z, y, x]`` over the inclusive box: each active tile's cube (clipped to the box) set to its value,
-    each 8^3 leaf (tinyvdb's values of ``dtype``, x slowest, z fastest) copied into its place through a block view of
-    the output, the rest the background. Leaves are scattered in chunks, so only a chunk's values are joined; a
-    double grid's are rounded to float32 (``_float32``; ``what`` names the grid)."""
-    start, stop = (lo >> 3) << 3, ((hi >> 3) + 1) << 3  # the box widened to whole leaves (tiles are whole leaves)
-    blocks = (stop - start) >> 3
-    inside = np.flatnonzero(np.all((origins >= start) & (origins < stop), axis=1))
-    shape = (blocks[2] * 8, blocks[1] * 8, blocks[0] * 8)
-    full = len(inside) == np.prod(blocks)  # leaves cover every block (a dense grid): no background to fill
-    out = np.empty(shape, np.float32) if full else np.full(shape, background, dtype=np.float32)
-    blocked = out.reshape(blocks[2], 8, blocks[1], 8, blocks[0], 8).transpose(0, 2, 4, 5, 3, 1)  # [bz, by, bx, x, y, z]
+def _brickify(leaves: list, origins: np.ndarray, tiles: _Tiles, dtype: np.dtype, lo: np.ndarray, hi: np.ndarray,
+              background: float, what: str) -> SparseGrid:
+    """The grid over the inclusive index box [lo, hi] as bricks (`volren.sparse.BrickBuilder`), without a dense copy
+    (issue 41 item 2): each 8^3 leaf (tinyvdb's values of ``dtype``, x slowest, z fastest) and each leaf-sized tile
+    scattered into the bricks that hold its voxels, in chunks; a larger tile (128^3, 4096^3) a constant box, whose
+    inner bricks become constants and only its border bricks take pool memory; inactive voxels the background. A
+    double grid's values are rounded to float32 (``_float32``; ``what`` names the grid). Memory: the bricks the
+    leaves and tiles touch, (B+1)^3 / B^3 of their voxels and the bricks' unfilled part."""
+    shape = tuple(int(n) for n in (hi - lo + 1)[::-1])
+    builder = BrickBuilder(shape, BRICK, background)
     small = tiles.extents == 8
-    b = (tiles.origins[small] - start) >> 3
-    keep = np.all((b >= 0) & (b < blocks), axis=1)
     tile_values = _float32(tiles.values, what)
-    blocked[b[keep, 2], b[keep, 1], b[keep, 0]] = tile_values[small][keep, None, None, None]  # one leaf each
-    for o, e, v in zip(tiles.origins[~small], tiles.extents[~small], tile_values[~small], strict=True):
-        a, z = np.maximum(o, start) - start, np.minimum(o + e, stop) - start  # 128^3 / 4096^3, few: one slice each
-        if np.all(z > a):
-            out[a[2] : z[2], a[1] : z[1], a[0] : z[0]] = v
+    big = (tiles.origins[~small] - lo)[:, ::-1]
+    builder.tiles(big, big + tiles.extents[~small, None] - 1, tile_values[~small])
+    corners = np.concatenate([origins, tiles.origins[small]]) - lo  # (x, y, z) of every 8^3 block, in the box
+    keep = np.all((corners + 7 >= 0) & (corners <= hi - lo), axis=1)
+    first = corners[:, ::-1]
+    builder.touch(first[keep], first[keep] + 7)
+    offsets = np.stack(np.meshgrid(np.arange(8), np.arange(8), np.arange(8), indexing="ij"), -1).reshape(-1, 3)
+    inside = np.flatnonzero(keep)
+    count = len(origins)
     for chunk in np.array_split(inside, max(1, len(inside) // _LEAF_CHUNK)):
-        values = _float32(np.frombuffer(b"".join(leaves[i].data for i in chunk), dtype), what).reshape(-1, 8, 8, 8)
-        b = (origins[chunk] - start) >> 3
-        blocked[b[:, 2], b[:, 1], b[:, 0]] = values
-    # a view: the caller copies it contiguous once tinyvdb's trees are freed (load_volume's validate_density does)
-    return out[lo[2] - start[2] : hi[2] + 1 - start[2], lo[1] - start[1] : hi[1] + 1 - start[1],
-               lo[0] - start[0] : hi[0] + 1 - start[0]]
+        is_leaf = chunk < count
+        values = np.empty((len(chunk), 8, 8, 8), np.float32)  # [block, x, y, z] as the file stores a leaf
+        if is_leaf.any():
+            raw = np.frombuffer(b"".join(leaves[i].data for i in chunk[is_leaf]), dtype)
+            values[is_leaf] = _float32(raw, what).reshape(-1, 8, 8, 8)
+        values[~is_leaf] = tile_values[small][chunk[~is_leaf] - count, None, None, None]
+        voxels = (first[chunk][:, None, :] + offsets[None]).reshape(-1, 3)  # [block, z, y, x] order
+        values = values.transpose(0, 3, 2, 1).reshape(-1)
+        valid = np.all((voxels >= 0) & (voxels < shape), axis=1)
+        builder.scatter(voxels[valid], values[valid])
+    return builder.build()
 
 
-def _check_size(path: Path, lo: np.ndarray, hi: np.ndarray, grids: int) -> None:
-    size = hi - lo + 1
-    if grids * int(np.prod(size)) > MAX_DENSE_VOXELS:
-        raise VolrenError(f"{path}: a dense copy of {grids} grid(s) of {size[0]}x{size[1]}x{size[2]} voxels is too "
-                          f"large to load (limit {MAX_DENSE_VOXELS} voxels)")
+def _check_size(path: Path, lo: np.ndarray, hi: np.ndarray) -> None:
+    """The page table over the index box must stay addressable (int32 entries, one per brick of `BRICK`^3 cells)."""
+    bricks = int(np.prod(-(-(hi - lo) // BRICK), dtype=np.int64))
+    if bricks > MAX_TABLE_BRICKS:
+        size = hi - lo + 1
+        raise VolrenError(f"{path}: the active box of {size[0]}x{size[1]}x{size[2]} voxels needs {bricks} bricks' "
+                          f"page table, more than {MAX_TABLE_BRICKS}")
 
 
 def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | None = None
-             ) -> tuple[VdbGrid, np.ndarray | None]:
-    """The density grid (``grid``, see ``_find_grid``) densified over its active box, and ``emission_grid`` (e.g.
-    ``temperature``, raw values) densified over the same index box, or None. The emission grid must share the
-    density grid's transform, so that voxel (i, j, k) of both is the same place."""
+             ) -> tuple[VdbGrid, SparseGrid | None]:
+    """The density grid (``grid``, see ``_find_grid``) over its active box, and ``emission_grid`` (e.g.
+    ``temperature``, raw values) over the same index box, or None: bricks (`_brickify`). The emission grid must share
+    the density grid's transform, so that voxel (i, j, k) of both is the same place."""
     path = Path(path)
     vdb = _open(path)
     data = _map(path)
@@ -434,27 +442,25 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
             if not np.allclose(_index_to_world(path, other), to_world, rtol=1e-9, atol=0.0):
                 raise VolrenError(f"{path}: grid {emission_grid!r} (emission_grid=, CLI: --emission-grid) has another "
                                   f"index-to-world transform than the density grid {density_grid.name!r}")
-        _check_size(path, lo, hi, 1 if emission_grid is None else 2)
-        values = _densify(leaves, origins, tiles, dtype, lo, hi, density_grid.float_background(),
-                          f"{path}: grid {density_grid.name!r}")
+        _check_size(path, lo, hi)
+        values = _brickify(leaves, origins, tiles, dtype, lo, hi, density_grid.float_background(),
+                           f"{path}: grid {density_grid.name!r}")
         if emission_grid is not None:
-            emission = _densify(*_leaves(path, data, vdb, other_index), lo, hi, other.float_background(),
-                                f"{path}: grid {emission_grid!r} (emission_grid=, CLI: --emission-grid)")
-            if not np.all(np.isfinite(emission)):
+            emission = _brickify(*_leaves(path, data, vdb, other_index), lo, hi, other.float_background(),
+                                 f"{path}: grid {emission_grid!r} (emission_grid=, CLI: --emission-grid)")
+            if not (np.isfinite(emission.min()) and np.isfinite(emission.max())):
                 raise VolrenError(f"{path}: grid {emission_grid!r} (emission_grid=, CLI: --emission-grid) holds "
                                   "NaN/Inf values")
     finally:
-        vdb.close()  # the sparse trees go before the caller validates (and copies) the dense grid
+        vdb.close()
         data.close()
-    if emission is not None:
-        emission = np.ascontiguousarray(emission)
     placed = to_world.copy()
     placed[:3, 3] = to_world[:3, :3] @ lo + to_world[:3, 3]  # dense index 0 is file index lo
     return VdbGrid(values, tuple(int(v) for v in lo), tuple(int(v) for v in hi), placed), emission
 
 
-def read_vdb_grid_like(path: str | Path, name: str, like: str | None = None) -> np.ndarray:
-    """Grid ``name`` of the file as float32 ``[z, y, x]``, densified over the index box of the density grid ``like``
+def read_vdb_grid_like(path: str | Path, name: str, like: str | None = None) -> SparseGrid:
+    """Grid ``name`` of the file as float32 ``[z, y, x]`` bricks over the index box of the density grid ``like``
     (chosen as ``read_vdb`` does when None), so that it lines up voxel for voxel with ``load_volume``'s density."""
     _, emission = read_vdb(path, like, name)
     return emission

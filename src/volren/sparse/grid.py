@@ -29,6 +29,9 @@ import numpy as np
 
 from volren.errors import VolrenError
 
+BRICK = 16
+"""[cells] edge B of the bricks volren stores densities in: the choice of docs/bench/bricks-decision.md (issue 41
+item 1)"""
 EMPTY = -1
 """page-table entry of a brick whose voxels are all 0 (``constants[0]``)"""
 MAX_POOL_VOXELS = 2**31 - 1
@@ -80,7 +83,7 @@ class SparseGrid:
         values = self.constants[np.clip(-1 - self.table, 0, None)]
         lo, hi = values.copy(), values.copy()
         resident = self.table >= 0
-        flat = self.pool.reshape(len(self.pool), -1)
+        flat = self.pool.reshape(len(self.pool), self.edge**3)
         lo[resident] = flat.min(axis=1)[self.table[resident]] if len(flat) else 0.0
         hi[resident] = flat.max(axis=1)[self.table[resident]] if len(flat) else 0.0
         return lo, hi
@@ -296,6 +299,10 @@ class BrickBuilder:
         self._boxes: list[tuple[np.ndarray, np.ndarray, float]] = []
         """constant boxes whose bricks lie wholly inside them: (first brick, last brick + 1, value)"""
         self._put: dict[tuple[int, int, int], np.ndarray] = {}
+        self._constant_bricks: list[tuple[np.ndarray, np.ndarray]] = []
+        """bricks (K, 3) found constant without a block, and their values"""
+        self._tile_boxes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        """the `tiles` boxes, written into the declared bricks at `build`"""
 
     def _key(self, c: np.ndarray) -> np.ndarray:
         return (c[..., 0] * self.counts[1] + c[..., 1]) * self.counts[2] + c[..., 2]
@@ -345,7 +352,7 @@ class BrickBuilder:
         b = self.brick
         c0, r0 = voxels // b, voxels % b
         values = np.asarray(values, np.float32)
-        flat = pool.reshape(len(pool), -1)
+        flat = pool.reshape(len(pool), (self.brick + 1) ** 3)
         e = b + 1
         for sub in range(8):  # bit a set: the copy in the apron of the brick before along axis a
             shift = np.array([(sub >> 2) & 1, (sub >> 1) & 1, sub & 1])
@@ -358,25 +365,73 @@ class BrickBuilder:
             r = np.where(shift == 1, b, r0[mask])
             flat[self._slots(c[mask]), (r[:, 0] * e + r[:, 1]) * e + r[:, 2]] = values[mask]
 
+    def tiles(self, lo: np.ndarray, hi: np.ndarray, values: np.ndarray) -> None:
+        """Constant boxes of voxels [lo, hi] (inclusive, (T, 3) z, y, x; OpenVDB's 128^3 and 4096^3 tiles, which do
+        not overlap), declared before any other `touch`: a brick whose apron block lies inside one box, or inside
+        boxes of one value together (tiles side by side), is a constant and takes no pool memory; only the bricks on
+        their outer border are declared, and `build` writes the boxes into them (a 4096^3 root tile: 390 K of its
+        16.7 M bricks, and none where tiles of its value surround it)."""
+        lo = np.maximum(np.atleast_2d(lo), 0)
+        hi = np.minimum(np.atleast_2d(hi), np.array(self.shape) - 1)
+        values = np.asarray(values, np.float32).reshape(-1)
+        live = np.all(hi >= lo, axis=1)
+        lo, hi, values = lo[live], hi[live], values[live]
+        b, top = self.brick, np.array(self.shape) - 1
+        border = []
+        for t in range(len(lo)):
+            first, last = self.touched(lo[t], hi[t])
+            # inner bricks: apron block [c B, c B + B] within the box, or past the grid's border (edge repeats)
+            inner_first = -(-lo[t] // b)
+            inner_last = np.where(hi[t] >= top, last, (hi[t] - b) // b)
+            if np.all(inner_last >= inner_first):
+                self._boxes.append((inner_first, inner_last + 1, float(values[t])))
+            for axis in range(3):  # the slabs below and above the inner range along each axis
+                for a, z in ((first[axis], min(inner_first[axis] - 1, last[axis])),
+                             (max(inner_last[axis] + 1, first[axis]), last[axis])):
+                    if a <= z:
+                        f, e = first.copy(), last.copy()
+                        f[axis], e[axis] = a, z
+                        grid = np.meshgrid(*[np.arange(i, j + 1) for i, j in zip(f, e, strict=True)], indexing="ij")
+                        border.append(np.stack(grid, -1).reshape(-1, 3))
+        if not border:
+            return
+        coords = np.unique(np.concatenate(border), axis=0)
+        # a border brick wholly covered by boxes of one value is a constant: voxels of its apron block (clipped to
+        # the grid, as the edge repeats) that each value's boxes cover
+        blo, bhi = coords * b, np.minimum(coords * b + b, top)
+        need = np.prod(bhi - blo + 1, axis=1)
+        covered = np.zeros(len(coords), bool)
+        for v in np.unique(values):
+            got = np.zeros(len(coords), np.int64)
+            for t in np.flatnonzero(values == v):
+                got += np.prod(np.clip(np.minimum(bhi, hi[t]) - np.maximum(blo, lo[t]) + 1, 0, None), axis=1)
+            full = got == need
+            if full.any():
+                self._constant_bricks.append((coords[full], np.full(full.sum(), v, np.float32)))
+            covered |= full
+        self._tile_boxes = (lo, hi, values)
+        self._keys = np.unique(np.concatenate([self._keys, self._key(coords[~covered])]))
+
+    def touch_bricks(self, first: np.ndarray, last: np.ndarray) -> None:
+        """Declare the bricks first..last (inclusive, z, y, x)."""
+        if self._pool is not None:
+            raise VolrenError("BrickBuilder: touch every box before the first write")
+        c = np.stack(np.meshgrid(*[np.arange(f, t + 1) for f, t in zip(first, last, strict=True)], indexing="ij"), -1)
+        self._keys = np.unique(np.concatenate([self._keys, self._key(c.reshape(-1, 3))]))
+
     def fill(self, lo: np.ndarray, hi: np.ndarray, value: float) -> None:
-        """A constant box of voxels [lo, hi] (inclusive, z, y, x; an OpenVDB tile): bricks whose whole apron block
-        lies inside become constants at `build`; the touched bricks on its border get its voxels written."""
+        """Write a constant box of voxels [lo, hi] (inclusive, z, y, x) into the declared bricks it meets (`tiles`
+        declares a tile's border bricks and writes its inner ones as constants)."""
         lo, hi = np.maximum(np.asarray(lo), 0), np.minimum(np.asarray(hi), np.array(self.shape) - 1)
         if np.any(hi < lo):
             return
         b = self.brick
-        inner_first = -(-lo // b)  # apron blocks [c B, c B + B] within [lo, hi]
-        inner_last = (hi - b) // b
-        if np.all(inner_last >= inner_first):
-            self._boxes.append((inner_first, inner_last + 1, float(value)))
         pool = self._blocks()
         first, last = self.touched(lo, hi)
-        for c in np.stack(np.meshgrid(*[np.arange(f, t + 1) for f, t in zip(first, last, strict=True)],
-                                      indexing="ij"), -1).reshape(-1, 3):
-            key = self._key(c)
-            slot = np.searchsorted(self._keys, key)
-            if slot == len(self._keys) or self._keys[slot] != key:
-                continue  # wholly inside the box (a constant) or not declared
+        coords = np.stack(np.unravel_index(self._keys, tuple(self.counts)), -1)
+        # the declared bricks the box meets (`tiles` declares only its border ones)
+        for slot in np.flatnonzero(np.all((coords >= first) & (coords <= last), axis=1)):
+            c = coords[slot]
             a = np.maximum(lo - c * b, 0)
             z = np.minimum(hi - c * b, b) + 1
             pool[slot, a[0]:z[0], a[1]:z[1], a[2]:z[2]] = value
@@ -389,6 +444,9 @@ class BrickBuilder:
 
     def build(self) -> SparseGrid:
         b, e = self.brick, self.brick + 1
+        if self._tile_boxes is not None:
+            for lo, hi, value in zip(*self._tile_boxes, strict=True):
+                self.fill(lo, hi, float(value))
         if self._put:
             keys = self._key(np.array(list(self._put), np.int64).reshape(-1, 3))
             order = np.argsort(keys)
@@ -412,12 +470,16 @@ class BrickBuilder:
             values.append(np.full(constant.sum(), value, np.float32))
             kinds.append((where, constant))
             pools.append(np.zeros((0, e, e, e), np.float32))
+        for c, value in self._constant_bricks:
+            values.append(value)
+            kinds.append((tuple(c.T), np.ones(len(c), bool)))
+            pools.append(np.zeros((0, e, e, e), np.float32))
         if self.background != 0:
             whole = tuple(slice(0, n) for n in self.counts)
             values.insert(0, np.full(table.size, self.background, np.float32))
             kinds.insert(0, (whole, np.ones(table.shape, bool)))
             pools.insert(0, np.zeros((0, e, e, e), np.float32))
-        flat = pool.reshape(len(pool), -1)
+        flat = pool.reshape(len(pool), (self.brick + 1) ** 3)
         lo, hi = flat.min(axis=1, initial=np.inf), flat.max(axis=1, initial=-np.inf)
         constant = lo == hi
         resident = np.flatnonzero(~constant)

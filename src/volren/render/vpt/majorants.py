@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from volren.kernels.common import INF, VolumeGPU, box_hit, sample_density
+from volren.sparse import SparseGrid
 
 MACROCELL = 8
 """voxels per macrocell axis"""
@@ -94,20 +95,27 @@ class Majorants:
         return int(self.lo.nbytes + self.hi.nbytes + sum(level.nbytes for level in self.levels))
 
 
-def table_scale(density: np.ndarray) -> float:
+def table_scale(density: np.ndarray | SparseGrid) -> float:
     """The density that u = 1 of an extinction table stands for (u = density / scale)."""
     return float(density.max()) or 1.0
 
 
-def build_majorants(density: np.ndarray, extinction: np.ndarray, ranges: np.ndarray | None = None,
+def build_majorants(density: np.ndarray | SparseGrid, extinction: np.ndarray, ranges: np.ndarray | None = None,
                     global_majorant: bool = False) -> Majorants:
     """The majorant octree of a density grid [z, y, x] under the extinction table (indexed by u = value / max).
     ``ranges``: the range-maximum table of ``extinction`` (computed if None). ``global_majorant``: one cell for the
-    whole volume (the single global majorant, for comparison)."""
+    whole volume (the single global majorant, for comparison). A `SparseGrid`'s macrocells are its bricks (issue 41:
+    "majorants per brick"), their ranges read from the page table (`SparseGrid.cell_ranges`), not a dense copy."""
     start = time.perf_counter()
     voxels = tuple(density.shape[::-1])
-    cell = voxels if global_majorant else (MACROCELL,) * 3
-    lo, hi = scalar_ranges(density, cell)
+    if isinstance(density, SparseGrid):
+        lo, hi = density.cell_ranges()
+        cell = (density.brick,) * 3
+        if global_majorant:
+            lo, hi, cell = np.full((1, 1, 1), lo.min()), np.full((1, 1, 1), hi.max()), voxels
+    else:
+        cell = voxels if global_majorant else (MACROCELL,) * 3
+        lo, hi = scalar_ranges(density, cell)
     scale = table_scale(density)
     m = range_max_table(extinction) if ranges is None else ranges
     n = len(extinction) - 1
