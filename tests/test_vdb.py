@@ -263,7 +263,7 @@ def test_empty_and_truncated_files_are_one_line_errors(vdb_dir, name, fragment):
 def test_emission_grid_lines_up_with_the_density(vdb_dir):
     loaded = load_volume(vdb_dir / "two.vdb", emission_grid="temperature")
     np.testing.assert_array_equal(loaded.density.to_dense(), DENSITY)
-    np.testing.assert_array_equal(loaded.emission_source.to_dense(), TEMPERATURE)  # raw values (kelvin-like), not normalised
+    np.testing.assert_array_equal(loaded.emission_source.to_dense(), TEMPERATURE)  # raw (kelvin-like) values
     np.testing.assert_array_equal(read_vdb_grid_like(vdb_dir / "two.vdb", "temperature").to_dense(), TEMPERATURE)
     sparse_box = read_vdb_grid_like(vdb_dir / "sparse.vdb", "density")
     assert sparse_box.shape == load_volume(vdb_dir / "sparse.vdb").density.shape

@@ -61,7 +61,7 @@ def test_double_grid_tiles_are_read_at_double_width():
 
 def test_double_emission_grid_lines_up():
     loaded = load_volume(SIM, emission_grid="temperature")
-    np.testing.assert_array_equal(loaded.emission_source.to_dense(), grids.TEMPERATURE.astype(np.float32))  # kelvin, raw
+    np.testing.assert_array_equal(loaded.emission_source.to_dense(), grids.TEMPERATURE.astype(np.float32))  # kelvin
     temperature = load_volume(SIM, grid="temperature").density.to_dense()
     np.testing.assert_array_equal(temperature, grids.TEMPERATURE.astype(np.float32))
 
