@@ -147,8 +147,8 @@ def need(key: BrickKey, visible: bool, distance: float) -> BrickNeed:
 def frame_needs(views: Sequence[Camera], to_world: np.ndarray, layout: PyramidLayout, *, step: float = 0.0
                 ) -> list[BrickNeed]:
     """The bricks a frame seen by ``views`` needs, by the level rule and the descent of the module docstring, in
-    priority order. Each brick judged for every view: visible in any, at the level the nearest view wants (the
-    smallest footprint), its distance the nearest view's."""
+    priority order. Each brick is judged for every view: visible where any view sees it, at the finest level a view
+    that sees it wants, its distance the nearest such view's (the nearest view's where none sees it)."""
     if not views:
         raise ValueError("frame_needs needs at least one view")
     sizes = [voxel_size(to_world, s) for s in layout.shapes]
@@ -158,10 +158,11 @@ def frame_needs(views: Sequence[Camera], to_world: np.ndarray, layout: PyramidLa
     while stack:
         level, brick = stack.pop()
         lo, hi = brick_box(to_world, layout, level, brick)
-        visible = any(in_frustum(v, lo, hi) for v in views)
-        distance = min(box_distance(v.position, lo, hi) for v in views)
-        want = min(wanted_level(sizes, pixel_footprint(box_distance(v.position, lo, hi), v.fov_y, v.height), step)
-                   for v in views)
+        seen = [v for v in views if in_frustum(v, lo, hi)]
+        distance = min(box_distance(v.position, lo, hi) for v in seen or views)
+        want = min((wanted_level(sizes, pixel_footprint(box_distance(v.position, lo, hi), v.fov_y, v.height), step)
+                    for v in seen), default=level)
+        visible = bool(seen)
         if visible and want < level:
             stack.extend((level - 1, c) for c in layout.children(level, brick))
         else:
