@@ -88,6 +88,7 @@ class BrickCache:
                 self._floor.add(key)
             return True
 
-    def keys(self) -> list[BrickKey]:
+    def resident_keys(self) -> list[BrickKey]:
+        """The resident bricks, least recently used first."""
         with self._lock:
             return list(self._bricks)

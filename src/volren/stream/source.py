@@ -81,7 +81,7 @@ class PyramidSource:
         self._chunks: OrderedDict[tuple[int, ...], np.ndarray | None] = OrderedDict()
         self._chunk_bytes = 0
         self._chunk_budget = int(chunk_cache_bytes)
-        self._absent: dict[tuple[int, ...], bool] = {}
+        self._reading: dict[tuple[int, ...], threading.Event] = {}
         self.bad_chunks: dict[str, str] = {}
         """chunk key (the array's path and the chunk's key in the store) -> why it is bad"""
         self._unwarned: list[str] = []
@@ -214,19 +214,32 @@ class PyramidSource:
         return data
 
     def _chunk(self, level: int, space_chunk: Brick) -> np.ndarray | None:
+        """The chunk from the LRU, or read once: a reader that meets a chunk another is reading waits for it."""
         key = (level, *space_chunk)
-        with self._lock:
-            if key in self._chunks:
-                self._chunks.move_to_end(key)
-                return self._chunks[key]
-        data = self._read_chunk(level, space_chunk)
-        with self._lock:
-            if key not in self._chunks:
-                self._chunks[key] = data
-                self._chunk_bytes += 0 if data is None else data.nbytes
-                while self._chunk_bytes > self._chunk_budget and len(self._chunks) > 1:
-                    _, old = self._chunks.popitem(last=False)
-                    self._chunk_bytes -= 0 if old is None else old.nbytes
+        while True:
+            with self._lock:
+                if key in self._chunks:
+                    self._chunks.move_to_end(key)
+                    return self._chunks[key]
+                event = self._reading.get(key)
+                if event is None:
+                    event = self._reading[key] = threading.Event()
+                    break
+            event.wait()  # then take it from the LRU (or read it, where it was already evicted or failed)
+        done, data = False, None
+        try:
+            data = self._read_chunk(level, space_chunk)
+            done = True
+        finally:
+            with self._lock:
+                del self._reading[key]
+                if done:
+                    self._chunks[key] = data
+                    self._chunk_bytes += 0 if data is None else data.nbytes
+                    while self._chunk_bytes > self._chunk_budget and len(self._chunks) > 1:
+                        _, old = self._chunks.popitem(last=False)
+                        self._chunk_bytes -= 0 if old is None else old.nbytes
+            event.set()
         return data
 
     # ------------------------------------------------------------------ bricks

@@ -159,6 +159,16 @@ class BrickStreamer:
                 return lv, b, array
         raise AssertionError("the coarsest level is always resident")  # the floor is never evicted
 
+    def queued(self) -> int:
+        """Bricks waiting for a reader."""
+        with self._cond:
+            return len(self._heap)
+
+    def reading(self) -> int:
+        """Bricks a reader is reading now."""
+        with self._cond:
+            return len(self._in_flight)
+
     def pending(self) -> int:
         """Admitted bricks of the last request neither resident nor bad yet."""
         with self._cond:
