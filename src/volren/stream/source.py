@@ -19,6 +19,7 @@ value, and the warning says so.
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import threading
 import warnings
@@ -42,6 +43,8 @@ def _open_group(url: str, storage_options: dict[str, Any] | None) -> tuple[Any, 
     import zarr  # lazy: only Zarr users pay for the import
 
     if "://" in url and not url.startswith("file://"):
+        if url.startswith(("s3://", "s3a://")) and importlib.util.find_spec("s3fs") is None:
+            raise VolrenError(f"{url}: s3:// stores need s3fs: pip install 'volren[s3]'")
         return zarr.open_group(url, mode="r", storage_options=storage_options), None
     path = Path(url.removeprefix("file://"))
     if not path.exists():

@@ -100,8 +100,8 @@ class BrickStreamer:
                 self._in_flight.discard(key)
                 if array is None:
                     self._bad.add(key)
-                else:
-                    self.cache.put(key, array)
+                elif not self.cache.put(key, array) and key in self._admitted:  # cannot happen: admitted bricks fit
+                    self._admitted = [k for k in self._admitted if k != key]  # beside the floor; never wait on one
                 self._cond.notify_all()
 
     def _warn(self) -> None:
