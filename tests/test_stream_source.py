@@ -207,3 +207,28 @@ def test_a_place_without_a_pyramid_is_one_line(tmp_path):
     zarr.open_group(str(tmp_path / "g.zarr"), mode="w")
     with pytest.raises(VolrenError, match="without OME-Zarr 'multiscales'"):
         PyramidSource(tmp_path / "g.zarr")
+
+
+@pytest.mark.timeout(60)
+def test_a_missing_chunk_over_http_is_found_as_on_disk(tmp_path):
+    write_pyramid(tmp_path / "p.zarr")
+    (tmp_path / "p.zarr" / "s1" / "c" / "0" / "0" / "1").unlink()  # level 1's chunk (0, 0, 1): x voxels 16..19
+    with serve_folder(tmp_path) as url, PyramidSource(f"{url}/p.zarr") as source:
+        with pytest.warns(VolrenWarning, match=r"chunk 's1/c/0/0/1' of level 1 is missing where level 2 holds data"):
+            assert source.read_brick(1, 0, 0, 1) is None
+        assert list(source.bad_chunks) == ["s1/c/0/0/1"]
+
+
+@pytest.mark.timeout(60)
+def test_the_stream_package_builds_on_data_only():
+    """Source -> cache -> renderer, one way: volren.stream imports no renderer, plan, front end or Warp itself."""
+    from test_layout import SRC, imported_modules
+
+    files = sorted((SRC / "stream").glob("*.py"))
+    assert {p.stem for p in files} >= {"__init__", "layout", "source", "lod", "cache", "streamer"}
+    found = {m for p in files for _, m in imported_modules(p.read_text(), "volren.stream")}
+    allowed = ("volren.stream", "volren.data.omezarr", "volren.data.grid", "volren.errors", "volren.camera")
+    volren = {m for m in found if m.startswith("volren.")}
+    assert {m for m in volren if not m.startswith(allowed)} == set()
+    assert {a for a in allowed if any(m.startswith(a) for m in volren)} == set(allowed)  # the check reads imports
+    assert not any(m == "warp" or m.startswith("warp.") for m in found)
