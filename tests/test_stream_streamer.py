@@ -166,3 +166,11 @@ def test_a_missing_chunk_is_drawn_from_its_ancestor_with_one_warning(tmp_path):
             warnings.simplefilter("error")  # the next frames: no second warning, no second read
             assert streamer.wait(all_level0(), timeout=30)
             assert streamer.stats()["bricks_loaded"] == 0
+    with PyramidSource(tmp_path / "p.zarr") as source, \
+            BrickStreamer(source, memory_budget=1 << 26, progressive=False) as streamer:
+        one = [need((0, 1, 0, 1), True, 0.0)]
+        with pytest.warns(VolrenWarning, match="s0/c/1/1/1"):
+            assert streamer.wait(one, timeout=30)
+        assert streamer.best_resident(0, (1, 0, 1))[0] == 2  # no ancestor asked for: the coarsest
+        assert streamer.wait(one, timeout=30)  # now known bad: its parent stands in
+        assert streamer.best_resident(0, (1, 0, 1))[:2] == (1, (0, 0, 0))

@@ -51,12 +51,13 @@ class BrickStreamer:
 
     def __init__(self, source: PyramidSource, *, memory_budget: float, workers: int = WORKERS,
                  progressive: bool = True) -> None:
+        """``memory_budget`` [bytes] of resident bricks, the coarsest level's included; ``workers`` reader threads;
+        ``progressive``: request the coarser ancestors of each need too (module docstring)."""
         self.source = source
         self.layout = source.layout
         self.progressive = progressive
         self.cache = BrickCache(int(memory_budget))
-        top = self.layout.coarsest
-        floor = [(top, *b) for b in np.ndindex(*self.layout.bricks(top))]
+        floor = self.floor_keys()
         if len(floor) * BRICK_BYTES > self.cache.budget:
             raise VolrenError(f"{source.name}: the coarsest level's {len(floor)} bricks take "
                               f"{len(floor) * BRICK_BYTES / 2**20:.2f} MiB, over the memory budget of "
@@ -119,15 +120,16 @@ class BrickStreamer:
         for n in needs:
             if not self.layout.contains(n.level, n.brick):
                 raise VolrenError(f"{self.source.name}: no brick {n.brick} at level {n.level}")
-            chain = self.layout.ancestors(n.level, n.brick) if self.progressive else [(n.level, n.brick)]
-            for level, brick in chain:
+            for level, brick in self.layout.ancestors(n.level, n.brick):
                 if level == self.layout.coarsest:
                     break
                 key = (level, *brick)
                 candidate = need(key, n.visible, n.priority[2])  # type: ignore[arg-type]
                 if key not in wanted or candidate < wanted[key]:
                     wanted[key] = candidate
-        room = (self.cache.budget - len(self.layout_floor()) * BRICK_BYTES) // BRICK_BYTES
+                if not self.progressive and key not in self._bad:
+                    break  # else a bad brick's nearest good ancestor stands in
+        room = (self.cache.budget - len(self.floor_keys()) * BRICK_BYTES) // BRICK_BYTES
         with self._cond:
             admitted = [w for w in sorted(wanted.values()) if w.key not in self._bad][:max(room, 0)]
             self.frame += 1
@@ -143,7 +145,7 @@ class BrickStreamer:
             self._cond.notify_all()
         self._warn()
 
-    def layout_floor(self) -> list[BrickKey]:
+    def floor_keys(self) -> list[BrickKey]:
         """The coarsest level's bricks: resident from open on."""
         top = self.layout.coarsest
         return [(top, *b) for b in np.ndindex(*self.layout.bricks(top))]
