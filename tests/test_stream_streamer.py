@@ -107,10 +107,10 @@ def test_tiny_budget_admits_coarse_first_and_every_brick_has_a_level(tmp_path):
 
 @pytest.mark.timeout(60)
 def test_a_slow_store_never_makes_a_tick_wait(tmp_path):
-    """Level 0's chunks take 1 s to come: each tick (request and drawing) returns at once, drawing the coarser
-    levels, and the finest arrives later."""
+    """Level 0's chunks take 2 s to come: each tick (request and drawing) returns at once (well under the delay),
+    drawing the coarser levels, and the finest arrives later."""
     levels = write_pyramid(tmp_path / "p.zarr", chunks=32)
-    with serve_folder(tmp_path, slow="/p.zarr/s0/", delay=1.0) as url, \
+    with serve_folder(tmp_path, slow="/p.zarr/s0/", delay=2.0) as url, \
             PyramidSource(f"{url}/p.zarr") as source, BrickStreamer(source, memory_budget=1 << 26) as streamer:
         needs = [need((0, 0, 0, 0), True, 0.0), need((0, 0, 0, 1), True, 1.0)]
         drawn = []
@@ -118,9 +118,9 @@ def test_a_slow_store_never_makes_a_tick_wait(tmp_path):
             start = time.monotonic()
             streamer.request(needs)
             drawn.append([streamer.best_resident(n.level, n.brick)[0] for n in needs])
-            assert time.monotonic() - start < 0.1
+            assert time.monotonic() - start < 0.25
             time.sleep(0.05)
-        assert all(level > 0 for tick in drawn for level in tick)  # never the finest within the first 0.2 s
+        assert all(level > 0 for tick in drawn for level in tick)  # never the finest before the delay
         assert streamer.wait(timeout=20)
         for n in needs:
             level, _, voxels = streamer.best_resident(n.level, n.brick)
@@ -131,7 +131,7 @@ def test_a_slow_store_never_makes_a_tick_wait(tmp_path):
 @pytest.mark.timeout(60)
 def test_a_newer_frame_drops_what_it_no_longer_needs(tmp_path):
     write_pyramid(tmp_path / "p.zarr", chunks=32)
-    with serve_folder(tmp_path, slow="/p.zarr/s0/", delay=0.5) as url, \
+    with serve_folder(tmp_path, slow="/p.zarr/s0/", delay=1.0) as url, \
             PyramidSource(f"{url}/p.zarr") as source, \
             BrickStreamer(source, memory_budget=1 << 26, workers=1, progressive=False) as streamer:
         old = [need((0, 0, 0, 0), True, 0.0), need((0, 0, 2, 0), True, 1.0), need((0, 2, 0, 0), True, 2.0)]
