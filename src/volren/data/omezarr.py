@@ -201,6 +201,17 @@ CHUNK_MARGIN = 2
 neighbouring chunk's values about this far"""
 
 
+def coarser_inner_box(box: list[tuple[int, int]], ratio: list[float]) -> list[slice]:
+    """A chunk's ``box`` ([start, stop) per axis in a level's voxels) in the next coarser level's voxels (``ratio``:
+    coarser voxels per finer voxel, per axis), less the margins (`CHUNK_MARGIN`): where a hole's data would show."""
+    inner = []
+    for (a, b), r in zip(box, ratio, strict=True):
+        lo, hi = math.ceil(a * r), math.floor(b * r)
+        m = 0 if r == 1 else max(0, min(CHUNK_MARGIN, (hi - lo - 1) // 2))
+        inner.append(slice(lo + m, hi - m))
+    return inner
+
+
 def _missing_chunks(data: np.ndarray, array: Any, coarser: np.ndarray, keep: list[int]) -> int:
     """How many chunks (shards, where the array is sharded) of the level read as ``data`` (``array``'s kept axes
     ``keep``) are missing rather than empty: zarr leaves out a chunk that holds only the fill value, so an absent
@@ -215,11 +226,7 @@ def _missing_chunks(data: np.ndarray, array: Any, coarser: np.ndarray, keep: lis
         block = data[tuple(slice(a, b) for a, b in box)]
         if not (np.all(block == fill) or (np.isnan(fill) and np.all(np.isnan(block)))):
             continue
-        inner = []  # the box in the coarser level's voxels, less the margins
-        for (a, b), r in zip(box, ratio, strict=True):
-            lo, hi = math.ceil(a * r), math.floor(b * r)
-            m = 0 if r == 1 else max(0, min(CHUNK_MARGIN, (hi - lo - 1) // 2))
-            inner.append(slice(lo + m, hi - m))
+        inner = coarser_inner_box(box, ratio)
         if all(s.start < s.stop for s in inner):
             region = coarser[tuple(inner)]
             holes += bool(np.any((region != fill) & ~np.isnan(region)))

@@ -1,0 +1,171 @@
+"""Which level each brick wants this frame, whether it is in view, and in which order the bricks load (issue 41
+item 3).
+
+**Placement.** Every level of a pyramid fills the same local cube [-1, 1]^3 (DESIGN.md: voxel i of n sits at local
+-1 + (i + 0.5) 2 / n), placed in the world by the volume's ``to_world`` matrix; so level k's voxel index (x, y, z)
+maps to the world by ``to_world @ index_to_local(shape_k)`` (`level_index_to_world`), and its voxel size is
+``voxel_size(to_world, shape_k)`` [m], the longest of its three world edges.
+
+**Level rule.** For a brick whose world box (the box around the voxel centres it spans, grown by half a voxel at
+the volume's border, transformed to the world and boxed again) is at distance d from the camera (Euclidean distance
+from the eye to the nearest point of the box, 0 inside it), the pixel footprint is
+
+    footprint(d) = 2 d tan(fov_y / 2) / H          (H: image height in pixels)
+
+the width a pixel covers at distance d on the view axis. The wanted level is the **coarsest level k whose voxel size
+v_k <= max(footprint(d), step)** (``step``: the ray march's step [m]); where no level's voxel is that small, level 0.
+A level's voxel is its longest world edge, so an anisotropic level is taken only where all its edges are small
+enough. Finer detail than a pixel or than the step cannot show, so a finer level would cost I/O and memory for
+nothing.
+
+**Descent.** The frame's needs start at the coarsest level's bricks: a brick that is out of every view, or wants its
+own level or a coarser one, is needed as it is; a visible brick that wants a finer level is replaced by its children
+(`PyramidLayout.children`), each judged again. A child lies inside its parent's box, so it is no nearer and wants
+no finer level than its parent: the descent stops at the wanted level.
+
+**Visibility** is the brick's world box against each camera's frustum (near, far and the four side planes): a box
+wholly outside one plane is out of view (conservative: a box that only crosses a frustum's corner region counts as
+visible).
+
+**Priority** (smallest first): ``(not visible, -level, distance)``. Visible before not; among the visible, coarse
+before fine, so that every brick of the view reaches level k + 1 before any reaches level k (the whole picture
+sharpens evenly, no region waits at the coarsest while another is already fine); within a level, near before far
+(the nearest bricks cover the most pixels and draw the eye).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from volren.stream.layout import Brick, BrickKey, PyramidLayout
+
+if TYPE_CHECKING:
+    from volren.camera import Camera
+
+
+def pixel_footprint(distance: float, fov_y: float, height: int) -> float:
+    """[m] the width one pixel covers at ``distance`` [m] on the view axis: 2 d tan(fov_y / 2) / H (fov_y in
+    degrees)."""
+    return 2.0 * distance * math.tan(math.radians(fov_y) / 2.0) / height
+
+
+def wanted_level(voxel_sizes: Sequence[float], footprint: float, step: float = 0.0) -> int:
+    """The coarsest level whose voxel size [m] is at most max(footprint, step); 0 where none is (module docstring).
+    ``voxel_sizes`` finest first."""
+    limit = max(footprint, step)
+    fitting = [k for k, v in enumerate(voxel_sizes) if v <= limit * (1 + 1e-9)]
+    return max(fitting) if fitting else 0
+
+
+def index_to_local(shape: Sequence[int]) -> np.ndarray:
+    """4x4: voxel index (x, y, z, 1) of a level of ``shape`` voxels (z, y, x) -> local [-1, 1]^3 (DESIGN.md)."""
+    n = np.array(shape[::-1], dtype=np.float64)
+    m = np.eye(4)
+    m[[0, 1, 2], [0, 1, 2]] = 2.0 / n
+    m[:3, 3] = -1.0 + 1.0 / n
+    return m
+
+
+def level_index_to_world(to_world: np.ndarray, shape: Sequence[int]) -> np.ndarray:
+    """4x4: voxel index (x, y, z, 1) of a level of ``shape`` voxels -> world [m]."""
+    return np.asarray(to_world, dtype=np.float64) @ index_to_local(shape)
+
+
+def voxel_size(to_world: np.ndarray, shape: Sequence[int]) -> float:
+    """[m] the longest world edge of a voxel of a level of ``shape`` voxels placed by ``to_world``."""
+    return float(np.max(np.linalg.norm(level_index_to_world(to_world, shape)[:3, :3], axis=0)))
+
+
+def brick_box(to_world: np.ndarray, layout: PyramidLayout, level: int, brick: Brick) -> tuple[np.ndarray, np.ndarray]:
+    """The world box (lo, hi) [m] of ``brick`` of ``level`` (module docstring)."""
+    shape, counts, b = layout.shapes[level], layout.bricks(level), layout.brick
+    lo_i, hi_i = [], []
+    for axis in (2, 1, 0):  # x, y, z
+        first = brick[axis] * b
+        lo_i.append(first - 0.5 if brick[axis] == 0 else first)
+        last = min(first + b, shape[axis] - 1)
+        hi_i.append(last + 0.5 if brick[axis] == counts[axis] - 1 else last)
+    corners = np.array([[x, y, z, 1.0] for x in (lo_i[0], hi_i[0]) for y in (lo_i[1], hi_i[1])
+                        for z in (lo_i[2], hi_i[2])])
+    world = (level_index_to_world(to_world, shape) @ corners.T).T[:, :3]
+    return world.min(axis=0), world.max(axis=0)
+
+
+def box_distance(eye: Sequence[float], lo: np.ndarray, hi: np.ndarray) -> float:
+    """[m] from ``eye`` to the nearest point of the box [lo, hi]; 0 inside it."""
+    e = np.asarray(eye, dtype=np.float64)
+    return float(np.linalg.norm(e - np.clip(e, lo, hi)))
+
+
+def in_frustum(camera: Camera, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether the box [lo, hi] may be seen by ``camera``: not wholly outside one of its six frustum planes."""
+    right, up, forward = camera.basis()
+    eye = np.asarray(camera.position, dtype=np.float64)
+    t = camera.tan_half_fov
+    tx = t * camera.width / camera.height
+    # inward normals n and offsets o: a point p is inside where dot(p - eye, n) >= o
+    planes = [(forward, camera.near), (-forward, -camera.far), (tx * forward - right, 0.0),
+              (tx * forward + right, 0.0), (t * forward - up, 0.0), (t * forward + up, 0.0)]
+    for n, o in planes:
+        farthest = np.where(n >= 0, hi, lo)  # the box's corner farthest along n
+        if float(np.dot(farthest - eye, n)) < o:
+            return False
+    return True
+
+
+@dataclass(frozen=True, order=True)
+class BrickNeed:
+    """One brick a frame needs, sortable by priority (module docstring)."""
+
+    priority: tuple[int, int, float]
+    """(not visible, -level, distance [m])"""
+    key: BrickKey
+    """(level, bz, by, bx)"""
+
+    @property
+    def level(self) -> int:
+        return self.key[0]
+
+    @property
+    def brick(self) -> Brick:
+        return self.key[1:]  # type: ignore[return-value]
+
+    @property
+    def visible(self) -> bool:
+        return self.priority[0] == 0
+
+
+def need(key: BrickKey, visible: bool, distance: float) -> BrickNeed:
+    return BrickNeed((0 if visible else 1, -key[0], float(distance)), key)
+
+
+def frame_needs(views: Sequence[Camera], to_world: np.ndarray, layout: PyramidLayout, *, step: float = 0.0
+                ) -> list[BrickNeed]:
+    """The bricks a frame seen by ``views`` needs, by the level rule and the descent of the module docstring, in
+    priority order. Each brick is judged for every view: visible where any view sees it, at the finest level a view
+    that sees it wants, its distance the nearest such view's (the nearest view's where none sees it)."""
+    if not views:
+        raise ValueError("frame_needs needs at least one view")
+    sizes = [voxel_size(to_world, s) for s in layout.shapes]
+    out: dict[BrickKey, BrickNeed] = {}
+    top = layout.coarsest
+    stack: list[tuple[int, Brick]] = [(top, b) for b in np.ndindex(*layout.bricks(top))]
+    while stack:
+        level, brick = stack.pop()
+        lo, hi = brick_box(to_world, layout, level, brick)
+        seen = [v for v in views if in_frustum(v, lo, hi)]
+        distance = min(box_distance(v.position, lo, hi) for v in seen or views)
+        want = min((wanted_level(sizes, pixel_footprint(box_distance(v.position, lo, hi), v.fov_y, v.height), step)
+                    for v in seen), default=level)
+        visible = bool(seen)
+        if visible and want < level:
+            stack.extend((level - 1, c) for c in layout.children(level, brick))
+        else:
+            key = (level, *brick)
+            out[key] = need(key, visible, distance)  # type: ignore[arg-type]
+    return sorted(out.values())
