@@ -93,3 +93,21 @@ def test_read_clamps_to_the_grid_as_sampling_does():
     assert np.array_equal(got, grid[np.ix_(*idx)])
     with pytest.raises(VolrenError, match="cannot read"):
         sg.read((0, 0, 0), (1 << 10, 1 << 10, 1 << 10))
+
+
+def test_cell_ranges_bound_every_sample_of_a_cell_and_its_border():
+    """Per cell of B^3 voxels the bricks' ranges hold the cell's voxels and the one-voxel border around it (what a
+    trilinear sample there reads): the skip grid's and the majorants' rule, read from the page table."""
+    from volren.upload import _block_max
+
+    grid = sparse_field()
+    lo, hi = brick_dense(grid, 8).cell_ranges()
+    assert hi.shape == tuple(-(-n // 8) for n in grid.shape)
+    want = _block_max(grid, 8)  # the max over each cell widened by one voxel
+    assert np.all(hi >= want) and np.all((hi == 0) <= (want == 0))
+    negated = -_block_max(-grid, 8)  # the min likewise
+    assert np.all(lo <= negated)
+    # one voxel just below a cell's first one: the cell's range sees it (it is in the brick before)
+    one = np.zeros((33, 33, 33), np.float32)
+    one[15, 20, 20] = 1.0
+    assert brick_dense(one, 16).cell_ranges()[1][1, 1, 1] == 1.0

@@ -83,13 +83,6 @@ def serve_folder(folder: Path, *, slow: str | None = None, delay: float = 0.0):
 
 
 @pytest.mark.timeout(60)
-def test_brick_size_is_the_renderers():
-    from volren.upload import BRICK as UPLOAD_BRICK
-
-    assert BRICK == UPLOAD_BRICK == 16
-
-
-@pytest.mark.timeout(60)
 def test_every_brick_equals_slicing_its_level(tmp_path):
     levels = write_pyramid(tmp_path / "p.zarr")
     with PyramidSource(tmp_path / "p.zarr") as source:

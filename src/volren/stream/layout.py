@@ -16,9 +16,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from itertools import product
 
-BRICK = 16
-"""B: cells per brick edge. It must equal `volren.upload.BRICK` (the renderers' brick pool); a test checks that
-(volren.upload imports warp, which this package does not)."""
+from volren.sparse import BRICK
 
 Brick = tuple[int, int, int]
 """(bz, by, bx): a brick's place in its level's brick grid"""
