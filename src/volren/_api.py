@@ -105,7 +105,7 @@ def load(path: str | Path, **options: Any) -> Volume | Channels | VolumeSequence
     files = None if options.get("time_point") is not None else frame_files(path)
     if files is None:
         return made(load_volume(path, **read))
-    return VolumeSequence(path, Reader(SequenceConfig(files), lambda f: load_volume(f, **read)), made)
+    return VolumeSequence(path, Reader(SequenceConfig(files), lambda f, **box: load_volume(f, **read, **box)), made)
 
 
 def builtin_scene(name: str, resolution: int | None = None, *, count: int | None = None, seed: int | None = None,

@@ -40,9 +40,9 @@ def play(files: tuple[Path, ...], fps: float, load: Callable[[Path], LoadedVolum
     """Play ``files`` as a sequence at ``fps`` (see the module docstring)."""
     reads: list[float] = []
 
-    def timed(path: Path) -> LoadedVolume:
+    def timed(path: Path, **box) -> LoadedVolume:
         start = time.perf_counter()
-        vol = load(path)
+        vol = load(path, **box)
         reads.append(time.perf_counter() - start)
         return vol
 

@@ -432,13 +432,14 @@ def _read_nvdb(path: Path) -> Grid:
     return Grid(out.numpy(), m, spacing_replaces=True)
 
 
-def _read_vdb(path: Path, grid: str | None = None, emission_grid: str | None = None) -> Grid:
+def _read_vdb(path: Path, grid: str | None = None, emission_grid: str | None = None,
+              index_box: tuple[np.ndarray, np.ndarray] | None = None) -> Grid:
     """An OpenVDB file through tinyvdb (``volren.data.vdb``): the density grid over its active box, placed by its
     index-to-world map in metres (OpenVDB states no unit; ``units`` overrides), which ``spacing`` replaces as for
     NanoVDB; ``emission_grid`` densified over the same box."""
     from volren.data.vdb import read_vdb  # lazy: tinyvdb only for .vdb users
 
-    vdb, emission = read_vdb(path, grid, emission_grid)
+    vdb, emission = read_vdb(path, grid, emission_grid, index_box)
     return Grid(vdb.data, vdb.index_to_world, metres_per_unit=1.0, spacing_replaces=True, emission=emission)
 
 
@@ -485,6 +486,7 @@ def load_volume(
     grid: str | None = None,
     emission_grid: str | None = None,
     time_point: int | None = None,
+    index_box: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> LoadedVolume:
     """Read a density grid (see ``load_volume_file`` for the formats and value mapping) or a folder holding a DICOM
     series, and place it in the world.
@@ -506,14 +508,17 @@ def load_volume(
 
     A 4-D NIfTI (x, y, z, t) is a time series: ``time_point`` (0-based), or ``path`` a `TimePoint`, reads one of its
     volumes; the CLI plays them all as a sequence (`volren.data.sequence`).
+
+    ``index_box``: an OpenVDB file read over these inclusive index bounds (x, y, z), not its active box: a sequence's
+    frames placed in the union of their boxes (`volren.data.vdb.index_box`).
     """
     if isinstance(path, TimePoint):
         if time_point is not None:
             raise VolrenError(f"{path}: give the time point once (a TimePoint, or time_point=)")
         path, time_point = path.path, path.index
     path = Path(path)
-    options: dict[str, str | int] = {k: v for k, v in (("grid", grid), ("emission_grid", emission_grid))
-                                     if v is not None}  # the reader's: an OpenVDB file's grids
+    options: dict[str, str | int] = {k: v for k, v in (("grid", grid), ("emission_grid", emission_grid),
+                                                       ("index_box", index_box)) if v is not None}  # OpenVDB's
     if options and path.suffix.lower() != ".vdb":  # Warp reads a .nvdb's first grid only
         raise VolrenError(f"{path}: grid and emission_grid name grids of an OpenVDB file: they apply to .vdb only "
                           "(CLI: --grid, --emission-grid)")

@@ -3,10 +3,11 @@ files) or one file of many time points (a 4-D NIfTI: x, y, z, t), read one frame
 background thread.
 
 `frame_files` finds a ``--volume``'s frames, in frame order (files, or a NIfTI's `TimePoint` frames);
-`VolumeSequence` reads frame i as ``load(files[i])``
-(`volren.data.loaders.load_volume` with the same options for every frame), loading the next frames in a worker thread
-while the caller renders, and holds at most ``keep`` frames. Every frame must match the first in grid shape,
-placement and value mapping; one that does not is refused, naming its file, when it is reached.
+`VolumeSequence` reads frame i as ``load(files[i])`` (`volren.data.loaders.load_volume` with the same options for
+every frame; an OpenVDB sequence's frames over the union of their index boxes, ``load(files[i], index_box=...)``, so an
+active box that moves or grows is one grid), loading the next frames in a worker thread while the caller renders, and
+holds at most ``keep`` frames. Every frame must match the first in grid shape, placement and value mapping; one that
+does not is refused, naming its file, when it is reached.
 
 Values share the first frame's mapping: a loader that normalises integers by the file's own range would map each frame
 differently and the brightness would flicker, so every frame is re-mapped to the first frame's ``value_range``
@@ -18,6 +19,7 @@ part), and a simulation's first frame already holds its range in practice; float
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import re
 from collections.abc import Callable
@@ -170,11 +172,16 @@ class VolumeSequence:
     - 1 (wrapping with ``loop``) and starts reading the missing ones, so at most ``keep`` frames are held. One caller
     at a time."""
 
-    def __init__(self, config: SequenceConfig, load: Callable[[Path], LoadedVolume]) -> None:
-        self.config, self._load = config, load
+    def __init__(self, config: SequenceConfig, load: Callable[..., LoadedVolume]) -> None:
+        self.config = config
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="volren-sequence")
         self._held: dict[int, Future[LoadedVolume]] = {}
-        first = load(config.files[0])
+        self.index_box = _union_box(config.files)
+        """an OpenVDB sequence's frames' index boxes together (`volren.data.vdb.index_box`): every frame is read
+        over it, so a simulation whose active box moves or grows keeps one grid and placement (issue 41 item 2);
+        None for other files"""
+        self._load = load if self.index_box is None else functools.partial(load, index_box=self.index_box)
+        first = self._load(config.files[0])
         self._first = _Reference(first.density.shape, first.to_world, first.value_range, first.hounsfield,
                                  len(first.channels), first.value_mapping)
         """what every frame must match (not the first frame's voxels: they are dropped as any frame's)"""
@@ -248,6 +255,16 @@ class VolumeSequence:
         np.maximum(density, 0.0, out=density)
         return dataclasses.replace(vol, density=density, value_range=first.value_range,
                                    value_mapping=first.value_mapping)
+
+
+def _union_box(files: tuple[Path, ...] | tuple[TimePoint, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The union of the frames' OpenVDB index boxes (their topology only), None unless every frame is a .vdb."""
+    if not all(isinstance(f, Path) and f.suffix.lower() == ".vdb" for f in files):
+        return None
+    from volren.data.vdb import index_box  # lazy: tinyvdb only for .vdb users
+
+    boxes = [index_box(f) for f in files]
+    return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
 
 
 def _size(shape: tuple[int, ...], channels: int) -> str:

@@ -198,7 +198,7 @@ def _open_sequence(path: Path, _stamp, loop: bool, *options):
     files = frame_files(path)
     if files is None:
         return None
-    return VolumeSequence(SequenceConfig(files, loop=loop), lambda frame: _read_volume(frame, *options))
+    return VolumeSequence(SequenceConfig(files, loop=loop), lambda frame, **box: _read_volume(frame, *options, **box))
 
 
 class VolumeSequence:
@@ -277,9 +277,10 @@ def _load_volume_cached(path: Path, _stamp, *options):
     return _read_volume(path, *options)
 
 
-def _read_volume(path: Path, shape, dtype, spacing, units, grid, level, memory_budget, emission_grid):
+def _read_volume(path: Path, shape, dtype, spacing, units, grid, level, memory_budget, emission_grid,
+                 index_box=None):
     from volren.data.loaders import load_volume
 
     budget = None if memory_budget is None else memory_budget * 2**30  # --memory-budget is in GiB
     return load_volume(path, shape=shape, dtype=dtype, spacing=spacing, units=units, grid=grid, level=level,
-                       memory_budget=budget, emission_grid=emission_grid)
+                       memory_budget=budget, emission_grid=emission_grid, index_box=index_box)
