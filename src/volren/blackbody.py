@@ -109,14 +109,21 @@ def blackbody_table(k0: float, k1: float, scale: float = 1.0, size: int = TABLE_
     return (blackbody_rgb(temperatures) * (scale / blackbody_xyz(k1)[1])).astype(np.float32)
 
 
-def kelvin_span(values: np.ndarray) -> tuple[float, float] | None:
-    """(coldest, hottest) of a temperature grid's positive values when they read as kelvin: coldest >=
-    `KELVIN_COLDEST` and hottest within `KELVIN_HOTTEST`; None when they read as relative (or none is positive)."""
-    v = np.asarray(values)
+def positive_range(values) -> tuple[float, float] | None:
+    """(smallest, largest) positive value of a grid (a dense array or a `volren.sparse.SparseGrid`), None if none."""
+    v = values.stored_values() if hasattr(values, "stored_values") else np.asarray(values)
     positive = v[v > 0]
-    if positive.size == 0:
+    return (float(positive.min()), float(positive.max())) if positive.size else None
+
+
+def kelvin_span(values) -> tuple[float, float] | None:
+    """(coldest, hottest) of a temperature grid's positive values (`positive_range`) when they read as kelvin:
+    coldest >= `KELVIN_COLDEST` and hottest within `KELVIN_HOTTEST`; None when they read as relative (or none is
+    positive)."""
+    span = positive_range(values)
+    if span is None:
         return None
-    lo, hi = float(positive.min()), float(positive.max())
+    lo, hi = span
     return (lo, hi) if lo >= KELVIN_COLDEST and KELVIN_HOTTEST[0] <= hi <= KELVIN_HOTTEST[1] else None
 
 

@@ -116,14 +116,12 @@ def named_environment(name: str | Path):
 def emission_reading(args: argparse.Namespace, scene) -> dict:
     """stats.json's ``emission_grid`` for a file's emission grid, and one line on stdout: how its values became
     temperatures (kelvin, relative, or relative by --temperature-range) and the emission scale; nothing without."""
-    from volren.blackbody import FLAME_CONTRAST
+    from volren.blackbody import FLAME_CONTRAST, positive_range
 
     volume = next((v for v in scene.volumes if v.emission_grid is not None), None)
     if getattr(args, "volume", None) is None or volume is None:
         return {}
-    grid = volume.emission_grid
-    positive = grid[grid > 0]
-    values = [float(positive.min()), float(positive.max())] if positive.size else [0.0, 0.0]
+    values = list(positive_range(volume.emission_grid) or (0.0, 0.0))
     k0, k1 = volume.temperature_range
     if args.temperature_range is not None:
         reading, said = "relative", f"as relative (--temperature-range), mapped to {k0:g}..{k1:g} K"

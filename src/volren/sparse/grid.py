@@ -95,6 +95,13 @@ class SparseGrid:
     def min(self, axis: None = None, out: None = None) -> np.float32:
         return np.float32(self.brick_ranges[0].min())
 
+    def stored_values(self) -> np.ndarray:
+        """Every value the grid holds, flat: its resident bricks' voxels (aprons repeat their neighbours', so the set
+        is the grid's, with repeats) and its constant bricks' values (for a range or a test of the values, not a
+        histogram)."""
+        used = np.unique(-1 - self.table[self.table < 0])
+        return np.concatenate([self.pool.reshape(-1), self.constants[used]])
+
     def take(self, iz: np.ndarray, iy: np.ndarray, ix: np.ndarray) -> np.ndarray:
         """float32 ``[z, y, x]`` voxels at the outer product of the index arrays (clamped to the grid, as sampling
         clamps), gathered brick by brick: each voxel from the brick whose cells start at it (the grid's last voxel
