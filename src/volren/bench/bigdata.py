@@ -20,7 +20,9 @@ and its maximum intensity projection) from the camera ``volren render`` frames, 
 frame's wall time (upload, light map, march) and the fastest of the next ``repeats`` frames (the light map kept, as
 ``volren render --frames`` and the server keep it for a still volume). The goal (summary table): peak load
 memory at most `MEMORY_GOAL` x the active voxels' float32 bytes, load time, first frame and ms per frame at most
-`TIME_GOAL` x the dense twin's; the images' largest difference to the dense twin's is reported beside.
+`TIME_GOAL` x the dense twin's; the images' largest difference to the dense twin's is reported beside. On CUDA the
+resident set is the host's: the rise of Warp's memory pool's high-water mark over the load and frames is reported
+beside it (``device_peak_mib``).
 
 Until the sparse reader lands, ``load_volume`` densifies a ``.vdb`` over its active box (and refuses a box over
 `volren.data.vdb.MAX_DENSE_VOXELS`): a refused load is a row saying so, not a failure of the suite.
@@ -44,7 +46,7 @@ import numpy as np
 
 from volren.bench import Suite, sized
 from volren.bench.bricks import two_balls_regions
-from volren.bench.load import SYSTEM_PYTHON
+from volren.bench.load import SYSTEM_PYTHON, _status_kib
 from volren.errors import VolrenError
 from volren.progress import case_done
 
@@ -60,7 +62,7 @@ MEMORY_GOAL = 1.3
 """peak resident set of a load over the active voxels' float32 bytes (issue 41)"""
 TIME_GOAL = 1.2
 """load seconds and ms per frame over the dense twin's (issue 41)"""
-METHODS = {"dssrm": {}, "mip": {"mode": "mip"}}
+RENDER_SETTINGS = {"dssrm": {}, "mip": {"mode": "mip"}}
 """the ``methods`` a configuration names: DSSRM settings on top of its ``default`` quality (``volren render``'s)"""
 QUALITY = "default"
 FRAME_FIGURES = ("first_ms", "frame_ms", "frame_median_ms", "upload_ms", "light_map_ms")
@@ -284,11 +286,6 @@ def make_file(kind: str, cfg: dict[str, Any], *, dense: bool | None = None) -> d
     return {**info, "path": str(path), "dense_path": str(twin) if dense else None}
 
 
-def _status_kib(field: str) -> int:
-    with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith(field + ":"))
-
-
 def child() -> None:
     """In a fresh process (``python -c 'from volren.bench.bigdata import child; child()'``, a JSON spec on stdin:
     ``path``, ``options`` of `volren.load`, ``methods``, ``size``, ``repeats``, ``images`` folder, ``tag``): import
@@ -309,14 +306,17 @@ def child() -> None:
 
     spec = json.loads(sys.stdin.read())
     width, height = spec["size"]
-    renderers = {m: RENDERERS["dssrm"][0](quality_config("dssrm", QUALITY, **METHODS[m]), device=spec["device"])
+    renderers = {m: RENDERERS["dssrm"][0](quality_config("dssrm", QUALITY, **RENDER_SETTINGS[m]), device=spec["device"])
                  for m in spec["methods"]}
     tiny = Scene((Volume(np.full((8, 8, 8), 0.5, np.float32)),))
     for r in renderers.values():  # kernels compiled and loaded before the baseline
         r.render(tiny, framed_views(tiny, None, "mono", 16, 16))
     import tinyvdb  # noqa: F401
+    import warp as wp
     from numcodecs import blosc  # noqa: F401  (the .vdb reader's tile values)
 
+    pool = spec["device"].startswith("cuda") and wp.is_mempool_enabled(spec["device"])
+    pool_before = wp.get_mempool_used_mem_current(spec["device"]) if pool else None
     with open("/proc/self/clear_refs", "w") as f:
         f.write("5")
     before = _status_kib("VmRSS")
@@ -342,6 +342,8 @@ def child() -> None:
                                  "upload_ms": first.stats.times_ms.get("upload", 0.0),
                                  "light_map_ms": first.stats.times_ms.get("light_map", 0.0)}
     out["peak_total_kib"] = _status_kib("VmHWM") - before
+    if pool:  # CUDA: the device memory the volume and the frames took (the resident set is the host's)
+        out["device_peak_bytes"] = wp.get_mempool_used_mem_high(spec["device"]) - pool_before
     print(json.dumps(out))
 
 
@@ -362,9 +364,9 @@ def _ratio(a: float | None, b: float | None) -> float | None:
 
 
 def run_config(cfg: dict[str, Any], device: str = "cpu") -> dict[str, Any]:
-    unknown = [m for m in cfg["methods"] if m not in METHODS]
+    unknown = [m for m in cfg["methods"] if m not in RENDER_SETTINGS]
     if unknown:
-        raise VolrenError(f"bench bigdata: unknown method {unknown[0]!r}: choose from {', '.join(METHODS)}")
+        raise VolrenError(f"bench bigdata: unknown method {unknown[0]!r}: choose from {', '.join(RENDER_SETTINGS)}")
     rows, summary, files = [], [], []
     with tempfile.TemporaryDirectory(prefix="volren-bench-bigdata-") as images:
         for kind in cfg["files"]:
@@ -385,6 +387,8 @@ def run_config(cfg: dict[str, Any], device: str = "cpu") -> dict[str, Any]:
                 if "refused" not in got:
                     row |= {"load_s": got["load_s"], "peak_load_mib": got["peak_load_kib"] / 1024,
                             "peak_total_mib": got["peak_total_kib"] / 1024,
+                            "device_peak_mib": (got["device_peak_bytes"] / 2**20 if "device_peak_bytes" in got
+                                                else None),
                             "density_mib": got["density_bytes"] / 2**20, "density_bytes": got["density_bytes"],
                             "density_max": got["density_max"], "shape": "x".join(map(str, got["shape"])),
                             "memory_ratio": got["peak_load_kib"] * 1024 / active_bytes,
@@ -419,7 +423,8 @@ def run_config(cfg: dict[str, Any], device: str = "cpu") -> dict[str, Any]:
                ("active_share", "active share", ".4f"), ("file_mib", "file [MiB]", ".1f"),
                ("side", "loaded", "s"), ("shape", "density (x, y, z)", "s"), ("load_s", "load [s]", ".2f"),
                ("peak_load_mib", "load peak RSS rise [MiB]", ".1f"), ("density_mib", "density [MiB]", ".1f"),
-               ("peak_total_mib", "load + render peak RSS rise [MiB]", ".1f"), *ms, ("refused", "refused", "s")]
+               ("peak_total_mib", "load + render peak RSS rise [MiB]", ".1f"),
+               ("device_peak_mib", "CUDA memory peak rise [MiB]", ".1f"), *ms, ("refused", "refused", "s")]
     summary_columns = [("file", "file", "s"), ("active_voxels", "active voxels", ","),
                        ("memory_ratio", "load peak / active bytes", ".2f"),
                        ("resident_ratio", "density bytes / active bytes", ".2f"),
@@ -430,7 +435,7 @@ def run_config(cfg: dict[str, Any], device: str = "cpu") -> dict[str, Any]:
                        ("memory_goal", "memory goal (at most)", ".2f"), ("time_goal", "time goal (at most)", ".2f"),
                        ("met", "met", "s")]
     settings = {**cfg, "cache": str(cache_folder(cfg.get("cache"))), "quality": QUALITY,
-                "method_settings": {m: METHODS[m] for m in cfg["methods"]}, "maker_version": MAKER_VERSION,
+                "method_settings": {m: RENDER_SETTINGS[m] for m in cfg["methods"]}, "maker_version": MAKER_VERSION,
                 "memory": "peak resident set (VmHWM, reset before the load) minus the resident set before it, in a "
                           "fresh subprocess that has imported volren and loaded the renderers' kernels",
                 "ms": "first frame: wall time of frame 0 (upload, light map, march); ms/frame: the fastest of the "
