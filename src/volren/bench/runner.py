@@ -19,6 +19,7 @@ from volren.progress import cases
 def all_suites() -> dict[str, Suite]:
     """Every suite by name (imported here, so importing volren.bench stays cheap)."""
     from volren.bench.batch import SUITE as BATCH_SUITE
+    from volren.bench.bigdata import SUITE as BIGDATA_SUITE
     from volren.bench.binocular import SUITE as BINOCULAR_SUITE
     from volren.bench.bricks import SUITE as BRICKS_SUITE
     from volren.bench.dssrm import SUITE as DSSRM_SUITE
@@ -35,7 +36,7 @@ def all_suites() -> dict[str, Suite]:
 
     return {s.name: s for s in (DSSRM_SUITE, RESOLUTION_SUITE, BINOCULAR_SUITE, VIEWERS_SUITE, VPT_SUITE, GI_SUITE,
                                 OIT_SUITE, INTEGRATED_SUITE, SERVE_SUITE, INTERACTIVE_SUITE, LOAD_SUITE, PEERS_SUITE,
-                                BATCH_SUITE, BRICKS_SUITE)}
+                                BATCH_SUITE, BRICKS_SUITE, BIGDATA_SUITE)}
 
 
 
