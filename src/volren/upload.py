@@ -295,6 +295,7 @@ def volume_struct(
     s.emission_constants_offset = 0
     s.emission_table_offset, s.emission_table_size = 0, 0  # no emission grid until `pack_emission` sets one
     s.brick_shift, s.bricks, s.table_offset, s.constants_offset = 0, wp.vec3i(0), 0, 0  # dense
+    s.stream_levels, s.stream_header, s.stream_map = 0, 0, 0  # not streamed
     return s
 
 

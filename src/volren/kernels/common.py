@@ -34,6 +34,12 @@ class CameraGPU:
     far: float
 
 
+NOT_RESIDENT = -(2**31)
+"""page-table entry of a streamed brick not resident at its level (`gather_density` draws it from its ancestor)"""
+STREAM_INTS = 7
+STREAM_FLOATS = 6
+
+
 @wp.struct
 class VolumeGPU:
     to_local: wp.mat44
@@ -52,6 +58,14 @@ class VolumeGPU:
     """log2 B of its bricks of B^3 cells; 0: a dense [z, y, x] grid at ``offset`` (`gather_density`)"""
     constants_offset: int
     """first value of its constant bricks in the packed density array (page-table entry -1 - k reads value k)"""
+    stream_levels: int
+    """a streamed pyramid's levels (`volren.stream`, issue 41 item 3); 0: the grid is all there. A streamed
+    volume's level-0 page-table entry `NOT_RESIDENT` is drawn from its finest resident ancestor (`ancestor_voxel`)"""
+    stream_header: int
+    """first of `STREAM_INTS` ints per level (res x, y, z; bricks x, y, z; first table entry) in ``table``"""
+    stream_map: int
+    """first of `STREAM_FLOATS` floats per level (a x, y, z; b x, y, z: level-k index = a v + b for level-0 index v,
+    from the file's scales and translations) in the packed density array"""
     light_offset: int
     """first voxel of this volume's light grids in the packed light-map array (one grid per light)"""
     light_res: wp.vec3i
@@ -295,10 +309,42 @@ def gather_grid(data: wp.array(dtype=float), offset: int, res: wp.vec3i, table: 
 
 
 @wp.func
+def ancestor_voxel(density: wp.array(dtype=float), vol: VolumeGPU, v: wp.vec3i) -> float:
+    """Level-0 voxel ``v`` of a streamed volume whose brick is not resident: a trilinear sample of the finest level
+    k >= 1 whose cell there is resident (or known empty), at v's place on that level (index a v + b). The coarsest
+    level is always resident, so a sample never falls into a hole (issue 41 item 3)."""
+    for k in range(1, vol.stream_levels):
+        h = vol.stream_header + k * STREAM_INTS
+        res = wp.vec3i(vol.table[h], vol.table[h + 1], vol.table[h + 2])
+        bricks = wp.vec3i(vol.table[h + 3], vol.table[h + 4], vol.table[h + 5])
+        m = vol.stream_map + k * STREAM_FLOATS
+        f = wp.vec3(
+            wp.clamp(density[m] * float(v[0]) + density[m + 3], 0.0, float(res[0] - 1)),
+            wp.clamp(density[m + 1] * float(v[1]) + density[m + 4], 0.0, float(res[1] - 1)),
+            wp.clamp(density[m + 2] * float(v[2]) + density[m + 5], 0.0, float(res[2] - 1)),
+        )
+        cell = grid_cell(res, f)
+        entry = brick_entry(vol.table, vol.table[h + 6], bricks, vol.brick_shift, cell)
+        if entry != NOT_RESIDENT:
+            corners = gather_grid(density, vol.offset, res, vol.table, vol.table[h + 6], bricks, vol.brick_shift,
+                                  vol.constants_offset, cell)
+            return interpolate_cell(corners, cell_fraction(f, cell))
+    return 0.0
+
+
+@wp.func
 def gather_density(density: wp.array(dtype=float), vol: VolumeGPU, cell: wp.vec3i) -> vec8:
     """The 8 density voxels around ``cell`` of ``vol``: the one density read of every renderer (issue 41 item 1),
     through the volume's brick page table, or from its dense grid where ``brick_shift`` is 0 (grids under 2 voxels on
-    an axis, and `volren.upload.upload_scene` with ``bricked=False`` for the equality tests)."""
+    an axis, and `volren.upload.upload_scene` with ``bricked=False`` for the equality tests). A streamed volume's
+    brick that is not resident gives its 8 voxels from the finest resident ancestor (`ancestor_voxel`): every
+    caller interpolates them as it would the resident ones."""
+    if vol.stream_levels > 1:
+        if brick_entry(vol.table, vol.table_offset, vol.bricks, vol.brick_shift, cell) == NOT_RESIDENT:
+            out = vec8()
+            for n in range(8):
+                out[n] = ancestor_voxel(density, vol, cell + wp.vec3i(n % 2, (n / 2) % 2, n / 4))
+            return out
     return gather_grid(density, vol.offset, vol.res, vol.table, vol.table_offset, vol.bricks, vol.brick_shift,
                        vol.constants_offset, cell)
 
