@@ -97,3 +97,17 @@ def test_a_sparse_volume_refuses_bad_values_in_one_line():
         Volume(bad)
     with pytest.raises(Exception, match="negative values"):
         Volume(grid.map(lambda v: -v))
+
+
+def test_a_sparse_volume_skips_empty_space_in_cells_of_one_brick():
+    """Its skip grid is the page table's (`SparseGrid.cell_ranges`): one cell per brick, B voxels a side."""
+    from volren.upload import upload_scene
+
+    scene = builtin_scene("multi", N)
+    vol = dataclasses.replace(scene.volumes[0], density=sparse_copy(scene.volumes[0].density))
+    ds = upload_scene(dataclasses.replace(scene, volumes=(vol,)), DEVICE)
+    s = ds.levels[0][0]
+    cells = vol.density.cell_ranges()[1]
+    assert s.skip_cell == BRICK and tuple(s.skip_res) == cells.shape[::-1]
+    grid = ds.max_density.numpy()[s.skip_offset : s.skip_offset + cells.size].reshape(cells.shape)
+    assert np.array_equal(grid > 0, cells > 0)  # occupied where a brick's range is > 0, radii elsewhere

@@ -406,9 +406,8 @@ def _brickify(leaves: list, origins: np.ndarray, tiles: _Tiles, dtype: np.dtype,
             values[is_leaf] = _float32(raw, what).reshape(-1, 8, 8, 8)
         values[~is_leaf] = tile_values[small][chunk[~is_leaf] - count, None, None, None]
         voxels = (first[chunk][:, None, :] + offsets[None]).reshape(-1, 3)  # [block, z, y, x] order
-        values = values.transpose(0, 3, 2, 1).reshape(-1)
-        valid = np.all((voxels >= 0) & (voxels < shape), axis=1)
-        builder.scatter(voxels[valid], values[valid])
+        # voxels outside the box (a leaf across its border) fall in no brick: `scatter` drops them
+        builder.scatter(voxels, values.transpose(0, 3, 2, 1).reshape(-1))
     return builder.build()
 
 

@@ -352,9 +352,10 @@ class BrickBuilder:
         return slots
 
     def scatter(self, voxels: np.ndarray, values: np.ndarray) -> None:
-        """Write ``values`` at ``voxels`` ((N, 3) int, z, y, x, inside the grid) into every touched brick whose apron
-        block holds each: the brick whose cells start there, and on a plane that is a multiple of B also the bricks
-        before it along those axes (their apron)."""
+        """Write ``values`` at ``voxels`` ((N, 3) int, z, y, x) into every touched brick whose apron block holds each:
+        the brick whose cells start there, and on a plane that is a multiple of B also the bricks before it along
+        those axes (their apron). A voxel outside the grid falls in no brick (below) or only where `build` repeats
+        the border (above): dropped."""
         pool = self._blocks()
         b = self.brick
         c0, r0 = voxels // b, voxels % b
