@@ -8,9 +8,9 @@ import os
 
 import numpy as np
 import pytest
+from tests.conftest import DEVICE
 
 import volren as vr
-from tests.conftest import DEVICE
 from volren.bench.load import SYSTEM_PYTHON, openvdb_available, write_with_openvdb
 from volren.data.vdb import index_box
 
