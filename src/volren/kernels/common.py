@@ -339,7 +339,7 @@ def gather_density(density: wp.array(dtype=float), vol: VolumeGPU, cell: wp.vec3
     an axis, and `volren.upload.upload_scene` with ``bricked=False`` for the equality tests). A streamed volume's
     brick that is not resident gives its 8 voxels from the finest resident ancestor (`ancestor_voxel`): every
     caller interpolates them as it would the resident ones."""
-    if vol.stream_levels > 1:
+    if vol.stream_levels > 1:  # noqa: SIM102 (Warp evaluates both sides of "and": a dense grid has no table)
         if brick_entry(vol.table, vol.table_offset, vol.bricks, vol.brick_shift, cell) == NOT_RESIDENT:
             out = vec8()
             for n in range(8):
