@@ -380,6 +380,11 @@ def test_load_suite_omezarr_reads_the_level_zarr_reads(tmp_path, monkeypatch):
     coarse = load.zarr_open(path)
     assert coarse.shape == (25, 25, 25)
     np.testing.assert_array_equal(load.volren_open(path), coarse)
+    from volren.data.loaders import load_volume  # without stream=False the pyramid streams its level 0 instead
+
+    streamed = load_volume(path).density
+    assert streamed.streamed and streamed.shape == (50, 50, 50)
+    streamed.close()
 
 
 class CountingRenderer:

@@ -111,3 +111,8 @@ def test_cell_ranges_bound_every_sample_of_a_cell_and_its_border():
     one = np.zeros((33, 33, 33), np.float32)
     one[15, 20, 20] = 1.0
     assert brick_dense(one, 16).cell_ranges()[1][1, 1, 1] == 1.0
+
+
+def test_sum_is_the_dense_copys():
+    grid = sparse_field()
+    assert brick_dense(grid, 8).sum() == pytest.approx(float(grid.sum(dtype=np.float64)), rel=1e-12)

@@ -218,9 +218,10 @@ def test_the_stream_package_builds_on_data_only():
     from test_layout import SRC, imported_modules
 
     files = sorted((SRC / "stream").glob("*.py"))
-    assert {p.stem for p in files} >= {"__init__", "layout", "source", "lod", "cache", "streamer"}
+    assert {p.stem for p in files} >= {"__init__", "layout", "source", "lod", "cache", "streamer", "density"}
     found = {m for p in files for _, m in imported_modules(p.read_text(), "volren.stream")}
-    allowed = ("volren.stream", "volren.data.omezarr", "volren.data.grid", "volren.errors", "volren.camera")
+    allowed = ("volren.stream", "volren.data.ngff", "volren.data.grid", "volren.errors", "volren.camera",
+               "volren.sparse")
     volren = {m for m in found if m.startswith("volren.")}
     assert {m for m in volren if not m.startswith(allowed)} == set()
     assert {a for a in allowed if any(m.startswith(a) for m in volren)} == set(allowed)  # the check reads imports

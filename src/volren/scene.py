@@ -48,6 +48,8 @@ def as_vec3(value: Sequence[float], what: str) -> np.ndarray:
 def validate_density(density: np.ndarray | SparseGrid, what: str = "density") -> np.ndarray | SparseGrid:
     """Return ``density`` as C-ordered float32 ``[z, y, x]`` (a `SparseGrid` as it is) or raise a one-line error
     saying what is wrong."""
+    if getattr(density, "streamed", False):  # a `volren.stream.density.StreamedDensity`: mapped as it is read
+        return density
     if isinstance(density, SparseGrid):
         lo, hi = float(density.min()), float(density.max())
         if not (np.isfinite(lo) and np.isfinite(hi)):

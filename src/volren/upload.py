@@ -10,7 +10,9 @@ densities can then read them too.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from collections import OrderedDict
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -23,8 +25,10 @@ from volren.kernels.common import (
     LIGHT_POINT,
     LIGHT_RECT,
     LIGHT_SPOT,
+    NOT_RESIDENT,
     OPAQUE_PLANE,
     OPAQUE_SPHERE,
+    STREAM_INTS,
     CameraGPU,
     LightGPU,
     Medium,
@@ -114,6 +118,34 @@ def camera_struct(cam: Camera) -> CameraGPU:
     return s
 
 
+BrickKey = tuple[int, int, int, int]
+"""(level, bz, by, bx) of a streamed brick"""
+
+
+@dataclass
+class StreamState:
+    """One streamed volume's device pool and page tables (`volren.upload.pack_stream`)."""
+
+    volume: int
+    """its index in the scene"""
+    density: Any
+    """its `volren.stream.density.StreamedDensity`"""
+    pool_offset: int
+    """first float of its pool in the packed density array"""
+    capacity: int
+    """brick slots in the pool"""
+    table_offset: int
+    """first entry of its level tables (level 0 first) in the packed table array"""
+    level_starts: list[int]
+    """per level, its table's first entry relative to ``table_offset``"""
+    tables: np.ndarray
+    """the host copy of every level's table, written to the device when it changes"""
+    slots: OrderedDict[BrickKey, int] = field(default_factory=OrderedDict)
+    """brick -> slot, least recently wanted first"""
+    empty: set[BrickKey] = field(default_factory=set)
+    """resident bricks whose voxels are all 0: `EMPTY`, no slot"""
+
+
 @dataclass
 class DeviceScene:
     """A scene's data on one device, plus its light-map storage (filled by the light-map pass)."""
@@ -160,6 +192,11 @@ class DeviceScene:
     beyond the page tables and constants; 0 for dense uploads"""
     active_bricks: int = 0
     """resident (non-constant) bricks of every volume and level; empty and constant bricks hold no pool memory"""
+    streams: list[StreamState] = field(default_factory=list)
+    """the streamed volumes' device pools and page tables (`volren.render.streaming`), filled frame by frame"""
+    stream_generation: int = 0
+    """changes of the streamed volumes' device bricks so far: what derives from the densities (the light map) is
+    recomputed when it moves"""
     gi: bool = False
     skip_empty: bool = True
     """marches skip steps in empty max-density cells (set from the renderer's config each frame)"""
@@ -255,7 +292,10 @@ def skip_grid(density: np.ndarray | SparseGrid, cell: int = SKIP_CELL) -> tuple[
 
     Returns the grid and its cell [voxels]: ``cell``, or for a `SparseGrid` its brick edge B, the blocks' bounds read
     from the page table (`SparseGrid.cell_ranges`), so that a sparse file's skip grid never needs a dense copy and
-    costs 1/B^3 of its index box (2000^3 voxels: 2 M cells at B = 16, 125 M at 4)."""
+    costs 1/B^3 of its index box (2000^3 voxels: 2 M cells at B = 16, 125 M at 4). A streamed volume's bounds are
+    not known before its bricks come: one occupied cell, no skipping."""
+    if getattr(density, "streamed", False):
+        return np.ones((1, 1, 1), np.float32), 1
     if isinstance(density, SparseGrid):
         peak, cell = density.cell_ranges()[1], density.brick
     else:
@@ -352,6 +392,32 @@ class BrickPlace:
     constants_offset: int
 
 
+def pack_stream(s: VolumeGPU, density, volume: int, packing: DensityPacking) -> StreamState:
+    """Reserve a streamed volume's device pool (`StreamedDensity.device_bricks` slots), its constants (0, for the
+    bricks found empty), its level maps, and its levels' page tables, every entry `NOT_RESIDENT` until the first
+    frame places its bricks (`volren.render.streaming`); point ``s`` at them."""
+    layout, e3 = density.layout, (density.brick + 1) ** 3
+    capacity = density.device_bricks
+    maps = density.level_maps()
+    s.offset, s.brick_shift = packing.offset, density.brick.bit_length() - 1
+    s.constants_offset = packing.offset + capacity * e3
+    s.stream_levels, s.stream_map = layout.count, s.constants_offset + 1
+    packing.grids += [np.zeros(capacity * e3, np.float32), np.zeros(1, np.float32), maps.reshape(-1)]
+    packing.offset += capacity * e3 + 1 + maps.size
+    sizes = [int(np.prod(layout.bricks(k))) for k in range(layout.count)]
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int).tolist()
+    s.stream_header = packing.table_offset
+    first = packing.table_offset + STREAM_INTS * layout.count
+    header = [v for k in range(layout.count) for v in (*layout.shapes[k][::-1], *layout.bricks(k)[::-1],
+                                                      first + starts[k])]
+    s.table_offset, s.bricks = first, wp.vec3i(*layout.bricks(0)[::-1])
+    tables = np.full(sum(sizes), NOT_RESIDENT, np.int32)
+    packing.tables += [np.array(header, np.int32), tables]
+    packing.table_offset = first + tables.size
+    packing.pool_voxels += capacity * e3
+    return StreamState(volume, density, s.offset, capacity, first, starts, tables.copy())
+
+
 def pack_density(s: VolumeGPU, grid: np.ndarray | SparseGrid, packing: DensityPacking, bricked: bool) -> None:
     """Append ``grid`` (a density level) to ``packing`` (`pack_grid`) and point ``s`` at it."""
     place = pack_grid(grid, packing, bricked)
@@ -443,12 +509,21 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     light_offset = 0
     ambient_offset = 0
     light_res = []
-    for vol in scene.volumes:
-        lres = light_grid_resolution(vol.resolution, light_grid, sparse=isinstance(vol.density, SparseGrid))
+    streams = []
+    for index, vol in enumerate(scene.volumes):
+        streamed = getattr(vol.density, "streamed", False)
+        if streamed and mip_levels:
+            raise VolrenError(f"volume '{vol.name}' is streamed (a pyramid larger than --memory-budget): cmsrm's "
+                              "cube maps march the pyramid's levels whole; use dssrm, reference or cacrm")
+        lres = light_grid_resolution(vol.resolution, light_grid,
+                                     sparse=streamed or isinstance(vol.density, SparseGrid))
         per_level = []
         for grid in vol.mip_pyramid if mip_levels else [vol.density]:
             per_level.append(volume_struct(vol, 0, grid.shape[::-1], light_offset, lres, ambient_offset))
-            pack_density(per_level[-1], grid, packing, bricked)
+            if streamed:
+                streams.append(pack_stream(per_level[-1], grid, index, packing))
+            else:
+                pack_density(per_level[-1], grid, packing, bricked)
         levels.append(per_level)
         structs.append(per_level[0])
         light_res.append(lres)
@@ -510,4 +585,5 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
         table=table,
         pool_bytes=4 * packing.pool_voxels,
         active_bricks=packing.active_bricks,
+        streams=streams,
     )

@@ -483,6 +483,7 @@ def load_volume(
     units: str | None = None,
     level: int | None = None,
     memory_budget: float | None = None,
+    stream: bool | None = None,
     grid: str | None = None,
     emission_grid: str | None = None,
     time_point: int | None = None,
@@ -503,8 +504,9 @@ def load_volume(
     voxels with the longest side 2 m, centred. ``spacing`` is refused for NRRD, NIfTI and DICOM.
 
     A ``.zarr`` is an OME-Zarr pyramid or a plain Zarr array (`volren.data.omezarr`): ``level`` (0 = finest) or the
-    finest level within ``memory_budget`` [bytes of float32] is read. A 4D array, a TIFF with a C axis or a Zarr
-    with a ``c`` axis holds channels (``LoadedVolume.channels``).
+    finest level within ``memory_budget`` [bytes of float32] is read; a one-channel pyramid whose finest level does
+    not fit (or any, with ``stream`` True) streams its bricks as the views need them (`volren.stream`). A 4D array,
+    a TIFF with a C axis or a Zarr with a ``c`` axis holds channels (``LoadedVolume.channels``).
 
     A 4-D NIfTI (x, y, z, t) is a time series: ``time_point`` (0-based), or ``path`` a `TimePoint`, reads one of its
     volumes; the CLI plays them all as a sequence (`volren.data.sequence`).
@@ -536,6 +538,8 @@ def load_volume(
         if len(step) != 3 or not all(np.isfinite(v) and v > 0 for v in step):
             raise VolrenError(f"spacing must be three positive voxel sizes x,y,z, got {spacing!r} (CLI: --spacing)")
     zarr = path.suffix.lower() == ".zarr"
+    if not zarr and stream is not None:
+        raise VolrenError(f"{path}: stream= reads an OME-Zarr pyramid brick by brick: it applies to .zarr only")
     if not zarr and (level is not None or memory_budget is not None):
         raise VolrenError(f"{path}: level and memory_budget choose an OME-Zarr pyramid level: they apply to .zarr "
                           "only (CLI: --level, --memory-budget)")
@@ -544,7 +548,7 @@ def load_volume(
 
         if shape is not None or dtype is not None:
             raise VolrenError(f"{path}: shape/dtype apply to raw binary files only; a Zarr array stores its own")
-        grid = read_zarr(path, level=level, memory_budget=memory_budget)
+        grid = read_zarr(path, level=level, memory_budget=memory_budget, stream=stream)
     elif path.is_dir() and path.suffix.lower() not in (*_READERS, *RAW_EXTENSIONS):  # "a.npy/" is a mistake, not DICOM
         from volren.data.dicom import read_dicom_series  # lazy: pydicom only for DICOM users
 

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from volren.data.grid import Grid, one_line
+from volren.data.ngff import _attributes, _axes, _fill, _scale_translation, coarser_inner_box
 from volren.errors import VolrenError, VolrenWarning
 
 DEFAULT_MEMORY_BUDGET = 1 << 30
@@ -39,47 +40,6 @@ NGFF_UNITS = {"angstrom": 1e-10, "nanometer": 1e-9, "micrometer": 1e-6, "millime
 """[m] per unit of the NGFF space units volren meets (UDUNITS-2 names; short forms some writers use)."""
 IMAGE_SPACE = "LIP"
 """the file's x, y, z as anatomical letters (`volren.data.loaders`): Left = world +x, Inferior = -y, Posterior = -z."""
-
-
-def _attributes(group: Any) -> dict[str, Any]:
-    """NGFF 0.5 nests the metadata under ``ome``; 0.4 keeps it at the top of the group's attributes."""
-    attrs = dict(group.attrs)
-    return dict(attrs["ome"]) if "ome" in attrs else attrs
-
-
-def _axes(multiscale: dict[str, Any], ndim: int) -> list[tuple[str, str, str | None]]:
-    """(name, type, unit) per array axis; NGFF 0.3 gave names only, <= 0.2 none (then t, c, z, y, x)."""
-    axes = multiscale.get("axes", ["t", "c", "z", "y", "x"][-ndim:])
-    out = []
-    for a in axes:
-        name = str(a["name"] if isinstance(a, dict) else a).lower()
-        kind = str(a.get("type", "")) if isinstance(a, dict) else ""
-        kind = kind or {"c": "channel", "t": "time"}.get(name, "space")
-        out.append((name, kind, a.get("unit") if isinstance(a, dict) else None))
-    if len(out) != ndim:
-        raise ValueError(f"{len(out)} axes for an array of {ndim} dimensions")
-    return out
-
-
-def _scale_translation(transforms: list[dict[str, Any]], ndim: int) -> tuple[np.ndarray, np.ndarray]:
-    """Compose a list of NGFF ``scale`` / ``translation`` transformations into one per-axis scale and offset."""
-    scale, offset = np.ones(ndim), np.zeros(ndim)
-    for t in transforms:
-        kind = t["type"]
-        if kind == "identity":
-            continue
-        if kind not in ("scale", "translation"):
-            raise ValueError(f"coordinate transformation {kind!r} is not supported (scale and translation are)")
-        if kind not in t:
-            raise ValueError(f"a {kind} transformation without values (a 'path' to them is not supported)")
-        v = np.asarray(t[kind], dtype=np.float64)
-        if v.shape != (ndim,) or not np.all(np.isfinite(v)):
-            raise ValueError(f"{kind} {t[kind]!r} is not {ndim} finite numbers")
-        if kind == "scale":
-            scale, offset = scale * v, offset * v
-        else:
-            offset = offset + v
-    return scale, offset
 
 
 def _choose_level(path: Path, shapes: list[tuple[int, ...]], level: int | None, budget: float) -> int:
@@ -98,10 +58,15 @@ def _choose_level(path: Path, shapes: list[tuple[int, ...]], level: int | None, 
     return min(fitting)
 
 
-def read_zarr(path: Path, *, level: int | None = None, memory_budget: float | None = None) -> Grid:
+def read_zarr(path: Path, *, level: int | None = None, memory_budget: float | None = None,
+              stream: bool | None = None) -> Grid:
     """The voxels of one pyramid level of an OME-Zarr image as ``[c,] z, y, x`` (a ``t`` axis of length 1 is
     dropped), placed by its coordinate transformations: index -> file coordinates in the axes' unit (or in metres
-    where the spatial axes' units differ). A plain Zarr array is read as a ``.npy`` would be (no placement)."""
+    where the spatial axes' units differ). A plain Zarr array is read as a ``.npy`` would be (no placement).
+
+    Streaming (issue 41 item 3): a one-channel pyramid whose finest level does not fit ``memory_budget`` (and no
+    ``level`` asked for), or any one-channel pyramid with ``stream`` True, is not read here: its finest level is a
+    `volren.stream.density.StreamedDensity`, read brick by brick as the views need them within the budget."""
     import zarr  # lazy: only Zarr users pay for the import
 
     budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else float(memory_budget)
@@ -120,14 +85,14 @@ def read_zarr(path: Path, *, level: int | None = None, memory_budget: float | No
                               "--level)")
         return Grid(np.asarray(node[...]))
     try:
-        return _read_multiscale(path, node, level, budget)
+        return _read_multiscale(path, node, level, budget, stream)
     except VolrenError:
         raise
     except Exception as exc:  # KeyError, TypeError, ValueError, ...: metadata that is not NGFF
         raise VolrenError(f"{path}: malformed OME-Zarr metadata ({one_line(exc)})") from None
 
 
-def _read_multiscale(path: Path, group: Any, level: int | None, budget: float) -> Grid:
+def _read_multiscale(path: Path, group: Any, level: int | None, budget: float, stream: bool | None) -> Grid:
     attrs = _attributes(group)
     if "multiscales" not in attrs:
         raise VolrenError(f"{path}: a Zarr group without OME-Zarr 'multiscales' metadata (arrays: "
@@ -149,24 +114,22 @@ def _read_multiscale(path: Path, group: Any, level: int | None, budget: float) -
                               "(a channel axis 'c' and z, y, x)")
     if len(keep) > 4:
         raise VolrenError(f"{path}: axes {''.join(names)} hold more than one channel axis")
-    chosen = _choose_level(path, [tuple(a.shape[i] for i in keep) for a in arrays], level, budget)
+    shapes = [tuple(a.shape[i] for i in keep) for a in arrays]
+    if stream and (level is not None or len(keep) == 4):
+        raise VolrenError(f"{path}: stream= reads one channel's pyramid brick by brick; it takes no level= and "
+                          f"{'no channel axis' if len(keep) == 4 else 'reads the finest level'}")
+    streaming = (stream if stream is not None else level is None and 4 * math.prod(shapes[0]) > budget)
+    streaming = streaming and len(keep) == 3 and len(arrays) > 1
+    chosen = 0 if streaming else _choose_level(path, shapes, level, budget)
     ndim = len(axes)
     scale, offset = _scale_translation(datasets[chosen]["coordinateTransformations"], ndim)
     outer_scale, outer_offset = _scale_translation(multiscale.get("coordinateTransformations", []), ndim)
     scale, offset = scale * outer_scale, offset * outer_scale + outer_offset
     index = tuple(slice(None) if i in keep else 0 for i in range(ndim))
-    level = arrays[chosen]
-    stored, chunks = level.nchunks_initialized, level.nchunks  # the first lists the level's keys
-    if stored == 0:
-        raise VolrenError(f"{path}: level {chosen} has none of its {chunks} chunks on disk (every voxel would read "
-                          f"as the fill value {_fill(level):g}): an incomplete copy?")
-    data = np.asarray(level[index])  # this level's chunks only
-    if stored < chunks and chosen + 1 < len(arrays):
-        holes = _missing_chunks(data, level, np.asarray(arrays[chosen + 1][index]), keep)
-        if holes:
-            warnings.warn(f"{path}: level {chosen} is missing {holes} of its {chunks} chunks where level {chosen + 1} "
-                          f"holds data; zarr reads them as the fill value {_fill(level):g} (holes in the volume)",
-                          VolrenWarning, stacklevel=2)
+    if streaming:
+        data, source_dtype = _streamed(path, arrays[-1][index], budget), arrays[0].dtype.name
+    else:
+        data, source_dtype = _read_level(path, arrays, chosen, index, keep), ""
     if len(keep) == 4:  # the channel axis first, whatever its place among the kept axes
         data = np.moveaxis(data, sorted(keep).index(keep[0]), 0)
     # index (i, j, k) = (x, y, z) -> file coordinates; the NGFF axes run z, y, x
@@ -187,36 +150,50 @@ def _read_multiscale(path: Path, group: Any, level: int | None, budget: float) -
     m[:3, :3] = np.diag(step)
     m[:3, 3] = origin
     colors = _omero_colors(attrs, data.shape[0]) if len(keep) == 4 else ()
-    return Grid(data, m, IMAGE_SPACE, metres_per_unit, level=chosen, channel_colors=colors)
+    return Grid(data, m, IMAGE_SPACE, metres_per_unit, level=chosen, channel_colors=colors, source=source_dtype)
 
 
-def _fill(array: Any) -> float:
-    """The value zarr gives the voxels of a chunk that is not on disk."""
-    return 0.0 if array.fill_value is None else float(array.fill_value)
+def _read_level(path: Path, arrays: list[Any], chosen: int, index: tuple, keep: list[int]) -> np.ndarray:
+    """Level ``chosen``'s voxels (its chunks only), holes warned of (module docstring)."""
+    level = arrays[chosen]
+    stored, chunks = level.nchunks_initialized, level.nchunks  # the first lists the level's keys
+    if stored == 0:
+        raise VolrenError(f"{path}: level {chosen} has none of its {chunks} chunks on disk (every voxel would read "
+                          f"as the fill value {_fill(level):g}): an incomplete copy?")
+    data = np.asarray(level[index])  # this level's chunks only
+    if stored < chunks and chosen + 1 < len(arrays):
+        holes = _missing_chunks(data, level, np.asarray(arrays[chosen + 1][index]), keep)
+        if holes:
+            warnings.warn(f"{path}: level {chosen} is missing {holes} of its {chunks} chunks where level {chosen + 1} "
+                          f"holds data; zarr reads them as the fill value {_fill(level):g} (holes in the volume)",
+                          VolrenWarning, stacklevel=3)
+    return data
 
 
-CHUNK_MARGIN = 2
-"""[voxels of the coarser level] left out at each side of a chunk's box when `_missing_chunks` looks there for data
-(fewer where the box is narrower, keeping its middle): a smoothing downsampler (a Gaussian pyramid) spreads a
-neighbouring chunk's values about this far"""
+def _streamed(path: Path, coarsest: Any, budget: float):
+    """The pyramid as a `volren.stream.density.StreamedDensity` within ``budget`` bytes, its values mapped to
+    densities as `volren.data.loaders` maps a level read whole (integers by their bit depth or range, judged on the
+    coarsest level; floats as they are)."""
+    from volren.stream.density import StreamedDensity  # lazy: the stream package only for pyramids that stream
+    from volren.stream.source import PyramidSource
 
-
-def coarser_inner_box(box: list[tuple[int, int]], ratio: list[float]) -> list[slice]:
-    """A chunk's ``box`` ([start, stop) per axis in a level's voxels) in the next coarser level's voxels (``ratio``:
-    coarser voxels per finer voxel, per axis), less the margins (`CHUNK_MARGIN`): where a hole's data would show."""
-    inner = []
-    for (a, b), r in zip(box, ratio, strict=True):
-        lo, hi = math.ceil(a * r), math.floor(b * r)
-        m = 0 if r == 1 else max(0, min(CHUNK_MARGIN, (hi - lo - 1) // 2))
-        inner.append(slice(lo + m, hi - m))
-    return inner
+    raw = np.asarray(coarsest)
+    scale, offset = 1.0, 0.0
+    if raw.dtype == np.bool_ or np.issubdtype(raw.dtype, np.integer):
+        hi = float(raw.max()) if raw.size else 0.0
+        if np.issubdtype(raw.dtype, np.signedinteger):
+            lo = float(raw.min()) if raw.size else 0.0
+        else:
+            lo, hi = 0.0, float(max(hi, 2 ** max(8, int(hi).bit_length()) - 1)) if raw.dtype != np.bool_ else 1.0
+        scale, offset = (1.0 / (hi - lo), -lo / (hi - lo)) if hi > lo else (1.0, -lo)
+    return StreamedDensity(PyramidSource(path), budget, scale, offset)
 
 
 def _missing_chunks(data: np.ndarray, array: Any, coarser: np.ndarray, keep: list[int]) -> int:
     """How many chunks (shards, where the array is sharded) of the level read as ``data`` (``array``'s kept axes
     ``keep``) are missing rather than empty: zarr leaves out a chunk that holds only the fill value, so an absent
     chunk is a hole only where the next coarser level (read as ``coarser``) holds data in the same box, its
-    margins (`CHUNK_MARGIN`) left out."""
+    margins (`volren.data.ngff.CHUNK_MARGIN`) left out."""
     fill = _fill(array)
     unit = [(getattr(array, "shards", None) or array.chunks)[i] for i in sorted(keep)]
     ratio = [c / f for c, f in zip(coarser.shape, data.shape, strict=True)]

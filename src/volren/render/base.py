@@ -27,6 +27,7 @@ from volren.render.frame import Frame, PassClock, Stats
 from volren.render.gi.ambient import AmbientGI, GIConfig
 from volren.render.lightmap import LightMapCache
 from volren.render.marching.modes import check_mode, iso_range_message, mode_index
+from volren.render.streaming import update_streams
 from volren.scene import Scene
 from volren.upload import DeviceScene, camera_struct, only_lights_differ, upload_lights, upload_scene
 
@@ -149,6 +150,10 @@ class Renderer:
         self.bricked = True
         """densities uploaded as bricks (issue 41 item 1); False uploads them dense, the same image: only the
         equality tests and benchmarks set it, to compare the two"""
+        self.stream_wait = True
+        """a streamed volume's frame waits for the bricks it needs (``render``, ``animate``); False draws what is
+        resident and lets the rest come over the next frames (``serve``, the notebook viewer: a tick never waits)"""
+        self._views: list[Camera] = []
         self.on_rows: Callable[[int], None] | None = None
         """Progress hook: called with the number of image rows the view pass just finished."""
         self._targets: list[ViewBuffers] = []
@@ -196,6 +201,9 @@ class Renderer:
             with clock.measure("upload"):
                 ds = upload_scene(scene, self.device, light_grid, mip_levels, bricked=self.bricked)
             self._device_scene, self._upload_key = ds, key
+        if ds.streams:  # this frame's bricks of the streamed volumes, before anything samples them
+            with clock.measure("stream"):
+                self._frame_info["stream"] = update_streams(ds, self._views, self.stream_wait)
         return ds
 
     def _prepare(self, scene: Scene, clock: PassClock, frame: int) -> DeviceScene:
@@ -246,6 +254,7 @@ class Renderer:
         check_allocation(pixels * (40 if self.device == "cpu" else 60), self.device, f"{len(views)} view image(s)")
         clock = PassClock(self.device)
         self._frame_info: dict[str, Any] = {}
+        self._views = views
         ds = self._prepare(scene, clock, frame)
         # what the density costs on the device (issue 41 items 1 and 4): memory goes with the resident bricks
         self._frame_info["bricks"] = {"active": ds.active_bricks, "pool_bytes": ds.pool_bytes}

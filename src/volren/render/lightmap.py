@@ -228,12 +228,15 @@ class LightMapInputs:
     lights: tuple[Light, ...]
     light_samples: int
     cross_volume: bool
+    generation: int = 0
+    """the upload's streamed bricks' changes so far (`DeviceScene.stream_generation`): new bricks, a new map"""
 
     def matches(self, other: LightMapInputs | None) -> bool:
         """Whether ``other``'s map is this one: the same storage (held here, so no later array can take its place),
-        equal lights, L and cross-volume."""
+        equal lights, L, cross-volume and streamed bricks."""
         return (other is not None and other.storage is self.storage and other.lights == self.lights
-                and other.light_samples == self.light_samples and other.cross_volume == self.cross_volume)
+                and other.light_samples == self.light_samples and other.cross_volume == self.cross_volume
+                and other.generation == self.generation)
 
 
 class LightMapCache:
@@ -246,7 +249,8 @@ class LightMapCache:
                reuse: bool = True) -> bool:
         """Fill ``ds.lightmap`` unless it already holds these inputs' map (always with ``reuse`` False); returns
         whether the pass ran."""
-        inputs = LightMapInputs(ds.lightmap, tuple(ds.scene.lights), light_samples, bool(cross_volume))
+        inputs = LightMapInputs(ds.lightmap, tuple(ds.scene.lights), light_samples, bool(cross_volume),
+                                ds.stream_generation)
         if reuse and inputs.matches(self._filled):
             return False
         compute_light_map(ds, light_samples, clock, cross_volume)

@@ -95,6 +95,14 @@ class SparseGrid:
     def min(self, axis: None = None, out: None = None) -> np.float32:
         return np.float32(self.brick_ranges[0].min())
 
+    def sum(self, dtype: np.dtype | type = np.float64) -> float:
+        """The sum of the grid's voxels (as a dense copy's ``sum``), read in slabs of the index box: memory bounded
+        by a slab, time by the box (a check of a reader, not a renderer's path)."""
+        nz, ny, nx = self.shape
+        step = max(1, (1 << 24) // (ny * nx))
+        return float(sum(self.read((z, 0, 0), (min(z + step, nz), ny, nx)).sum(dtype=dtype)
+                         for z in range(0, nz, step)))
+
     def stored_values(self) -> np.ndarray:
         """Every value the grid holds, flat: its resident bricks' voxels (aprons repeat their neighbours', so the set
         is the grid's, with repeats) and its constant bricks' values (for a range or a test of the values, not a

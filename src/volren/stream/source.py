@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from volren.data.grid import one_line
-from volren.data.omezarr import _attributes, _axes, _fill, _scale_translation, coarser_inner_box
+from volren.data.ngff import _attributes, _axes, _fill, _scale_translation, coarser_inner_box
 from volren.errors import VolrenError, VolrenWarning
 from volren.stream.layout import BRICK, Brick, PyramidLayout
 
@@ -122,10 +122,13 @@ class PyramidSource:
                 raise VolrenError(f"{self.name}: axis '{name}' has {self._arrays[0].shape[i]} entries; a stream "
                                   "reads one volume (a channel axis 'c' and z, y, x)")
         self._chan_axis = chan[0] if chan else None
-        outer, _ = _scale_translation(multiscale.get("coordinateTransformations", []), ndim)
-        scales = [_scale_translation(d["coordinateTransformations"], ndim)[0] * outer for d in datasets]
-        self.scales = tuple(tuple(float(s[i]) for i in self._space) for s in scales)
+        outer, outer_offset = _scale_translation(multiscale.get("coordinateTransformations", []), ndim)
+        own = [_scale_translation(d["coordinateTransformations"], ndim) for d in datasets]
+        self.scales = tuple(tuple(float(s[i] * outer[i]) for i in self._space) for s, _ in own)
         """[file units] voxel size (z, y, x) per level"""
+        self.translations = tuple(tuple(float(t[i] * outer[i] + outer_offset[i]) for i in self._space)
+                                  for _, t in own)
+        """[file units] where voxel 0 (z, y, x) of each level lies: coordinate = index * scale + translation"""
         shapes = tuple(tuple(int(a.shape[i]) for i in self._space) for a in self._arrays)
         factors = []
         for k in range(len(shapes) - 1):

@@ -27,7 +27,6 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -75,9 +74,11 @@ class BrickStreamer:
         self._errors: list[str] = []
         self._last = {"loaded": 0, "evicted": 0, "bytes_read": 0}  # the first frame counts the floor's reads
         self.frame = 0
-        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="volren-brick-reader")
-        for _ in range(workers):
-            self._pool.submit(self._reader)
+        # daemon threads: a streamer nobody closed (a volume dropped in a notebook) never holds the interpreter's exit
+        self._readers = [threading.Thread(target=self._reader, name=f"volren-brick-reader-{i}", daemon=True)
+                         for i in range(workers)]
+        for thread in self._readers:
+            thread.start()
 
     # ------------------------------------------------------------------ the readers
 
@@ -219,7 +220,8 @@ class BrickStreamer:
             self._closed = True
             self._heap = []
             self._cond.notify_all()
-        self._pool.shutdown(wait=True)
+        for thread in self._readers:
+            thread.join()
 
     def __enter__(self) -> BrickStreamer:
         return self
