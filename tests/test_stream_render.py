@@ -4,6 +4,7 @@ hole; ``render`` waits for the needed bricks, a tick of ``serve`` never does."""
 
 from __future__ import annotations
 
+import time
 import warnings
 
 import numpy as np
@@ -99,3 +100,36 @@ def test_a_pyramid_larger_than_the_budget_streams_and_draws_the_rest_from_coarse
     a, b = want.images[0][..., 3], got.images[0][..., 3]
     assert np.all(b[a > 0.05] > 0.02)  # no hole
     assert np.abs(a - b).mean() < 0.05
+
+
+def test_a_frame_that_does_not_wait_draws_the_coarse_level_at_once_and_sharpens_after(pyramid, monkeypatch):
+    """``serve``'s ticks (``stream_wait`` False) over a store that answers slowly: the first frame comes at once from
+    the coarsest level, never blocked by a read; once the reads are done, the next frame is the full one."""
+    from volren.stream.source import PyramidSource
+
+    read = PyramidSource.read_brick
+
+    def slow(self, level, *brick, **kw):
+        if level < self.layout.coarsest:
+            time.sleep(0.3)
+        return read(self, level, *brick, **kw)
+
+    dense = scene_of(pyramid, level=0)
+    cam = close_camera(dense)
+    _, want = render(dense, cam)
+    monkeypatch.setattr(PyramidSource, "read_brick", slow)
+    streamed = scene_of(pyramid, memory_budget=2**26, stream=True)
+    renderer = DSSRM(DSSRMConfig(samples=96, light_samples=16), device=DEVICE)
+    render(streamed, cam, renderer=renderer, wait=False)  # compiles the kernels
+    streamed = scene_of(pyramid, memory_budget=2**26, stream=True)
+    start = time.perf_counter()
+    _, first = render(streamed, cam, renderer=renderer, wait=False)
+    took = time.perf_counter() - start
+    stream = first.stats.info["stream"][0]
+    assert took < 2.0 and stream["bricks_pending"] > 0
+    assert stream["levels_used"][:2] == [0, 0] and stream["levels_used"][2] > 0  # all from the coarsest level
+    assert first.images[0][..., 3].max() > 0.3  # a picture, not a hole
+    assert streamed.volumes[0].density.streamer.wait(timeout=60)
+    _, later = render(streamed, cam, renderer=renderer, wait=False)
+    assert later.stats.info["stream"][0]["levels_used"][1:] == [0, 0]
+    assert np.abs(later.images[0] - want.images[0]).max() <= 1e-5

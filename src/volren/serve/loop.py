@@ -162,6 +162,10 @@ SHARED_SETTINGS = ("method", "quality", "tf", "light_dir", "playing", "mode", "i
 """the settings every viewer of a server shares (`RenderLoop.apply`, `RenderLoop.adopt`)"""
 
 
+STREAM_POLL_S = 0.05
+"""[s] how often an idle loop looks whether a streamed volume's bricks came (a new tick draws them)"""
+
+
 class RenderLoop:
     """The shared renderer and its viewers. ``animate`` gives the next scene of an animation (None: not animated).
     ``shared=False`` is the naive server of the benchmark: each viewer rendered by its own renderer (own light map,
@@ -287,6 +291,7 @@ class RenderLoop:
         the class and config are those `_build_renderer` fixed for this tick)"""
         renderer = self._renderer_cls(self._config, device=self.device)
         renderer.on_rows = self._check_abandoned  # called once a view's image pass is through
+        renderer.stream_wait = False  # a streamed volume's tick draws what is resident; the rest comes meanwhile
         return renderer
 
     def abandon(self) -> None:
@@ -470,9 +475,18 @@ class RenderLoop:
 
     def _due(self) -> bool:
         """Some viewer free to receive needs a frame (new camera, size or settings, the scene plays, its still view
-        is refining, or its still view was shrunk and the loop is calm)."""
-        return any(not v.busy and (self._urgent(v) or self._refining(v) or (v.scaled and self._calm_in() <= 0))
+        is refining, its still view was shrunk and the loop is calm, or bricks of a streamed volume it shows are still
+        coming: the picture sharpens as they come, issue 41 item 3)."""
+        streaming = self._streaming()
+        return any(not v.busy and (self._urgent(v) or self._refining(v) or streaming
+                                   or (v.scaled and self._calm_in() <= 0))
                    for v in self.viewers.render_order())
+
+    def _streaming(self) -> bool:
+        """Whether a streamed volume of the scene has bricks on their way (never waited for: a tick draws what is
+        resident, `Renderer.stream_wait`)."""
+        return any(getattr(v.density, "streamed", False) and v.density.streamer.pending() > 0
+                   for v in getattr(self.scene, "volumes", ()))
 
     async def run(self) -> None:
         while True:
@@ -496,6 +510,8 @@ class RenderLoop:
                 await self.release()
             if self._calm_in() > 0 and any(v.scaled for v in self.viewers.render_order()):
                 asyncio.get_running_loop().call_later(self._calm_in() + 0.01, self.wake)  # its whole frame, calm
+            if self.viewers and self._streaming():  # the readers are threads: look again soon
+                asyncio.get_running_loop().call_later(STREAM_POLL_S, self.wake)
 
     async def step(self) -> None:
         """One tick: render every ready viewer in one call (or one per viewer when not shared), send the frames."""

@@ -11,6 +11,7 @@ saturate where a fine voxel is brighter than every coarse one.
 
 from __future__ import annotations
 
+import weakref
 from typing import Any
 
 import numpy as np
@@ -37,6 +38,8 @@ class StreamedDensity:
         self.memory_budget = int(memory_budget)
         self.value_scale, self.value_offset = float(value_scale), float(value_offset)
         self.streamer = BrickStreamer(source, memory_budget=self.memory_budget // 2)
+        # the readers stop when the volume goes (a notebook dropping it), not only on close
+        self._finalizer = weakref.finalize(self, _close, self.streamer, source)
         self.shape: tuple[int, int, int] = tuple(self.layout.shapes[0])  # type: ignore[assignment]
         top = self.layout.coarsest
         self._coarse = self.mapped(self._coarsest_level(top))
@@ -100,5 +103,9 @@ class StreamedDensity:
         return self.streamer.stats()
 
     def close(self) -> None:
-        self.streamer.close()
-        self.source.close()
+        self._finalizer()
+
+
+def _close(streamer: BrickStreamer, source: PyramidSource) -> None:
+    streamer.close()
+    source.close()
