@@ -57,6 +57,23 @@ def progress(label: str, total: int, unit: str = "rows", *, always: bool = False
     yield advance
 
 
+def reporter(label: str, unit: str) -> Callable[[int, int], None]:
+    """A ``report(done, total)`` for work whose total is known only when it starts (a streamed volume's bricks,
+    `volren.render.streaming`): plain lines at every 10% once it has run `QUIET_SECONDS`, as `progress` prints."""
+    state = {"start": 0.0, "shown": -1}
+
+    def report(done: int, total: int) -> None:
+        now = time.perf_counter()
+        if done == 0 or not state["start"]:
+            state["start"], state["shown"] = state["start"] or now, -1
+        step = done * STEPS // max(total, 1)
+        if total and step > state["shown"] and now - state["start"] >= QUIET_SECONDS:
+            state["shown"] = step
+            print(_line(label, done, total, unit, now - state["start"]), file=sys.stderr, flush=True)
+
+    return report
+
+
 _case_hook: list[Callable[[str], None]] = []
 """the innermost `cases` context's report function (bench suites report each measured case through `case_done`)"""
 

@@ -271,7 +271,7 @@ def render_plan(plan: RenderPlan, command: str) -> Rendered:
     from volren.animate import write_mp4
     from volren.imageio import composite, to_srgb8
     from volren.output import contact_sheet, run_output, write_stats
-    from volren.progress import progress
+    from volren.progress import progress, reporter
 
     args, method = plan.args, plan.method
     frames, files, movie = [], [], []
@@ -280,6 +280,7 @@ def render_plan(plan: RenderPlan, command: str) -> Rendered:
         rows = args.frames * sum(v.height for v in plan.views)  # each view's image pass reports its rows
         with progress(f"{method} {plan.scene.name}", rows, always=args.frames > 1) as advance:
             plan.renderer.on_rows = advance
+            plan.renderer.on_bricks = reporter(f"{plan.scene.name}: streaming bricks", "bricks")
             for i in range(args.frames):
                 frame = plan.render(i)
                 if i == 0:

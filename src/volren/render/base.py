@@ -154,6 +154,8 @@ class Renderer:
         """a streamed volume's frame waits for the bricks it needs (``render``, ``animate``); False draws what is
         resident and lets the rest come over the next frames (``serve``, the notebook viewer: a tick never waits)"""
         self._views: list[Camera] = []
+        self.on_bricks: Callable[[int, int], None] | None = None
+        """Progress hook of a streamed volume's wait: (bricks come, bricks asked for)."""
         self.on_rows: Callable[[int], None] | None = None
         """Progress hook: called with the number of image rows the view pass just finished."""
         self._targets: list[ViewBuffers] = []
@@ -203,7 +205,7 @@ class Renderer:
             self._device_scene, self._upload_key = ds, key
         if ds.streams:  # this frame's bricks of the streamed volumes, before anything samples them
             with clock.measure("stream"):
-                self._frame_info["stream"] = update_streams(ds, self._views, self.stream_wait)
+                self._frame_info["stream"] = update_streams(ds, self._views, self.stream_wait, self.on_bricks)
         return ds
 
     def _prepare(self, scene: Scene, clock: PassClock, frame: int) -> DeviceScene:

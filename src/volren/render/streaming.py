@@ -91,12 +91,13 @@ def update_stream(ds, state: StreamState, views: Sequence[Camera], wait: bool,
     return changed
 
 
-def update_streams(ds, views: Sequence[Camera], wait: bool) -> list[dict[str, Any]]:
+def update_streams(ds, views: Sequence[Camera], wait: bool, progress: Callable[[int, int], Any] | None = None,
+                   ) -> list[dict[str, Any]]:
     """`update_stream` for each streamed volume of ``ds``; their stats (stats.json's ``stream``). A change makes the
     light map and what else derives from the densities out of date: ``ds.stream_generation`` counts them."""
     out = []
     for state in ds.streams:
-        if update_stream(ds, state, views, wait):
+        if update_stream(ds, state, views, wait, progress):
             ds.stream_generation += 1
         out.append({**state.density.stats(), "device_bricks": len(state.slots), "device_capacity": state.capacity,
                     "empty_bricks": len(state.empty)})
