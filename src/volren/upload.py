@@ -343,7 +343,8 @@ def volume_struct(
 class DensityPacking:
     """The density array and page tables `upload_scene` fills, level by level (`pack_density`)."""
 
-    grids: list[np.ndarray]
+    grids: list[np.ndarray | int]
+    """flat float32 pieces of the density array, or a count of floats reserved (`packed_density`)"""
     tables: list[np.ndarray]
     offset: int = 0
     """floats in ``grids`` so far"""
@@ -402,7 +403,7 @@ def pack_stream(s: VolumeGPU, density, volume: int, packing: DensityPacking) -> 
     s.offset, s.brick_shift = packing.offset, density.brick.bit_length() - 1
     s.constants_offset = packing.offset + capacity * e3
     s.stream_levels, s.stream_map = layout.count, s.constants_offset + 1
-    packing.grids += [np.zeros(capacity * e3, np.float32), np.zeros(1, np.float32), maps.reshape(-1)]
+    packing.grids += [capacity * e3, np.zeros(1, np.float32), maps.reshape(-1)]  # the pool: reserved, not written
     packing.offset += capacity * e3 + 1 + maps.size
     sizes = [int(np.prod(layout.bricks(k))) for k in range(layout.count)]
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int).tolist()
@@ -495,6 +496,26 @@ def upload_lights(ds: DeviceScene, scene: Scene) -> DeviceScene | None:
     return replace(ds, scene=scene, lights=light_structs(scene, ds.device))
 
 
+def packed_density(grids: list[np.ndarray | int], device: str) -> wp.array:
+    """The packed density array of ``grids`` (flat float32 pieces, or an int: that many floats reserved and left
+    unwritten, a streamed volume's pool), written piece by piece into one device array: no concatenated host copy
+    (which, with the device copy on the CPU, held a streamed pool three times over)."""
+    total = sum(g if isinstance(g, int) else g.size for g in grids)
+    out = wp.empty(max(total, 1), dtype=float, device=device)
+    host = out.numpy() if out.device.is_cpu else None
+    offset = 0
+    for g in grids:
+        if isinstance(g, int):
+            offset += g
+            continue
+        if host is not None:
+            host[offset : offset + g.size] = g
+        elif g.size:
+            wp.copy(out, wp.array(np.ascontiguousarray(g, np.float32), dtype=float, device=device), offset, 0, g.size)
+        offset += g.size
+    return out
+
+
 def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_levels: bool = False, *,
                  bricked: bool = True) -> DeviceScene:
     """Pack and copy ``scene`` to ``device``; light grids get ``light_grid`` voxels on their longest axis. With
@@ -549,7 +570,7 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
             max_levels.append(cells)
             max_offset += cells.size
     try:
-        density = wp.array(np.concatenate(grids) if grids else np.zeros(1), dtype=float, device=device)
+        density = packed_density(grids, device)
         table = wp.array(np.concatenate(packing.tables) if packing.tables else np.zeros(1, np.int32),
                          dtype=wp.int32, device=device)
         lightmap = wp.zeros(max(light_offset, 1), dtype=float, device=device)  # no extinction: T = 1
