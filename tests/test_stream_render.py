@@ -9,12 +9,14 @@ import warnings
 
 import numpy as np
 import pytest
+import warp as wp
 import zarr
 from ome_zarr import writer
 
 from conftest import DEVICE
 from volren.camera import Camera
 from volren.data.loaders import load_volume
+from volren.kernels.common import VolumeGPU, sample_density
 from volren.plan.volume import volume_from_file
 from volren.render import DSSRM, DSSRMConfig
 from volren.scene import DirectionalLight, Environment, Scene
@@ -133,3 +135,44 @@ def test_a_frame_that_does_not_wait_draws_the_coarse_level_at_once_and_sharpens_
     _, later = render(streamed, cam, renderer=renderer, wait=False)
     assert later.stats.info["stream"][0]["levels_used"][1:] == [0, 0]
     assert np.abs(later.images[0] - want.images[0]).max() <= 1e-5
+
+
+@wp.kernel
+def sample_points(volumes: wp.array(dtype=VolumeGPU), density: wp.array(dtype=float), points: wp.array(dtype=wp.vec3),
+                  out: wp.array(dtype=float)):
+    i = wp.tid()
+    out[i] = sample_density(density, volumes[0], points[i])
+
+
+def test_no_seam_where_a_resident_brick_meets_one_drawn_from_a_coarser_level(pyramid, monkeypatch):
+    """Level-0 bricks x 0-31 resident, x 32-63 drawn from level 1: across the face at voxel 32 the density is
+    continuous (the coarse side takes the face voxels from the resident brick's apron); only the bricks' insides
+    differ from the finest level, by the coarse level's error."""
+    from volren.render import streaming
+    from volren.stream.lod import need
+
+    def needs(views, to_world, layout, step=0.0):
+        fine = [need((0, z, y, x), True, 1.0) for z in range(4) for y in range(4) for x in range(2)]
+        return fine + [need((1, z, y, 1), True, 2.0) for z in range(2) for y in range(2)]
+
+    monkeypatch.setattr(streaming, "frame_needs", needs)
+    dense, streamed = scene_of(pyramid, level=0), scene_of(pyramid, memory_budget=2**26, stream=True)
+    cam = close_camera(dense)
+    x = np.linspace(28.0, 36.0, 321)  # voxel coordinates across the face at 32 (step 0.025)
+    points = np.stack([-1.0 + (x + 0.5) * 2.0 / N, np.full_like(x, -1.0 + 30.5 * 2.0 / N),
+                       np.full_like(x, -1.0 + 32.5 * 2.0 / N)], axis=1).astype(np.float32)
+    values = []
+    for scene in (dense, streamed):
+        renderer, _ = render(scene, cam)
+        ds = renderer._device_scene
+        out = wp.zeros(len(points), dtype=float, device=ds.device)
+        wp.launch(sample_points, dim=len(points), inputs=[ds.volumes, ds.density,
+                                                          wp.array(points, dtype=wp.vec3, device=ds.device), out],
+                  device=ds.device)
+        values.append(out.numpy())
+    fine, mixed = values
+    at = int(np.argmin(np.abs(x - 32.0)))
+    assert np.array_equal(mixed[: at + 1], fine[: at + 1])  # up to the face: the resident brick, exactly
+    assert np.abs(mixed[at + 1 :] - fine[at + 1 :]).max() > 1e-3  # beyond: level 1's values
+    step = np.abs(np.diff(mixed))
+    assert step[at - 1 : at + 1].max() <= 2.0 * np.abs(np.diff(fine)).max()  # no jump at the face: a slope's step

@@ -333,17 +333,50 @@ def ancestor_voxel(density: wp.array(dtype=float), vol: VolumeGPU, v: wp.vec3i) 
 
 
 @wp.func
+def streamed_voxel(density: wp.array(dtype=float), vol: VolumeGPU, v: wp.vec3i) -> float:
+    """Level-0 voxel ``v`` of a streamed volume: from a level-0 brick on the device that holds it (its own brick, or,
+    on a brick's first plane, the apron of a brick before it), else from the finest resident ancestor
+    (`ancestor_voxel`). Every copy of a level-0 voxel is the file's, so the cells either side of the face between a
+    resident brick and one drawn from a coarser level share their face voxels: the density is continuous across
+    it, no seam (issue 41 item 3)."""
+    shift = vol.brick_shift
+    size = 1 << shift
+    edge = size + 1
+    for sub in range(8):  # bit a: the brick before along axis a, whose apron holds v when v is on a first plane
+        ok = int(1)
+        b = wp.vec3i(v[0] >> shift, v[1] >> shift, v[2] >> shift)
+        loc = wp.vec3i(v[0] & (size - 1), v[1] & (size - 1), v[2] & (size - 1))
+        for a in range(3):
+            if b[a] >= vol.bricks[a]:  # the grid's last voxel: only in the last brick's apron
+                b[a] = vol.bricks[a] - 1
+                loc[a] = loc[a] + size
+            if (sub >> a) & 1 == 1:
+                if loc[a] != 0 or b[a] == 0:
+                    ok = 0
+                else:
+                    b[a] = b[a] - 1
+                    loc[a] = size
+        if ok == 1:
+            entry = vol.table[vol.table_offset + (b[2] * vol.bricks[1] + b[1]) * vol.bricks[0] + b[0]]
+            if entry >= 0:
+                return density[vol.offset + entry * edge * edge * edge + (loc[2] * edge + loc[1]) * edge + loc[0]]
+            if entry != NOT_RESIDENT:
+                return density[vol.constants_offset - 1 - entry]
+    return ancestor_voxel(density, vol, v)
+
+
+@wp.func
 def gather_density(density: wp.array(dtype=float), vol: VolumeGPU, cell: wp.vec3i) -> vec8:
     """The 8 density voxels around ``cell`` of ``vol``: the one density read of every renderer (issue 41 item 1),
     through the volume's brick page table, or from its dense grid where ``brick_shift`` is 0 (grids under 2 voxels on
     an axis, and `volren.upload.upload_scene` with ``bricked=False`` for the equality tests). A streamed volume's
-    brick that is not resident gives its 8 voxels from the finest resident ancestor (`ancestor_voxel`): every
-    caller interpolates them as it would the resident ones."""
+    brick that is not resident gives its 8 voxels from resident neighbours or the finest resident ancestor
+    (`streamed_voxel`): every caller interpolates them as it would the resident ones."""
     if vol.stream_levels > 1:  # noqa: SIM102 (Warp evaluates both sides of "and": a dense grid has no table)
         if brick_entry(vol.table, vol.table_offset, vol.bricks, vol.brick_shift, cell) == NOT_RESIDENT:
             out = vec8()
             for n in range(8):
-                out[n] = ancestor_voxel(density, vol, cell + wp.vec3i(n % 2, (n / 2) % 2, n / 4))
+                out[n] = streamed_voxel(density, vol, cell + wp.vec3i(n % 2, (n / 2) % 2, n / 4))
             return out
     return gather_grid(density, vol.offset, vol.res, vol.table, vol.table_offset, vol.bricks, vol.brick_shift,
                        vol.constants_offset, cell)
