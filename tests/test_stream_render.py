@@ -28,16 +28,24 @@ N = 64
 SIZE = (64, 48)
 
 
-def write_pyramid(path, levels: int = 3) -> list[np.ndarray]:
-    """A smooth uint16 field (two blobs) and its levels, each the previous one's every second voxel (a level-k voxel
-    j is level 0's voxel 2^k j: the file's scales say so), chunks of 16^3."""
+def write_pyramid(path, levels: int = 3, mean: bool = False) -> list[np.ndarray]:
+    """A smooth uint16 field (two blobs) and its levels, chunks of 16^3: each the previous one's every second voxel
+    (a level-k voxel j is level 0's voxel 2^k j: the file's scales say so), or with ``mean`` its 2x2x2 mean (a
+    level-k voxel is centred between its 2^k level-0 voxels: the scales and translations say so)."""
     z, y, x = np.mgrid[0:N, 0:N, 0:N].astype(np.float32)
     field = sum(np.exp(-((x - cx) ** 2 + (y - 30) ** 2 + (z - 32) ** 2) / 90.0) for cx in (20.0, 44.0))
     pyramid = [np.round(field / field.max() * 4000).astype(np.uint16)]
     for _ in range(levels - 1):
-        pyramid.append(np.ascontiguousarray(pyramid[-1][::2, ::2, ::2]))
+        last = pyramid[-1]
+        if mean:
+            n = last.shape[0] // 2
+            pyramid.append(np.round(last.reshape(n, 2, n, 2, n, 2).mean(axis=(1, 3, 5))).astype(np.uint16))
+        else:
+            pyramid.append(np.ascontiguousarray(last[::2, ::2, ::2]))
     axes = [{"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
-    transforms = [[{"type": "scale", "scale": [2.0**k] * 3}] for k in range(levels)]
+    transforms = [[{"type": "scale", "scale": [2.0**k] * 3}]
+                  + ([{"type": "translation", "translation": [(2.0**k - 1) / 2] * 3}] if mean else [])
+                  for k in range(levels)]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         writer.write_multiscale(pyramid, zarr.open_group(str(path), mode="w"), axes=axes,
@@ -49,6 +57,13 @@ def write_pyramid(path, levels: int = 3) -> list[np.ndarray]:
 def pyramid(tmp_path_factory):
     path = tmp_path_factory.mktemp("stream") / "blobs.zarr"
     write_pyramid(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def mean_pyramid(tmp_path_factory):
+    path = tmp_path_factory.mktemp("stream") / "means.zarr"
+    write_pyramid(path, mean=True)
     return path
 
 
@@ -144,10 +159,10 @@ def sample_points(volumes: wp.array(dtype=VolumeGPU), density: wp.array(dtype=fl
     out[i] = sample_density(density, volumes[0], points[i])
 
 
-def test_no_seam_where_a_resident_brick_meets_one_drawn_from_a_coarser_level(pyramid, monkeypatch):
-    """Level-0 bricks x 0-31 resident, x 32-63 drawn from level 1: across the face at voxel 32 the density is
-    continuous (the coarse side takes the face voxels from the resident brick's apron); only the bricks' insides
-    differ from the finest level, by the coarse level's error."""
+def test_no_seam_where_a_resident_brick_meets_one_drawn_from_a_coarser_level(mean_pyramid, monkeypatch):
+    """Level-0 bricks x 0-31 resident, x 32-63 drawn from level 1 (2x2x2 means, centred): across the face at voxel 32
+    the density is continuous (the coarse side takes the face voxels from the resident brick's apron); only the
+    bricks' insides differ from the finest level, by the coarse level's error."""
     from volren.render import streaming
     from volren.stream.lod import need
 
@@ -156,7 +171,7 @@ def test_no_seam_where_a_resident_brick_meets_one_drawn_from_a_coarser_level(pyr
         return fine + [need((1, z, y, 1), True, 2.0) for z in range(2) for y in range(2)]
 
     monkeypatch.setattr(streaming, "frame_needs", needs)
-    dense, streamed = scene_of(pyramid, level=0), scene_of(pyramid, memory_budget=2**26, stream=True)
+    dense, streamed = scene_of(mean_pyramid, level=0), scene_of(mean_pyramid, memory_budget=2**26, stream=True)
     cam = close_camera(dense)
     x = np.linspace(28.0, 36.0, 321)  # voxel coordinates across the face at 32 (step 0.025)
     points = np.stack([-1.0 + (x + 0.5) * 2.0 / N, np.full_like(x, -1.0 + 30.5 * 2.0 / N),
