@@ -68,8 +68,8 @@ def update_stream(ds, state: StreamState, views: Sequence[Camera], wait: bool,
             state.slots.move_to_end(key)
             placed += 1
             continue
-        if placed >= state.capacity:
-            continue  # the pool is full of this frame's more urgent bricks: drawn from an ancestor
+        if placed >= state.capacity:  # the pool holds as many bricks as the host's cache, but a reader may have
+            continue  # cached one more while this frame looked: drawn from its ancestor, not over an urgent one
         values = sd.mapped(array)
         if not values.any():
             state.empty.add(key)
