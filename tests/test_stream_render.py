@@ -4,6 +4,7 @@ hole; ``render`` waits for the needed bricks, a tick of ``serve`` never does."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 
@@ -226,3 +227,23 @@ def test_a_brick_whose_parent_is_not_on_the_device_is_drawn_from_the_coarsest_le
               inputs=[ds.volumes, ds.density, wp.array(points, dtype=wp.vec3, device=ds.device), out], device=ds.device)
     assert want.max() > 0.2
     np.testing.assert_allclose(out.numpy(), want, rtol=1e-5, atol=1e-6)
+
+
+def test_a_pyramid_on_a_web_server_renders_as_the_folder_does(pyramid):
+    """``vr.load("http://...zarr")``: an fsspec URL (a loopback HTTP server here) streams as the folder does."""
+    import volren as vr
+    from test_stream_source import serve_folder
+
+    folder = scene_of(pyramid, memory_budget=2**26, stream=True)
+    cam = close_camera(folder)
+    _, want = render(folder, cam)
+    with serve_folder(pyramid.parent) as url:
+        vol = vr.load(f"{url}/{pyramid.name}", memory_budget=2**26 / 2**30, stream=True)
+        assert isinstance(vol.density, StreamedDensity) and vol.name == pyramid.name
+        assert np.array_equal(vol.to_world, folder.volumes[0].to_world)
+        remote = Scene((dataclasses.replace(folder.volumes[0], density=vol.density),), lights=folder.lights,
+                       environment=folder.environment)
+        _, got = render(remote, cam)
+        assert got.stats.info["stream"][0]["bytes_read"] > 0
+        vol.density.close()
+    assert np.array_equal(got.images[0], want.images[0])

@@ -84,7 +84,9 @@ def load(path: str | Path, **options: Any) -> Volume | Channels | VolumeSequence
         read["memory_budget"] = read["memory_budget"] * 2**30  # GiB, as --memory-budget; the reader counts bytes
     material = {k: v for k, v in options.items() if k in MATERIAL}
     colors, opacity = options.get("channel_colors"), options.get("channel_opacity")
-    path = Path(path)
+    url = isinstance(path, str) and "://" in path  # an fsspec URL of an OME-Zarr store: read as `load_volume` reads it
+    path = path if url else Path(path)
+    name = path.rstrip("/").rsplit("/", 1)[-1] if url else path.name
 
     def made(loaded: LoadedVolume) -> Volume | Channels:
         if loaded.channels:
@@ -92,12 +94,12 @@ def load(path: str | Path, **options: Any) -> Volume | Channels | VolumeSequence
                 raise VolrenError(f"load: {path} holds {len(loaded.channels)} channels, which glow in their colours, "
                                   f"unlit: {', '.join(map(keyword, material))} would do nothing (give "
                                   "channel_colors=, channel_opacity=)")
-            return file_channels(loaded, path, colors, opacity, keyword)
+            return file_channels(loaded, Path(name) if url else path, colors, opacity, keyword)
         given = [keyword(k) for k in CHANNEL_OPTIONS if options.get(k) is not None]
         if given:
             raise VolrenError(f"load: {', '.join(given)} apply to a multi-channel file only (a (C, Z, Y, X) array, a "
                               f"TIFF or OME-Zarr with a channel axis); {path} holds one channel")
-        volume = volume_from_file(loaded, path.name, **material)
+        volume = volume_from_file(loaded, name, **material)
         if volume.emission_grid is None:
             return volume
         # a flame's emission scale for the default light and environment it renders in (`render` of a Volume), as
@@ -105,7 +107,7 @@ def load(path: str | Path, **options: Any) -> Volume | Channels | VolumeSequence
         scene = Scene((volume,))
         return flame_defaults(scene.volumes, scene.lights, scene.environment)[0]
 
-    files = None if options.get("time_point") is not None else frame_files(path)
+    files = None if url or options.get("time_point") is not None else frame_files(path)
     if files is None:
         return made(load_volume(path, **read))
     return VolumeSequence(path, Reader(SequenceConfig(files), lambda f, **box: load_volume(f, **read, **box)), made)

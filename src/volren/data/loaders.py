@@ -508,6 +508,9 @@ def load_volume(
     not fit (or any, with ``stream`` True) streams its bricks as the views need them (`volren.stream`). A 4D array,
     a TIFF with a C axis or a Zarr with a ``c`` axis holds channels (``LoadedVolume.channels``).
 
+    ``path`` may be an fsspec URL of an OME-Zarr store (a ``str``: ``https://host/image.zarr``, ``s3://bucket/a.zarr``
+    with the ``s3`` extra, ``zip::file:///data/a.zarr.zip``): read or streamed as a folder is.
+
     A 4-D NIfTI (x, y, z, t) is a time series: ``time_point`` (0-based), or ``path`` a `TimePoint`, reads one of its
     volumes; the CLI plays them all as a sequence (`volren.data.sequence`).
 
@@ -518,17 +521,20 @@ def load_volume(
         if time_point is not None:
             raise VolrenError(f"{path}: give the time point once (a TimePoint, or time_point=)")
         path, time_point = path.path, path.index
-    path = Path(path)
+    url = isinstance(path, str) and "://" in path  # an fsspec URL: an OME-Zarr store (http://, s3://, zip://...)
+    path = path if url else Path(path)
+    name = path.rstrip("/").rsplit("/", 1)[-1] if url else path.name
+    suffix = ".zarr" if url else path.suffix.lower()
     options: dict[str, str | int] = {k: v for k, v in (("grid", grid), ("emission_grid", emission_grid),
                                                        ("index_box", index_box)) if v is not None}  # OpenVDB's
-    if options and path.suffix.lower() != ".vdb":  # Warp reads a .nvdb's first grid only
+    if options and suffix != ".vdb":  # Warp reads a .nvdb's first grid only
         raise VolrenError(f"{path}: grid and emission_grid name grids of an OpenVDB file: they apply to .vdb only "
                           "(CLI: --grid, --emission-grid)")
     if time_point is not None:
         if isinstance(time_point, bool) or not isinstance(time_point, int | np.integer):
             raise VolrenError(f"{path}: time_point must be a whole number (0-based), got {time_point!r}")
         time_point = int(time_point)
-        if not path.name.lower().endswith((".nii", ".nii.gz")):
+        if not name.lower().endswith((".nii", ".nii.gz")):
             raise VolrenError(f"{path}: time_point picks a time point of a 4-D NIfTI (.nii, .nii.gz) only")
         options["time_point"] = time_point  # or a 4-D NIfTI's time point
     if units is not None and units not in UNITS:
@@ -537,7 +543,7 @@ def load_volume(
         step = tuple(float(v) for v in spacing)
         if len(step) != 3 or not all(np.isfinite(v) and v > 0 for v in step):
             raise VolrenError(f"spacing must be three positive voxel sizes x,y,z, got {spacing!r} (CLI: --spacing)")
-    zarr = path.suffix.lower() == ".zarr"
+    zarr = suffix == ".zarr"
     if not zarr and stream is not None:
         raise VolrenError(f"{path}: stream= reads an OME-Zarr pyramid brick by brick: it applies to .zarr only")
     if not zarr and (level is not None or memory_budget is not None):

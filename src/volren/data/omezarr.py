@@ -58,7 +58,7 @@ def _choose_level(path: Path, shapes: list[tuple[int, ...]], level: int | None, 
     return min(fitting)
 
 
-def read_zarr(path: Path, *, level: int | None = None, memory_budget: float | None = None,
+def read_zarr(path: Path | str, *, level: int | None = None, memory_budget: float | None = None,
               stream: bool | None = None) -> Grid:
     """The voxels of one pyramid level of an OME-Zarr image as ``[c,] z, y, x`` (a ``t`` axis of length 1 is
     dropped), placed by its coordinate transformations: index -> file coordinates in the axes' unit (or in metres
@@ -73,7 +73,7 @@ def read_zarr(path: Path, *, level: int | None = None, memory_budget: float | No
     if not (np.isfinite(budget) and budget > 0):
         raise VolrenError(f"memory_budget must be a positive number of bytes, got {memory_budget!r} "
                           "(CLI: --memory-budget GIB)")
-    if not path.exists():
+    if isinstance(path, Path) and not path.exists():  # a URL (a str) is found, or not, by fsspec
         raise VolrenError(f"{path}: file not found")
     try:
         node = zarr.open(str(path), mode="r")
