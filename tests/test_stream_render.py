@@ -247,3 +247,26 @@ def test_a_pyramid_on_a_web_server_renders_as_the_folder_does(pyramid):
         assert got.stats.info["stream"][0]["bytes_read"] > 0
         vol.density.close()
     assert np.array_equal(got.images[0], want.images[0])
+
+
+def test_the_cli_renders_a_store_by_its_url_as_the_folder(pyramid, tmp_path):
+    """``volren render --volume http://.../x.zarr``: the URL is kept whole (a Path would fold its //), streamed as
+    the folder is, the same picture; and a render spec of it round-trips through JSON as the URL."""
+    import imageio.v3 as iio
+    from test_stream_source import serve_folder
+
+    from volren.cli import main
+    from volren.plan.spec import RenderSpec
+    from volren.store import StoreURL
+
+    args = ["--memory-budget", "0.0005", "--width", "48", "--height", "32", "--views", "mono", "--samples", "48",
+            "--light-samples", "8", "--device", DEVICE]
+    assert main(["render", "--volume", str(pyramid), *args, "--out", str(tmp_path / "local")]) == 0
+    with serve_folder(pyramid.parent) as url:
+        volume = f"{url}/{pyramid.name}"
+        assert main(["render", "--volume", volume, *args, "--out", str(tmp_path / "url")]) == 0
+        spec = RenderSpec.parse(["render", "--volume", volume, *args])
+    back = RenderSpec.from_json(spec.to_json())
+    assert isinstance(dict(back.options)["volume"], StoreURL) and dict(back.options)["volume"] == volume
+    local, remote = (iio.imread(tmp_path / d / "view0.png") for d in ("local", "url"))
+    assert local.std() > 5 and np.array_equal(local, remote)

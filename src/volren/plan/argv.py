@@ -23,6 +23,7 @@ from volren.plan.options import (
     TONEMAPS,
     CliError,
 )
+from volren.store import volume_path
 
 NEGATIVE_NUMBERS = re.compile(r"^-\.?\d")
 """A value, not an option: what starts as a negative number does (``-1,-1,0``, ``-1e-3``, ``-.5``); the option's
@@ -136,9 +137,10 @@ def add_device(p: argparse.ArgumentParser) -> None:
 def add_volume_args(src: argparse._ArgumentGroup | argparse.ArgumentParser) -> None:
     """``--volume`` and every flag saying how to read it: render, animate and serve take them all (`_file_scene`
     reads them)."""
-    src.add_argument("--volume", type=Path, help="density file (default: none, a --scene): .npy .npz .nrrd .nhdr "
-                     ".nii(.gz) .tif(f) .nvdb .vdb or raw, a folder of DICOM slices or one of its .dcm files (the "
-                     "series is read); placed where the file says (mm unless it states metres). A sequence, one "
+    src.add_argument("--volume", type=volume_path, help="density file (default: none, a --scene): .npy .npz .nrrd "
+                     ".nhdr .nii(.gz) .tif(f) .nvdb .vdb .zarr or raw, a folder of DICOM slices or one of its .dcm "
+                     "files (the series is read), or an OME-Zarr store's URL (https://..., s3://...: streamed); "
+                     "placed where the file says (mm unless it states metres). A sequence, one "
                      "file per frame: 'sim_####.vdb' (# = the zero-padded frame number), 'sim_%%04d.npy', a glob "
                      "'sim_*.npy' (numeric order) or a folder of numbered files; render --frames, animate and serve "
                      "play it")

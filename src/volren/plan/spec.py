@@ -20,11 +20,14 @@ COMMANDS = ("demo", "render", "animate")
 
 
 @functools.cache
-def _schema(command: str) -> dict[str, tuple[bool, bool]]:
-    """Per option of ``command``: (it repeats, its values are paths), from the parser's actions (no parsing)."""
+def _schema(command: str) -> dict[str, tuple[bool, Any]]:
+    """Per option of ``command``: (it repeats, the parser's type where its values are paths, else None), from the
+    parser's actions (no parsing)."""
     from volren.plan.argv import command_options, out_folder
+    from volren.store import volume_path
 
-    return {a.dest: (isinstance(a, argparse._AppendAction), a.type in (Path, out_folder))
+    paths = (Path, out_folder, volume_path)
+    return {a.dest: (isinstance(a, argparse._AppendAction), a.type if a.type in paths else None)
             for a in command_options(command)}
 
 
@@ -37,14 +40,15 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def _typed(value: Any, path: bool) -> Any:
-    """A JSON value back as the parser gives it: a path, or a tuple where JSON has a list."""
+def _typed(value: Any, path: Any) -> Any:
+    """A JSON value back as the parser gives it: a path (by the option's own type: ``path``), or a tuple where JSON
+    has a list."""
     if value is None:
         return None
-    if path:
-        return Path(value)
+    if path is not None:
+        return path(value)
     if isinstance(value, list):
-        return tuple(_typed(v, False) for v in value)
+        return tuple(_typed(v, None) for v in value)
     return value
 
 

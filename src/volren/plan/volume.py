@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 from volren.errors import VolrenError, flag
 from volren.plan.options import CliError
+from volren.store import StoreURL
 
 if TYPE_CHECKING:
     from volren.data.loaders import LoadedVolume
@@ -182,7 +183,7 @@ def volume_sequence(args: argparse.Namespace):
     """The `VolumeSequence` a ``--volume`` pattern or 4-D NIfTI names (serve's reads ahead across the end: it plays
     in a loop), opened once (keyed on the folder's mtime too, so added or removed frames are found, and a file's);
     None for one volume."""
-    if getattr(args, "volume", None) is None:
+    if getattr(args, "volume", None) is None or isinstance(args.volume, StoreURL):  # a store's URL: one volume
         return None
     folder = args.volume if args.volume.is_dir() else args.volume.parent
     stamp = folder.stat().st_mtime_ns if folder.exists() else None
@@ -259,9 +260,9 @@ def _load_volume(path: Path, shape, dtype, spacing, units, grid=None, level=None
     for its series: the files of its folder with its SeriesInstanceUID (other series beside it are skipped)."""
     from volren.data.loaders import dicom_member
 
-    dicom_file = dicom_member(path, shape)
+    dicom_file = not isinstance(path, StoreURL) and dicom_member(path, shape)
     source = path.parent if dicom_file else path
-    stamp = source.stat().st_mtime_ns if source.exists() else None
+    stamp = source.stat().st_mtime_ns if not isinstance(path, StoreURL) and source.exists() else None
     try:
         return _load_volume_cached(path, stamp, shape, dtype, spacing, units, grid, level, memory_budget,
                                    emission_grid)
