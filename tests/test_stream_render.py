@@ -253,8 +253,8 @@ def test_the_cli_renders_a_store_by_its_url_as_the_folder(pyramid, tmp_path):
     """``volren render --volume http://.../x.zarr``: the URL is kept whole (a Path would fold its //), streamed as
     the folder is, the same picture; and a render spec of it round-trips through JSON as the URL."""
     import imageio.v3 as iio
-    from test_stream_source import serve_folder
 
+    from test_stream_source import serve_folder
     from volren.cli import main
     from volren.plan.spec import RenderSpec
     from volren.store import StoreURL
