@@ -432,3 +432,16 @@ def test_iso_surface_shading_is_the_same_world_shape_however_its_grid_is_placed(
     assert both.sum() > 150
     err = np.abs(img[both] - base[both]) / np.maximum(base[both], 1e-3)
     assert np.median(err) < 0.005 and np.percentile(err, 90) < 0.03, (case, np.median(err), np.percentile(err, 90))
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("mode", ["mip", "iso", "mida"])
+def test_only_the_lit_modes_compute_the_light_map(mode) -> None:
+    """MIP is unlit and iso shades unshadowed: their frames skip the light-map pass (13 s of the first MIP frame of
+    a 640^3 box); MIDA composites DVR's lit samples and keeps it."""
+    from volren.data import builtin_scene
+
+    scene = builtin_scene("smoke", 64)
+    r = DSSRM(DSSRMConfig(samples=32, light_samples=8, light_grid=16, mode=mode, iso_value=0.2), device=DEVICE)
+    frame = r.render(scene, [Camera(position=(0.0, 0.0, 3.0), width=24, height=16)])
+    assert ("light_map" in frame.stats.times_ms) == (mode == "mida")
