@@ -111,3 +111,25 @@ def test_a_sparse_volume_skips_empty_space_in_cells_of_one_brick():
     assert s.skip_cell == BRICK and tuple(s.skip_res) == cells.shape[::-1]
     grid = ds.max_density.numpy()[s.skip_offset : s.skip_offset + cells.size].reshape(cells.shape)
     assert np.array_equal(grid > 0, cells > 0)  # occupied where a brick's range is > 0, radii elsewhere
+
+
+@pytest.mark.timeout(120)
+def test_a_kilometre_wide_volume_is_framed_whole_by_the_cli_and_the_api(tmp_path):
+    """The issue's file is 1.6 km across in OpenVDB's metres, framed from 4 km: the default far plane (1000 m) had
+    the whole box beyond it, a black picture. The framed eye's far plane reaches past the box."""
+    import imageio.v3 as iio
+
+    import volren as vr
+    from volren.cli import main
+    from volren.scene import scale_translate
+
+    z, y, x = np.mgrid[-1:1:32j, -1:1:32j, -1:1:32j]
+    ball = np.clip(1.0 - (x * x + y * y + z * z) / 0.25, 0.0, None).astype(np.float32)
+    vol = Volume(ball, scale_translate(800.0, (1000.0, 1000.0, 1000.0)), density_scale=0.02)
+    frame = vr.render(vol, width=48, height=32, samples=32, light_samples=8, device=DEVICE)
+    assert frame.images[0][..., 3].max() > 0.5
+    np.save(tmp_path / "km.npy", ball)
+    args = ["render", "--volume", str(tmp_path / "km.npy"), "--spacing", "50,50,50", "--units", "m", "--views",
+            "mono", "--width", "48", "--height", "32", "--samples", "32", "--light-samples", "8", "--device", DEVICE]
+    assert main([*args, "--out", str(tmp_path / "out")]) == 0
+    assert iio.imread(tmp_path / "out" / "view0.png")[..., :3].max() > 60

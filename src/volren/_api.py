@@ -448,10 +448,10 @@ def framed_camera(scene: Scene, name: str | None = None, width: int | None = Non
     if not scene.volumes:
         return Camera(position=DEFAULT_EYE, **size)
     if name is not None:
-        position, look_at, near = framed_content(scene.volumes, Camera.up, Camera.fov_y,
-                                                 size["width"] / size["height"], eye_offset)
-        return Camera(position=position, look_at=look_at, near=near, **size)
+        position, look_at, near, far = framed_content(scene.volumes, Camera.up, Camera.fov_y,
+                                                      size["width"] / size["height"], eye_offset)
+        return Camera(position=position, look_at=look_at, near=near, far=far, **size)
     corners = np.concatenate([v.corners_world for v in scene.volumes])
-    position, look_at, near = framed_eye(corners, Camera.up, Camera.fov_y, size["width"] / size["height"],
-                                         eye_offset=eye_offset)
-    return Camera(position=position, look_at=look_at, near=near, **size)
+    position, look_at, near, far = framed_eye(corners, Camera.up, Camera.fov_y, size["width"] / size["height"],
+                                              eye_offset=eye_offset)
+    return Camera(position=position, look_at=look_at, near=near, far=far, **size)

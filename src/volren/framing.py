@@ -34,16 +34,24 @@ def framing_distance(corners, look_at, direction, up, fov_y: float, aspect: floa
     return 1.1 * float(need.max())
 
 
+DEFAULT_FAR = 1000.0
+"""[m] the far plane of a framed eye, unless its volume reaches beyond (`framed_eye`)"""
+
+
 def framed_eye(corners, up, fov_y: float, aspect: float, look_at=None, eye_offset: float = 0.0) -> tuple:
-    """(position, look_at, near) of an eye that sees the box ``corners`` (an (N, 3) array [m]) whole: it looks at
-    ``look_at`` (default: the box's centre) from the direction of `DEFAULT_EYE`, at `framing_distance`; ``near`` is
-    0.01 m or a thousandth of that distance where less (a 100 um stack framed from 0.4 mm: 1 cm would clip it all)."""
+    """(position, look_at, near, far) of an eye that sees the box ``corners`` (an (N, 3) array [m]) whole: it looks
+    at ``look_at`` (default: the box's centre) from the direction of `DEFAULT_EYE`, at `framing_distance`; ``near`` is
+    0.01 m or a thousandth of that distance where less (a 100 um stack framed from 0.4 mm: 1 cm would clip it all);
+    ``far`` `DEFAULT_FAR`, or twice the farthest corner where more (a 1.6 km OpenVDB box in metres, framed from 4 km,
+    lay wholly beyond 1000 m: a black picture)."""
     import numpy as np
 
     look_at = tuple(look_at or (corners.min(axis=0) + corners.max(axis=0)) / 2)
     direction = np.array(DEFAULT_EYE) / np.linalg.norm(DEFAULT_EYE)
     distance = framing_distance(corners, look_at, direction, up, fov_y, aspect, eye_offset)
-    return tuple(np.array(look_at) + distance * direction), look_at, min(0.01, distance / 1000)
+    eye = np.array(look_at) + distance * direction
+    farthest = float(np.linalg.norm(np.asarray(corners, dtype=float) - eye, axis=1).max())
+    return tuple(eye), look_at, min(0.01, distance / 1000), max(DEFAULT_FAR, 2.0 * farthest)
 
 
 CONTENT_SHARE = 0.05
@@ -90,7 +98,7 @@ def content_points(volumes) -> np.ndarray:
 
 
 def framed_content(volumes, up, fov_y: float, aspect: float, eye_offset: float = 0.0) -> tuple:
-    """(position, look_at, near) of the eye that frames a built-in volume scene when no camera is given (``volren
+    """(position, look_at, near, far) of the eye that frames a built-in volume scene when no camera is given (``volren
     render --scene``, `volren.render` of a name): `framed_eye` on `content_points`, so the medium, not its box, fills
     the view. Framing the boxes' corners left the plume a sixth of the width and the phantom's ellipsoid two thirds
     of the height (its box's near corners set the distance)."""

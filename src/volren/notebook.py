@@ -110,7 +110,8 @@ class Orbit:
 def default_camera(scene: Scene) -> Camera:
     """A fog scene's own viewpoint; else serve's default camera scaled and moved to the volumes' world box (the same
     camera for the unit box, a proportionally nearer one for a 20 cm CT), its near plane at most a thousandth of its
-    distance (the default 1 cm would clip a specimen in micrometres away)."""
+    distance (the default 1 cm would clip a specimen in micrometres away), its far plane beyond the box (the default
+    1000 m would clip a simulation in kilometres away)."""
     from volren.data.fog_scenes import FOG_SCENES, fog_scene_camera
 
     if not scene.volumes and scene.name in FOG_SCENES:
@@ -119,8 +120,9 @@ def default_camera(scene: Scene) -> Camera:
     lo, hi = scene.bounds
     centre, half = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
     offset = np.asarray(DEFAULT_EYE) * half / math.sqrt(3.0)
-    return Camera(position=tuple(centre + offset), look_at=tuple(centre),
-                  near=min(Camera.near, float(np.linalg.norm(offset)) / 1000))
+    distance = float(np.linalg.norm(offset))
+    return Camera(position=tuple(centre + offset), look_at=tuple(centre), near=min(Camera.near, distance / 1000),
+                  far=max(Camera.far, 2.0 * (distance + half)))
 
 
 @dataclasses.dataclass
@@ -201,7 +203,7 @@ class Viewer(RemoteFrameBuffer):
         camera = camera if camera is not None else default_camera(scene)
         StereoRig(camera, ipd)  # checks ipd now, not at the first stereo frame
         self._orbit = Orbit.of(camera)
-        self._up, self._fov, self._near = camera.up, camera.fov_y, camera.near
+        self._up, self._fov, self._near, self._far = camera.up, camera.fov_y, camera.near, camera.far
         self._camera_id = 0
         self._drag: tuple[float, float] | None = None
         self._frame: _Delivered | None = None
@@ -363,7 +365,8 @@ class Viewer(RemoteFrameBuffer):
         """The current camera (one eye's size: the image's, or half its width when stereo)."""
         o = self._orbit
         if self._loop is None:
-            return Camera(position=o.position, look_at=o.target, up=self._up, fov_y=self._fov, near=self._near)
+            return Camera(position=o.position, look_at=o.target, up=self._up, fov_y=self._fov, near=self._near,
+                          far=self._far)
         return self._client.camera
 
     @property

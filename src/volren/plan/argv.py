@@ -245,7 +245,8 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     cam.add_argument("--height", type=int, default=360, help=f"[px] in [1, {MAX_IMAGE_SIDE}]")
     cam.add_argument("--near", type=float, help="[m], > 0 (default: 0.01, or a thousandth of the distance to a "
                      "framed --volume where that is less: micrometre microscopy)")
-    cam.add_argument("--far", type=float, default=1000.0, help="[m], > --near")
+    cam.add_argument("--far", type=float, help="[m], > --near (default: 1000, or twice the framed volume's farthest "
+                     "corner where more)")
     cam.add_argument("--views", default="stereo", help="mono, stereo, or N viewers (placed by --rig), N in [1, 1024]")
     cam.add_argument("--rig", choices=("arc", "wander", "overlap"), help="N viewers (default arc): on an arc "
                      "around --look-at, wandering the scene's area (moving with --frames), or yawed copies of one "

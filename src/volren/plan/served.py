@@ -39,8 +39,8 @@ def served_volume(args: argparse.Namespace) -> ServedVolume | None:
     if loaded.channels:  # `channel_scene` renders each channel by a renderer of its own; the loop has one
         raise CliError(f"serve --volume {args.volume}: a multi-channel volume renders with render and animate only")
     scene = _file_scene(args)
-    position, look_at, near = framed_eye(loaded.corners_world, (0.0, 1.0, 0.0), Camera.fov_y,
-                                         args.max_width / args.max_height)
+    position, look_at, near, far = framed_eye(loaded.corners_world, (0.0, 1.0, 0.0), Camera.fov_y,
+                                              args.max_width / args.max_height)
     played = volume_sequence(args)
-    return ServedVolume(scene, Camera(position=position, look_at=look_at, near=near), 1 if played is None else
+    return ServedVolume(scene, Camera(position=position, look_at=look_at, near=near, far=far), 1 if played is None else
                         len(played), lambda i: dataclasses.replace(scene, volumes=_file_scene(args, i).volumes))

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from volren.framing import framed_content, framed_eye, framing_distance
+from volren.framing import DEFAULT_FAR, framed_content, framed_eye, framing_distance
 from volren.plan.options import DEFAULT_EYE, CliError
 from volren.plan.volume import _volume_from_args
 
@@ -26,7 +26,7 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0, scene=None):
 
     if not 0 < args.fov < 180:  # refused before framing divides by tan(fov / 2)
         raise CliError(f"--fov must lie in (0, 180) degrees, got {args.fov:g}")
-    position, look_at, near, ipd = DEFAULT_EYE, (0.0, 0.0, 0.0), 0.01, 0.063
+    position, look_at, near, far, ipd = DEFAULT_EYE, (0.0, 0.0, 0.0), 0.01, DEFAULT_FAR, 0.063
     fog_scene = getattr(args, "scene", None) in FOG_SCENES
     if fog_scene:
         default = fog_scene_camera(args.scene)
@@ -34,18 +34,19 @@ def views_from_args(args: argparse.Namespace, time: float = 0.0, scene=None):
     elif getattr(args, "volume", None) is not None and args.camera_pos is None:
         corners = _volume_from_args(args).corners_world
         ipd = framed_ipd(corners) if args.ipd is None else args.ipd
-        position, look_at, near = framed_eye(corners, args.up, args.fov, args.width / max(args.height, 1),
-                                             args.look_at, ipd / 2 if args.views == "stereo" else 0.0)
+        position, look_at, near, far = framed_eye(corners, args.up, args.fov, args.width / max(args.height, 1),
+                                                  args.look_at, ipd / 2 if args.views == "stereo" else 0.0)
     elif args.camera_pos is None and args.look_at is None:  # a built-in volume scene
         if scene is None:
             from volren.plan.scene import scene_from_args
 
             scene = scene_from_args(args, time)
         eye_offset = (ipd if args.ipd is None else args.ipd) / 2 if args.views == "stereo" else 0.0
-        position, look_at, near = framed_content(scene.volumes, args.up, args.fov,
-                                                 args.width / max(args.height, 1), eye_offset)
+        position, look_at, near, far = framed_content(scene.volumes, args.up, args.fov,
+                                                      args.width / max(args.height, 1), eye_offset)
     cam = Camera(position=args.camera_pos or position, look_at=args.look_at or look_at, up=args.up, fov_y=args.fov,
-                 width=args.width, height=args.height, near=near if args.near is None else args.near, far=args.far)
+                 width=args.width, height=args.height, near=near if args.near is None else args.near,
+                 far=far if args.far is None else args.far)
     if args.overlap is not None and args.rig != "overlap":
         raise CliError("--overlap needs --rig overlap and --views N")
     if args.views in ("mono", "stereo"):

@@ -219,6 +219,7 @@ class RenderLoop:
         self._settle_timer: asyncio.TimerHandle | None = None
         self.camera = camera or Camera(position=(0.0, 0.4, 3.2))
         self.viewers.near = self.camera.near  # a framed micrometre specimen's, kept as viewers steer
+        self.viewers.far = self.camera.far  # and a kilometre-wide simulation's
         self.device, self.shared, self.ipd, self.jpeg_quality = device, shared, ipd, jpeg_quality
         self.encode = encode
         self.overrides = dict(overrides or {})

@@ -86,6 +86,8 @@ class Viewer:
     near: float = Camera.near
     """[m] the near plane of the cameras this viewer sends (the served camera's: a thousandth of the distance that
     frames a specimen in micrometres, which the default 1 cm would clip away)"""
+    far: float = Camera.far
+    """[m] their far plane (the served camera's: twice the farthest corner of a volume beyond 1000 m)"""
     shown: tuple[int, int] = (-1, -1)
     """(camera id, scene version) of the last frame rendered for this viewer"""
     sending: asyncio.Task | None = None
@@ -138,7 +140,7 @@ class Viewer:
         w, h = self.eye_size()
         try:
             self.camera = Camera(position=msg.position, look_at=msg.look_at, up=msg.up, fov_y=msg.fov, width=w,
-                                 height=h, near=self.near)
+                                 height=h, near=self.near, far=self.far)
         except VolrenError as exc:
             raise ProtocolError(f"camera: {exc}") from None
         self.camera_id = msg.id
@@ -220,6 +222,8 @@ class ViewerSet:
     """viewers one address may hold (None: no limit of its own)"""
     near: float = Camera.near
     """[m] each viewer's `Viewer.near`: the served camera's"""
+    far: float = Camera.far
+    """[m] each viewer's `Viewer.far`: the served camera's"""
 
     def add(self, send: Any, text: Any = None, client: str = "") -> Viewer:
         if len(self.viewers) >= self.limit:
@@ -227,7 +231,7 @@ class ViewerSet:
         if self.per_client is not None and sum(v.client == client for v in self.viewers.values()) >= self.per_client:
             raise ProtocolError(f"server full for {client}: {self.per_client} viewers connected from that address "
                                 "(--max-viewers-per-client)")
-        v = Viewer(self.next_id, send, text, client=client, near=self.near)
+        v = Viewer(self.next_id, send, text, client=client, near=self.near, far=self.far)
         self.viewers[v.id] = v
         self.next_id += 1
         return v
