@@ -200,7 +200,7 @@ def test_a_stereo_pair_of_a_builtin_scene_stands_back_to_leave_room_for_the_eyes
     pair = framed_content(volumes, Camera.up, Camera.fov_y, 0.5, eye_offset=0.25)
     want = framed_eye(content_points(volumes), Camera.up, Camera.fov_y, 0.5, eye_offset=0.25)
     np.testing.assert_allclose(pair[0], want[0])
-    distance = [np.linalg.norm(np.subtract(p, a)) for p, a, _ in (one, pair)]
+    distance = [np.linalg.norm(np.subtract(p, a)) for p, a, *_ in (one, pair)]
     assert distance[1] > distance[0] + 0.5, distance  # 0.25 m aside at tan(fov_x / 2) = 0.21: ~1.2 m further
 
 
