@@ -270,3 +270,40 @@ def test_the_cli_renders_a_store_by_its_url_as_the_folder(pyramid, tmp_path):
     assert isinstance(dict(back.options)["volume"], StoreURL) and dict(back.options)["volume"] == volume
     local, remote = (iio.imread(tmp_path / d / "view0.png") for d in ("local", "url"))
     assert local.std() > 5 and np.array_equal(local, remote)
+
+
+@pytest.mark.parametrize("mode", ["dvr", "iso"])
+def test_the_reference_and_iso_draw_a_streamed_pyramid_as_its_finest_level(pyramid, mode):
+    """The reference and the iso mode read densities through the same device function as DSSRM's DVR: a streamed
+    pyramid's picture, once its bricks came, is the finest level's. (MIP and MIDA too, but they normalise by the
+    largest density, which a streamed volume takes from its coarsest level: `volren.stream.density`.)"""
+    from volren.render import Reference, ReferenceConfig
+
+    def make():
+        if mode == "dvr":
+            return Reference(ReferenceConfig(samples=64, light_samples=8), device=DEVICE)
+        return DSSRM(DSSRMConfig(samples=64, light_samples=8, mode=mode, iso_value=0.3), device=DEVICE)
+
+    dense = scene_of(pyramid, level=0)
+    streamed = scene_of(pyramid, memory_budget=2**26, stream=True)
+    cam = close_camera(dense)
+    want = make().render(dense, [cam]).images[0]
+    got = make().render(streamed, [cam]).images[0]
+    assert want[..., 3].max() > 0.5 and np.abs(got - want).max() <= 1e-5
+
+
+@pytest.mark.parametrize(("method", "words"), [("cmsrm", r"the cube-map methods \(cmsrm, cacrm\) march"),
+                                               ("cacrm", r"the cube-map methods \(cmsrm, cacrm\) march"),
+                                               ("vpt", "the path tracer's majorants need its bounds")])
+def test_the_methods_that_need_the_levels_whole_refuse_a_streamed_pyramid_in_one_line(pyramid, method, words):
+    from volren.errors import VolrenError
+    from volren.render import CACRM, CMSRM, VPT, CACRMConfig, CMSRMConfig
+    from volren.render.vpt.tracer import VPTConfig
+
+    streamed = scene_of(pyramid, memory_budget=2**26, stream=True)
+    renderer = {"cmsrm": lambda: CMSRM(CMSRMConfig(samples=32), device=DEVICE),
+                "cacrm": lambda: CACRM(CACRMConfig(samples=32), device=DEVICE),
+                "vpt": lambda: VPT(VPTConfig(spp=1), device=DEVICE)}[method]()
+    with pytest.raises(VolrenError, match=words) as caught:
+        renderer.render(streamed, [close_camera(streamed)])
+    assert "\n" not in str(caught.value) and "is streamed" in str(caught.value)

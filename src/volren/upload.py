@@ -534,8 +534,9 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     for index, vol in enumerate(scene.volumes):
         streamed = getattr(vol.density, "streamed", False)
         if streamed and mip_levels:
-            raise VolrenError(f"volume '{vol.name}' is streamed (a pyramid larger than --memory-budget): cmsrm's "
-                              "cube maps march the pyramid's levels whole; use dssrm, reference or cacrm")
+            raise VolrenError(f"volume '{vol.name}' is streamed (a pyramid larger than --memory-budget): the cube-map "
+                              "methods (cmsrm, cacrm) march the pyramid's levels whole; use dssrm or reference, or "
+                              "--level N to read one level")
         lres = light_grid_resolution(vol.resolution, light_grid,
                                      sparse=streamed or isinstance(vol.density, SparseGrid))
         per_level = []

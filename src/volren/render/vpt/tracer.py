@@ -569,8 +569,8 @@ def transfer_tables(volumes, transfer: str | None) -> list[np.ndarray]:
     streamed = [v.name for v in volumes if getattr(v.density, "streamed", False)]
     if streamed:
         raise VolrenError(f"vpt: volume '{streamed[0]}' is streamed (a pyramid larger than --memory-budget), and "
-                          "the path tracer's majorants need its bounds before its bricks come; use dssrm, reference "
-                          "or cacrm, or --level to read one level whole")
+                          "the path tracer's majorants need its bounds before its bricks come; use dssrm or reference, "
+                          "or --level N to read one level")
     if transfer is not None and any(v.emission_grid is not None for v in volumes):
         raise VolrenError("vpt: a transfer function replaces the material, and its extinction need not be > 0 "
                           "where an emission grid emits: render fire without --tf")
