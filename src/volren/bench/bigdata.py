@@ -630,11 +630,12 @@ def close_up(volume: Any, width: int, height: int, angle_deg: float) -> Any:
 
 def outofcore_child() -> None:
     """In a fresh process (a JSON spec on stdin: ``path``, ``budget`` [bytes], ``size``, ``orbit_frames``,
-    ``orbit_deg``, ``refine_timeout_s``, ``reference``, ``warm_path``, ``device``): import volren, render a tiny
-    streamed pyramid (``warm_path``: the streamed kernels loaded), reset the peak resident set; then open the
-    pyramid within the budget (``volren.load``; it streams), render the close-up (`close_up`) with ``stream_wait``
-    False until a frame has no brick pending (each frame's stream stats), then the orbit; print JSON. With
-    ``reference``, afterwards (out of the peak) the finest level dense, rendered from the refined frame's camera."""
+    ``orbit_deg``, ``refine_timeout_s``, ``reference``, ``warm_path``, ``device``, ``quality``): import volren,
+    render a small streamed pyramid of as many levels (``warm_path``: the streamed kernels loaded), reset the peak
+    resident set; then open the pyramid within the budget (``volren.load``; it streams), render the close-up
+    (`close_up`) with ``stream_wait`` False until a frame has no brick pending (each frame's stream stats), one more
+    (the refined frame), then the orbit; print JSON. With ``reference``, afterwards (out of the peak) the finest
+    level dense, rendered from the refined frame's camera."""
     import volren as vr
     from volren.presets import quality_config
     from volren.render import DSSRM
@@ -674,11 +675,6 @@ def outofcore_child() -> None:
                        "at_s": time.perf_counter() - start})
         return got
 
-    from volren.stream.lod import frame_needs
-
-    wanted = [0] * volume.density.layout.count
-    for n in frame_needs([cam], volume.to_world, volume.density.layout):
-        wanted[n.level] += 1
     frame(cam)
     while frames[-1]["bricks_pending"] and frames[-1]["at_s"] < spec["refine_timeout_s"]:
         frame(cam)
@@ -686,6 +682,11 @@ def outofcore_child() -> None:
     refined = frame(cam)  # everything resident drawn (the frame that said "none pending" drew what came before it)
     for i in range(1, spec["orbit_frames"] + 1):
         frame(close_up(volume, width, height, i * spec["orbit_deg"]))
+    from volren.stream.lod import frame_needs
+
+    wanted = [0] * volume.density.layout.count  # after the clock: the level rule's wants of the still camera
+    for n in frame_needs([cam], volume.to_world, volume.density.layout):
+        wanted[n.level] += 1
     out = {"open_s": open_s, "frames": frames, "refine_frames": refine, "levels_wanted": wanted,
            "peak_kib": _status_kib("VmHWM") - before, "rss_kib": _status_kib("VmRSS") - before,
            "streamed": type(volume.density).__name__, "levels": volume.density.layout.count,
@@ -705,7 +706,9 @@ def outofcore_child() -> None:
 def run_outofcore(cfg: dict[str, Any], device: str) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Part (b): the pyramid (`make_pyramid`), measured in a fresh subprocess (`outofcore_child`); one row."""
     info = make_pyramid(cfg)
-    warm = make_pyramid({**cfg, "outofcore": 32, "outofcore_chunk": 16, "outofcore_coarsest": 8})
+    levels = len(pyramid_shapes(cfg["outofcore"], cfg["outofcore_coarsest"]))  # the warm-up's as many (kernels)
+    warm = make_pyramid({**cfg, "outofcore": 4 << max(levels - 1, 2), "outofcore_chunk": 16,
+                         "outofcore_coarsest": 4})
     budget = int(cfg["outofcore_budget_mib"] * 2**20)
     n = info["n"]
     spec = {"path": info["path"], "budget": budget, "size": cfg["outofcore_size"],
