@@ -326,3 +326,5 @@ def test_suite_outofcore_row_holds_its_relations(tmp_path):
     assert row["peak_rss_mib"] <= row["rss_goal_mib"]  # a 1 MiB level 0 and a half-MiB budget
     assert row["psnr"] is not None  # 64^3 fits: the dense reference was rendered
     assert "| 64^3 | 3 |" in table and table in md_path.read_text()
+    with pytest.raises(VolrenError, match="fits the budget"):  # 1 MiB: level 0 would load whole
+        run_suite("bigdata", quick=True, device="cpu", out=tmp_path, overrides={**overrides, "outofcore_budget_mib": 1})

@@ -711,6 +711,9 @@ def run_outofcore(cfg: dict[str, Any], device: str) -> tuple[list[dict[str, Any]
                          "outofcore_coarsest": 4})
     budget = int(cfg["outofcore_budget_mib"] * 2**20)
     n = info["n"]
+    if 4 * n**3 <= budget:
+        raise VolrenError(f"bench bigdata: outofcore level 0 ({4 * n**3 / 2**20:.0f} MiB as float32) fits the budget "
+                          f"of {budget / 2**20:.0f} MiB: it would load whole, not stream; lower outofcore_budget_mib")
     spec = {"path": info["path"], "budget": budget, "size": cfg["outofcore_size"],
             "orbit_frames": cfg["orbit_frames"], "orbit_deg": cfg["orbit_deg"],
             "refine_timeout_s": cfg["refine_timeout_s"], "reference": n**3 <= cfg["reference_max_voxels"],
