@@ -24,6 +24,12 @@ memory at most `MEMORY_GOAL` x the active voxels' float32 bytes, load time, firs
 resident set is the host's: the rise of Warp's memory pool's high-water mark over the load and frames is reported
 beside it (``device_peak_mib``).
 
+Part (b), out-of-core (`run_outofcore`, its own table): a uint8 OME-Zarr pyramid of fine structure (`pyramid_block`,
+`write_pyramid`; the issue's 4096^3, 64 GiB as float32), cached like the files above, opened within a memory budget
+(it streams: `volren.stream`) in a fresh subprocess (`outofcore_child`) and rendered by DSSRM with ``stream_wait``
+False (as ``serve``) from a close-up: time to the first (coarse) frame and to full refinement, bytes read per frame
+while orbiting, the peak resident set against the budget plus 1 GiB.
+
 Until the sparse reader lands, ``load_volume`` densifies a ``.vdb`` over its active box (and refuses a box over
 `volren.data.vdb.MAX_DENSE_VOXELS`): a refused load is a row saying so, not a failure of the suite.
 """
@@ -778,5 +784,7 @@ def run(quick: bool, device: str) -> dict[str, Any]:
 
 
 SUITE = Suite("bigdata", "sparse .vdb files (issue 41: two balls in 2000^3, a smoke in 2048^3) loaded and rendered "
-              "against the same voxels dense: peak memory over the active voxels' bytes, load time, ms per frame",
+              "against the same voxels dense: peak memory over the active voxels' bytes, load time, ms per frame; "
+              "and an OME-Zarr pyramid over the memory budget, streamed: first frame, refinement, orbit reads, "
+              "peak memory",
               run, settable=True)
