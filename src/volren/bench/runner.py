@@ -84,6 +84,9 @@ def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None,
     summary_rows, summary_columns = result.pop("summary", ([], []))
     if summary_rows:
         table += "\n\n" + markdown_table(summary_rows, summary_columns)
+    for key, more_columns in result.pop("more_tables", {}).items():  # further tables: rows kept under ``key``
+        if result.get(key):
+            table += "\n\n" + markdown_table(result[key], more_columns)
     doc = {"suite": name, "quick": quick, "machine": machine_info(device), "elapsed_s": round(elapsed, 1), **result,
            "summary": summary_rows}
     tag = f"{name}-{'cpu' if device == 'cpu' else 'cuda'}-{'quick' if quick else 'full'}"
