@@ -133,3 +133,16 @@ def test_layout_parents_and_children():
             assert all(layout.parent(level - 1, c) == b for c in layout.children(level, b))
         assert sum(len(layout.children(level, b)) for b in np.ndindex(*layout.bricks(level))) == \
             math.prod(layout.bricks(level - 1))
+
+
+@pytest.mark.timeout(30)
+def test_the_descent_takes_every_child_of_a_level_at_once_as_the_layout_lists_them():
+    """66^3 over 33^3: level 1's last brick covers level-0 bricks 2, 3 and 4 (its clamped overflow); the
+    vectorised descent's children of every brick are `PyramidLayout.children`'s."""
+    from volren.stream.lod import _children
+
+    layout = PyramidLayout(((66, 66, 66), (33, 33, 33)), ((2, 2, 2),))
+    bricks = np.array(list(np.ndindex(*layout.bricks(1))))
+    got = sorted(map(tuple, _children(layout, 1, bricks).tolist()))
+    want = sorted(c for b in bricks for c in layout.children(1, tuple(int(v) for v in b)))
+    assert got == want and len(want) == 5**3 and (4, 4, 4) in want
