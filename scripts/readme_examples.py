@@ -89,6 +89,22 @@ def stand_ins(folder: Path, width: int = 640, height: int = 360) -> None:
                                      {"name": "temperature", "array": 300.0 + 2200.0 * temperature,  # kelvin
                                       "matrix": voxel}],
                         "explosion.vdb": [{"name": "density", "array": head, "matrix": voxel}]}, folder)
+    big_data(folder / "data")
+
+
+def big_data(folder: Path) -> None:
+    """Small stand-ins for the "Big data" files (the README's names; `scripts/bigdata_files.py` writes the real
+    ones): two small balls written by OpenVDB, and two 32^3 pyramids of the bench's field."""
+    from volren.bench.bigdata import write_pyramid
+    from volren.bench.load import write_with_openvdb
+
+    folder.mkdir(parents=True, exist_ok=True)
+    z, y, x = np.mgrid[0:24, 0:24, 0:24]
+    balls = sum(np.clip(1.0 - ((x - c) ** 2 + (y - c) ** 2 + (z - c) ** 2) / 16.0, 0.0, None) for c in (5, 18))
+    write_with_openvdb({"two-balls-n2000-r100-v1.vdb": [{"name": "density", "array": balls.astype(np.float32)}]},
+                       folder)
+    for n in (512, 4096):
+        write_pyramid(folder / f"outofcore-n{n}-c64-top64-s0-v1.zarr", 32, 0, 16, 8)
 
 
 def command_line(words: list[str]) -> list[str]:
