@@ -116,3 +116,23 @@ def test_cell_ranges_bound_every_sample_of_a_cell_and_its_border():
 def test_sum_is_the_dense_copys():
     grid = sparse_field()
     assert brick_dense(grid, 8).sum() == pytest.approx(float(grid.sum(dtype=np.float64)), rel=1e-12)
+
+
+@pytest.mark.parametrize("cell", [4, 8])
+def test_cell_max_bounds_every_sample_of_a_finer_cell(cell):
+    """`cell_max` at cells finer than the bricks: at least the dense skip rule's max (the cell and one voxel each
+    side), empty exactly where the cell, the cell before and one voxel after are (a voxel in the cell before)."""
+    from volren.upload import _block_max
+
+    grid = sparse_field()
+    bricks = brick_dense(grid, 16)
+    got = bricks.cell_max(cell)
+    want = _block_max(grid, cell)
+    assert got.shape == want.shape and np.all(got >= want)
+    before = want.copy()
+    for axis in range(3):  # what the rule covers: the cell before too
+        shifted = np.concatenate([np.take(before, [0], axis), np.take(before, range(before.shape[axis] - 1), axis)],
+                                 axis)
+        before = np.maximum(before, shifted)
+    inner = tuple(slice(0, c * 16 // cell) for c in bricks.table.shape)  # past them: the last cell repeated
+    assert np.all(got[inner] <= before[inner])

@@ -99,18 +99,22 @@ def test_a_sparse_volume_refuses_bad_values_in_one_line():
         Volume(grid.map(lambda v: -v))
 
 
-def test_a_sparse_volume_skips_empty_space_in_cells_of_one_brick():
-    """Its skip grid is the page table's (`SparseGrid.cell_ranges`): one cell per brick, B voxels a side."""
-    from volren.upload import upload_scene
+@pytest.mark.parametrize("limit", [None, 0])
+def test_a_sparse_volume_skips_empty_space_from_its_bricks(limit, monkeypatch):
+    """Its skip grid comes from the bricks: cells of `SKIP_CELL` voxels as a dense grid's (`SparseGrid.cell_max`),
+    or, where those would be more than `MAX_SPARSE_SKIP_CELLS`, one cell per brick (`SparseGrid.cell_ranges`)."""
+    import volren.upload as upload
 
+    if limit is not None:
+        monkeypatch.setattr(upload, "MAX_SPARSE_SKIP_CELLS", limit)
     scene = builtin_scene("multi", N)
     vol = dataclasses.replace(scene.volumes[0], density=sparse_copy(scene.volumes[0].density))
-    ds = upload_scene(dataclasses.replace(scene, volumes=(vol,)), DEVICE)
+    ds = upload.upload_scene(dataclasses.replace(scene, volumes=(vol,)), DEVICE)
     s = ds.levels[0][0]
-    cells = vol.density.cell_ranges()[1]
-    assert s.skip_cell == BRICK and tuple(s.skip_res) == cells.shape[::-1]
+    cells = vol.density.cell_max(upload.SKIP_CELL) if limit is None else vol.density.cell_ranges()[1]
+    assert s.skip_cell == (upload.SKIP_CELL if limit is None else BRICK) and tuple(s.skip_res) == cells.shape[::-1]
     grid = ds.max_density.numpy()[s.skip_offset : s.skip_offset + cells.size].reshape(cells.shape)
-    assert np.array_equal(grid > 0, cells > 0)  # occupied where a brick's range is > 0, radii elsewhere
+    assert np.array_equal(grid > 0, cells > 0)  # occupied where a cell's bound is > 0, radii elsewhere
 
 
 @pytest.mark.timeout(120)

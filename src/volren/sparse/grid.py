@@ -143,6 +143,40 @@ class SparseGrid:
             raise TypeError(f"a SparseGrid takes three slices, got {key!r}")
         return self.take(*(np.arange(*k.indices(n)) for k, n in zip(key, self.shape, strict=True)))
 
+    def cell_max(self, cell: int) -> np.ndarray:
+        """Per cell of ``cell``^3 voxels (a power of two dividing B; ceil(n / cell) per axis, z, y, x) a bound on
+        every trilinear sample in it and up to half a voxel beyond: the max over its voxels and the one after each
+        (from the brick's block and its apron), then over the cell before along each axis (which holds the voxel
+        before). The rule of `volren.upload.skip_grid` at a finer cell than `cell_ranges`' bricks, from the bricks."""
+        b, e = self.brick, self.brick + 1
+        if cell < 1 or cell & (cell - 1) or b % cell:
+            raise VolrenError(f"a sparse grid's cells must divide its bricks of {b}: got {cell}")
+        per = b // cell
+        counts = np.array(self.table.shape)
+        out = np.zeros(tuple(counts * per), np.float32)
+        const = self.constants[np.clip(-1 - self.table, 0, None)]
+        const[self.table >= 0] = 0.0
+        out[...] = np.repeat(np.repeat(np.repeat(const, per, 0), per, 1), per, 2)
+        resident = np.argwhere(self.table >= 0)
+        for start in range(0, len(resident), 4096):  # the pool in chunks: a working set of 4096 bricks
+            chunk = resident[start : start + 4096]
+            m = self.pool[self.table[tuple(chunk.T)]]
+            for axis in (1, 2, 3):  # [c j, c j + c] per axis: the blocks of c, then the plane after each
+                lead = (slice(None),) * axis
+                blocks = m[(*lead, slice(0, b))].reshape(*m.shape[:axis], per, cell, *m.shape[axis + 1:])
+                m = np.maximum(blocks.max(axis=axis + 1), m[(*lead, slice(cell, e, cell))])
+            zz, yy, xx = (chunk[:, a, None] * per + np.arange(per)[None] for a in range(3))
+            out[zz[:, :, None, None], yy[:, None, :, None], xx[:, None, None, :]] = m
+        for axis in range(3):  # the cell before holds the voxel before
+            before = np.concatenate([np.take(out, [0], axis), np.take(out, range(out.shape[axis] - 1), axis)], axis)
+            np.maximum(out, before, out=out)
+        # cells past the grid's last voxel: ceil(n / cell) of them per axis; the last voxel's own cell may be one
+        # past the bricks' (n - 1 a multiple of B): it repeats the last
+        want = [-(-n // cell) for n in self.shape]
+        pad = [(0, max(w - s, 0)) for w, s in zip(want, out.shape, strict=True)]
+        out = np.pad(out, pad, mode="edge") if any(p for _, p in pad) else out
+        return out[: want[0], : want[1], : want[2]]
+
     def map(self, op) -> SparseGrid:
         """The grid with ``op`` (a float32 array -> array, element-wise, e.g. a normalisation) applied to every voxel:
         to the pool and the constants, so the bricks and page table stay (an EMPTY brick must stay 0: op(0) = 0)."""
