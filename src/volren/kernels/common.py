@@ -342,11 +342,13 @@ def streamed_voxel(density: wp.array(dtype=float), vol: VolumeGPU, v: wp.vec3i) 
     shift = vol.brick_shift
     size = 1 << shift
     edge = size + 1
-    for sub in range(8):  # bit a: the brick before along axis a, whose apron holds v when v is on a first plane
+    subs = 8 + 0 * shift  # loop bounds Warp cannot unroll (`gather_density`)
+    axes = 3 + 0 * shift
+    for sub in range(subs):  # bit a: the brick before along axis a, whose apron holds v when v is on a first plane
         ok = int(1)
         b = wp.vec3i(v[0] >> shift, v[1] >> shift, v[2] >> shift)
         loc = wp.vec3i(v[0] & (size - 1), v[1] & (size - 1), v[2] & (size - 1))
-        for a in range(3):
+        for a in range(axes):
             if b[a] >= vol.bricks[a]:  # the grid's last voxel: only in the last brick's apron
                 b[a] = vol.bricks[a] - 1
                 loc[a] = loc[a] + size
@@ -375,7 +377,10 @@ def gather_density(density: wp.array(dtype=float), vol: VolumeGPU, cell: wp.vec3
     if vol.stream_levels > 1:  # noqa: SIM102 (Warp evaluates both sides of "and": a dense grid has no table)
         if brick_entry(vol.table, vol.table_offset, vol.bricks, vol.brick_shift, cell) == NOT_RESIDENT:
             out = vec8()
-            for n in range(8):
+            # a loop bound Warp cannot unroll: unrolled (8 corners x 8 bricks x 3 axes inlined at every density
+            # read), each marching kernel's CUDA compile ran past 400 s and 11 GB
+            corners = 8 + 0 * vol.stream_levels
+            for n in range(corners):
                 out[n] = streamed_voxel(density, vol, cell + wp.vec3i(n % 2, (n / 2) % 2, n / 4))
             return out
     return gather_grid(density, vol.offset, vol.res, vol.table, vol.table_offset, vol.bricks, vol.brick_shift,
