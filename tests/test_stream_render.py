@@ -194,22 +194,25 @@ def test_no_seam_where_a_resident_brick_meets_one_drawn_from_a_coarser_level(mea
     assert step[at - 1 : at + 1].max() <= 2.0 * np.abs(np.diff(fine)).max()  # no jump at the face: a slope's step
 
 
-def test_a_brick_whose_parent_is_not_on_the_device_is_drawn_from_the_coarsest_level(mean_pyramid, monkeypatch):
-    """Only level 0's bricks x 0-15 and the coarsest level on the device: a sample at x 40-56 finds neither its
-    brick nor its level-1 parent there and is drawn from level 2: each of its cell's 8 voxels interpolated on level
-    2 at its place (a v + b from the centred means' scales and translations), then the cell trilinearly."""
+@pytest.mark.parametrize("level", [1, 2])
+def test_a_missing_brick_is_drawn_from_its_finest_ancestor_on_the_device(mean_pyramid, monkeypatch, level):
+    """Level 0's bricks x 0-15, the coarsest level and (``level`` 1) level 1's bricks x 32-63 on the device: a sample
+    at x 40-56 finds no level-0 brick and is drawn from the finest level there, 1 or (its level-1 parent not on the
+    device) 2: each of its cell's 8 voxels interpolated on that level at its place (a v + b from the centred means'
+    scales and translations), then the cell trilinearly."""
     from scipy.ndimage import map_coordinates
 
     from volren.render import streaming
     from volren.stream.lod import need
 
+    parents = [need((1, z, y, 1), True, 2.0) for z in range(2) for y in range(2)] if level == 1 else []
     monkeypatch.setattr(streaming, "frame_needs", lambda views, to_world, layout, step=0.0: [
-        need((0, z, y, 0), True, 1.0) for z in range(4) for y in range(4)])
+        need((0, z, y, 0), True, 1.0) for z in range(4) for y in range(4)] + parents)
     streamed = scene_of(mean_pyramid, memory_budget=2**26, stream=True)
     renderer, frame = render(streamed, close_camera(streamed))
-    assert frame.stats.info["stream"][0]["device_bricks"] == 16 + 1  # the 16 bricks asked for and the floor
+    assert frame.stats.info["stream"][0]["device_bricks"] == 16 + len(parents) + 1  # asked for, and the floor
     sd = streamed.volumes[0].density
-    coarse = sd.mapped(np.asarray(zarr.open_group(str(mean_pyramid), mode="r")["s2"]))
+    coarse = sd.mapped(np.asarray(zarr.open_group(str(mean_pyramid), mode="r")[f"s{level}"]))
     f = np.stack([np.linspace(40.0, 56.0, 41), np.full(41, 30.3), np.full(41, 25.6)], axis=1)  # x, y, z voxels
     cell = np.floor(f).astype(int)
     frac = f - cell
@@ -217,7 +220,7 @@ def test_a_brick_whose_parent_is_not_on_the_device_is_drawn_from_the_coarsest_le
     for n in range(8):
         o = np.array([n % 2, (n // 2) % 2, n // 4])
         v = cell + o
-        j = (v + 0.5) / 4.0 - 0.5  # level 2's index of level-0 voxel v (x, y, z)
+        j = (v + 0.5) / 2.0**level - 0.5  # that level's index of level-0 voxel v (x, y, z)
         corner = map_coordinates(coarse, j[:, ::-1].T, order=1, mode="nearest")
         want += np.prod(np.where(o == 1, frac, 1.0 - frac), axis=1) * corner
     points = (-1.0 + (f + 0.5) * 2.0 / N).astype(np.float32)
