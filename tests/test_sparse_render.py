@@ -12,23 +12,19 @@ import numpy as np
 import pytest
 
 from conftest import DEVICE
+from test_bricked_render import METHODS as BRICKED_METHODS
+from test_bricked_render import SIZE, N
 from volren._api import framed_camera
 from volren.data import builtin_scene
 from volren.metrics import psnr
-from volren.render import CACRM, CMSRM, DSSRM, VPT, CACRMConfig, CMSRMConfig, DSSRMConfig, Reference, ReferenceConfig
+from volren.render import VPT
 from volren.render.vpt.tracer import VPTConfig
 from volren.scene import Volume
 from volren.sparse import BRICK, BrickBuilder, SparseGrid
 from volren.upload import SPARSE_LIGHT_GRID, light_grid_resolution
 
-N = 64
-SIZE = (64, 48)
-METHODS = {
-    "dssrm": lambda mode: DSSRM(DSSRMConfig(samples=96, light_samples=32, mode=mode), device=DEVICE),
-    "cmsrm": lambda mode: CMSRM(CMSRMConfig(samples=96, light_samples=32, mode=mode), device=DEVICE),
-    "cacrm": lambda mode: CACRM(CACRMConfig(samples=96, light_samples=32, mode=mode), device=DEVICE),
-    "reference": lambda mode: Reference(ReferenceConfig(samples=96, light_samples=32), device=DEVICE),
-}
+METHODS = {name: make for name, make in BRICKED_METHODS.items() if name != "vpt"}
+"""the marches of the bricked-equals-dense tests (the path tracer is compared statistically here)"""
 
 
 def sparse_copy(grid: np.ndarray) -> SparseGrid:

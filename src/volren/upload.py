@@ -512,18 +512,23 @@ def packed_density(grids: list[np.ndarray | int], device: str) -> wp.array:
     (which, with the device copy on the CPU, held a streamed pool three times over)."""
     total = sum(g if isinstance(g, int) else g.size for g in grids)
     out = wp.empty(max(total, 1), dtype=float, device=device)
-    host = out.numpy() if out.device.is_cpu else None
     offset = 0
     for g in grids:
-        if isinstance(g, int):
-            offset += g
-            continue
-        if host is not None:
-            host[offset : offset + g.size] = g
-        elif g.size:
-            wp.copy(out, wp.array(np.ascontiguousarray(g, np.float32), dtype=float, device=device), offset, 0, g.size)
-        offset += g.size
+        if not isinstance(g, int):
+            write_device(out, offset, g)
+        offset += g if isinstance(g, int) else g.size
     return out
+
+
+def write_device(array: wp.array, offset: int, values: np.ndarray) -> None:
+    """``values`` into the device array at ``offset``: through the host view on the CPU, a copy on CUDA."""
+    if not values.size:
+        return
+    if array.device.is_cpu:
+        array.numpy()[offset : offset + values.size] = values.reshape(-1)
+    else:
+        staged = wp.array(np.ascontiguousarray(values).reshape(-1), dtype=array.dtype, device=array.device)
+        wp.copy(array, staged, offset, 0, values.size)
 
 
 def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_levels: bool = False, *,

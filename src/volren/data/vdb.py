@@ -332,13 +332,18 @@ def _leaf_origins(path: Path, data: mmap.mmap, index: int, name: str, dtype: np.
     return np.concatenate(origins).astype(np.int64), np.concatenate(counts).astype(np.int64), tiles_found
 
 
+def _leaves_box(origins: np.ndarray, tiles: _Tiles) -> tuple[np.ndarray, np.ndarray]:
+    """Inclusive index bounds (x, y, z) of a grid's 8^3 leaves and active tiles together."""
+    starts = np.concatenate([origins, tiles.origins])
+    ends = np.concatenate([origins + 7, tiles.origins + tiles.extents[:, None] - 1])
+    return starts.min(axis=0), ends.max(axis=0)
+
+
 def _active_box(path: Path, grid, origins: np.ndarray, tiles: _Tiles) -> tuple[np.ndarray, np.ndarray]:
     """Inclusive index bounds of the active voxels: the stats OpenVDB writes (``file_bbox_min`` / ``max``,
     ``evalActiveVoxelBoundingBox``: tiles included), if they lie within the leaves and active tiles, else the box of
     those."""
-    starts = np.concatenate([origins, tiles.origins])
-    ends = np.concatenate([origins + 7, tiles.origins + tiles.extents[:, None] - 1])
-    leaf_lo, leaf_hi = starts.min(axis=0), ends.max(axis=0)
+    leaf_lo, leaf_hi = _leaves_box(origins, tiles)
     meta = grid.metadata
     lo, hi = np.array(meta.get("file_bbox_min", leaf_lo)), np.array(meta.get("file_bbox_max", leaf_hi))
     if lo.shape != (3,) or hi.shape != (3,) or np.any(lo < leaf_lo) or np.any(hi > leaf_hi) or np.any(hi < lo):
@@ -435,11 +440,10 @@ def index_box(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             if dtype is None:
                 continue
             origins, _, tiles = _leaf_origins(path, data, index, name, dtype)
-            starts = np.concatenate([origins, tiles.origins])
-            ends = np.concatenate([origins + 7, tiles.origins + tiles.extents[:, None] - 1])
-            if len(starts):
-                los.append(starts.min(axis=0))
-                his.append(ends.max(axis=0))
+            if len(origins) or len(tiles.origins):
+                lo, hi = _leaves_box(origins, tiles)
+                los.append(lo)
+                his.append(hi)
     except (struct.error, VolrenError) as exc:
         raise VolrenError(f"{path}: not a readable OpenVDB file, truncated or corrupt ({exc})") from None
     finally:

@@ -16,28 +16,18 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-import warp as wp
 
 from volren.camera import Camera
 from volren.kernels.common import NOT_RESIDENT
 from volren.sparse import EMPTY
 from volren.stream.lod import frame_needs
-from volren.upload import BrickKey, StreamState
+from volren.upload import BrickKey, StreamState, write_device
 
 
 def _entry(state: StreamState, key: BrickKey) -> int:
     level, bz, by, bx = key
     bricks = state.density.layout.bricks(level)
     return state.level_starts[level] + (bz * bricks[1] + by) * bricks[2] + bx
-
-
-def _write(array: wp.array, offset: int, values: np.ndarray) -> None:
-    """``values`` into the device array at ``offset``: through the host view on the CPU, a copy on CUDA."""
-    if array.device.is_cpu:
-        array.numpy()[offset : offset + values.size] = values.reshape(-1)
-    else:
-        wp.copy(array, wp.array(values.reshape(-1), dtype=array.dtype, device=array.device), offset, 0,
-                values.size)
 
 
 def update_stream(ds, state: StreamState, views: Sequence[Camera], wait: bool,
@@ -83,11 +73,11 @@ def update_stream(ds, state: StreamState, views: Sequence[Camera], wait: bool,
             state.tables[_entry(state, old)] = NOT_RESIDENT
         state.slots[key] = slot
         state.tables[_entry(state, key)] = slot
-        _write(ds.density, state.pool_offset + slot * edge3, values)
+        write_device(ds.density, state.pool_offset + slot * edge3, values)
         placed += 1
         changed = True
     if changed:
-        _write(ds.table, state.table_offset, state.tables)
+        write_device(ds.table, state.table_offset, state.tables)
     return changed
 
 

@@ -167,9 +167,7 @@ class SparseGrid:
                 m = np.maximum(blocks.max(axis=axis + 1), m[(*lead, slice(cell, e, cell))])
             zz, yy, xx = (chunk[:, a, None] * per + np.arange(per)[None] for a in range(3))
             out[zz[:, :, None, None], yy[:, None, :, None], xx[:, None, None, :]] = m
-        for axis in range(3):  # the cell before holds the voxel before
-            before = np.concatenate([np.take(out, [0], axis), np.take(out, range(out.shape[axis] - 1), axis)], axis)
-            np.maximum(out, before, out=out)
+        out = _with_the_cell_before(out, np.maximum)  # the cell before holds the voxel before
         # cells past the grid's last voxel: ceil(n / cell) of them per axis; the last voxel's own cell may be one
         # past the bricks' (n - 1 a multiple of B): it repeats the last
         want = [-(-n // cell) for n in self.shape]
@@ -195,10 +193,8 @@ class SparseGrid:
         pool's blocks, never a dense copy."""
         out = []
         for rng, op in zip(self.brick_ranges, (np.minimum, np.maximum), strict=True):
+            rng = _with_the_cell_before(rng, op)
             for axis in range(3):
-                before = np.concatenate([np.take(rng, [0], axis), np.take(rng, range(rng.shape[axis] - 1), axis)],
-                                        axis)
-                rng = op(rng, before)
                 cells = -(-self.shape[axis] // self.brick)
                 if cells > rng.shape[axis]:
                     rng = np.concatenate([rng, np.take(rng, [-1], axis)], axis)
@@ -231,6 +227,15 @@ class SparseGrid:
             mean = sum(block[z, y, x] for z in pairs for y in pairs for x in pairs) / np.float32(8)
             builder.put(tuple(c), mean.astype(np.float32))
         return builder.build()
+
+
+def _with_the_cell_before(cells: np.ndarray, op: np.ufunc) -> np.ndarray:
+    """``op`` (np.minimum, np.maximum) of each cell and the cell before it along each axis (the first its own),
+    separably: every cell then also bounds the voxel just before it (a trilinear sample's lower neighbour)."""
+    for axis in range(3):
+        before = np.concatenate([np.take(cells, [0], axis), np.take(cells, range(cells.shape[axis] - 1), axis)], axis)
+        cells = op(cells, before)
+    return cells
 
 
 def apron_reduce(padded: np.ndarray, brick: int, op: np.ufunc) -> np.ndarray:
