@@ -167,7 +167,7 @@ def test_no_seam_where_a_resident_brick_meets_one_drawn_from_a_coarser_level(mea
     from volren.render import streaming
     from volren.stream.lod import need
 
-    def needs(views, to_world, layout, step=0.0):
+    def needs(views, to_world, layout, **levels):
         fine = [need((0, z, y, x), True, 1.0) for z in range(4) for y in range(4) for x in range(2)]
         return fine + [need((1, z, y, 1), True, 2.0) for z in range(2) for y in range(2)]
 
@@ -206,7 +206,7 @@ def test_a_missing_brick_is_drawn_from_its_finest_ancestor_on_the_device(mean_py
     from volren.stream.lod import need
 
     parents = [need((1, z, y, 1), True, 2.0) for z in range(2) for y in range(2)] if level == 1 else []
-    monkeypatch.setattr(streaming, "frame_needs", lambda views, to_world, layout, step=0.0: [
+    monkeypatch.setattr(streaming, "frame_needs", lambda views, to_world, layout, **levels: [
         need((0, z, y, 0), True, 1.0) for z in range(4) for y in range(4)] + parents)
     streamed = scene_of(mean_pyramid, memory_budget=2**26, stream=True)
     renderer, frame = render(streamed, close_camera(streamed))
@@ -293,20 +293,3 @@ def test_the_reference_and_iso_draw_a_streamed_pyramid_as_its_finest_level(pyram
     want = make().render(dense, [cam]).images[0]
     got = make().render(streamed, [cam]).images[0]
     assert want[..., 3].max() > 0.5 and np.abs(got - want).max() <= 1e-5
-
-
-@pytest.mark.parametrize(("method", "words"), [("cmsrm", r"the cube-map methods \(cmsrm, cacrm\) march"),
-                                               ("cacrm", r"the cube-map methods \(cmsrm, cacrm\) march"),
-                                               ("vpt", "the path tracer's majorants need its bounds")])
-def test_the_methods_that_need_the_levels_whole_refuse_a_streamed_pyramid_in_one_line(pyramid, method, words):
-    from volren.errors import VolrenError
-    from volren.render import CACRM, CMSRM, VPT, CACRMConfig, CMSRMConfig
-    from volren.render.vpt.tracer import VPTConfig
-
-    streamed = scene_of(pyramid, memory_budget=2**26, stream=True)
-    renderer = {"cmsrm": lambda: CMSRM(CMSRMConfig(samples=32), device=DEVICE),
-                "cacrm": lambda: CACRM(CACRMConfig(samples=32), device=DEVICE),
-                "vpt": lambda: VPT(VPTConfig(spp=1), device=DEVICE)}[method]()
-    with pytest.raises(VolrenError, match=words) as caught:
-        renderer.render(streamed, [close_camera(streamed)])
-    assert "\n" not in str(caught.value) and "is streamed" in str(caught.value)

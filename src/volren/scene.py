@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 
@@ -273,10 +274,12 @@ class Volume:
         return float(max(np.linalg.norm(c[i] - c[7 - i]) for i in range(4)))
 
     @cached_property
-    def mip_pyramid(self) -> tuple[np.ndarray | SparseGrid, ...]:
+    def mip_pyramid(self) -> tuple[Any, ...]:
         """Level 0 is the grid; each next level halves every axis by a 2x2x2 mean, down to one voxel (for LOD). A
         sparse grid's levels are sparse (`SparseGrid.downsample`) while they have a trilinear cell on every axis,
-        then dense (a few voxels)."""
+        then dense (a few voxels). A streamed pyramid's levels are its file's (`StreamedDensity.levels`)."""
+        if getattr(self.density, "streamed", False):
+            return (self.density, *self.density.levels[1:])
         levels = [self.density]
         while max(levels[-1].shape) > 1:
             level = levels[-1]

@@ -144,6 +144,15 @@ class StreamState:
     """brick -> slot, least recently wanted first"""
     empty: set[BrickKey] = field(default_factory=set)
     """resident bricks whose voxels are all 0: `EMPTY`, no slot"""
+    maxima: dict[BrickKey, float] = field(default_factory=dict)
+    """the largest density of each brick placed in the pool (`volren.render.stream_bounds`)"""
+    skips: list[int] = field(default_factory=list)
+    """per uploaded level (0 and, for the cube-map methods, each coarser), its skip grid's offset in
+    ``DeviceScene.max_density``"""
+    cull: int | None = None
+    """the offset of its culling level in ``DeviceScene.max_density`` (uploaded with mip levels), else None"""
+    bounds: list[np.ndarray] = field(default_factory=list)
+    """per level, the bounds of the densities its bricks draw now (`volren.render.stream_bounds.drawn_bounds`)"""
 
 
 @dataclass
@@ -228,16 +237,23 @@ CULL_GRID = 16
 
 def coarse_max_level(vol: Volume) -> np.ndarray:
     """The finest max-pyramid level with at most CULL_GRID cells on every axis (a sparse grid's from its bricks'
-    `SparseGrid.cell_ranges`, the pyramid's level log2 B, max-pooled on)."""
+    `SparseGrid.cell_ranges`, the pyramid's level log2 B, max-pooled on; a streamed volume's from the bounds of
+    what its bricks draw, written frame by frame by `volren.render.stream_bounds`: every cell occupied until then)."""
+    if getattr(vol.density, "streamed", False):
+        return cull_level(np.ones(vol.density.layout.bricks(0), np.float32))
     if isinstance(vol.density, SparseGrid):
-        level = vol.density.cell_ranges()[1]
-        while max(level.shape) > CULL_GRID:
-            level = _downsample(level, "max")
-        return level
+        return cull_level(vol.density.cell_ranges()[1])
     for level in vol.max_pyramid:
         if max(level.shape) <= CULL_GRID:
             return level
     return vol.max_pyramid[-1]
+
+
+def cull_level(bounds: np.ndarray) -> np.ndarray:
+    """Bounds per brick max-pooled by 2 until at most `CULL_GRID` cells on every axis."""
+    while max(bounds.shape) > CULL_GRID:
+        bounds = _downsample(bounds, "max")
+    return bounds
 
 
 SKIP_CELL = 4
@@ -250,7 +266,7 @@ MAX_SKIP_RADIUS = 8
 many dilation passes (a 512^3 volume's 128^3 cells)."""
 
 
-def _max3(grid: np.ndarray) -> np.ndarray:
+def neighbourhood_max(grid: np.ndarray) -> np.ndarray:
     """Max over each cell's 3x3x3 neighbourhood (cells outside count as False/0), separably: three passes of 3."""
     for axis in range(3):
         n = grid.shape[axis]
@@ -298,10 +314,10 @@ def skip_grid(density: np.ndarray | SparseGrid, cell: int = SKIP_CELL) -> tuple[
     Returns the grid and its cell [voxels]: ``cell``; for a `SparseGrid` the cells' bounds come from its bricks
     (`SparseGrid.cell_max`), never a dense copy, and where ``cell`` would make more than `MAX_SPARSE_SKIP_CELLS`
     cells the cell is its brick edge B (`SparseGrid.cell_ranges`): 1/B^3 of its index box (2000^3 voxels: 2 M cells
-    at B = 16, 125 M at 4). A streamed volume's bounds are
-    not known before its bricks come: one occupied cell, no skipping."""
+    at B = 16, 125 M at 4). A streamed level's cells are its bricks, every one occupied until the first frame's
+    bounds (`volren.render.stream_bounds`) are written."""
     if getattr(density, "streamed", False):
-        return np.ones((1, 1, 1), np.float32), 1
+        return np.ones(density.layout.bricks(density.level), np.float32), density.brick
     if isinstance(density, SparseGrid):
         cells = np.prod([-(-n // cell) for n in density.shape], dtype=np.int64)
         if cells > MAX_SPARSE_SKIP_CELLS:  # cells of one brick: 1/B^3 of the box
@@ -310,14 +326,19 @@ def skip_grid(density: np.ndarray | SparseGrid, cell: int = SKIP_CELL) -> tuple[
             peak = density.cell_max(cell)
     else:
         peak = _block_max(density, cell)
+    return skip_cells(peak), cell
+
+
+def skip_cells(peak: np.ndarray) -> np.ndarray:
+    """`skip_grid`'s values from the cells' bounds ``peak``: the bound where > 0, else -r (its docstring)."""
     occupied = peak > 0
     radius = np.zeros(peak.shape, np.int32)
     for r in range(1, min(max(peak.shape), MAX_SKIP_RADIUS + 1)):
-        occupied = _max3(occupied)
+        occupied = neighbourhood_max(occupied)
         if occupied.all():
             break
         radius[~occupied] = r
-    return np.where(peak > 0, peak, -radius).astype(np.float32), cell
+    return np.where(peak > 0, peak, -radius).astype(np.float32)
 
 
 def volume_struct(
@@ -403,30 +424,36 @@ class BrickPlace:
     constants_offset: int
 
 
-def pack_stream(s: VolumeGPU, density, volume: int, packing: DensityPacking) -> StreamState:
+def pack_stream(structs: list[VolumeGPU], density, volume: int, packing: DensityPacking) -> StreamState:
     """Reserve a streamed volume's device pool (`StreamedDensity.device_bricks` slots), its constants (0, for the
     bricks found empty), its level maps, and its levels' page tables, every entry `NOT_RESIDENT` until the first
-    frame places its bricks (`volren.render.streaming`); point ``s`` at them."""
+    frame places its bricks (`volren.render.streaming`); point ``structs`` at them: ``structs[k]`` samples the pyramid
+    from level k on (the mip levels of the cube-map methods share the pool: level k's missing bricks come from
+    levels k + 1 and coarser)."""
     layout, e3 = density.layout, (density.brick + 1) ** 3
     capacity = density.device_bricks
-    maps = density.level_maps()
-    s.offset, s.brick_shift = packing.offset, density.brick.bit_length() - 1
-    s.constants_offset = packing.offset + capacity * e3
-    s.stream_levels, s.stream_map = layout.count, s.constants_offset + 1
-    packing.grids += [capacity * e3, np.zeros(1, np.float32), maps.reshape(-1)]  # the pool: reserved, not written
-    packing.offset += capacity * e3 + 1 + maps.size
+    pool, constants = packing.offset, packing.offset + capacity * e3
+    packing.grids += [capacity * e3, np.zeros(1, np.float32)]  # the pool: reserved, not written
+    packing.offset += capacity * e3 + 1
     sizes = [int(np.prod(layout.bricks(k))) for k in range(layout.count)]
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int).tolist()
-    s.stream_header = packing.table_offset
+    header_offset = packing.table_offset
     first = packing.table_offset + STREAM_INTS * layout.count
     header = [v for k in range(layout.count) for v in (*layout.shapes[k][::-1], *layout.bricks(k)[::-1],
                                                       first + starts[k])]
-    s.table_offset, s.bricks = first, wp.vec3i(*layout.bricks(0)[::-1])
+    for k, s in enumerate(structs):
+        maps = density.level_maps(k)  # index maps from level k to each coarser level
+        s.offset, s.brick_shift, s.constants_offset = pool, density.brick.bit_length() - 1, constants
+        s.stream_levels, s.stream_map = layout.count - k, packing.offset
+        s.stream_header = header_offset + STREAM_INTS * k
+        s.table_offset, s.bricks = first + starts[k], wp.vec3i(*layout.bricks(k)[::-1])
+        packing.grids.append(maps.reshape(-1))
+        packing.offset += maps.size
     tables = np.full(sum(sizes), NOT_RESIDENT, np.int32)
     packing.tables += [np.array(header, np.int32), tables]
     packing.table_offset = first + tables.size
     packing.pool_voxels += capacity * e3
-    return StreamState(volume, density, s.offset, capacity, first, starts, tables.copy())
+    return StreamState(volume, density, pool, capacity, first, starts, tables.copy())
 
 
 def pack_density(s: VolumeGPU, grid: np.ndarray | SparseGrid, packing: DensityPacking, bricked: bool) -> None:
@@ -548,19 +575,15 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     streams = []
     for index, vol in enumerate(scene.volumes):
         streamed = getattr(vol.density, "streamed", False)
-        if streamed and mip_levels:
-            raise VolrenError(f"volume '{vol.name}' is streamed (a pyramid larger than --memory-budget): the cube-map "
-                              "methods (cmsrm, cacrm) march the pyramid's levels whole; use dssrm or reference, or "
-                              "--level N to read one level")
         lres = light_grid_resolution(vol.resolution, light_grid,
                                      sparse=streamed or isinstance(vol.density, SparseGrid))
         per_level = []
         for grid in vol.mip_pyramid if mip_levels else [vol.density]:
             per_level.append(volume_struct(vol, 0, grid.shape[::-1], light_offset, lres, ambient_offset))
-            if streamed:
-                streams.append(pack_stream(per_level[-1], grid, index, packing))
-            else:
+            if not streamed:
                 pack_density(per_level[-1], grid, packing, bricked)
+        if streamed:
+            streams.append(pack_stream(per_level, vol.density, index, packing))
         levels.append(per_level)
         structs.append(per_level[0])
         light_res.append(lres)
@@ -579,10 +602,14 @@ def upload_scene(scene: Scene, device: str, light_grid: int | None = None, mip_l
     for grid in max_levels:
         max_grids.append((max_offset, grid.shape[::-1]))
         max_offset += grid.size
-    for vol, per_level in zip(scene.volumes, levels, strict=True):
+    for state in streams:
+        state.cull = max_grids[state.volume][0] if mip_levels else None
+    for index, (vol, per_level) in enumerate(zip(scene.volumes, levels, strict=True)):
         for level, s in zip(vol.mip_pyramid if mip_levels else [vol.density], per_level, strict=False):
             cells, cell = skip_grid(level)
             s.skip_offset, s.skip_res, s.skip_cell = max_offset, wp.vec3i(*cells.shape[::-1]), cell
+            for state in (st for st in streams if st.volume == index):
+                state.skips.append(max_offset)
             max_levels.append(cells)
             max_offset += cells.size
     try:

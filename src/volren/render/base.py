@@ -205,8 +205,16 @@ class Renderer:
             self._device_scene, self._upload_key = ds, key
         if ds.streams:  # this frame's bricks of the streamed volumes, before anything samples them
             with clock.measure("stream"):
-                self._frame_info["stream"] = update_streams(ds, self._views, self.stream_wait, self.on_bricks)
+                marched, ancestors = self._stream_levels(ds)
+                self._frame_info["stream"] = update_streams(ds, self._views, self.stream_wait, self.on_bricks,
+                                                            marched, ancestors)
         return ds
+
+    def _stream_levels(self, ds: DeviceScene) -> tuple[list[int] | None, bool]:
+        """Which bricks of a streamed volume this method reads besides the footprint's level
+        (`volren.stream.lod.frame_needs`): per volume a level it marches (None: none), and whether it reads a
+        brick's ancestors too. Each sample here reads level 0, drawing what is not resident from coarser bricks."""
+        return None, False
 
     def _prepare(self, scene: Scene, clock: PassClock, frame: int) -> DeviceScene:
         """Per-frame passes shared by all views (upload, light map, ...)."""

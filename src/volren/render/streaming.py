@@ -19,6 +19,7 @@ import numpy as np
 
 from volren.camera import Camera
 from volren.kernels.common import NOT_RESIDENT
+from volren.render.stream_bounds import refresh_bounds
 from volren.sparse import EMPTY
 from volren.stream.lod import frame_needs
 from volren.upload import BrickKey, StreamState, write_device
@@ -31,13 +32,15 @@ def _entry(state: StreamState, key: BrickKey) -> int:
 
 
 def update_stream(ds, state: StreamState, views: Sequence[Camera], wait: bool,
-                  progress: Callable[[int, int], Any] | None = None) -> bool:
-    """Ask for the bricks ``views`` need (waiting for them with ``wait``), place the resident ones in the device pool
-    and write the page tables (module docstring). Returns whether the device's bricks changed."""
+                  progress: Callable[[int, int], Any] | None = None, *, marched: int | None = None,
+                  ancestors: bool = False) -> bool:
+    """Ask for the bricks ``views`` need (waiting for them with ``wait``; ``marched`` and ``ancestors`` as in
+    `volren.stream.lod.frame_needs`), place the resident ones in the device pool and write the page tables (module
+    docstring). Returns whether the device's bricks changed."""
     sd = state.density
     streamer = sd.streamer
     vol = ds.scene.volumes[state.volume]
-    needs = frame_needs(views, vol.to_world, sd.layout)
+    needs = frame_needs(views, vol.to_world, sd.layout, marched=marched, ancestors=ancestors)
     if wait:
         streamer.wait(needs, progress=progress)
     else:
@@ -71,7 +74,9 @@ def update_stream(ds, state: StreamState, views: Sequence[Camera], wait: bool,
         else:
             old, slot = state.slots.popitem(last=False)  # the least recently wanted
             state.tables[_entry(state, old)] = NOT_RESIDENT
+            del state.maxima[old]
         state.slots[key] = slot
+        state.maxima[key] = float(values.max())
         state.tables[_entry(state, key)] = slot
         write_device(ds.density, state.pool_offset + slot * edge3, values)
         placed += 1
@@ -82,12 +87,16 @@ def update_stream(ds, state: StreamState, views: Sequence[Camera], wait: bool,
 
 
 def update_streams(ds, views: Sequence[Camera], wait: bool, progress: Callable[[int, int], Any] | None = None,
-                   ) -> list[dict[str, Any]]:
-    """`update_stream` for each streamed volume of ``ds``; their stats (stats.json's ``stream``). A change makes the
-    light map and what else derives from the densities out of date: ``ds.stream_generation`` counts them."""
+                   marched: Sequence[int] | None = None, ancestors: bool = False) -> list[dict[str, Any]]:
+    """`update_stream` for each streamed volume of ``ds`` (``marched``: per volume of the scene, a level the renderer
+    marches besides the footprint's, or None); their stats (stats.json's ``stream``). A change rewrites the
+    bounds of what the bricks draw (`volren.render.stream_bounds`) and makes the light map and what else derives from
+    the densities out of date: ``ds.stream_generation`` counts them."""
     out = []
     for state in ds.streams:
-        if update_stream(ds, state, views, wait, progress):
+        level = marched[state.volume] if marched is not None else None
+        if update_stream(ds, state, views, wait, progress, marched=level, ancestors=ancestors) or not state.bounds:
+            refresh_bounds(ds, state)
             ds.stream_generation += 1
         out.append({**state.density.stats(), "device_bricks": len(state.slots), "device_capacity": state.capacity,
                     "empty_bricks": len(state.empty)})

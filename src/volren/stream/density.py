@@ -12,11 +12,13 @@ saturate where a fine voxel is brighter than every coarse one.
 from __future__ import annotations
 
 import weakref
+from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
-from volren.stream.layout import BRICK
+from volren.stream.layout import BRICK, PyramidLayout
 from volren.stream.source import PyramidSource
 from volren.stream.streamer import BRICK_BYTES, BrickStreamer
 
@@ -29,6 +31,8 @@ class StreamedDensity:
     ndim = 3
     dtype = np.dtype(np.float32)
     brick = BRICK
+    level = 0
+    """its level in the pyramid (`StreamedLevel`)"""
     streamed = True
     """what the scene and the upload recognise it by (they do not import the stream package)"""
 
@@ -92,11 +96,18 @@ class StreamedDensity:
         steps = [max(1, round((k.step or 1) / f)) for k, f in zip(key, factors, strict=True)]
         return self._coarse[:: steps[0], :: steps[1], :: steps[2]]
 
-    def level_maps(self) -> np.ndarray:
-        """(levels, 6) float32: per level (a x, y, z, b x, y, z) with level-k index = a v + b for level-0 index v
-        (x, y, z), from the levels' scales and translations: a = s0 / sk, b = (t0 - tk) / sk."""
-        s = np.array(self.source.scales, np.float64)[:, ::-1]
-        t = np.array(self.source.translations, np.float64)[:, ::-1]
+    @cached_property
+    def levels(self) -> tuple[StreamedLevel, ...]:
+        """The pyramid's levels as a volume's mip levels (`volren.scene.Volume.mip_pyramid`): what the cube-map
+        methods march far away, streamed from the same pool (`volren.upload.pack_stream`)."""
+        return tuple(StreamedLevel(self, k) for k in range(self.layout.count))
+
+    def level_maps(self, base: int = 0) -> np.ndarray:
+        """(levels - base, 6) float32: per level k >= ``base`` (a x, y, z, b x, y, z) with level-k index = a v + b
+        for level-``base`` index v (x, y, z), from the levels' scales and translations: a = s_base / s_k,
+        b = (t_base - t_k) / s_k."""
+        s = np.array(self.source.scales, np.float64)[base:, ::-1]
+        t = np.array(self.source.translations, np.float64)[base:, ::-1]
         return np.concatenate([s[0] / s, (t[0] - t) / s], axis=1).astype(np.float32)
 
     def stats(self) -> dict[str, Any]:
@@ -104,6 +115,26 @@ class StreamedDensity:
 
     def close(self) -> None:
         self._finalizer()
+
+
+@dataclass(frozen=True)
+class StreamedLevel:
+    """Level ``level`` of a streamed pyramid as a mip level of its volume: its shape, and where its bricks come from
+    (the level 0 `StreamedDensity`)."""
+
+    density: StreamedDensity
+    level: int
+    streamed = True
+    ndim = 3
+    brick = BRICK
+
+    @property
+    def layout(self) -> PyramidLayout:
+        return self.density.layout
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.density.layout.shapes[self.level])  # type: ignore[return-value]
 
 
 def _close(streamer: BrickStreamer, source: PyramidSource) -> None:

@@ -180,12 +180,17 @@ def _children(layout: PyramidLayout, level: int, bricks: np.ndarray) -> np.ndarr
     return np.concatenate(out) if out else np.zeros((0, 3), np.int64)
 
 
-def frame_needs(views: Sequence[Camera], to_world: np.ndarray, layout: PyramidLayout, *, step: float = 0.0
-                ) -> list[BrickNeed]:
+def frame_needs(views: Sequence[Camera], to_world: np.ndarray, layout: PyramidLayout, *, step: float = 0.0,
+                marched: int | None = None, ancestors: bool = False) -> list[BrickNeed]:
     """The bricks a frame seen by ``views`` needs, by the level rule and the descent of the module docstring, in
     priority order. Each brick is judged for every view: visible where any view sees it, at the finest level a view
     that sees it wants, its distance the nearest such view's (the nearest view's where none sees it). A level's
-    bricks are judged at once (numpy), the views' frustum planes computed once."""
+    bricks are judged at once (numpy), the views' frustum planes computed once.
+
+    For a renderer that reads a level of its own besides (the cube-map methods march level l of the pyramid into
+    their cube maps, and the pixels they march directly at the footprint's level): the visible bricks are refined to
+    level ``marched`` at least, and with ``ancestors`` a refined brick is needed too, so that every level a sample
+    may be read at is on the device."""
     if not views:
         raise ValueError("frame_needs needs at least one view")
     sizes = np.array([voxel_size(to_world, s) for s in layout.shapes])
@@ -205,8 +210,8 @@ def frame_needs(views: Sequence[Camera], to_world: np.ndarray, layout: PyramidLa
         limit = np.maximum(2.0 * dist * np.array([c[2] for c in cams])[:, None], step) * (1 + 1e-9)
         wanted = np.maximum(np.searchsorted(sizes, limit, side="right") - 1, 0)
         want = np.where(seen, wanted, level).min(axis=0)
-        refine = visible & (want < level)
-        keep = np.flatnonzero(~refine)
+        refine = visible & ((want < level) | (marched is not None and level > marched))
+        keep = np.arange(len(bricks)) if ancestors else np.flatnonzero(~refine)
         out += [need((level, *(int(v) for v in bricks[i])), bool(visible[i]), float(distance[i])) for i in keep]
         if level == 0 or not refine.any():
             break

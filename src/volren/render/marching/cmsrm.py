@@ -612,6 +612,16 @@ class CMSRM(LightMapRenderer):
         self._frame_info["volumes"] = []
         return ds
 
+    def _stream_levels(self, ds: DeviceScene) -> tuple[list[int] | None, bool]:
+        """A cube-mapped volume is marched at its LOD level l (`cube_lod`, the finest over the views), its coarse
+        tiles at l + 1, ... and its direct pixels at level 0: a streamed volume's bricks are needed at level l and at
+        the footprint's level, with their ancestors."""
+        c = self.config
+        marched = [min(cube_lod(vol, cam, c.cube_size or max(vol.resolution), c.samples, c.k_u, c.k_c,
+                                c.adaptive_lod, screen_sizing=c.cube_size is None).level for cam in self._views)
+                   for vol in ds.scene.volumes]
+        return marched, True
+
     def _params(self, ds: DeviceScene, view: int, samples: int) -> MarchParams:
         params = MarchParams()
         params.samples = samples

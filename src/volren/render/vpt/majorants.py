@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -100,23 +101,26 @@ def table_scale(density: np.ndarray | SparseGrid) -> float:
     return float(density.max()) or 1.0
 
 
-def build_majorants(density: np.ndarray | SparseGrid, extinction: np.ndarray, ranges: np.ndarray | None = None,
-                    global_majorant: bool = False) -> Majorants:
-    """The majorant octree of a density grid [z, y, x] under the extinction table (indexed by u = value / max).
-    ``ranges``: the range-maximum table of ``extinction`` (computed if None). ``global_majorant``: one cell for the
-    whole volume (the single global majorant, for comparison). A `SparseGrid`'s macrocells are its bricks (issue 41:
-    "majorants per brick"), their ranges read from the page table (`SparseGrid.cell_ranges`), not a dense copy."""
+def build_majorants(density: Any, extinction: np.ndarray, ranges: np.ndarray | None = None,
+                    global_majorant: bool = False, *, bounds: np.ndarray | None = None,
+                    scale: float | None = None) -> Majorants:
+    """The majorant octree of a density grid [z, y, x] under the extinction table (indexed by u = value / ``scale``,
+    `table_scale` if None). ``ranges``: the range-maximum table of ``extinction`` (computed if None).
+    ``global_majorant``: one cell for the whole volume (the single global majorant, for comparison). A `SparseGrid`'s
+    macrocells are its bricks (issue 41: "majorants per brick"), their ranges read from the page table
+    (`SparseGrid.cell_ranges`), not a dense copy; so are a streamed volume's, whose ``bounds`` per brick
+    (`volren.render.stream_bounds`) bound what its bricks draw now (ranges [0, bound])."""
     start = time.perf_counter()
     voxels = tuple(density.shape[::-1])
-    if isinstance(density, SparseGrid):
-        lo, hi = density.cell_ranges()
+    if bounds is not None or isinstance(density, SparseGrid):
+        lo, hi = (np.zeros_like(bounds), bounds) if bounds is not None else density.cell_ranges()
         cell = (density.brick,) * 3
         if global_majorant:
             lo, hi, cell = np.full((1, 1, 1), lo.min()), np.full((1, 1, 1), hi.max()), voxels
     else:
         cell = voxels if global_majorant else (MACROCELL,) * 3
         lo, hi = scalar_ranges(density, cell)
-    scale = table_scale(density)
+    scale = table_scale(density) if scale is None else scale
     m = range_max_table(extinction) if ranges is None else ranges
     n = len(extinction) - 1
     i = np.clip(np.floor(lo / scale * n), 0, n).astype(np.int64)

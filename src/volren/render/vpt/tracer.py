@@ -561,16 +561,13 @@ def vpt_kernel(
     count(counters, SHADOW_RAYS, shadow_rays)
 
 
-def transfer_tables(volumes, transfer: str | None) -> list[np.ndarray]:
-    """Each volume's lookup table (`TransferFunction.table`), indexed by u = density / the majorants' scale: the
-    configured transfer function (in Hounsfield units where it has that form and the volume a ``value_range``: entry
-    u holds HU lo + (hi - lo) * u * scale; it replaces the volumes' density_scale, albedo and emission), or each
-    volume's density-scale model (extinction and emission proportional to density)."""
-    streamed = [v.name for v in volumes if getattr(v.density, "streamed", False)]
-    if streamed:
-        raise VolrenError(f"vpt: volume '{streamed[0]}' is streamed (a pyramid larger than --memory-budget), and "
-                          "the path tracer's majorants need its bounds before its bricks come; use dssrm or reference, "
-                          "or --level N to read one level")
+def transfer_tables(volumes, transfer: str | None, scales: list[float] | None = None) -> list[np.ndarray]:
+    """Each volume's lookup table (`TransferFunction.table`), indexed by u = density / the majorants' scale
+    (``scales``, each volume's `table_scale` if None): the configured transfer function (in Hounsfield units where it
+    has that form and the volume a ``value_range``: entry u holds HU lo + (hi - lo) * u * scale; it replaces the
+    volumes' density_scale, albedo and emission), or each volume's density-scale model (extinction and emission
+    proportional to density)."""
+    scales = scales or [table_scale(v.density) for v in volumes]
     if transfer is not None and any(v.emission_grid is not None for v in volumes):
         raise VolrenError("vpt: a transfer function replaces the material, and its extinction need not be > 0 "
                           "where an emission grid emits: render fire without --tf")
@@ -579,15 +576,15 @@ def transfer_tables(volumes, transfer: str | None) -> list[np.ndarray]:
             if (max(v.emission) > 0 or v.emission_grid is not None) and v.density_scale == 0:
                 raise VolrenError(f"vpt: volume '{v.name}' emits but has density_scale 0: the path tracer finds "
                                   "emission only where its free flights collide (give it extinction)")
-        return [linear(v.density_scale * float(v.density.max()), v.albedo,
-                       max_emission=tuple(e * float(v.density.max()) for e in v.emission)).table() for v in volumes]
+        return [linear(v.density_scale * peak, v.albedo, max_emission=tuple(e * peak for e in v.emission)).table()
+                for v, peak in zip(volumes, scales, strict=True)]
     tf = load_transfer_function(transfer)
     tables = []
-    for v in volumes:
+    for v, peak in zip(volumes, scales, strict=True):
         hu = None
         if v.value_range is not None:
             lo, hi = v.value_range
-            hu = (lo, lo + (hi - lo) * table_scale(v.density))
+            hu = (lo, lo + (hi - lo) * peak)
         tables.append(tf.table(hu=hu))
     return tables
 
@@ -612,13 +609,20 @@ class VPT(Renderer):
         """Upload, then the majorant octrees (rebuilt only when the densities or the transfer function change: not
         for a new camera or light) and the environment's sampling tables (rebuilt when the environment changes)."""
         ds = self._upload(scene, clock)
-        key = (tuple(id(v) for v in scene.volumes), self.config.transfer, self.config.global_majorant)
+        key = (tuple(id(v) for v in scene.volumes), self.config.transfer, self.config.global_majorant,
+               ds.stream_generation)  # a streamed volume's new bricks: new bounds
         if self._majorants is None or self._majorants[0] != key:
             with clock.measure("majorants"):
-                tables = transfer_tables(scene.volumes, self.config.transfer)
+                bounds = [None] * len(scene.volumes)
+                for state in ds.streams:
+                    bounds[state.volume] = state.bounds[0]
+                # u = 1 at the largest density drawn: a streamed volume's fine bricks may exceed its coarse maximum
+                scales = [table_scale(v.density) if b is None else max(table_scale(v.density), float(b.max()))
+                          for v, b in zip(scene.volumes, bounds, strict=True)]
+                tables = transfer_tables(scene.volumes, self.config.transfer, scales)
                 majorants = [build_majorants(vol.density, table[:, 0], range_max_table(table[:, 0]),
-                                             self.config.global_majorant)
-                             for vol, table in zip(scene.volumes, tables, strict=True)]
+                                             self.config.global_majorant, bounds=b, scale=peak)
+                             for vol, table, b, peak in zip(scene.volumes, tables, bounds, scales, strict=True)]
                 self._majorants = (key, majorants, self._majorant_arrays(tables, majorants))
                 self._emits = any(float(table[:, 5:8].max()) > 0 or vol.emission_grid is not None
                                   for vol, table in zip(scene.volumes, tables, strict=True))

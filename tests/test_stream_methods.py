@@ -1,0 +1,177 @@
+"""Every method draws a streamed pyramid (issue 41): the cube-map methods march the file's levels as their mip levels,
+the path tracer's majorants and every method's empty-space skipping are bounded per brick by what the device's
+bricks draw (`volren.render.stream_bounds`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+import warp as wp
+import zarr
+from ome_zarr import writer
+
+from conftest import DEVICE
+from test_stream_render import SIZE, N, close_camera, pyramid, sample_points, scene_of  # noqa: F401 (a fixture)
+from volren.camera import Camera
+from volren.kernels.common import VolumeGPU
+from volren.metrics import psnr
+from volren.render import CACRM, CMSRM, VPT, CACRMConfig, CMSRMConfig
+from volren.render.marching.cubemap import cube_lod
+from volren.render.stream_bounds import drawn_bounds
+from volren.render.vpt.tracer import VPTConfig
+from volren.stream.lod import frame_needs
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture(scope="module")
+def float_pyramid(tmp_path_factory):
+    """Three float32 levels, each the 2x2x2 mean of the one before (as `volren.scene.Volume.mip_pyramid` makes a
+    dense grid's), placed by scales and translations: the levels a dense volume's cube-map march reads, exactly."""
+    path = tmp_path_factory.mktemp("stream") / "float.zarr"
+    z, y, x = np.mgrid[0:N, 0:N, 0:N].astype(np.float32)
+    levels = [sum(np.exp(-((x - cx) ** 2 + (y - 30) ** 2 + (z - 32) ** 2) / 90.0) for cx in (20.0, 44.0))]
+    for _ in range(2):
+        n = levels[-1].shape[0] // 2
+        levels.append(levels[-1].reshape(n, 2, n, 2, n, 2).mean(axis=(1, 3, 5)).astype(np.float32))
+    axes = [{"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
+    transforms = [[{"type": "scale", "scale": [2.0**k] * 3},
+                   {"type": "translation", "translation": [(2.0**k - 1) / 2] * 3}] for k in range(3)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        writer.write_multiscale(levels, zarr.open_group(str(path), mode="w"), axes=axes,
+                                coordinate_transformations=transforms, storage_options={"chunks": (16, 16, 16)})
+    return path
+
+
+@pytest.fixture(scope="module")
+def corner_pyramid(tmp_path_factory):
+    """128^3 uint16, zero but for a blob of radius 12 around voxel (40, 40, 40) (level-0 bricks 1 to 3 on each
+    axis), three levels of every second voxel."""
+    path = tmp_path_factory.mktemp("stream") / "corner.zarr"
+    z, y, x = np.mgrid[0:128, 0:128, 0:128].astype(np.float32)
+    level = np.round(4000 * np.exp(-((x - 40) ** 2 + (y - 40) ** 2 + (z - 40) ** 2) / 16.0)).astype(np.uint16)
+    levels = [level, level[::2, ::2, ::2].copy(), level[::4, ::4, ::4].copy()]
+    axes = [{"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        writer.write_multiscale(levels, zarr.open_group(str(path), mode="w"), axes=axes,
+                                coordinate_transformations=[[{"type": "scale", "scale": [2.0**k] * 3}]
+                                                            for k in range(3)],
+                                storage_options={"chunks": (16, 16, 16)})
+    return path
+
+
+def far_camera(scene, distance: float) -> Camera:
+    vol = scene.volumes[0]
+    size = float(np.linalg.norm(vol.to_world[:3, 0])) * 2
+    c = vol.center_world
+    return Camera(position=tuple(c + np.array([0.3, 0.2, distance]) * size), look_at=tuple(c), fov_y=40.0,
+                  width=SIZE[0], height=SIZE[1], near=1e-4 * size, far=100 * size)
+
+
+@pytest.mark.parametrize("method", ["cmsrm", "cacrm"])
+@pytest.mark.parametrize(("distance", "level"), [(3.0, 1), (6.0, 2)])
+def test_the_cube_map_methods_march_a_streamed_pyramids_level_as_a_dense_volumes_mip_level(
+        float_pyramid, method, distance, level):
+    """Far away the cube map is marched at LOD level l >= 1: a streamed volume's level l is its file's (the bricks
+    of level l are asked for as well as the footprint's), which equals the dense volume's mip level l here. (Rim and
+    hybrid pixels are marched directly at level 0 by the dense volume and at the footprint's level by the streamed
+    one, and so is the light map: off here, and no light, so that only the cube map is compared.)"""
+    make = {"cmsrm": lambda: CMSRM(CMSRMConfig(samples=64, rim_direct=False, hybrid=False), device=DEVICE),
+            "cacrm": lambda: CACRM(CACRMConfig(samples=64, rim_direct=False, hybrid=False), device=DEVICE)}[method]
+    dense, streamed = (dataclasses.replace(scene_of(float_pyramid, **load), lights=())
+                       for load in ({"level": 0}, {"memory_budget": 2**26, "stream": True}))
+    cam = far_camera(dense, distance)
+    c = make().config
+    vol = dense.volumes[0]
+    assert cube_lod(vol, cam, max(vol.resolution), c.samples, c.k_u, c.k_c, True, screen_sizing=True).level == level
+    want = make().render(dense, [cam]).images[0]
+    got = make().render(streamed, [cam])
+    assert want[..., 3].max() > 0.5
+    assert np.abs(got.images[0] - want).max() <= 2e-5
+    assert got.stats.info["stream"][0]["levels_used"][level] > 0
+
+
+def test_a_cube_map_method_with_its_defaults_draws_a_far_streamed_pyramid_with_no_hole(pyramid):  # noqa: F811
+    dense = scene_of(pyramid, level=0)
+    streamed = scene_of(pyramid, memory_budget=2**26, stream=True)
+    cam = far_camera(dense, 3.0)
+    want = CMSRM(CMSRMConfig(samples=64), device=DEVICE).render(dense, [cam]).images[0][..., 3]
+    got = CMSRM(CMSRMConfig(samples=64), device=DEVICE).render(streamed, [cam]).images[0][..., 3]
+    assert want.max() > 0.5 and np.all(got[want > 0.05] > 0.02) and np.abs(got - want).mean() < 0.01
+
+
+def test_the_path_tracer_draws_a_streamed_pyramid_at_its_noise_floor(pyramid):  # noqa: F811
+    """Majorants per brick from the device's bricks (`drawn_bounds`): unbiased, so the streamed picture is as close
+    to the dense one as two seeds of the dense one are to each other."""
+    dense = scene_of(pyramid, level=0)
+    streamed = scene_of(pyramid, memory_budget=2**26, stream=True)
+    cam = close_camera(dense)
+
+    def vpt(scene, seed):
+        return VPT(VPTConfig(spp=32, seed=seed, denoise="none"), device=DEVICE).render(scene, [cam])
+
+    got = vpt(streamed, 1)
+    frames = [vpt(dense, 1).images[0], vpt(dense, 2).images[0]]
+    floor = psnr(frames[1][..., :3], frames[0][..., :3])
+    assert frames[0][..., 3].max() > 0.5
+    assert psnr(got.images[0][..., :3], frames[0][..., :3]) >= floor - 1.0, floor
+    assert got.stats.info["stream"][0]["bricks_pending"] == 0
+
+
+def test_the_bounds_hold_every_drawn_density_and_leave_the_empty_bricks_empty(corner_pyramid, monkeypatch):
+    """Level-0 bricks x 0-2 on the device (some holding the blob, most empty), the rest drawn from level 2 (the
+    blob's level-2 brick reaches x 63). Every density sampled anywhere is at most its skip cell's bound; the cells
+    whose neighbours are empty on the device or drawn from an empty coarse brick are empty (so they are skipped);
+    a resident brick's bound is its own and its neighbours' largest voxel, no more."""
+    from volren.render import DSSRM, DSSRMConfig, streaming
+    from volren.stream.lod import need
+
+    monkeypatch.setattr(streaming, "frame_needs", lambda views, to_world, layout, **levels: [
+        need((0, *b), True, 1.0) for b in np.ndindex(8, 8, 3)])
+    streamed = scene_of(corner_pyramid, memory_budget=2**26, stream=True)
+    renderer = DSSRM(DSSRMConfig(samples=64, light_samples=8), device=DEVICE)
+    renderer.render(streamed, [close_camera(streamed)])
+    ds = renderer._device_scene
+    state = ds.streams[0]
+    s = ds.levels[0][0]
+    assert s.skip_cell == 16 and tuple(s.skip_res) == (8, 8, 8)
+    skip = ds.max_density.numpy()[s.skip_offset:s.skip_offset + 512].reshape(8, 8, 8)
+    points = np.random.default_rng(3).uniform(-1.0, 1.0, (40000, 3)).astype(np.float32)
+    out = wp.zeros(len(points), dtype=float, device=ds.device)
+    wp.launch(sample_points, dim=len(points), inputs=[wp.array([s], dtype=VolumeGPU, device=ds.device), ds.density,
+                                                      wp.array(points, dtype=wp.vec3, device=ds.device), out],
+              device=ds.device)
+    cells = np.clip(np.floor((points + 1.0) * 128 / 2 / 16).astype(int), 0, 7)
+    bound = skip[cells[:, 2], cells[:, 1], cells[:, 0]]
+    values = out.numpy()
+    assert values.max() > 0.5 and np.all(values <= np.maximum(bound, 0.0) + 1e-6)
+    assert np.all(skip[5:, :, :] <= 0) and np.all(skip[:, 5:, :] <= 0) and np.all(skip[1:4, 1:4, 1:4] > 0)
+    assert np.all(skip[:4, :4, 3:5] > 0)  # drawn from the blob's level-2 brick, or next to it
+    level0 = [key for key in state.slots if key[0] == 0]
+    assert 8 <= len(level0) < 27  # the blob's bricks x 1-2 resident, x 3 drawn from level 2
+    bounds = drawn_bounds(state)[0]
+    exact = 0
+    for key in level0:
+        around = [state.maxima.get((0, *n), 0.0 if (0, *n) in state.empty else None) for n in np.ndindex(8, 8, 8)
+                  if max(abs(a - b) for a, b in zip(n, key[1:], strict=True)) <= 1]
+        if None not in around:  # every neighbour on the device: the bound is exactly their largest voxel
+            assert bounds[key[1:]] == pytest.approx(max(around))
+            exact += 1
+    assert exact >= 1
+
+
+def test_a_renderer_that_marches_a_level_asks_for_its_bricks_and_their_ancestors(pyramid):  # noqa: F811
+    streamed = scene_of(pyramid, memory_budget=2**26, stream=True)
+    vol = streamed.volumes[0]
+    layout = vol.density.layout
+    cam = far_camera(streamed, 6.0)
+    plain = {n.key for n in frame_needs([cam], vol.to_world, layout)}
+    assert {k[0] for k in plain} == {2}  # the footprint wants the coarsest level there
+    marched = {n.key for n in frame_needs([cam], vol.to_world, layout, marched=1, ancestors=True)}
+    assert {k for k in marched if k[0] == 1} == {(1, *b) for b in np.ndindex(*layout.bricks(1))}
+    assert plain <= marched and all((k[0] + 1, *layout.parent(k[0], k[1:])) in marched for k in marched if k[0] < 2)
