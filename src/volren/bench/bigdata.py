@@ -528,6 +528,14 @@ def pyramid_block(n: int, seed: int, start: tuple[int, int, int], shape: tuple[i
     return np.rint(d * np.float32(255.0)).astype(np.uint8)
 
 
+def outside_ball(n: int, lo: list[int], hi: list[int]) -> bool:
+    """Whether the level-0 box [lo, hi) of voxels lies wholly outside `pyramid_block`'s ball (radius 0.48 n, centre
+    n / 2), where its field is 0: the box's nearest voxel centre is farther than the radius."""
+    c = n / 2.0
+    near = [min(max(c, a + 0.5), b - 0.5) - c for a, b in zip(lo, hi, strict=True)]
+    return sum(d * d for d in near) > (0.48 * n) ** 2 * (1 + 1e-6)
+
+
 def pyramid_shapes(n: int, coarsest: int) -> list[tuple[int, int, int]]:
     """Level shapes: n^3, then each ceil(half) of the previous, down to the first whose edge is at most
     ``coarsest``."""
@@ -572,6 +580,8 @@ def write_pyramid(path: Path, n: int, seed: int, chunk: int, coarsest: int) -> d
         for index in np.ndindex(*(-(-s // chunk) for s in shape)):
             lo = [i * chunk for i in index]
             size = tuple(min(chunk, s - a) for a, s in zip(lo, shape, strict=True))
+            if outside_ball(n, [a << k for a in lo], [(a + s) << k for a, s in zip(lo, size, strict=True)]):
+                continue  # all zero at every level: zarr stores no chunk of only the fill value anyway
             if k == 0:
                 block = pyramid_block(n, seed, tuple(lo), size)
             else:
