@@ -137,14 +137,18 @@ def test_the_path_tracer_draws_a_streamed_pyramid_at_its_noise_floor(pyramid):  
     assert got.stats.info["stream"][0]["bricks_pending"] == 0
 
 
-def test_the_bounds_hold_every_drawn_density_and_leave_the_empty_bricks_empty(corner_pyramid, monkeypatch):
+@pytest.mark.parametrize("group", [1, 2])
+def test_the_bounds_hold_every_drawn_density_and_leave_the_empty_bricks_empty(corner_pyramid, monkeypatch, group):
     """Level-0 bricks x 0-2 on the device (some holding the blob, most empty), the rest drawn from level 2 (the
     blob's level-2 brick reaches x 63). Every density sampled anywhere is at most its skip cell's bound; the cells
     whose neighbours are empty on the device or drawn from an empty coarse brick are empty (so they are skipped);
-    a resident brick's bound is its own and its neighbours' largest voxel, no more."""
+    a resident brick's bound is its own and its neighbours' largest voxel, no more. ``group`` 2: skip cells of 2^3
+    bricks (a level of more than `MAX_STREAM_SKIP_CELLS` bricks, made small here)."""
+    from volren import upload
     from volren.render import DSSRM, DSSRMConfig, streaming
     from volren.stream.lod import need
 
+    monkeypatch.setattr(upload, "MAX_STREAM_SKIP_CELLS", 512 // group**3)
     monkeypatch.setattr(streaming, "frame_needs", lambda views, to_world, layout, **levels: [
         need((0, *b), True, 1.0) for b in np.ndindex(8, 8, 3)])
     streamed = scene_of(corner_pyramid, memory_budget=2**26, stream=True)
@@ -153,21 +157,25 @@ def test_the_bounds_hold_every_drawn_density_and_leave_the_empty_bricks_empty(co
     ds = renderer._device_scene
     state = ds.streams[0]
     s = ds.levels[0][0]
-    assert s.skip_cell == 16 and tuple(s.skip_res) == (8, 8, 8)
-    skip = ds.max_density.numpy()[s.skip_offset:s.skip_offset + 512].reshape(8, 8, 8)
+    cells = 8 // group
+    assert s.skip_cell == 16 * group and tuple(s.skip_res) == (cells,) * 3
+    skip = ds.max_density.numpy()[s.skip_offset:s.skip_offset + cells**3].reshape((cells,) * 3)
     points = np.random.default_rng(3).uniform(-1.0, 1.0, (40000, 3)).astype(np.float32)
     out = wp.zeros(len(points), dtype=float, device=ds.device)
     wp.launch(sample_points, dim=len(points), inputs=[wp.array([s], dtype=VolumeGPU, device=ds.device), ds.density,
                                                       wp.array(points, dtype=wp.vec3, device=ds.device), out],
               device=ds.device)
-    cells = np.clip(np.floor((points + 1.0) * 128 / 2 / 16).astype(int), 0, 7)
-    bound = skip[cells[:, 2], cells[:, 1], cells[:, 0]]
+    at = np.clip(np.floor((points + 1.0) * 128 / 2 / s.skip_cell).astype(int), 0, cells - 1)
+    bound = skip[at[:, 2], at[:, 1], at[:, 0]]
     values = out.numpy()
     assert values.max() > 0.5 and np.all(values <= np.maximum(bound, 0.0) + 1e-6)
-    assert np.all(skip[5:, :, :] <= 0) and np.all(skip[:, 5:, :] <= 0) and np.all(skip[1:4, 1:4, 1:4] > 0)
-    assert np.all(skip[:4, :4, 3:5] > 0)  # drawn from the blob's level-2 brick, or next to it
     level0 = [key for key in state.slots if key[0] == 0]
     assert 8 <= len(level0) < 27  # the blob's bricks x 1-2 resident, x 3 drawn from level 2
+    if group == 2:  # cells of bricks 0-1, 2-3, ...: the blob in cells 0-1, empty from bricks 6 on
+        assert np.all(skip[3:, :, :] <= 0) and np.all(skip[:, 3:, :] <= 0) and np.all(skip[:2, :2, :2] > 0)
+        return
+    assert np.all(skip[5:, :, :] <= 0) and np.all(skip[:, 5:, :] <= 0) and np.all(skip[1:4, 1:4, 1:4] > 0)
+    assert np.all(skip[:4, :4, 3:5] > 0)  # drawn from the blob's level-2 brick, or next to it
     bounds = drawn_bounds(state)[0]
     exact = 0
     for key in level0:
@@ -252,3 +260,32 @@ def test_a_coarser_levels_missing_brick_is_drawn_from_the_level_above_it(uneven_
               device=ds.device)
     assert want.max() > 0.2
     np.testing.assert_allclose(out.numpy(), want, rtol=1e-5, atol=1e-6)
+
+
+def test_a_skip_cell_of_several_bricks_is_drawn_from_the_ancestors_unless_all_its_bricks_are_on_the_device(
+        monkeypatch):
+    """`_drawn` by hand on a two-level pyramid (64^3 then 32^3, scales 1 and 2), skip cells of 2^3 bricks: a cell
+    whose bricks are all on the device is their largest voxel; one with a brick missing also takes the level-1 brick
+    its voxels map into; one with none, that brick alone."""
+    from types import SimpleNamespace
+
+    from volren import upload
+    from volren.render.stream_bounds import _drawn, _on_device
+    from volren.stream.layout import PyramidLayout
+
+    monkeypatch.setattr(upload, "MAX_STREAM_SKIP_CELLS", 8)
+    layout = PyramidLayout(((64, 64, 64), (32, 32, 32)), ((2, 2, 2),))
+    maps = {0: np.array([[1, 1, 1, 0, 0, 0], [0.5, 0.5, 0.5, -0.25, -0.25, -0.25]], np.float32),
+            1: np.array([[1, 1, 1, 0, 0, 0]], np.float32)}
+    sd = SimpleNamespace(layout=layout, brick=16, level_maps=maps.__getitem__)
+    full = {(0, *b): 0.25 for b in np.ndindex(2, 2, 2)}  # cell (0, 0, 0): all its bricks, largest 0.25
+    full[(0, 1, 1, 1)] = 0.5
+    part = {(0, 0, 0, 2): 0.0}  # cell (0, 0, 1): one of its eight bricks, empty
+    ancestors = {(1, *b): 0.1 * (1 + b[2]) for b in np.ndindex(2, 2, 2)}  # level 1: x brick 0 0.1, x brick 1 0.2
+    slots = {**full, **{k: v for k, v in part.items() if v}, **ancestors}
+    state = SimpleNamespace(density=sd, slots=slots, maxima=slots, empty={k for k, v in part.items() if not v})
+    drawn = _drawn(_on_device(state, 2), 0, sd)
+    assert drawn.shape == (2, 2, 2)
+    assert drawn[0, 0, 0] == pytest.approx(0.5)  # its own bricks only: level 1's 0.1 is not drawn there
+    assert drawn[0, 0, 1] == pytest.approx(0.2)  # level-0 x 32-63: level-1 x 16-31, the x brick 1
+    assert drawn[1, 1, 0] == pytest.approx(0.1)

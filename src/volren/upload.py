@@ -240,7 +240,7 @@ def coarse_max_level(vol: Volume) -> np.ndarray:
     `SparseGrid.cell_ranges`, the pyramid's level log2 B, max-pooled on; a streamed volume's from the bounds of
     what its bricks draw, written frame by frame by `volren.render.stream_bounds`: every cell occupied until then)."""
     if getattr(vol.density, "streamed", False):
-        return cull_level(np.ones(vol.density.layout.bricks(0), np.float32))
+        return cull_level(skip_grid(vol.density)[0])
     if isinstance(vol.density, SparseGrid):
         return cull_level(vol.density.cell_ranges()[1])
     for level in vol.max_pyramid:
@@ -301,6 +301,20 @@ MAX_SPARSE_SKIP_CELLS = 1 << 24
 bricks': cells of 16 voxels made the sparse smoke of `bench bigdata` (339x431x317) march 2.1x slower than dense"""
 
 
+MAX_STREAM_SKIP_CELLS = 1 << 21
+"""[cells] a streamed level's skip grid has cells of 2^j bricks, j the smallest that keeps it within this many cells:
+its bounds are recomputed whenever the device's bricks change (`volren.render.stream_bounds`), 0.5 s at 128^3
+cells on this 2-core CPU, 3.4 s at the 256^3 bricks of a 4096^3 level"""
+
+
+def stream_skip_group(bricks: tuple[int, ...]) -> int:
+    """Bricks per axis in a streamed level's skip cell (`MAX_STREAM_SKIP_CELLS`)."""
+    group = 1
+    while np.prod([-(-b // group) for b in bricks], dtype=np.int64) > MAX_STREAM_SKIP_CELLS:
+        group *= 2
+    return group
+
+
 def skip_grid(density: np.ndarray | SparseGrid, cell: int = SKIP_CELL) -> tuple[np.ndarray, int]:
     """The empty-space-skipping grid of a [z, y, x] density: one value per block of ``cell``^3 voxels.
 
@@ -317,7 +331,9 @@ def skip_grid(density: np.ndarray | SparseGrid, cell: int = SKIP_CELL) -> tuple[
     at B = 16, 125 M at 4). A streamed level's cells are its bricks, every one occupied until the first frame's
     bounds (`volren.render.stream_bounds`) are written."""
     if getattr(density, "streamed", False):
-        return np.ones(density.layout.bricks(density.level), np.float32), density.brick
+        group = stream_skip_group(density.layout.bricks(density.level))
+        shape = tuple(-(-b // group) for b in density.layout.bricks(density.level))
+        return np.ones(shape, np.float32), density.brick * group
     if isinstance(density, SparseGrid):
         cells = np.prod([-(-n // cell) for n in density.shape], dtype=np.int64)
         if cells > MAX_SPARSE_SKIP_CELLS:  # cells of one brick: 1/B^3 of the box

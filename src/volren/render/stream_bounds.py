@@ -12,7 +12,8 @@ sample inside one ancestor brick). So, per brick c of level j, every density dra
 and the level's bound per brick is D_j's maximum over the 3 x 3 x 3 bricks around it: a trilinear sample in brick
 c reads voxels up to one beyond it, and a voxel on a brick's first plane may come from the brick before it. These
 bounds change only when the device's bricks do, and are rewritten then (`refresh_bounds`): the skip grid of each
-uploaded level (cells of one brick), the cube-map methods' culling level, and the path tracer's majorants
+uploaded level (cells of one brick, or 2^j bricks a side in a level of more than 128^3 bricks), the cube-map
+methods' culling level, and the path tracer's majorants
 (`volren.render.vpt.tracer`). They bound the density drawn now, not the file's: a region empty at the coarse level
 is skipped until finer bricks come, as its coarse samples are zero.
 """
@@ -21,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from volren.upload import StreamState, cull_level, neighbourhood_max, skip_cells, write_device
+from volren.upload import StreamState, cull_level, neighbourhood_max, skip_cells, stream_skip_group, write_device
 
 
 def _mapped(a: np.float32, b: np.float32, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -33,21 +34,22 @@ def _mapped(a: np.float32, b: np.float32, v: np.ndarray) -> tuple[np.ndarray, np
     return np.minimum(plain, fused), np.maximum(plain, fused)
 
 
-def _covering(maps: np.ndarray, shape: tuple[int, ...], bricks: tuple[int, ...], shape_up: tuple[int, ...],
+def _covering(maps: np.ndarray, shape: tuple[int, ...], cells: tuple[int, ...], cell: int, shape_up: tuple[int, ...],
               bricks_up: tuple[int, ...], brick: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per axis (z, y, x), for each brick of a level, the first and last brick of a coarser level holding the
-    trilinear cells its voxels [B c, B c + B] are drawn from (``maps``: (a x, y, z, b x, y, z) to that level, as
-    `volren.kernels.common.ancestor_voxel` maps them: clamped into the grid, the cell's lowest corner at most n - 2)."""
+    """Per axis (z, y, x), for each cell of ``cell`` voxels of a level, the first and last brick of a coarser level
+    holding the trilinear cells its voxels [cell c, cell c + cell] are drawn from (``maps``: (a x, y, z, b x, y, z) to
+    that level, as `volren.kernels.common.ancestor_voxel` maps them: clamped into the grid, the cell's lowest corner
+    at most n - 2)."""
     out = []
     for axis in range(3):
-        c = np.arange(bricks[axis])
-        lo, _ = _mapped(maps[2 - axis], maps[5 - axis], brick * c)
-        _, hi = _mapped(maps[2 - axis], maps[5 - axis], np.minimum(brick * c + brick, shape[axis] - 1))
+        c = np.arange(cells[axis])
+        lo, _ = _mapped(maps[2 - axis], maps[5 - axis], cell * c)
+        _, hi = _mapped(maps[2 - axis], maps[5 - axis], np.minimum(cell * c + cell, shape[axis] - 1))
         ends = []
         for x in (lo, hi):
             x = np.clip(x, 0.0, shape_up[axis] - 1)
-            cell = np.clip(np.minimum(x.astype(np.int64), shape_up[axis] - 2), 0, None)
-            ends.append(np.minimum(cell // brick, bricks_up[axis] - 1))
+            lowest = np.clip(np.minimum(x.astype(np.int64), shape_up[axis] - 2), 0, None)
+            ends.append(np.minimum(lowest // brick, bricks_up[axis] - 1))
         out.append((ends[0], ends[1]))
     return out
 
@@ -65,38 +67,63 @@ def _range_max(grid: np.ndarray, ranges: list[tuple[np.ndarray, np.ndarray]]) ->
     return grid
 
 
-def _drawn(known: list[np.ndarray], base: int, sd) -> np.ndarray:
-    """Per brick of level ``base``, the largest density the device draws there (undilated): its own largest voxel
-    where known (NaN: not on the device), else the largest of the known bricks its voxels map into at levels
-    base + 1, base + 2, ... up to the first level where all of them are known (`ancestor_voxel`'s search)."""
+def _on_device(state: StreamState, count: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per level, the bricks on the device ((m, 3) z, y, x) and their largest voxels (0 for an `EMPTY` brick)."""
+    keys = [[] for _ in range(count)]
+    values = [[] for _ in range(count)]
+    for key in state.empty:
+        keys[key[0]].append(key[1:])
+        values[key[0]].append(0.0)
+    for key in state.slots:
+        keys[key[0]].append(key[1:])
+        values[key[0]].append(state.maxima[key])
+    return [(np.array(k, np.int64).reshape(-1, 3), np.array(v, np.float32)) for k, v in zip(keys, values, strict=True)]
+
+
+def _known(bricks: tuple[np.ndarray, np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
+    """A level's largest voxel per brick on the device, NaN where the brick is not."""
+    out = np.full(shape, np.nan, np.float32)
+    out[tuple(bricks[0].T)] = bricks[1]
+    return out
+
+
+def _drawn(device: list[tuple[np.ndarray, np.ndarray]], base: int, sd) -> np.ndarray:
+    """Per skip cell of level ``base`` (`volren.upload.stream_skip_group` bricks per axis), the largest density the
+    device draws there (undilated): the largest voxel of its bricks on the device (``device``, `_on_device`), and
+    where a brick is not, the largest of the known bricks its voxels map into at levels base + 1, base + 2, ... up
+    to the first level where all of them are known (`ancestor_voxel`'s search). Scattered from the bricks on the
+    device: a 4096^3 level's 256^3 bricks are never a grid here."""
     layout = sd.layout
-    own = known[base]
-    pending = np.isnan(own)
-    out = np.where(pending, 0.0, own).astype(np.float32)
+    bricks = layout.bricks(base)
+    group = stream_skip_group(bricks)
+    shape = tuple(-(-b // group) for b in bricks)
+    coords, values = device[base]
+    cells = tuple((coords // group).T)
+    out = np.zeros(shape, np.float32)
+    np.maximum.at(out, cells, values)
+    count = np.zeros(shape, np.int64)
+    np.add.at(count, cells, 1)
+    sizes = [np.minimum(group, b - group * np.arange(n)) for b, n in zip(bricks, shape, strict=True)]
+    pending = count < sizes[0][:, None, None] * sizes[1][None, :, None] * sizes[2][None, None, :]
     maps = sd.level_maps(base)
     for k in range(base + 1, layout.count):
         if not pending.any():
             break
-        ranges = _covering(maps[k - base], layout.shapes[base], layout.bricks(base), layout.shapes[k],
+        ranges = _covering(maps[k - base], layout.shapes[base], shape, sd.brick * group, layout.shapes[k],
                            layout.bricks(k), sd.brick)
-        missing = np.isnan(known[k])
-        found = _range_max(np.where(missing, 0.0, known[k]).astype(np.float32), ranges)
+        known = _known(device[k], layout.bricks(k))
+        missing = np.isnan(known)
+        found = _range_max(np.where(missing, np.float32(0.0), known), ranges)
         out = np.where(pending, np.maximum(out, found), out)
         pending &= _range_max(missing, ranges)
     return out
 
 
 def drawn_bounds(state: StreamState, levels: int = 1) -> list[np.ndarray]:
-    """For the first ``levels`` levels, finest first, the bound per brick of the densities drawn there now (module
-    docstring)."""
-    sd = state.density
-    layout = sd.layout
-    known = [np.full(layout.bricks(k), np.nan, np.float32) for k in range(layout.count)]
-    for key in state.empty:
-        known[key[0]][key[1:]] = 0.0
-    for key in state.slots:
-        known[key[0]][key[1:]] = state.maxima[key]
-    return [neighbourhood_max(_drawn(known, base, sd)) for base in range(levels)]
+    """For the first ``levels`` levels, finest first, the bound per skip cell of the densities drawn there now
+    (module docstring; cells of `volren.upload.stream_skip_group` bricks)."""
+    device = _on_device(state, state.density.layout.count)
+    return [neighbourhood_max(_drawn(device, base, state.density)) for base in range(levels)]
 
 
 def refresh_bounds(ds, state: StreamState) -> None:

@@ -102,19 +102,20 @@ def table_scale(density: np.ndarray | SparseGrid) -> float:
 
 
 def build_majorants(density: Any, extinction: np.ndarray, ranges: np.ndarray | None = None,
-                    global_majorant: bool = False, *, bounds: np.ndarray | None = None,
+                    global_majorant: bool = False, *, bounds: tuple[np.ndarray, int] | None = None,
                     scale: float | None = None) -> Majorants:
     """The majorant octree of a density grid [z, y, x] under the extinction table (indexed by u = value / ``scale``,
     `table_scale` if None). ``ranges``: the range-maximum table of ``extinction`` (computed if None).
     ``global_majorant``: one cell for the whole volume (the single global majorant, for comparison). A `SparseGrid`'s
     macrocells are its bricks (issue 41: "majorants per brick"), their ranges read from the page table
-    (`SparseGrid.cell_ranges`), not a dense copy; so are a streamed volume's, whose ``bounds`` per brick
-    (`volren.render.stream_bounds`) bound what its bricks draw now (ranges [0, bound])."""
+    (`SparseGrid.cell_ranges`), not a dense copy; so are a streamed volume's: ``bounds`` (per cell of that many
+    voxels, `volren.render.stream_bounds`) bound what its bricks draw now (ranges [0, bound])."""
     start = time.perf_counter()
     voxels = tuple(density.shape[::-1])
     if bounds is not None or isinstance(density, SparseGrid):
-        lo, hi = (np.zeros_like(bounds), bounds) if bounds is not None else density.cell_ranges()
-        cell = (density.brick,) * 3
+        lo, hi, edge = ((np.zeros_like(bounds[0]), bounds[0], bounds[1]) if bounds is not None
+                        else (*density.cell_ranges(), density.brick))
+        cell = (edge,) * 3
         if global_majorant:
             lo, hi, cell = np.full((1, 1, 1), lo.min()), np.full((1, 1, 1), hi.max()), voxels
     else:

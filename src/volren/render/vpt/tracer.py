@@ -615,9 +615,9 @@ class VPT(Renderer):
             with clock.measure("majorants"):
                 bounds = [None] * len(scene.volumes)
                 for state in ds.streams:
-                    bounds[state.volume] = state.bounds[0]
+                    bounds[state.volume] = (state.bounds[0], ds.levels[state.volume][0].skip_cell)
                 # u = 1 at the largest density drawn: a streamed volume's fine bricks may exceed its coarse maximum
-                scales = [table_scale(v.density) if b is None else max(table_scale(v.density), float(b.max()))
+                scales = [table_scale(v.density) if b is None else max(table_scale(v.density), float(b[0].max()))
                           for v, b in zip(scene.volumes, bounds, strict=True)]
                 tables = transfer_tables(scene.volumes, self.config.transfer, scales)
                 majorants = [build_majorants(vol.density, table[:, 0], range_max_table(table[:, 0]),
