@@ -363,7 +363,11 @@ def _tiff_channels_first(data: np.ndarray, axes: str) -> np.ndarray:
 
 def _split_channels(path: Path, grid: Grid) -> tuple[Grid, tuple[Grid, ...]]:
     """A (C, Z, Y, X) grid's channels, each min-max normalised by its own range (``rescale``), and channel 0 as the
-    grid; a 3D grid (or one channel) unchanged with no channels."""
+    grid; a 3D grid (or one channel) unchanged with no channels. A tuple of streamed channels
+    (`volren.data.omezarr._streamed_channels`) is mapped already, as it is read."""
+    if isinstance(grid.data, tuple):
+        channels = tuple(dataclasses.replace(grid, data=d) for d in grid.data)
+        return channels[0], channels
     if grid.data.ndim != 4:
         return grid, ()
     count = grid.data.shape[0]
