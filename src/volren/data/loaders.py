@@ -437,13 +437,13 @@ def _read_nvdb(path: Path) -> Grid:
 
 
 def _read_vdb(path: Path, grid: str | None = None, emission_grid: str | None = None,
-              index_box: tuple[np.ndarray, np.ndarray] | None = None) -> Grid:
+              index_box: tuple[np.ndarray, np.ndarray] | None = None, memory_budget: float | None = None) -> Grid:
     """An OpenVDB file through tinyvdb (``volren.data.vdb``): the density grid over its active box, placed by its
     index-to-world map in metres (OpenVDB states no unit; ``units`` overrides), which ``spacing`` replaces as for
-    NanoVDB; ``emission_grid`` densified over the same box."""
+    NanoVDB; ``emission_grid`` densified over the same box; their bricks within ``memory_budget`` [bytes]."""
     from volren.data.vdb import read_vdb  # lazy: tinyvdb only for .vdb users
 
-    vdb, emission = read_vdb(path, grid, emission_grid, index_box)
+    vdb, emission = read_vdb(path, grid, emission_grid, index_box, memory_budget)
     return Grid(vdb.data, vdb.index_to_world, metres_per_unit=1.0, spacing_replaces=True, emission=emission)
 
 
@@ -550,9 +550,11 @@ def load_volume(
     zarr = suffix == ".zarr"
     if not zarr and stream is not None:
         raise VolrenError(f"{path}: stream= reads an OME-Zarr pyramid brick by brick: it applies to .zarr only")
-    if not zarr and (level is not None or memory_budget is not None):
+    if not zarr and (level is not None or (memory_budget is not None and suffix != ".vdb")):
         raise VolrenError(f"{path}: level and memory_budget choose an OME-Zarr pyramid level: they apply to .zarr "
-                          "only (CLI: --level, --memory-budget)")
+                          "only (CLI: --level, --memory-budget; the budget also holds a .vdb's bricks)")
+    if suffix == ".vdb" and memory_budget is not None:
+        options["memory_budget"] = memory_budget
     if zarr:
         from volren.data.omezarr import read_zarr  # lazy: zarr only for Zarr users
 
