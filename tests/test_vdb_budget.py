@@ -60,7 +60,7 @@ def test_a_vdb_over_the_budget_is_refused_from_its_topology_at_once(smoke, monke
 
 def test_the_same_vdb_loads_within_a_normal_budget_and_at_its_estimate(smoke):
     path, field = smoke
-    for budget in (None, 2**23, 216 * BRICK_BYTES):
+    for budget in (None, 2**23, 216 * BRICK_BYTES):  # None: no budget checked (a .vdb has no coarser level)
         loaded = load_volume(path, memory_budget=budget)
         np.testing.assert_array_equal(loaded.density.to_dense(), field)
     both = load_volume(path, emission_grid="temperature", memory_budget=432 * BRICK_BYTES)

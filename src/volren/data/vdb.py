@@ -504,20 +504,19 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
              ) -> tuple[VdbGrid, SparseGrid | None]:
     """The density grid (``grid``, see ``_find_grid``) over its active box, and ``emission_grid`` (e.g.
     ``temperature``, raw values) over the same index box, or None: bricks (`_brickify`). The emission grid must share
-    the density grid's transform, so that voxel (i, j, k) of both is the same place. Their bricks must fit
-    ``memory_budget`` [bytes] (default `volren.data.omezarr.DEFAULT_MEMORY_BUDGET`), checked before any leaf is
-    read (`_check_budget`)."""
-    from volren.data.omezarr import DEFAULT_MEMORY_BUDGET
-
-    budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else float(memory_budget)
-    if not (np.isfinite(budget) and budget > 0):
+    the density grid's transform, so that voxel (i, j, k) of both is the same place. Given ``memory_budget``
+    [bytes], their bricks must fit it, checked before any leaf is read (`_check_budget`); without it nothing is
+    checked (not OME-Zarr's 1 GiB default, which picks a level: a .vdb has no coarser one to fall back to, and
+    smoke of several GiB loads as before)."""
+    if memory_budget is not None and not (np.isfinite(memory_budget) and memory_budget > 0):
         raise VolrenError(f"memory_budget must be a positive number of bytes, got {memory_budget!r} "
                           "(CLI: --memory-budget GIB)")
     path = Path(path)
     data = _map(path)
     try:
         wanted = [(grid, "grid")] + ([(emission_grid, "emission_grid")] if emission_grid is not None else [])
-        _check_budget(path, data, wanted, box, budget)
+        if memory_budget is not None:
+            _check_budget(path, data, wanted, box, float(memory_budget))
         vdb = _open(path)
     except BaseException:
         data.close()
