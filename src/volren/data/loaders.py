@@ -508,8 +508,10 @@ def load_volume(
     voxels with the longest side 2 m, centred. ``spacing`` is refused for NRRD, NIfTI and DICOM.
 
     A ``.zarr`` is an OME-Zarr pyramid or a plain Zarr array (`volren.data.omezarr`): ``level`` (0 = finest) or the
-    finest level within ``memory_budget`` [bytes of float32] is read; a one-channel pyramid whose finest level does
-    not fit (or any, with ``stream`` True) streams its bricks as the views need them (`volren.stream`). A 4D array,
+    finest level within ``memory_budget`` [bytes of float32] is read; a pyramid whose finest level does not fit (or
+    any, with ``stream`` True) streams its bricks as the views need them (`volren.stream`; a multi-channel one each
+    channel alone). A ``.vdb`` whose bricks would exceed a given ``memory_budget`` is refused before its leaves are
+    read (`volren.data.vdb`). A 4D array,
     a TIFF with a C axis or a Zarr with a ``c`` axis holds channels (``LoadedVolume.channels``).
 
     ``path`` may be an fsspec URL of an OME-Zarr store (a ``str``: ``https://host/image.zarr``, ``s3://bucket/a.zarr``

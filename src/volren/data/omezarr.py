@@ -186,17 +186,17 @@ def _streamed(path: Path, raw: np.ndarray, budget: float, *, channel: int | None
     from volren.stream.density import StreamedDensity  # lazy: the stream package only for pyramids that stream
     from volren.stream.source import PyramidSource
 
-    scale, offset = 1.0, 0.0
     if window is not None:
         lo, hi = window
-        scale, offset = (1.0 / (hi - lo), -lo / (hi - lo)) if hi > lo else (1.0, -lo)
     elif raw.dtype == np.bool_ or np.issubdtype(raw.dtype, np.integer):
         hi = float(raw.max()) if raw.size else 0.0
         if np.issubdtype(raw.dtype, np.signedinteger):
             lo = float(raw.min()) if raw.size else 0.0
         else:
             lo, hi = 0.0, float(max(hi, 2 ** max(8, int(hi).bit_length()) - 1)) if raw.dtype != np.bool_ else 1.0
-        scale, offset = (1.0 / (hi - lo), -lo / (hi - lo)) if hi > lo else (1.0, -lo)
+    else:  # floats as they are
+        lo, hi = 0.0, 1.0
+    scale, offset = (1.0 / (hi - lo), -lo / (hi - lo)) if hi > lo else (1.0, -lo)
     top = None if peak is None else peak[1] * scale + offset
     return StreamedDensity(PyramidSource(path, channel=channel), budget, scale, offset, peak=top)
 
