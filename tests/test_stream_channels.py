@@ -17,6 +17,7 @@ from ome_zarr import writer
 from conftest import DEVICE
 from test_stream_render import close_camera, scene_of, write_pyramid
 from volren.data.loaders import load_volume
+from volren.errors import VolrenError
 from volren.plan.volume import file_channels
 from volren.render import DSSRM, DSSRMConfig
 from volren.render.compositing.channels import AdditiveChannels
@@ -100,6 +101,8 @@ def test_a_multi_channel_pyramid_over_the_budget_streams_rather_than_a_coarse_le
         assert sd.memory_budget == 3 * 2**15 and sd.source.channel == c
         assert float(sd.max()) == pytest.approx(1.0) and float(sd.min()) == 0.0
         np.testing.assert_allclose(sd[::4, ::4, ::4], data[c, ::4, ::4, ::4] / PEAKS[c], atol=1e-6)
+    with pytest.raises(VolrenError, match=r"stream= reads a pyramid brick by brick; it takes no level="):
+        load_volume(path, stream=True, level=0)
 
 
 def test_the_omero_window_end_is_a_streamed_pyramids_largest_density_for_mip(tmp_path):
