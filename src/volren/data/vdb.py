@@ -461,8 +461,8 @@ def _check_budget(path: Path, data: mmap.mmap, grids: list[tuple[str | None, str
         if lo is None:
             if not len(origins) and not len(tiles.origins):
                 return  # no active voxels: `_leaves` says so
-            lo, hi = (np.asarray(box[0], np.int64), np.asarray(box[1], np.int64)) if box else _leaves_box(origins,
-                                                                                                          tiles)
+            lo, hi = _leaves_box(origins, tiles) if box is None else (np.asarray(box[0], np.int64),
+                                                                        np.asarray(box[1], np.int64))
             if np.prod(-(-(hi - lo) // BRICK), dtype=np.int64) > MAX_TABLE_BRICKS:
                 return  # `_check_size` refuses it over the active box
         total += _declared(origins, tiles, lo, hi, 0.0, f"{path}: grid {names[index][0]!r}")[0].declared_bytes
