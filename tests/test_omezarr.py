@@ -100,10 +100,11 @@ def test_level_choice_by_budget_and_by_level(tmp_path):
     write_pyramid(tmp_path / "p.zarr")
     level0 = 2 * 8 * 32 * 32 * 4  # float32 bytes, both channels
     assert load_volume(tmp_path / "p.zarr", memory_budget=level0).level == 0
-    assert load_volume(tmp_path / "p.zarr", memory_budget=level0 - 1).level == 1
+    # stream=False: the finest level that fits (without it, a pyramid over the budget streams: test_stream_channels)
+    assert load_volume(tmp_path / "p.zarr", memory_budget=level0 - 1, stream=False).level == 1
     assert load_volume(tmp_path / "p.zarr", memory_budget=level0 - 1, level=0).level == 0  # --level overrides
     with pytest.raises(VolrenError, match="exceeds the memory budget"):
-        load_volume(tmp_path / "p.zarr", memory_budget=level0 / 4 - 1)
+        load_volume(tmp_path / "p.zarr", memory_budget=level0 / 4 - 1, stream=False)
     with pytest.raises(VolrenError, match="levels 0 to 1"):
         load_volume(tmp_path / "p.zarr", level=2)
     np.save(tmp_path / "a.npy", np.zeros((4, 4, 4), np.float32))

@@ -54,9 +54,10 @@ def load(path: str | Path, **options: Any) -> Volume | Channels | VolumeSequence
     um) to place a file that stores no placement; ``shape`` (X, Y, Z) and ``dtype`` for raw files; ``grid`` and
     ``emission_grid`` of a ``.vdb`` (read as bricks of its active voxels, never a dense copy of its box); ``time_point``
     of a 4-D NIfTI (one volume); an OME-Zarr's ``level`` (0 = finest) or ``memory_budget`` [GiB] (default 1), as
-    ``--level`` and ``--memory-budget``: a one-channel pyramid whose finest level does not fit the budget streams,
-    its bricks read as the views need them within it (``stream=True`` streams any pyramid, ``stream=False`` reads
-    the finest level that fits instead), a multi-channel one reads the finest level that fits; the channel options
+    ``--level`` and ``--memory-budget``: a pyramid whose finest level does not fit the budget streams, its bricks
+    read as the views need them within it, a multi-channel one each channel alone in budget / C (``stream=True``
+    streams any pyramid, ``stream=False`` reads the finest level that fits instead); a ``.vdb`` over
+    ``memory_budget`` is refused before its leaves are read; the channel options
     above; and material fields of `Volume` (``density_scale``,
     ``albedo``, ``g``, ``emission``) to replace its defaults (not for channels: they glow unlit).
     ``density_scale`` [1/m] defaults to `box_density_scale`: density 1 has optical depth `BOX_OPTICAL_DEPTH` across

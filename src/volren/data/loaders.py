@@ -363,7 +363,11 @@ def _tiff_channels_first(data: np.ndarray, axes: str) -> np.ndarray:
 
 def _split_channels(path: Path, grid: Grid) -> tuple[Grid, tuple[Grid, ...]]:
     """A (C, Z, Y, X) grid's channels, each min-max normalised by its own range (``rescale``), and channel 0 as the
-    grid; a 3D grid (or one channel) unchanged with no channels."""
+    grid; a 3D grid (or one channel) unchanged with no channels. A tuple of streamed channels
+    (`volren.data.omezarr._streamed_channels`) is mapped already, as it is read."""
+    if isinstance(grid.data, tuple):
+        channels = tuple(dataclasses.replace(grid, data=d) for d in grid.data)
+        return channels[0], channels
     if grid.data.ndim != 4:
         return grid, ()
     count = grid.data.shape[0]
@@ -433,13 +437,13 @@ def _read_nvdb(path: Path) -> Grid:
 
 
 def _read_vdb(path: Path, grid: str | None = None, emission_grid: str | None = None,
-              index_box: tuple[np.ndarray, np.ndarray] | None = None) -> Grid:
+              index_box: tuple[np.ndarray, np.ndarray] | None = None, memory_budget: float | None = None) -> Grid:
     """An OpenVDB file through tinyvdb (``volren.data.vdb``): the density grid over its active box, placed by its
     index-to-world map in metres (OpenVDB states no unit; ``units`` overrides), which ``spacing`` replaces as for
-    NanoVDB; ``emission_grid`` densified over the same box."""
+    NanoVDB; ``emission_grid`` densified over the same box; their bricks within ``memory_budget`` [bytes]."""
     from volren.data.vdb import read_vdb  # lazy: tinyvdb only for .vdb users
 
-    vdb, emission = read_vdb(path, grid, emission_grid, index_box)
+    vdb, emission = read_vdb(path, grid, emission_grid, index_box, memory_budget)
     return Grid(vdb.data, vdb.index_to_world, metres_per_unit=1.0, spacing_replaces=True, emission=emission)
 
 
@@ -504,8 +508,10 @@ def load_volume(
     voxels with the longest side 2 m, centred. ``spacing`` is refused for NRRD, NIfTI and DICOM.
 
     A ``.zarr`` is an OME-Zarr pyramid or a plain Zarr array (`volren.data.omezarr`): ``level`` (0 = finest) or the
-    finest level within ``memory_budget`` [bytes of float32] is read; a one-channel pyramid whose finest level does
-    not fit (or any, with ``stream`` True) streams its bricks as the views need them (`volren.stream`). A 4D array,
+    finest level within ``memory_budget`` [bytes of float32] is read; a pyramid whose finest level does not fit (or
+    any, with ``stream`` True) streams its bricks as the views need them (`volren.stream`; a multi-channel one each
+    channel alone). A ``.vdb`` whose bricks would exceed a given ``memory_budget`` is refused before its leaves are
+    read (`volren.data.vdb`). A 4D array,
     a TIFF with a C axis or a Zarr with a ``c`` axis holds channels (``LoadedVolume.channels``).
 
     ``path`` may be an fsspec URL of an OME-Zarr store (a ``str``: ``https://host/image.zarr``, ``s3://bucket/a.zarr``
@@ -546,9 +552,11 @@ def load_volume(
     zarr = suffix == ".zarr"
     if not zarr and stream is not None:
         raise VolrenError(f"{path}: stream= reads an OME-Zarr pyramid brick by brick: it applies to .zarr only")
-    if not zarr and (level is not None or memory_budget is not None):
+    if not zarr and (level is not None or (memory_budget is not None and suffix != ".vdb")):
         raise VolrenError(f"{path}: level and memory_budget choose an OME-Zarr pyramid level: they apply to .zarr "
-                          "only (CLI: --level, --memory-budget)")
+                          "only (CLI: --level, --memory-budget; the budget also holds a .vdb's bricks)")
+    if suffix == ".vdb" and memory_budget is not None:
+        options["memory_budget"] = memory_budget
     if zarr:
         from volren.data.omezarr import read_zarr  # lazy: zarr only for Zarr users
 

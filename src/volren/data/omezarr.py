@@ -64,9 +64,10 @@ def read_zarr(path: Path | str, *, level: int | None = None, memory_budget: floa
     dropped), placed by its coordinate transformations: index -> file coordinates in the axes' unit (or in metres
     where the spatial axes' units differ). A plain Zarr array is read as a ``.npy`` would be (no placement).
 
-    Streaming (issue 41 item 3): a one-channel pyramid whose finest level does not fit ``memory_budget`` (and no
-    ``level`` asked for), or any one-channel pyramid with ``stream`` True, is not read here: its finest level is a
-    `volren.stream.density.StreamedDensity`, read brick by brick as the views need them within the budget."""
+    Streaming (issue 41 item 3): a pyramid whose finest level does not fit ``memory_budget`` (and no ``level``
+    asked for), or any pyramid with ``stream`` True, is not read here: its finest level is a
+    `volren.stream.density.StreamedDensity`, read brick by brick as the views need them within the budget; a
+    multi-channel one is a tuple of them, one per channel with budget / C each (`_streamed_channels`)."""
     import zarr  # lazy: only Zarr users pay for the import
 
     budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else float(memory_budget)
@@ -115,22 +116,26 @@ def _read_multiscale(path: Path, group: Any, level: int | None, budget: float, s
     if len(keep) > 4:
         raise VolrenError(f"{path}: axes {''.join(names)} hold more than one channel axis")
     shapes = [tuple(a.shape[i] for i in keep) for a in arrays]
-    if stream and (level is not None or len(keep) == 4):
-        raise VolrenError(f"{path}: stream= reads one channel's pyramid brick by brick; it takes no level= and "
-                          f"{'no channel axis' if len(keep) == 4 else 'reads the finest level'}")
+    if stream and level is not None:
+        raise VolrenError(f"{path}: stream= reads a pyramid brick by brick; it takes no level= and reads the finest "
+                          "level")
     streaming = (stream if stream is not None else level is None and 4 * math.prod(shapes[0]) > budget)
-    streaming = streaming and len(keep) == 3 and len(arrays) > 1
+    streaming = streaming and len(arrays) > 1
     chosen = 0 if streaming else _choose_level(path, shapes, level, budget)
     ndim = len(axes)
     scale, offset = _scale_translation(datasets[chosen]["coordinateTransformations"], ndim)
     outer_scale, outer_offset = _scale_translation(multiscale.get("coordinateTransformations", []), ndim)
     scale, offset = scale * outer_scale, offset * outer_scale + outer_offset
     index = tuple(slice(None) if i in keep else 0 for i in range(ndim))
-    if streaming:
-        data, source_dtype = _streamed(path, arrays[-1][index], budget), arrays[0].dtype.name
+    windows = _omero_windows(attrs, shapes[0][0] if len(keep) == 4 else 1)
+    if streaming and len(keep) == 4:
+        data, source_dtype = _streamed_channels(path, arrays[-1], index, keep[0], budget, windows), ""
+    elif streaming:
+        data = _streamed(path, np.asarray(arrays[-1][index]), budget, peak=windows[0])
+        source_dtype = arrays[0].dtype.name
     else:
         data, source_dtype = _read_level(path, arrays, chosen, index, keep), ""
-    if len(keep) == 4:  # the channel axis first, whatever its place among the kept axes
+    if len(keep) == 4 and not streaming:  # the channel axis first, whatever its place among the kept axes
         data = np.moveaxis(data, sorted(keep).index(keep[0]), 0)
     # index (i, j, k) = (x, y, z) -> file coordinates; the NGFF axes run z, y, x
     step, origin = scale[space][::-1], offset[space][::-1]
@@ -149,7 +154,7 @@ def _read_multiscale(path: Path, group: Any, level: int | None, budget: float, s
     m = np.eye(4)
     m[:3, :3] = np.diag(step)
     m[:3, 3] = origin
-    colors = _omero_colors(attrs, data.shape[0]) if len(keep) == 4 else ()
+    colors = _omero_colors(attrs, shapes[0][0]) if len(keep) == 4 else ()
     return Grid(data, m, IMAGE_SPACE, metres_per_unit, level=chosen, channel_colors=colors, source=source_dtype)
 
 
@@ -170,23 +175,63 @@ def _read_level(path: Path, arrays: list[Any], chosen: int, index: tuple, keep: 
     return data
 
 
-def _streamed(path: Path, coarsest: Any, budget: float):
-    """The pyramid as a `volren.stream.density.StreamedDensity` within ``budget`` bytes, its values mapped to
-    densities as `volren.data.loaders` maps a level read whole (integers by their bit depth or range, judged on the
-    coarsest level; floats as they are)."""
+def _streamed(path: Path, raw: np.ndarray, budget: float, *, channel: int | None = None,
+              window: tuple[float, float] | None = None, peak: tuple[float, float] | None = None):
+    """The pyramid (its channel ``channel``) as a `volren.stream.density.StreamedDensity` within ``budget`` bytes,
+    ``raw`` its coarsest level. One channel maps its values as `volren.data.loaders` maps a level read whole
+    (integers by their bit depth or range, judged on ``raw``; floats as they are); a channel of several maps
+    ``window`` (lo, hi) onto 0..1, as the loader's per-channel min-max does. ``peak``: the file's (lo, hi) of the
+    values (omero ``window``), whose hi stands for the largest density (MIP's normalisation) where the coarsest
+    level's means fall below it."""
     from volren.stream.density import StreamedDensity  # lazy: the stream package only for pyramids that stream
     from volren.stream.source import PyramidSource
 
-    raw = np.asarray(coarsest)
-    scale, offset = 1.0, 0.0
-    if raw.dtype == np.bool_ or np.issubdtype(raw.dtype, np.integer):
+    if window is not None:
+        lo, hi = window
+    elif raw.dtype == np.bool_ or np.issubdtype(raw.dtype, np.integer):
         hi = float(raw.max()) if raw.size else 0.0
         if np.issubdtype(raw.dtype, np.signedinteger):
             lo = float(raw.min()) if raw.size else 0.0
         else:
             lo, hi = 0.0, float(max(hi, 2 ** max(8, int(hi).bit_length()) - 1)) if raw.dtype != np.bool_ else 1.0
-        scale, offset = (1.0 / (hi - lo), -lo / (hi - lo)) if hi > lo else (1.0, -lo)
-    return StreamedDensity(PyramidSource(path), budget, scale, offset)
+    else:  # floats as they are
+        lo, hi = 0.0, 1.0
+    scale, offset = (1.0 / (hi - lo), -lo / (hi - lo)) if hi > lo else (1.0, -lo)
+    top = None if peak is None else peak[1] * scale + offset
+    return StreamedDensity(PyramidSource(path, channel=channel), budget, scale, offset, peak=top)
+
+
+def _streamed_channels(path: Path, coarsest: Any, index: tuple, axis: int, budget: float,
+                       windows: list[tuple[float, float] | None]) -> tuple:
+    """Each channel c of a multi-channel pyramid streamed alone (`_streamed`) within budget / C, its values mapped
+    by its own range as the loader maps a channel read whole (min-max): the omero ``window`` (start, end) where the
+    file states one (the contrast limits viewers such as napari show), else the coarsest level's min and max (a
+    level's extremes lie within the finest level's, so the window the channel's dense read would use is at least
+    this wide)."""
+    count = len(windows)
+    out = []
+    for c, window in enumerate(windows):
+        raw = np.asarray(coarsest[tuple(c if i == axis else s for i, s in enumerate(index))])
+        rng = window or ((float(raw.min()), float(raw.max())) if raw.size else (0.0, 0.0))
+        out.append(_streamed(path, raw, budget / count, channel=c, window=rng, peak=window))
+    return tuple(out)
+
+
+def _omero_windows(attrs: dict[str, Any], count: int) -> list[tuple[float, float] | None]:
+    """Each channel's omero ``window`` as (start, end), or (min, max) where start or end is missing; None for a
+    channel that states neither (or where the omero channels do not number ``count``)."""
+    omero = attrs.get("omero")
+    channels = omero.get("channels", []) if isinstance(omero, dict) else []
+    if not isinstance(channels, list) or len(channels) != count:
+        return [None] * count
+    out: list[tuple[float, float] | None] = []
+    for channel in channels:
+        window = channel.get("window") if isinstance(channel, dict) else None
+        window = window if isinstance(window, dict) else {}
+        pair = next(((window[a], window[b]) for a, b in (("start", "end"), ("min", "max"))
+                     if isinstance(window.get(a), int | float) and isinstance(window.get(b), int | float)), None)
+        out.append(None if pair is None else (float(pair[0]), float(pair[1])))
+    return out
 
 
 def _missing_chunks(data: np.ndarray, array: Any, coarser: np.ndarray, keep: list[int]) -> int:

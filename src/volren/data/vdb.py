@@ -21,8 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
+from volren.device import check_allocation
 from volren.errors import VolrenError
 from volren.sparse import BRICK, BrickBuilder, SparseGrid
+
+BRICK_BYTES = (BRICK + 1) ** 3 * 4
+"""[bytes] of a brick in the pool: B^3 cells with a one-voxel apron, float32"""
 
 MAX_TABLE_BRICKS = 1 << 30
 """[bricks] of the page table over a grid's active box: 4 GiB of int32 entries (a 16384^3 box at B = 16)"""
@@ -123,12 +127,11 @@ def _describe(names: list[tuple[str, str]]) -> str:
     return ", ".join(f"{n} ({t.removeprefix('Tree_').split('_')[0]})" for n, t in names) or "(none)"
 
 
-def _find_grid(path: Path, vdb, name: str | None, option: str) -> int:
-    """Index of the grid ``name``; None picks ``density``, else the only scalar (float or double) grid. A refusal
-    offers as choices only the grids that can be read; the others are named as such; it names the ``option``
-    (``grid``, ``emission_grid``) as a keyword and as the CLI's flag."""
+def _find_grid(path: Path, names: list[tuple[str, str]], name: str | None, option: str) -> int:
+    """Index of the grid ``name`` among ``names`` ((name, type name) per grid); None picks ``density``, else the
+    only scalar (float or double) grid. A refusal offers as choices only the grids that can be read; the others are
+    named as such; it names the ``option`` (``grid``, ``emission_grid``) as a keyword and as the CLI's flag."""
     cli = "--" + option.replace("_", "-")
-    names = _grid_names(vdb)
     scalar = [i for i, (_, t) in enumerate(names) if _value_type(t) is not None]
     readable = _describe([names[i] for i in scalar])
     others = [names[i] for i in range(len(names)) if i not in scalar]
@@ -316,7 +319,9 @@ def _leaf_origins(path: Path, data: mmap.mmap, index: int, name: str, dtype: np.
         if log2dim == 4:  # the lower internal node's children are leaves: their 512-bit value masks, one after another
             origins.append(children)
             masks = np.frombuffer(r.raw(64 * len(index)), np.uint8).reshape(-1, 64)
-            counts.append(np.unpackbits(masks, axis=1).sum(axis=1))
+            # bits counted per byte (NumPy 2): unpacked, the masks took 8x their bytes, what a refused load peaked at
+            counts.append(np.bitwise_count(masks).sum(axis=1) if hasattr(np, "bitwise_count")
+                          else np.unpackbits(masks, axis=1).sum(axis=1))
         else:
             for child in children:
                 node(child, 4, 8)
@@ -383,6 +388,22 @@ def _float32(values: np.ndarray, what: str) -> np.ndarray:
     return values.astype(np.float32, copy=False)
 
 
+def _declared(origins: np.ndarray, tiles: _Tiles, lo: np.ndarray, hi: np.ndarray, background: float, what: str
+              ) -> tuple[BrickBuilder, np.ndarray, np.ndarray]:
+    """A `BrickBuilder` over the inclusive index box [lo, hi] with the bricks the leaves and tiles touch declared
+    (from the topology alone: no pool yet, so `BrickBuilder.declared_bytes` is what `_brickify` will take), and
+    each 8^3 block's first voxel (z, y, x) in the box and whether it meets the box."""
+    builder = BrickBuilder(tuple(int(n) for n in (hi - lo + 1)[::-1]), BRICK, background)
+    small = tiles.extents == 8
+    big = (tiles.origins[~small] - lo)[:, ::-1]
+    builder.tiles(big, big + tiles.extents[~small, None] - 1, _float32(tiles.values, what)[~small])
+    corners = np.concatenate([origins, tiles.origins[small]]) - lo  # (x, y, z) of every 8^3 block, in the box
+    keep = np.all((corners + 7 >= 0) & (corners <= hi - lo), axis=1)
+    first = corners[:, ::-1]
+    builder.touch(first[keep], first[keep] + 7)
+    return builder, first, keep
+
+
 def _brickify(leaves: list, origins: np.ndarray, tiles: _Tiles, dtype: np.dtype, lo: np.ndarray, hi: np.ndarray,
               background: float, what: str) -> SparseGrid:
     """The grid over the inclusive index box [lo, hi] as bricks (`volren.sparse.BrickBuilder`), without a dense copy
@@ -391,16 +412,9 @@ def _brickify(leaves: list, origins: np.ndarray, tiles: _Tiles, dtype: np.dtype,
     inner bricks become constants and only its border bricks take pool memory; inactive voxels the background. A
     double grid's values are rounded to float32 (``_float32``; ``what`` names the grid). Memory: the bricks the
     leaves and tiles touch, (B+1)^3 / B^3 of their voxels and the bricks' unfilled part."""
-    shape = tuple(int(n) for n in (hi - lo + 1)[::-1])
-    builder = BrickBuilder(shape, BRICK, background)
+    builder, first, keep = _declared(origins, tiles, lo, hi, background, what)
     small = tiles.extents == 8
     tile_values = _float32(tiles.values, what)
-    big = (tiles.origins[~small] - lo)[:, ::-1]
-    builder.tiles(big, big + tiles.extents[~small, None] - 1, tile_values[~small])
-    corners = np.concatenate([origins, tiles.origins[small]]) - lo  # (x, y, z) of every 8^3 block, in the box
-    keep = np.all((corners + 7 >= 0) & (corners <= hi - lo), axis=1)
-    first = corners[:, ::-1]
-    builder.touch(first[keep], first[keep] + 7)
     offsets = np.stack(np.meshgrid(np.arange(8), np.arange(8), np.arange(8), indexing="ij"), -1).reshape(-1, 3)
     inside = np.flatnonzero(keep)
     count = len(origins)
@@ -424,6 +438,42 @@ def _check_size(path: Path, lo: np.ndarray, hi: np.ndarray) -> None:
         size = hi - lo + 1
         raise VolrenError(f"{path}: the active box of {size[0]}x{size[1]}x{size[2]} voxels needs {bricks} bricks' "
                           f"page table, more than {MAX_TABLE_BRICKS}")
+
+
+def _check_budget(path: Path, data: mmap.mmap, grids: list[tuple[str | None, str]],
+                  box: tuple[np.ndarray, np.ndarray] | None, budget: float | None) -> None:
+    """Refuse, in one line naming the file, the estimate and the budget, a file whose bricks (the density grid's
+    and the emission grid's, ``grids`` as (name, option)) would take more than ``budget`` bytes (None: more than the
+    machine's free memory, `volren.device.check_allocation`): estimated from the
+    tree topology alone (`_declared` over the box of the density grid's leaves and tiles, which holds its active
+    box, or ``box``), before tinyvdb decodes any leaf (`_open` decodes every grid at once). A file whose header or
+    topology does not parse is left to tinyvdb to name what is wrong."""
+    try:
+        offsets = _grid_offsets(data)
+    except (struct.error, VolrenError):
+        return
+    names = [(o[0], o[4]) for o in offsets]
+    total, lo, hi = 0, None, None
+    for name, option in grids:
+        try:
+            index = _find_grid(path, names, name, option)
+            origins, _, tiles = _leaf_origins(path, data, index, names[index][0], _value_type(names[index][1]))
+        except (struct.error, VolrenError):  # refused as before, in tinyvdb's names
+            return
+        if lo is None:
+            if not len(origins) and not len(tiles.origins):
+                return  # no active voxels: `_leaves` says so
+            lo, hi = _leaves_box(origins, tiles) if box is None else (np.asarray(box[0], np.int64),
+                                                                        np.asarray(box[1], np.int64))
+            if np.prod(-(-(hi - lo) // BRICK), dtype=np.int64) > MAX_TABLE_BRICKS:
+                return  # `_check_size` refuses it over the active box
+        total += _declared(origins, tiles, lo, hi, 0.0, f"{path}: grid {names[index][0]!r}")[0].declared_bytes
+    if budget is None:  # no budget given: what this machine can hold
+        check_allocation(total, "cpu", f"{path}: its bricks (estimated from the tree topology)")
+    elif total > budget:
+        raise VolrenError(f"{path}: its bricks would take {total / 2**20:.3g} MiB (estimated from the tree topology: "
+                          f"{total // BRICK_BYTES} bricks of {BRICK + 1}^3 float32), over the memory budget of "
+                          f"{budget / 2**20:.3g} MiB; raise memory_budget (CLI: --memory-budget GIB)")
 
 
 def index_box(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -454,15 +504,28 @@ def index_box(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | None = None,
-             box: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[VdbGrid, SparseGrid | None]:
+             box: tuple[np.ndarray, np.ndarray] | None = None, memory_budget: float | None = None
+             ) -> tuple[VdbGrid, SparseGrid | None]:
     """The density grid (``grid``, see ``_find_grid``) over its active box, and ``emission_grid`` (e.g.
     ``temperature``, raw values) over the same index box, or None: bricks (`_brickify`). The emission grid must share
-    the density grid's transform, so that voxel (i, j, k) of both is the same place."""
+    the density grid's transform, so that voxel (i, j, k) of both is the same place. Given ``memory_budget``
+    [bytes], their bricks must fit it, checked before any leaf is read (`_check_budget`); without it, the machine's
+    free memory (not OME-Zarr's 1 GiB default, which picks a level: a .vdb has no coarser one to fall back to, and
+    smoke of several GiB loads as before)."""
+    if memory_budget is not None and not (np.isfinite(memory_budget) and memory_budget > 0):
+        raise VolrenError(f"memory_budget must be a positive number of bytes, got {memory_budget!r} "
+                          "(CLI: --memory-budget GIB)")
     path = Path(path)
-    vdb = _open(path)
     data = _map(path)
     try:
-        index = _find_grid(path, vdb, grid, "grid")
+        wanted = [(grid, "grid")] + ([(emission_grid, "emission_grid")] if emission_grid is not None else [])
+        _check_budget(path, data, wanted, box, None if memory_budget is None else float(memory_budget))
+        vdb = _open(path)
+    except BaseException:
+        data.close()
+        raise
+    try:
+        index = _find_grid(path, _grid_names(vdb), grid, "grid")
         density_grid = vdb.grid(index)
         to_world = _index_to_world(path, density_grid)
         leaves, origins, tiles, dtype = _leaves(path, data, vdb, index)
@@ -474,7 +537,7 @@ def read_vdb(path: str | Path, grid: str | None = None, emission_grid: str | Non
             lo, hi = np.asarray(box[0], np.int64), np.asarray(box[1], np.int64)
         emission = None
         if emission_grid is not None:
-            other_index = _find_grid(path, vdb, emission_grid, "emission_grid")
+            other_index = _find_grid(path, _grid_names(vdb), emission_grid, "emission_grid")
             other = vdb.grid(other_index)
             if not np.allclose(_index_to_world(path, other), to_world, rtol=1e-9, atol=0.0):
                 raise VolrenError(f"{path}: grid {emission_grid!r} (emission_grid=, CLI: --emission-grid) has another "

@@ -159,8 +159,8 @@ def add_volume_args(src: argparse._ArgumentGroup | argparse.ArgumentParser) -> N
     src.add_argument("--level", type=int, help=".zarr (OME-Zarr) pyramids: the level to read, 0 = finest "
                      "(default: the finest within --memory-budget)")
     src.add_argument("--memory-budget", type=float, help=".zarr pyramids: [GiB] of float32 voxels (all "
-                     "channels) the chosen level may take, at most the machine's memory; not with --level "
-                     "(default: 1)")
+                     "channels) the chosen level may take, else it streams; .vdb: [GiB] its bricks may take; at most "
+                     "the machine's memory; not with --level (default: 1 for .zarr, none for .vdb)")
     src.add_argument("--channel-colors", type=channel_colors, help="multi-channel volumes: a colour per "
                      "channel, names (green,magenta) or r,g,b triples separated by ';' (default: green, magenta, "
                      "cyan, yellow, red, blue, ...)")

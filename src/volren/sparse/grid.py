@@ -511,6 +511,11 @@ class BrickBuilder:
             raise VolrenError("BrickBuilder: put whole blocks or scatter voxels, not both")
         self._put[tuple(int(v) for v in c)] = block
 
+    @property
+    def declared_bytes(self) -> int:
+        """[bytes] the pool of the bricks declared so far takes at the first write: (B+1)^3 float32 each."""
+        return len(self._keys) * (self.brick + 1) ** 3 * 4
+
     def build(self) -> SparseGrid:
         b, e = self.brick, self.brick + 1
         if self._tile_boxes is not None:

@@ -6,7 +6,8 @@ What a renderer derives from a whole grid it derives here from the coarsest leve
 largest and smallest density (`max`, `min`), and the strided reads of a threshold or a flame's brightness
 (`__getitem__`). A coarse level's voxels are means of the finer ones, so its maximum may be below the data's: the
 densities keep the mapping fixed at open (`value_scale`, `value_offset`), and MIP's normalisation by the maximum may
-saturate where a fine voxel is brighter than every coarse one.
+saturate where a fine voxel is brighter than every coarse one, unless the file states the data's top (``peak``: the
+omero window's end, `volren.data.omezarr._streamed`), which `max` then reports.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ from volren.stream.streamer import BRICK_BYTES, BrickStreamer
 class StreamedDensity:
     """The finest level of ``source`` as a volume's density, streamed brick by brick within ``memory_budget``
     [bytes]: half for the host's brick cache, half for the device pool (module docstring). Values v read as
-    ``v * value_scale + value_offset``."""
+    ``v * value_scale + value_offset``; ``peak``: the largest density where the file states it (module
+    docstring)."""
 
     ndim = 3
     dtype = np.dtype(np.float32)
@@ -37,7 +39,7 @@ class StreamedDensity:
     """what the scene and the upload recognise it by (they do not import the stream package)"""
 
     def __init__(self, source: PyramidSource, memory_budget: float, value_scale: float = 1.0,
-                 value_offset: float = 0.0) -> None:
+                 value_offset: float = 0.0, peak: float | None = None) -> None:
         self.source, self.layout = source, source.layout
         self.memory_budget = int(memory_budget)
         self.value_scale, self.value_offset = float(value_scale), float(value_offset)
@@ -47,6 +49,7 @@ class StreamedDensity:
         self.shape: tuple[int, int, int] = tuple(self.layout.shapes[0])  # type: ignore[assignment]
         top = self.layout.coarsest
         self._coarse = self.mapped(self._coarsest_level(top))
+        self.peak = None if peak is None else float(peak)
 
     def _coarsest_level(self, top: int) -> np.ndarray:
         """The coarsest level's voxels, from its resident bricks (their apron-less parts)."""
@@ -82,8 +85,9 @@ class StreamedDensity:
         return max(len(self.streamer.floor_keys()), (self.memory_budget // 2) // BRICK_BYTES)
 
     def max(self, axis: None = None, out: None = None) -> np.float32:
-        """The largest density of the coarsest level (module docstring)."""
-        return np.float32(self._coarse.max())
+        """The largest density: the file's ``peak`` where it states one above the coarsest level's largest (module
+        docstring)."""
+        return np.float32(max(self._coarse.max(), self.peak or 0.0))
 
     def min(self, axis: None = None, out: None = None) -> np.float32:
         return np.float32(self._coarse.min())
