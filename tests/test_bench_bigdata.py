@@ -268,6 +268,34 @@ def test_pyramid_is_the_same_whatever_the_chunks_and_each_level_the_mean_of_the_
 
 
 @pytest.mark.timeout(120)
+def test_an_interrupted_pyramid_write_goes_on_where_it_stopped(tmp_path, monkeypatch):
+    """Level-0 chunks on disk are kept (only the missing ones are made) and the coarser levels made again: the same
+    file as a write from scratch."""
+    import shutil
+
+    import zarr
+
+    from volren.bench import bigdata
+
+    whole, part = tmp_path / "whole.zarr", tmp_path / "part.zarr"
+    bigdata.write_pyramid(whole, 36, 0, 8, 4)
+    bigdata.write_pyramid(part, 36, 0, 8, 4)
+    gone = sorted((part / "0" / "c").glob("2/*/*"))  # the z slab 16-23 of level 0, as if stopped before it
+    for chunk in gone:
+        chunk.unlink()
+    shutil.rmtree(part / "1")
+    made = []
+    block = bigdata.pyramid_block
+    monkeypatch.setattr(bigdata, "pyramid_block", lambda n, seed, start, shape: made.append(start) or block(
+        n, seed, start, shape))
+    bigdata.write_pyramid(part, 36, 0, 8, 4, resume=True)
+    assert len(gone) >= 9 and sorted(made) == sorted((16, 8 * int(c.parent.name), 8 * int(c.name)) for c in gone)
+    a, b = (zarr.open_group(str(p), mode="r") for p in (whole, part))
+    for k in range(5):
+        assert np.array_equal(a[str(k)][...], b[str(k)][...])
+
+
+@pytest.mark.timeout(120)
 def test_pyramid_reads_back_through_volren_and_is_cached(tmp_path):
     from volren.bench.bigdata import make_pyramid
     from volren.data.loaders import load_volume
