@@ -195,7 +195,8 @@ class AmbientGI:
         """per volume: lighting updates so far (Eq. 8's n)"""
         self.tick = 0
         self._next = 0
-        self._static_scene: object | None = None
+        self._static_scene: tuple[object, int] | None = None
+        """(scene, its streamed bricks' generation) of the last precomputation (prt, brute)"""
         self._env: tuple[object, wp.array, wp.array] | None = None
         """(environment, its SH on the device, cosine-convolved SH on the device), uploaded once per environment"""
         self._luminance = vec16()
@@ -250,8 +251,9 @@ class AmbientGI:
         launch = self._launcher(ds, clock)
         updated: list[int] = []
         if c.method in ("prt", "brute"):
-            # Precomputation: only when the density (the scene) changes.
-            if self._static_scene is not ds.scene:
+            # Precomputation: only when the density changes (the scene, or a streamed volume's bricks on the device).
+            if self._static_scene is None or self._static_scene[0] is not ds.scene \
+                    or self._static_scene[1] != ds.stream_generation:
                 env = environment_light(ds.scene.environment, ds.device)
                 updated = list(range(ds.volume_count))
                 projected = c.method == "brute" and c.projection
@@ -262,7 +264,7 @@ class AmbientGI:
                     with clock.measure("gi_projection"):
                         b.sh = self._projected(b.sh, ds)
                         b.ambient = self._projected(b.ambient, ds, clamp=True)
-                self._static_scene = ds.scene
+                self._static_scene = (ds.scene, ds.stream_generation)
         else:
             updated = self._volumes_this_frame(ds.volume_count)
             for v in updated:
