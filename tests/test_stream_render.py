@@ -17,7 +17,14 @@ from ome_zarr import writer
 from conftest import DEVICE
 from volren.camera import Camera
 from volren.data.loaders import load_volume
-from volren.kernels.common import VolumeGPU, sample_density
+from volren.kernels.common import (
+    MISSING,
+    VolumeGPU,
+    ancestor_voxel,
+    gather_density,
+    level0_voxel,
+    sample_density,
+)
 from volren.plan.volume import volume_from_file
 from volren.render import DSSRM, DSSRMConfig
 from volren.scene import DirectionalLight, Environment, Scene
@@ -230,6 +237,49 @@ def test_a_missing_brick_is_drawn_from_its_finest_ancestor_on_the_device(mean_py
               inputs=[ds.volumes, ds.density, wp.array(points, dtype=wp.vec3, device=ds.device), out], device=ds.device)
     assert want.max() > 0.2
     np.testing.assert_allclose(out.numpy(), want, rtol=1e-5, atol=1e-6)
+
+
+@wp.kernel
+def cells_two_ways(volumes: wp.array(dtype=VolumeGPU), density: wp.array(dtype=float), cells: wp.vec3i,
+                   at_once: wp.array(dtype=float), each: wp.array(dtype=float)):
+    """Every cell's 8 voxels by `gather_density`, and each voxel searched alone: level 0, else its ancestors."""
+    i = wp.tid()
+    cell = wp.vec3i(i % cells[0], (i / cells[0]) % cells[1], i / (cells[0] * cells[1]))
+    got = gather_density(density, volumes[0], cell)
+    for n in range(8):
+        v = cell + wp.vec3i(n % 2, (n / 2) % 2, n / 4)
+        x = level0_voxel(density, volumes[0], v)
+        if x == MISSING:
+            x = ancestor_voxel(density, volumes[0], v)
+        at_once[i * 8 + n] = got[n]
+        each[i * 8 + n] = x
+
+
+def test_a_streamed_cell_read_at_once_is_its_voxels_searched_one_by_one(mean_pyramid, monkeypatch):
+    """Level 0's bricks in a checkerboard, level 1's of x 32-63 and the coarsest on the device: every cell of the
+    grid (inside a brick, on its faces beside a resident or a missing one, its voxels drawn from levels 0, 1 and 2,
+    straddling a brick of level 1) reads the values each of its voxels' own search gives, exactly."""
+    from volren.render import streaming
+    from volren.stream.lod import need
+
+    monkeypatch.setattr(streaming, "frame_needs", lambda views, to_world, layout, step=0.0: [
+        need((0, *b), True, 1.0) for b in np.ndindex(4, 4, 4) if sum(b) % 2 == 0] + [
+        need((1, z, y, 1), True, 2.0) for z in range(2) for y in range(2)])
+    streamed = scene_of(mean_pyramid, memory_budget=2**26, stream=True)
+    renderer, frame = render(streamed, close_camera(streamed))
+    assert frame.stats.info["stream"][0]["levels_used"] == [32, 4, 0]
+    ds = renderer._device_scene
+    count = (N - 1) ** 3
+    at_once, each = (wp.zeros(count * 8, dtype=float, device=ds.device) for _ in range(2))
+    wp.launch(cells_two_ways, dim=count, inputs=[ds.volumes, ds.density, wp.vec3i(N - 1, N - 1, N - 1), at_once, each],
+              device=ds.device)
+    got, want = at_once.numpy().reshape(N - 1, N - 1, N - 1, 8), each.numpy().reshape(N - 1, N - 1, N - 1, 8)
+    assert np.array_equal(got, want)
+    fine = streamed.volumes[0].density.mapped(np.asarray(zarr.open_group(str(mean_pyramid), mode="r")["s0"]))
+    level0 = np.stack([fine[n // 4 : N - 1 + n // 4, (n // 2) % 2 : N - 1 + (n // 2) % 2, n % 2 : N - 1 + n % 2]
+                       for n in range(8)], axis=-1)
+    drawn = np.mean(want != level0)  # the voxels drawn from levels 1 and 2
+    assert 0.2 < drawn < 0.8
 
 
 def test_a_pyramid_on_a_web_server_renders_as_the_folder_does(pyramid):

@@ -176,3 +176,42 @@ def test_a_missing_chunk_is_drawn_from_its_ancestor_with_one_warning(tmp_path):
         assert streamer.best_resident(0, (1, 0, 1))[0] == 2  # no ancestor asked for: the coarsest
         assert streamer.wait(one, timeout=30)  # now known bad: its parent stands in
         assert streamer.best_resident(0, (1, 0, 1))[:2] == (1, (0, 0, 0))
+
+
+@pytest.mark.timeout(60)
+def test_the_frame_side_at_once_is_the_brick_by_brick_one(tmp_path):
+    """`request` (numpy) queues and admits what the brick-by-brick walk of each need's ancestors would (each key at
+    its best need's priority, sorted as `BrickNeed`s), and `resident_for` and the stats' levels give each need's
+    `best_resident`, each brick once in the order of its first need, touched in the cache in the order of its last."""
+    write_pyramid(tmp_path / "p.zarr")
+    rng = np.random.default_rng(3)
+    needs = [need((0, *b), bool(rng.integers(2)), float(rng.integers(4))) for b in LEVEL0[::2]]
+    needs += [need((1, 1, 0, 1), False, 0.5), need((2, 0, 0, 0), True, 9.0)]
+    with PyramidSource(tmp_path / "p.zarr") as source, \
+            BrickStreamer(source, memory_budget=1 << 26, workers=0) as streamer:  # no readers: nothing moves
+        streamer.request(needs)
+        by_hand: dict = {}
+        for n in needs:
+            for level, brick in streamer.layout.ancestors(n.level, n.brick):
+                if level < 2:
+                    w = need((level, *brick), n.visible, n.priority[2])
+                    by_hand[w.key] = min(w, by_hand.get(w.key, w))
+        want = sorted(by_hand.values())
+        assert streamer._admitted == [w.key for w in want]
+        assert sorted(streamer._heap) == [(w.priority, i + 1, w.key) for i, w in enumerate(want)]
+        for key in want[1::3]:  # some of each level resident
+            streamer.cache.put(key.key, np.full((17, 17, 17), key.key[0], np.float32))
+        first: dict = {}
+        for n in needs:
+            level, brick, array = streamer.best_resident(n.level, n.brick)
+            first.setdefault((level, *brick), array)
+        last = [k for k in dict.fromkeys(reversed([(lv, *b) for lv, b, _ in
+                                                   (streamer.best_resident(n.level, n.brick) for n in needs)]))][::-1]
+        streamer.cache.get((2, 0, 0, 0))  # not the last any more
+        got = streamer.resident_for(needs)
+        assert list(got) == list(first) and all(got[k] is first[k] for k in first)
+        assert streamer.cache.resident_keys()[-len(last):] == last
+        levels = [0, 0, 0]
+        for key in first:
+            levels[key[0]] += sum(1 for n in needs if streamer.best_resident(n.level, n.brick)[:2] == (key[0], key[1:]))
+        assert streamer.stats()["levels_used"] == levels

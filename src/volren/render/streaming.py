@@ -48,9 +48,8 @@ def update_stream(ds, state: StreamState, views: Sequence[Camera], wait: bool,
     wanted: dict[BrickKey, np.ndarray] = {}
     for key in streamer.floor_keys():
         wanted[key] = streamer.cache.get(key)
-    for n in needs:  # each need as the finest brick resident for it, in priority order
-        level, brick, array = streamer.best_resident(n.level, n.brick)
-        wanted.setdefault((level, *brick), array)
+    for key, array in streamer.resident_for(needs).items():  # each need as the finest brick resident for it, in
+        wanted.setdefault(key, array)  # priority order
     changed = False
     edge3 = (sd.brick + 1) ** 3
     placed = 0

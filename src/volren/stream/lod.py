@@ -124,6 +124,15 @@ def need(key: BrickKey, visible: bool, distance: float) -> BrickNeed:
     return BrickNeed((0 if visible else 1, -key[0], float(distance)), key)
 
 
+def need_keys(needs: Sequence[BrickNeed]) -> np.ndarray:
+    """(M, 4) int64: the keys (level, bz, by, bx) of ``needs``, in their order."""
+    return np.array([n.key for n in needs], np.int64).reshape(-1, 4)
+
+
+def _order(n: BrickNeed) -> tuple[tuple[int, int, float], BrickKey]:
+    return n.priority, n.key
+
+
 def _boxes(to_world: np.ndarray, layout: PyramidLayout, level: int, bricks: np.ndarray) -> tuple[np.ndarray, ...]:
     """`brick_box` of many bricks (M, 3) (z, y, x) of ``level`` at once: their world boxes (lo, hi), (M, 3) each."""
     shape, counts, b = np.array(layout.shapes[level]), np.array(layout.bricks(level)), layout.brick
@@ -217,4 +226,4 @@ def frame_needs(views: Sequence[Camera], to_world: np.ndarray, layout: PyramidLa
             break
         bricks = _children(layout, level, bricks[refine])
         level -= 1
-    return sorted(out)
+    return sorted(out, key=_order)  # BrickNeed's order, compared as tuples: its generated __lt__ took 0.1 s of 8 K

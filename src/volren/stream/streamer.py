@@ -26,7 +26,7 @@ import heapq
 import threading
 import time
 import warnings
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -35,7 +35,7 @@ from volren.data.grid import one_line
 from volren.errors import VolrenError, VolrenWarning
 from volren.stream.cache import BrickCache
 from volren.stream.layout import BRICK, Brick, BrickKey
-from volren.stream.lod import BrickNeed, need
+from volren.stream.lod import BrickNeed, need, need_keys
 from volren.stream.source import PyramidSource
 
 BRICK_BYTES = (BRICK + 1) ** 3 * 4
@@ -69,7 +69,7 @@ class BrickStreamer:
         self._in_flight: set[BrickKey] = set()
         self._bad: set[BrickKey] = set()
         self._admitted: list[BrickKey] = []
-        self._needs: list[BrickKey] = []
+        self._needs = np.zeros((0, 4), np.int64)
         self._closed = False
         self._errors: list[str] = []
         self._last = {"loaded": 0, "evicted": 0, "bytes_read": 0}  # the first frame counts the floor's reads
@@ -117,10 +117,76 @@ class BrickStreamer:
     def request(self, needs: Iterable[BrickNeed]) -> None:
         """This frame's needs (module docstring); returns at once."""
         needs = list(needs)
+        keys = need_keys(needs)
+        bad = np.flatnonzero(~self._valid(keys))
+        if len(bad):
+            raise VolrenError(f"{self.source.name}: no brick {needs[bad[0]].brick} at level {needs[bad[0]].level}")
+        wanted = self._wanted(needs, keys) if self.progressive else self._wanted_one_by_one(needs)
+        room = (self.cache.budget - len(self.floor_keys()) * BRICK_BYTES) // BRICK_BYTES
+        with self._cond:
+            admitted = [w for w in wanted if w[1] not in self._bad][:max(room, 0)]
+            self.frame += 1
+            self._needs = keys
+            self._admitted = [key for _, key in admitted]
+            self.cache.pin(self._admitted)
+            self._heap = []
+            for priority, key in admitted:
+                if key not in self._in_flight and key not in self.cache:
+                    self._seq += 1
+                    self._heap.append((priority, self._seq, key))
+            heapq.heapify(self._heap)
+            self._cond.notify_all()
+        self._warn()
+
+    def _valid(self, keys: np.ndarray) -> np.ndarray:
+        """Whether each (level, bz, by, bx) row of ``keys`` is a brick of the pyramid."""
+        ok = (keys[:, 0] >= 0) & (keys[:, 0] < self.layout.count)
+        for level in np.unique(keys[ok, 0]):
+            at = keys[:, 0] == level
+            ok[at] = np.all((keys[at, 1:] >= 0) & (keys[at, 1:] < np.array(self.layout.bricks(int(level)))), axis=1)
+        return ok
+
+    def _parents(self, keys: np.ndarray) -> np.ndarray:
+        """Each row's parent (`PyramidLayout.parent`), the rows all of one level below the coarsest."""
+        level = int(keys[0, 0])
+        out = np.empty_like(keys)
+        out[:, 0] = level + 1
+        out[:, 1:] = np.minimum(keys[:, 1:] // np.array(self.layout.factors[level]),
+                                np.array(self.layout.bricks(level + 1)) - 1)
+        return out
+
+    def _wanted(self, needs: list[BrickNeed], keys: np.ndarray) -> list[tuple[tuple[int, int, float], BrickKey]]:
+        """(priority, key) of every need and each of its ancestors below the coarsest, each key at the best priority
+        of the needs under it (`need`: visible, then nearest), in priority order (then key, as `BrickNeed` sorts).
+        At once (numpy): brick by brick, the 16 K ancestors of a 512^3 close-up's 8 K needs took 0.37 s a frame."""
+        hidden = np.array([n.priority[0] for n in needs], np.int64)
+        distance = np.array([n.priority[2] for n in needs], np.float64)
+        parts: list[tuple[np.ndarray, np.ndarray]] = []  # (keys, index of their need) per level below the coarsest
+        cur, at = keys, np.arange(len(keys))
+        for level in range(self.layout.coarsest):  # finest first: the rows of a level climb to the next
+            mine = cur[:, 0] == level
+            if mine.any():
+                parts.append((cur[mine], at[mine]))
+                cur = np.concatenate([cur[~mine], self._parents(cur[mine])])
+                at = np.concatenate([at[~mine], at[mine]])
+        if not parts:
+            return []
+        key = np.concatenate([k for k, _ in parts])
+        which = np.concatenate([i for _, i in parts])
+        h, d = hidden[which], distance[which]
+        order = np.lexsort((d, h, key[:, 3], key[:, 2], key[:, 1], key[:, 0]))  # per key, the best need first
+        key, h, d = key[order], h[order], d[order]
+        best = np.ones(len(key), bool)
+        best[1:] = np.any(key[1:] != key[:-1], axis=1)
+        key, h, d = key[best], h[best], d[best]
+        order = np.lexsort((key[:, 3], key[:, 2], key[:, 1], key[:, 0], d, -key[:, 0], h))
+        return [((hh, -k[0], dd), tuple(k)) for hh, dd, k in
+                zip(h[order].tolist(), d[order].tolist(), key[order].tolist(), strict=True)]
+
+    def _wanted_one_by_one(self, needs: list[BrickNeed]) -> list[tuple[tuple[int, int, float], BrickKey]]:
+        """`_wanted` without ``progressive``: each need alone, or a bad one's nearest good ancestor."""
         wanted: dict[BrickKey, BrickNeed] = {}
         for n in needs:
-            if not self.layout.contains(n.level, n.brick):
-                raise VolrenError(f"{self.source.name}: no brick {n.brick} at level {n.level}")
             for level, brick in self.layout.ancestors(n.level, n.brick):
                 if level == self.layout.coarsest:
                     break
@@ -128,23 +194,9 @@ class BrickStreamer:
                 candidate = need(key, n.visible, n.priority[2])  # type: ignore[arg-type]
                 if key not in wanted or candidate < wanted[key]:
                     wanted[key] = candidate
-                if not self.progressive and key not in self._bad:
-                    break  # else a bad brick's nearest good ancestor stands in
-        room = (self.cache.budget - len(self.floor_keys()) * BRICK_BYTES) // BRICK_BYTES
-        with self._cond:
-            admitted = [w for w in sorted(wanted.values()) if w.key not in self._bad][:max(room, 0)]
-            self.frame += 1
-            self._needs = [n.key for n in needs]
-            self._admitted = [w.key for w in admitted]
-            self.cache.pin(self._admitted)
-            self._heap = []
-            for w in admitted:
-                if w.key not in self._in_flight and w.key not in self.cache:
-                    self._seq += 1
-                    self._heap.append((w.priority, self._seq, w.key))
-            heapq.heapify(self._heap)
-            self._cond.notify_all()
-        self._warn()
+                if key not in self._bad:
+                    break
+        return [(w.priority, w.key) for w in sorted(wanted.values())]
 
     def floor_keys(self) -> list[BrickKey]:
         """The coarsest level's bricks: resident from open on."""
@@ -161,6 +213,38 @@ class BrickStreamer:
             if array is not None:
                 return lv, b, array
         raise AssertionError("the coarsest level is always resident")  # the floor is never evicted
+
+    def best_resident_keys(self, keys: np.ndarray) -> np.ndarray:
+        """`best_resident`'s key of each (level, bz, by, bx) row of ``keys`` (M, 4), at once (numpy), from a snapshot
+        of the resident bricks: a reader may cache or evict one meanwhile."""
+        resident = [np.zeros(self.layout.bricks(k), bool) for k in range(self.layout.count)]
+        for key in self.cache.resident_keys():
+            resident[key[0]][key[1:]] = True
+        out = np.array(keys, np.int64).reshape(-1, 4)
+        for level in range(self.layout.coarsest):  # finest first: a miss climbs to the next level
+            at = np.flatnonzero(out[:, 0] == level)
+            miss = at[~resident[level][out[at, 1], out[at, 2], out[at, 3]]]
+            if len(miss):
+                out[miss] = self._parents(out[miss])
+        return out
+
+    def resident_for(self, needs: Sequence[BrickNeed]) -> dict[BrickKey, np.ndarray]:
+        """The finest resident brick for each of ``needs`` (`best_resident`) and its voxels, each brick once, in the
+        order of the first need it serves; each marked used in the cache as `best_resident` marks it (the order of
+        the last need it serves). At once (numpy): brick by brick, 8 K needs took 0.25 s a frame."""
+        best = self.best_resident_keys(need_keys(needs))
+        if not len(best):
+            return {}
+        _, first = np.unique(best, axis=0, return_index=True)
+        _, last = np.unique(best[::-1], axis=0, return_index=True)
+        arrays = {tuple(k): self.cache.get(tuple(k)) for k in best[np.sort(len(best) - 1 - last)].tolist()}
+        if any(a is None for a in arrays.values()):  # evicted since the snapshot: brick by brick, as it was
+            out: dict[BrickKey, np.ndarray] = {}
+            for n in needs:
+                level, brick, array = self.best_resident(n.level, n.brick)
+                out.setdefault((level, *brick), array)
+            return out
+        return {k: arrays[k] for k in map(tuple, best[np.sort(first)].tolist())}  # type: ignore[misc]
 
     def queued(self) -> int:
         """Bricks waiting for a reader."""
@@ -204,9 +288,7 @@ class BrickStreamer:
     def stats(self) -> dict[str, Any]:
         """This frame's counters (module docstring)."""
         self._warn()
-        levels = [0] * self.layout.count
-        for key in self._needs:
-            levels[self.best_resident(key[0], key[1:])[0]] += 1
+        levels = np.bincount(self.best_resident_keys(self._needs)[:, 0], minlength=self.layout.count).tolist()
         now = {"loaded": self.cache.loaded, "evicted": self.cache.evicted, "bytes_read": self.source.bytes_read}
         delta = {k: now[k] - self._last[k] for k in now}
         self._last = now
