@@ -262,7 +262,7 @@ def test_a_streamed_cell_read_at_once_is_its_voxels_searched_one_by_one(mean_pyr
     from volren.render import streaming
     from volren.stream.lod import need
 
-    monkeypatch.setattr(streaming, "frame_needs", lambda views, to_world, layout, step=0.0: [
+    monkeypatch.setattr(streaming, "frame_needs", lambda views, to_world, layout, **levels: [
         need((0, *b), True, 1.0) for b in np.ndindex(4, 4, 4) if sum(b) % 2 == 0] + [
         need((1, z, y, 1), True, 2.0) for z in range(2) for y in range(2)])
     streamed = scene_of(mean_pyramid, memory_budget=2**26, stream=True)
