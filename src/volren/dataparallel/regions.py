@@ -24,7 +24,9 @@ B p, except that u(0) = -1 and u(bricks) = +1: the first region reaches the box 
 half-open, low face in, high face out, with the grid's high face +1 owned by the last region: every point of
 [-1, 1]^3 belongs to exactly one region, and adjacent regions' clip boxes meet at the same float (both computed by
 `plane_local`), no gap and no overlap. A region's cells span from voxel B a's centre to voxel B b's, so the samples
-its clipped render takes in [u(a), u(b)) are the ones the one-process render takes there, read from the same voxels.
+its clipped render takes in [u(a), u(b)) are the ones the one-process render takes there, read from the same voxels
+(a sample that rounds onto voxel B b's centre weighs voxel B b + 1 by 0: the region's sub-grid, clamped at its border,
+gives the same value).
 """
 
 from __future__ import annotations
