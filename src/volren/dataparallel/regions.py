@@ -31,6 +31,7 @@ gives the same value).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,7 +91,7 @@ class RegionTree:
 
 def bricks_per_axis(shape: Box, brick: int = BRICK) -> Box:
     """The brick grid (z, y, x) of a dense grid of ``shape`` voxels: max(1, ceil((n - 1) / B)) per axis."""
-    return tuple(max(1, -(-(int(n) - 1) // brick)) for n in shape)  # type: ignore[return-value]
+    return _box(max(1, -(-(int(n) - 1) // brick)) for n in shape)
 
 
 def split_regions(weights: np.ndarray, n: int, *, shape: Box | None = None, brick: int = BRICK) -> RegionTree:
@@ -102,17 +103,22 @@ def split_regions(weights: np.ndarray, n: int, *, shape: Box | None = None, bric
         raise VolrenError(f"region weights must be a 3-D grid of bricks (z, y, x), got shape {list(w.shape)}")
     if not np.all(np.isfinite(w)) or np.any(w < 0):
         raise VolrenError("region weights must be finite and >= 0")
-    grid: Box = tuple(int(s) for s in w.shape)  # type: ignore[assignment]
-    shape = tuple(g * brick + 1 for g in grid) if shape is None else tuple(int(s) for s in shape)  # type: ignore
-    if bricks_per_axis(shape, brick) != grid:
-        raise VolrenError(f"region weights of {list(grid)} bricks do not match a grid of {list(shape)} voxels "
-                          f"({list(bricks_per_axis(shape, brick))} bricks of {brick}^3)")
+    grid = _box(w.shape)
+    voxels = _box(g * brick + 1 for g in grid) if shape is None else _box(shape)
+    if bricks_per_axis(voxels, brick) != grid:
+        raise VolrenError(f"region weights of {list(grid)} bricks do not match a grid of {list(voxels)} voxels "
+                          f"({list(bricks_per_axis(voxels, brick))} bricks of {brick}^3)")
     if not 1 <= n <= w.size:
         raise VolrenError(f"cannot split a grid of {w.size} bricks into {n} regions (1 to {w.size}: a region holds "
                           "at least one brick)")
     regions: list[Region] = []
     root = _split(w, (0, 0, 0), grid, n, regions)
-    return RegionTree(tuple(regions), root, grid, shape, brick)  # type: ignore[arg-type]
+    return RegionTree(tuple(regions), root, grid, voxels, brick)
+
+
+def _box(values: Iterable[int]) -> Box:
+    z, y, x = (int(v) for v in values)
+    return z, y, x
 
 
 def _split(w: np.ndarray, lo: Box, hi: Box, n: int, regions: list[Region]) -> Split | int:
@@ -122,10 +128,10 @@ def _split(w: np.ndarray, lo: Box, hi: Box, n: int, regions: list[Region]) -> Sp
         return len(regions) - 1
     axis, offset, n_low = _best_plane(box, n)
     plane = lo[axis] + offset
-    low_hi = tuple(plane if a == axis else hi[a] for a in range(3))
-    high_lo = tuple(plane if a == axis else lo[a] for a in range(3))
-    low = _split(w, lo, low_hi, n_low, regions)  # type: ignore[arg-type]
-    return Split(axis, plane, low, _split(w, high_lo, hi, n - n_low, regions))  # type: ignore[arg-type]
+    low_hi = _box(plane if a == axis else hi[a] for a in range(3))
+    high_lo = _box(plane if a == axis else lo[a] for a in range(3))
+    low = _split(w, lo, low_hi, n_low, regions)
+    return Split(axis, plane, low, _split(w, high_lo, hi, n - n_low, regions))
 
 
 def _best_plane(box: np.ndarray, n: int) -> tuple[int, int, int]:
@@ -151,9 +157,9 @@ def _best_plane(box: np.ndarray, n: int) -> tuple[int, int, int]:
 def box_in_voxels(region: Region, brick: int, shape: Box) -> tuple[Box, Box]:
     """The voxels (z, y, x) [first, last + 1) that ``region``'s cells read in a grid of ``shape`` voxels: [B a,
     min(B b + 1, n)) per axis (module docstring)."""
-    first = tuple(brick * a for a in region.lo)
-    end = tuple(min(brick * b + 1, int(n)) for b, n in zip(region.hi, shape, strict=True))
-    return first, end  # type: ignore[return-value]
+    first = _box(brick * a for a in region.lo)
+    end = _box(min(brick * b + 1, int(n)) for b, n in zip(region.hi, shape, strict=True))
+    return first, end
 
 
 def plane_local(plane: int, bricks: int, brick: int, n: int) -> float:
