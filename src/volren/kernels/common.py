@@ -376,7 +376,7 @@ def level_index(density: wp.array(dtype=float), m: int, res: wp.vec3i, v: wp.vec
     )
 
 
-@wp.func
+@wp.func(inline=False)  # CUDA __noinline__: one copy, not one at each of a marching kernel's density reads
 def streamed_cell(density: wp.array(dtype=float), vol: VolumeGPU, cell: wp.vec3i) -> vec8:
     """The 8 voxels around ``cell`` of a streamed volume whose level-0 brick there is not resident: each from a
     level-0 brick on the device that holds it (`level0_voxel`), else from the finest resident ancestor
