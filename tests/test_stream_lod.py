@@ -146,3 +146,33 @@ def test_the_descent_takes_every_child_of_a_level_at_once_as_the_layout_lists_th
     got = sorted(map(tuple, _children(layout, 1, bricks).tolist()))
     want = sorted(c for b in bricks for c in layout.children(1, tuple(int(v) for v in b)))
     assert got == want and len(want) == 5**3 and (4, 4, 4) in want
+
+
+@pytest.mark.timeout(60)
+def test_the_needs_fit_the_budget_the_nearest_refined_first():
+    """A close-up of a 2048^3 pyramid wants more bricks (106 K) than a budget of 3,000 or 100,000 holds: the descent
+    refines, level by level (coarse before fine), the nearest bricks while the needs and their ancestors below the
+    coarsest level fit, and leaves the rest at their level; under a limit that holds them all, the needs are the
+    unlimited ones."""
+    layout = PyramidLayout(tuple((n, n, n) for n in (2048, 1024, 512, 256, 128)), ((2, 2, 2),) * 4)
+    to_world = np.diag([1.0, 1.0, 1.0, 1.0])
+    cam = Camera(position=(0.2, 0.1, 1.3), look_at=(0.0, 0.0, 0.0), fov_y=50.0, width=640, height=360, near=1e-3,
+                 far=10.0)
+    unlimited = frame_needs([cam], to_world, layout)
+
+    def held(needs):  # what the streamer holds beside the coarsest level: the needs and their ancestors
+        return {(level, *brick) for n in needs for level, brick in layout.ancestors(n.level, n.brick)
+                if level < layout.coarsest}
+
+    assert len(held(unlimited)) > 100_000
+    for limit, finest in ((3000, 2), (100_000, 0)):
+        needs = frame_needs([cam], to_world, layout, limit=limit)
+        assert limit - 8 < len(held(needs)) <= limit
+        levels = {n.level for n in needs}
+        assert min(levels) == finest
+        for level in levels - {finest}:  # a level's bricks left unrefined are no nearer than the refined ones
+            refined = [n.priority[2] for n in needs if n.level < level]
+            kept = [n.priority[2] for n in needs if n.level == level and n.visible]
+            assert not kept or min(kept) >= min(refined) - 1e-12
+    whole = frame_needs([cam], to_world, layout, limit=len(held(unlimited)))
+    assert [n.key for n in whole] == [n.key for n in unlimited]

@@ -40,7 +40,7 @@ def update_stream(ds, state: StreamState, views: Sequence[Camera], wait: bool,
     sd = state.density
     streamer = sd.streamer
     vol = ds.scene.volumes[state.volume]
-    needs = frame_needs(views, vol.to_world, sd.layout, marched=marched, ancestors=ancestors)
+    needs = frame_needs(views, vol.to_world, sd.layout, marched=marched, ancestors=ancestors, limit=streamer.room)
     if wait:
         streamer.wait(needs, progress=progress)
     else:

@@ -122,9 +122,9 @@ class BrickStreamer:
         if len(bad):
             raise VolrenError(f"{self.source.name}: no brick {needs[bad[0]].brick} at level {needs[bad[0]].level}")
         wanted = self._wanted(needs, keys) if self.progressive else self._wanted_one_by_one(needs)
-        room = (self.cache.budget - len(self.floor_keys()) * BRICK_BYTES) // BRICK_BYTES
+        room = self.room
         with self._cond:
-            admitted = [w for w in wanted if w[1] not in self._bad][:max(room, 0)]
+            admitted = [w for w in wanted if w[1] not in self._bad][:room]
             self.frame += 1
             self._needs = keys
             self._admitted = [key for _, key in admitted]
@@ -197,6 +197,11 @@ class BrickStreamer:
                 if key not in self._bad:
                     break
         return [(w.priority, w.key) for w in sorted(wanted.values())]
+
+    @property
+    def room(self) -> int:
+        """Bricks the cache holds beside the floor: how many of a frame's needs can be admitted."""
+        return max((self.cache.budget - len(self.floor_keys()) * BRICK_BYTES) // BRICK_BYTES, 0)
 
     def floor_keys(self) -> list[BrickKey]:
         """The coarsest level's bricks: resident from open on."""
