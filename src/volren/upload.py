@@ -307,12 +307,12 @@ it is rewritten whenever the device's bricks change (`volren.render.stream_bound
 (`skip_cells`) took 0.6 s over the 256^3 bricks of a 4096^3 level on this 2-core CPU, 0.02 s over 128^3 cells"""
 
 
-def stream_skip_group(bricks: tuple[int, ...]) -> int:
-    """Bricks per axis in a streamed level's skip cell (`MAX_STREAM_SKIP_CELLS`)."""
+def stream_skip_group(bricks: tuple[int, ...]) -> tuple[int, tuple[int, ...]]:
+    """Bricks per axis in a streamed level's skip cell (`MAX_STREAM_SKIP_CELLS`), and the cells per axis."""
     group = 1
     while np.prod([-(-b // group) for b in bricks], dtype=np.int64) > MAX_STREAM_SKIP_CELLS:
         group *= 2
-    return group
+    return group, tuple(-(-b // group) for b in bricks)
 
 
 def skip_grid(density: np.ndarray | SparseGrid, cell: int = SKIP_CELL) -> tuple[np.ndarray, int]:
@@ -331,8 +331,7 @@ def skip_grid(density: np.ndarray | SparseGrid, cell: int = SKIP_CELL) -> tuple[
     at B = 16, 125 M at 4). A streamed level's cells are its bricks (2^j a side beyond `MAX_STREAM_SKIP_CELLS`),
     every one occupied until the first frame's bounds (`volren.render.stream_bounds`) are written."""
     if getattr(density, "streamed", False):
-        group = stream_skip_group(density.layout.bricks(density.level))
-        shape = tuple(-(-b // group) for b in density.layout.bricks(density.level))
+        group, shape = stream_skip_group(density.layout.bricks(density.level))
         return np.ones(shape, np.float32), density.brick * group
     if isinstance(density, SparseGrid):
         cells = np.prod([-(-n // cell) for n in density.shape], dtype=np.int64)

@@ -95,8 +95,7 @@ def _drawn(device: list[tuple[np.ndarray, np.ndarray]], base: int, sd) -> np.nda
     device: a 4096^3 level's 256^3 bricks are never a grid here."""
     layout = sd.layout
     bricks = layout.bricks(base)
-    group = stream_skip_group(bricks)
-    shape = tuple(-(-b // group) for b in bricks)
+    group, shape = stream_skip_group(bricks)
     coords, values = device[base]
     cells = tuple((coords // group).T)
     out = np.zeros(shape, np.float32)
