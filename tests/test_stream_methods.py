@@ -5,13 +5,11 @@ bricks draw (`volren.render.stream_bounds`)."""
 from __future__ import annotations
 
 import dataclasses
-import warnings
 
 import numpy as np
 import pytest
 import warp as wp
 import zarr
-from ome_zarr import writer
 
 from conftest import DEVICE
 from test_stream_render import (  # noqa: F401 (fixtures)
@@ -21,6 +19,7 @@ from test_stream_render import (  # noqa: F401 (fixtures)
     pyramid,
     sample_points,
     scene_of,
+    write_levels,
 )
 from volren.camera import Camera
 from volren.kernels.common import VolumeGPU
@@ -45,13 +44,7 @@ def float_pyramid(tmp_path_factory):
     for _ in range(2):
         n = levels[-1].shape[0] // 2
         levels.append(levels[-1].reshape(n, 2, n, 2, n, 2).mean(axis=(1, 3, 5)).astype(np.float32))
-    axes = [{"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
-    transforms = [[{"type": "scale", "scale": [2.0**k] * 3},
-                   {"type": "translation", "translation": [(2.0**k - 1) / 2] * 3}] for k in range(3)]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        writer.write_multiscale(levels, zarr.open_group(str(path), mode="w"), axes=axes,
-                                coordinate_transformations=transforms, storage_options={"chunks": (16, 16, 16)})
+    write_levels(path, levels, [1.0, 2.0, 4.0], centred=True)
     return path
 
 
@@ -63,13 +56,7 @@ def corner_pyramid(tmp_path_factory):
     z, y, x = np.mgrid[0:128, 0:128, 0:128].astype(np.float32)
     level = np.round(4000 * np.exp(-((x - 40) ** 2 + (y - 40) ** 2 + (z - 40) ** 2) / 16.0)).astype(np.uint16)
     levels = [level, level[::2, ::2, ::2].copy(), level[::4, ::4, ::4].copy()]
-    axes = [{"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        writer.write_multiscale(levels, zarr.open_group(str(path), mode="w"), axes=axes,
-                                coordinate_transformations=[[{"type": "scale", "scale": [2.0**k] * 3}]
-                                                            for k in range(3)],
-                                storage_options={"chunks": (16, 16, 16)})
+    write_levels(path, levels, [1.0, 2.0, 4.0], centred=False)
     return path
 
 
@@ -215,13 +202,7 @@ def uneven_pyramid(tmp_path_factory):
     level1 = level0.reshape(32, 2, 32, 2, 32, 2).mean(axis=(1, 3, 5))
     levels = [level0.astype(np.float32), level1.astype(np.float32),
               level1.reshape(8, 4, 8, 4, 8, 4).mean(axis=(1, 3, 5)).astype(np.float32)]
-    axes = [{"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
-    transforms = [[{"type": "scale", "scale": [float(f)] * 3},
-                   {"type": "translation", "translation": [(f - 1) / 2] * 3}] for f in (1, 2, 8)]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        writer.write_multiscale(levels, zarr.open_group(str(path), mode="w"), axes=axes,
-                                coordinate_transformations=transforms, storage_options={"chunks": (16, 16, 16)})
+    write_levels(path, levels, [1.0, 2.0, 8.0], centred=True)
     return path
 
 

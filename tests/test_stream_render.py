@@ -36,6 +36,20 @@ N = 64
 SIZE = (64, 48)
 
 
+def write_levels(path, levels: list[np.ndarray], scales: list[float], centred: bool) -> None:
+    """``levels`` (z, y, x, finest first) as an NGFF pyramid written by ome-zarr, chunks of 16^3, in micrometres:
+    level k's voxels ``scales[k]`` level-0 voxels apart, and with ``centred`` each centred on the level-0 voxels it
+    averages (translation (s - 1) / 2)."""
+    axes = [{"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
+    transforms = [[{"type": "scale", "scale": [float(f)] * 3}]
+                  + ([{"type": "translation", "translation": [(f - 1) / 2] * 3}] if centred else [])
+                  for f in scales]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        writer.write_multiscale(levels, zarr.open_group(str(path), mode="w"), axes=axes,
+                                coordinate_transformations=transforms, storage_options={"chunks": (16, 16, 16)})
+
+
 def write_pyramid(path, levels: int = 3, mean: bool = False) -> list[np.ndarray]:
     """A smooth uint16 field (two blobs) and its levels, chunks of 16^3: each the previous one's every second voxel
     (a level-k voxel j is level 0's voxel 2^k j: the file's scales say so), or with ``mean`` its 2x2x2 mean (a
@@ -50,14 +64,7 @@ def write_pyramid(path, levels: int = 3, mean: bool = False) -> list[np.ndarray]
             pyramid.append(np.round(last.reshape(n, 2, n, 2, n, 2).mean(axis=(1, 3, 5))).astype(np.uint16))
         else:
             pyramid.append(np.ascontiguousarray(last[::2, ::2, ::2]))
-    axes = [{"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
-    transforms = [[{"type": "scale", "scale": [2.0**k] * 3}]
-                  + ([{"type": "translation", "translation": [(2.0**k - 1) / 2] * 3}] if mean else [])
-                  for k in range(levels)]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        writer.write_multiscale(pyramid, zarr.open_group(str(path), mode="w"), axes=axes,
-                                coordinate_transformations=transforms, storage_options={"chunks": (16, 16, 16)})
+    write_levels(path, pyramid, [2.0**k for k in range(levels)], centred=mean)
     return pyramid
 
 
