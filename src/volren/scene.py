@@ -156,9 +156,20 @@ class Volume:
     values as kelvin, T = v (a loaded grid whose values look like kelvin, `volren.blackbody.kelvin_span`)"""
     emission_scale: float = 1.0
     """[W/(m^3 sr)] the luminance Y of the blackbody radiance emitted per metre at K1 (`volren.blackbody`)"""
+    owned_cells: tuple[tuple[int, int, int], tuple[int, int, int]] | None = None
+    """data-parallel rendering (issue 43): the trilinear cells (z, y, x) [first, last + 1) this copy of the volume
+    renders, a region's (`volren.dataparallel.region_volume`); its marches take only the samples in them
+    (`volren.kernels.common.owns_sample`), and its density need hold only their bricks. None: the whole volume"""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "density", validate_density(self.density, f"volume '{self.name}' density"))
+        if self.owned_cells is not None:
+            lo, hi = (tuple(int(c) for c in corner) for corner in self.owned_cells)
+            cells = [n - 1 for n in self.density.shape]
+            if not all(0 <= a < b <= n for a, b, n in zip(lo, hi, cells, strict=True)) or len(lo) != 3:
+                raise VolrenError(f"volume '{self.name}': owned_cells {list(lo)}..{list(hi)} is not a box of its "
+                                  f"{list(cells)} cells (z, y, x)")
+            object.__setattr__(self, "owned_cells", (lo, hi))
         self._check_fire()
         if self.value_range is not None:
             vr = tuple(float(v) for v in self.value_range)

@@ -382,6 +382,13 @@ def volume_struct(
     s.emission_table_offset, s.emission_table_size = 0, 0  # no emission grid until `pack_emission` sets one
     s.brick_shift, s.bricks, s.table_offset, s.constants_offset = 0, wp.vec3i(0), 0, 0  # dense
     s.stream_levels, s.stream_header, s.stream_map = 0, 0, 0  # not streamed
+    s.region, s.owned_lo, s.owned_hi, s.region_lo, s.region_hi = 0, wp.vec3i(0), wp.vec3i(0), wp.vec3(0.0), wp.vec3(0.0)
+    if vol.owned_cells is not None and tuple(res) == vol.resolution:  # a data-parallel region (its level 0)
+        lo, hi = (np.array(c[::-1], np.float64) for c in vol.owned_cells)
+        n = np.array(res, np.float64)
+        s.region, s.owned_lo, s.owned_hi = 1, wp.vec3i(*vol.owned_cells[0][::-1]), wp.vec3i(*vol.owned_cells[1][::-1])
+        # the cells' span, centre of voxel lo to centre of voxel hi, one voxel to spare (and the border's clamp)
+        s.region_lo, s.region_hi = wp.vec3(*(-1.0 + (lo - 0.5) * 2.0 / n)), wp.vec3(*(-1.0 + (hi + 1.5) * 2.0 / n))
     return s
 
 

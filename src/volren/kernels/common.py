@@ -98,6 +98,16 @@ class VolumeGPU:
     """first float of its blackbody table (3 per entry) in the packed density array"""
     emission_table_size: int
     """entries of that table; 0: the volume has no emission grid"""
+    region: int
+    """1: a data-parallel region (`volren.dataparallel`, issue 43): its marches sample only the steps whose trilinear
+    cell lies in [owned_lo, owned_hi), and look only at those between ``region_lo`` and ``region_hi``; 0: all"""
+    owned_lo: wp.vec3i
+    """[cells] (x, y, z) the first cell the region owns"""
+    owned_hi: wp.vec3i
+    """[cells] (x, y, z) the last cell it owns + 1"""
+    region_lo: wp.vec3
+    """local (x, y, z) corner of a box holding every point whose cell the region owns, one voxel to spare"""
+    region_hi: wp.vec3
 
 
 @wp.struct
@@ -500,6 +510,37 @@ def sample_grid(data: wp.array(dtype=float), offset: int, res: wp.vec3i, p: wp.v
 
 
 @wp.func
+def owns_sample(vol: VolumeGPU, p: wp.vec3) -> int:
+    """1 where a sample at local ``p`` is ``vol``'s to take: always, unless ``vol`` is a data-parallel region, which
+    takes the samples whose trilinear cell (the one `sample_density` reads) it owns. Deciding by the cell read, not
+    by p against the region's planes, gives every sample to exactly one region and only reads voxels it holds."""
+    if vol.region == 0:
+        return 1
+    cell = grid_cell(vol.res, grid_coords(vol.res, p))
+    for a in range(3):
+        if cell[a] < vol.owned_lo[a] or cell[a] >= vol.owned_hi[a]:
+            return 0
+    return 1
+
+
+@wp.func
+def region_steps(vol: VolumeGPU, o_l: wp.vec3, d_l: wp.vec3, t0: float, dt: float, offset: float, n: int) -> wp.vec2i:
+    """The steps [i0, i1) of a march of ``n`` steps t = t0 + (i + offset) dt along the local ray ``o_l + t d_l`` that
+    may fall in a data-parallel region's cells (all n for a whole volume): the others are never looked at, so N
+    regions share one march's work rather than each doing it all."""
+    if vol.region == 0:
+        return wp.vec2i(0, n)
+    c = 0.5 * (vol.region_lo + vol.region_hi)
+    h = 0.5 * (vol.region_hi - vol.region_lo)
+    hit = box_hit(wp.cw_div(o_l - c, h), wp.cw_div(d_l, h))
+    if hit[1] < hit[0]:
+        return wp.vec2i(0, 0)
+    i0 = wp.clamp(int(wp.floor((hit[0] - t0) / dt - offset)), 0, n)
+    i1 = wp.clamp(int(wp.ceil((hit[1] - t0) / dt - offset)) + 1, 0, n)
+    return wp.vec2i(i0, i1)
+
+
+@wp.func
 def sample_density(density: wp.array(dtype=float), vol: VolumeGPU, p: wp.vec3) -> float:
     """Trilinear density of ``vol`` at local ``p`` in [-1, 1]^3, clamped at the border (`gather_density`)."""
     f = grid_coords(vol.res, p)
@@ -750,23 +791,29 @@ def optical_depth_skipping(
     check_t = first_skip_check(vol, skip)
     rho_sum = float(0.0)
     skipped = int(0)
-    i = int(0)
-    while i < n:
+    taken = int(0)
+    steps = region_steps(vol, o_l, d_l, t0, dt, 0.5, n)
+    i = steps[0]
+    for _k in range(i):  # a region's first step, by the same float additions as the whole march's
+        p = p + step
+    while i < steps[1]:
         t = t0 + (float(i) + 0.5) * dt
         if t >= check_t:
             cell = skip_lookup(vol, max_density, o_c + t * d_c, o_c, inv_d)
             check_t = cell[1]
             if cell[0] <= 0.0:
-                j = wp.min(wp.max(int(wp.ceil((check_t - t0) / dt - 0.5)), i + 1), n)
+                j = wp.min(wp.max(int(wp.ceil((check_t - t0) / dt - 0.5)), i + 1), steps[1])
                 skipped += j - i
                 for _k in range(j - i):
                     p = p + step
                 i = j
                 continue
-        rho_sum += sample_density(density, vol, p)
+        if owns_sample(vol, p) != 0:
+            rho_sum += sample_density(density, vol, p)
+            taken += 1
         p = p + step
         i += 1
-    r = chord_depth(vol, rho_sum, dt, n - skipped)
+    r = chord_depth(vol, rho_sum, dt, taken)
     return wp.vec3(r[0], r[1], float(skipped))
 
 

@@ -296,14 +296,42 @@ class LightMapRenderer(Renderer):
         self._light_map = LightMapCache()
         self._peak_of: tuple[DeviceScene, float] | None = None
         """(uploaded scene, 1 / its largest density) for MIP's and MIDA's intensity (`_mode_params`)"""
+        self.light_map_total: np.ndarray | None = None
+        """data-parallel rendering (issue 43): the light map of the whole volume, the sum of every region's
+        `region_light_map` (optical depth adds), which this region's marches read; None: its own"""
+
+    def _reads_light_map(self, scene: Scene) -> bool:
+        return not (self.config.mode in ("mip", "iso") and not self.config.gi.on and not scene.opaque)
+
+    def region_light_map(self, scene: Scene, frame: int = 0) -> np.ndarray | None:
+        """Data-parallel rendering (issue 43): the light-map pass of ``scene``, whose volume is a region
+        (`volren.scene.Volume.owned_cells`), and its map, each node's sigma_bar = tau / s summed over this region's
+        samples only. Summed over the regions (optical depth adds along each node's path: every sample of the
+        one-process march is one region's), it is the whole volume's map: give the sum as ``light_map_total`` before
+        `render`.
+        None where nothing reads a light map, or where the pass's inputs are those of the last call (the sum given
+        since still holds)."""
+        if not self._reads_light_map(scene):
+            return None
+        clock = PassClock(self.device)
+        self._frame_info, self._views = {}, []
+        ds = self._upload(scene, clock, self.config.light_grid)
+        ds.skip_empty = self.config.skip_empty
+        if not self._light_map.update(ds, self.config.light_samples, clock, self.config.gi.on,
+                                      self.config.reuse_light_map):
+            return None
+        return ds.lightmap.numpy().copy()
 
     def _lighting(self, ds: DeviceScene, clock: PassClock) -> None:
         ds.skip_empty = self.config.skip_empty  # read by this frame's marches (`DeviceScene.medium`)
         check_scene_mode(ds.scene, self.config.mode)
         gi = self.config.gi
-        if self.config.mode in ("mip", "iso") and not gi.on and not ds.scene.opaque:
+        if not self._reads_light_map(ds.scene):
             return  # nothing reads the light map: MIP is unlit, iso shades unshadowed (13 s of a 640^3 MIP frame)
         self._light_map.update(ds, self.config.light_samples, clock, gi.on, self.config.reuse_light_map)
+        if self.light_map_total is not None:
+            with clock.measure("light_map_total"):
+                ds.lightmap.assign(self.light_map_total)
         if not gi.on:
             return
         if self._gi is None or not self._gi.fits(ds, gi):

@@ -54,6 +54,9 @@ class SparseGrid:
     """voxels (z, y, x) of the grid, as a dense array's shape"""
     brick: int
     """B: cells per brick edge"""
+    peak: float | None = None
+    """the largest density of the whole grid this one holds a part of (a data-parallel region's,
+    `volren.dataparallel.region_grid`), which `max` reports; None: its own"""
 
     ndim = 3
     dtype = np.dtype(np.float32)
@@ -90,7 +93,7 @@ class SparseGrid:
 
     def max(self, axis: None = None, out: None = None) -> np.float32:
         """The largest voxel (``np.max(grid)`` calls this; only the whole grid's)."""
-        return np.float32(self.brick_ranges[1].max())
+        return np.float32(self.brick_ranges[1].max() if self.peak is None else self.peak)
 
     def min(self, axis: None = None, out: None = None) -> np.float32:
         return np.float32(self.brick_ranges[0].min())

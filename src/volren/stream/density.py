@@ -92,6 +92,11 @@ class StreamedDensity:
     def min(self, axis: None = None, out: None = None) -> np.float32:
         return np.float32(self._coarse.min())
 
+    @property
+    def coarsest(self) -> np.ndarray:
+        """The coarsest level's densities (always resident)."""
+        return self._coarse
+
     def __getitem__(self, key: tuple[slice, slice, slice]) -> np.ndarray:
         """``grid[::s, ::s, ::s]``, read from the coarsest level at the stride nearest s over its factor."""
         if not (isinstance(key, tuple) and len(key) == 3 and all(isinstance(k, slice) for k in key)):

@@ -24,6 +24,8 @@ from volren.kernels.common import (
     light_irradiance,
     light_travel_dir,
     march_step_count,
+    owns_sample,
+    region_steps,
     sample_density,
     sample_grid_rgb,
     skip_cell_ray,
@@ -187,18 +189,22 @@ def march_volume_light_map(
     skipped = int(0)
     check_t = first_skip_check(vol, medium.skip)
     peak = float(0.0)  # MIDA's running max P, from this box's entry (`volren.render.marching.modes`)
-    i = int(0)
-    while i < n:
+    steps = region_steps(vol, o_l, d_l, t0, dt, offset, n)
+    i = steps[0]
+    while i < steps[1]:
         t = t0 + (float(i) + offset) * dt
         if t >= check_t:
             cell = skip_lookup(vol, medium.max_density, o_c + t * d_c, o_c, inv_d)
             check_t = cell[1]
             if skippable(params.mode, cell[0], acc, params.inv_max, params.iso_value):
-                j = wp.min(wp.max(int(wp.ceil((check_t - t0) / dt - offset)), i + 1), n)
+                j = wp.min(wp.max(int(wp.ceil((check_t - t0) / dt - offset)), i + 1), steps[1])
                 skipped += j - i
                 i = j
                 continue
         p = o_l + t * d_l
+        if owns_sample(vol, p) == 0:  # a data-parallel region's neighbour's step
+            i += 1
+            continue
         rho = sample_density(medium.density, vol, p)
         taken += 1
         if params.mode == MODE_DVR:

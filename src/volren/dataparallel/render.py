@@ -1,0 +1,177 @@
+"""Sort-last rendering of a volume split into regions (issue 43 items 2 and 3), one renderer per region, in this
+process (`RegionSet`, what the tests compare and `volren.distributed.regions` runs one per Ray actor).
+
+A frame is two passes over the regions:
+
+1. **Light.** Each region's renderer runs its light-map pass on its own region (`LightMapRenderer.region_light_map`):
+   every light-map node's march towards each light takes the steps of the one-process march (the whole box's t0, t1
+   and step count) whose cell the region owns, so its map holds the optical depth of the region's part of each
+   node's path. Optical depth adds along a path, so the regions' maps summed are the one-process map (to float
+   rounding of the sum): the regions exchange their maps once (an all-reduce, not a sweep in light order: no region
+   waits on the ones before it along the light), and only when the map's inputs change (an orbit keeps it). This
+   departs from the issue's "boundary optical depth in light order": a boundary map is exact only for the nodes on
+   a region's face; the sum is exact at every node and costs one exchange of the light grid (bytes in the stats).
+2. **Views.** Each region marches the steps of the one-process march whose cell it owns
+   (`volren.kernels.common.owns_sample`), shaded from the summed map, into premultiplied RGBA and depth; the partial
+   images composite in each view's visibility order (`volren.dataparallel.order`): ``over`` for DVR, ``max`` for MIP
+   (bit-exact: the same samples read the same voxels), the nearest hit for iso (exact: its depth is the hit's). A
+   DVR pixel's depth (where the transmittance fell to 1/2) is the nearest region's: regions do not know the
+   transmittance in front of them.
+
+What runs: DSSRM in modes dvr (with shadows), mip and iso, one volume (dense, bricked, .vdb or a streamed pyramid's
+finest level), directional, point and spot lights. Refused in one line: other methods (CMSRM's and CACRM's cube maps
+and LOD levels, VPT's paths and GI's SH grids cross regions and are not split), MIDA (its running maximum weighs
+what lies in front, across regions), several volumes, meshes, fog and early termination's loss: each region marches
+to its own end (so a dense front region makes the back ones' work wasted, not wrong).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from volren.camera import Camera
+from volren.dataparallel.composite import composite_max, composite_nearest, composite_over
+from volren.dataparallel.order import visibility_order
+from volren.dataparallel.regions import RegionTree, split_regions
+from volren.dataparallel.volume import brick_weights, region_volume
+from volren.errors import VolrenError
+from volren.render.frame import Frame, Stats
+from volren.scene import Scene
+from volren.sparse.grid import BRICK
+
+METHODS = ("dssrm",)
+"""the methods that render data-parallel"""
+MODES = ("dvr", "mip", "iso")
+
+
+def check_data_parallel(method: str, config: Any, scene: Scene | None = None, flag: str = "--data-parallel") -> None:
+    """Refuse in one line what does not split into regions (module docstring)."""
+    if method not in METHODS:
+        raise VolrenError(f"{flag} renders with {', '.join(METHODS)} only: method {method} has cube maps, paths or "
+                          "grids that cross the regions")
+    mode = getattr(config, "mode", "dvr")
+    if mode not in MODES:
+        raise VolrenError(f"{flag} renders modes {', '.join(MODES)}: mode {mode}'s running maximum weighs what lies in "
+                          "front, in other regions")
+    if getattr(config, "gi", None) is not None and config.gi.on:
+        raise VolrenError(f"{flag} does not split ambient GI's SH grid across regions: leave --gi off")
+    if scene is None:
+        return
+    if len(scene.volumes) != 1:
+        raise VolrenError(f"{flag} splits one volume into regions; scene '{scene.name}' has {len(scene.volumes)}")
+    if scene.opaque or scene.fog is not None:
+        raise VolrenError(f"{flag} renders a volume alone: scene '{scene.name}' has meshes or fog")
+
+
+def split_volume(scene: Scene, n: int, brick: int = BRICK) -> RegionTree:
+    """The k-d tree of ``n`` regions of the scene's volume, balanced by its active bricks (`brick_weights`)."""
+    density = scene.volumes[0].density
+    weights = brick_weights(density, brick)
+    if not weights.any():
+        weights = np.ones_like(weights)  # nothing active: halve geometrically
+    return split_regions(weights, n, shape=tuple(int(s) for s in density.shape), brick=brick)
+
+
+def region_scene(scene: Scene, tree: RegionTree, index: int, mode: str) -> Scene:
+    """The scene region ``index`` renders: its volume cut to the region (`region_volume`; iso holds one brick around
+    it for the crossing search and the gradient)."""
+    halo = 1 if mode == "iso" else 0
+    return replace(scene, volumes=(region_volume(scene.volumes[0], tree.regions[index], tree, halo),))
+
+
+def view_orders(tree: RegionTree, scene: Scene, views: Sequence[Camera]) -> list[list[int]]:
+    """Per view, the regions front to back for its eye (`visibility_order` in the volume's local coordinates)."""
+    to_local = scene.volumes[0].to_local
+    return [visibility_order(tree, (to_local @ np.append(np.asarray(c.position, np.float64), 1.0))[:3])
+            for c in views]
+
+
+def composite_views(images: Sequence[Sequence[np.ndarray]], depths: Sequence[Sequence[np.ndarray]],
+                    orders: Sequence[Sequence[int]], mode: str) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per view the composited image and depth of the regions' partial ones (``images[r][v]``: region r, view v)."""
+    out_images, out_depths = [], []
+    for v, order in enumerate(orders):
+        rgba = [im[v] for im in images]
+        z = [d[v] for d in depths]
+        if mode == "mip":
+            out_images.append(composite_max(rgba))
+            out_depths.append(np.minimum.reduce(z))
+        elif mode == "iso":
+            image, depth = composite_nearest(rgba, z, order)
+            out_images.append(image)
+            out_depths.append(depth)
+        else:
+            out_images.append(composite_over(rgba, order))
+            out_depths.append(composite_nearest(rgba, z, order)[1])
+    return out_images, out_depths
+
+
+def region_report(tree: RegionTree, index: int, scene: Scene, stats: Stats | None = None,
+                  seconds: float | None = None) -> dict[str, Any]:
+    """stats.json's entry of one region: its box, bricks held and bytes, and its render's pass times."""
+    region, grid = tree.regions[index], scene.volumes[0].density
+    out: dict[str, Any] = {"index": index, "lo": list(region.lo), "hi": list(region.hi), "bricks": region.bricks,
+                           "active_bricks": int(region.weight), "resident_bricks": int(len(grid.pool)),
+                           "bytes": int(grid.nbytes)}
+    if stats is not None:
+        out["times_ms"] = {k: round(v, 3) for k, v in stats.times_ms.items()}
+    if seconds is not None:
+        out["seconds"] = round(seconds, 4)
+    return out
+
+
+def merged_stats(parts: Sequence[Stats], reports: list[dict[str, Any]], times: dict[str, float],
+                 extra: dict[str, Any]) -> Stats:
+    """One frame's stats from its regions': counters summed (the work of every region), pass times the slowest
+    region's (they run side by side) plus the exchange and compositing, ``regions`` and per region its report."""
+    first = parts[0]
+    counters = {k: sum(p.counters.get(k, 0) for p in parts) for k in first.counters}
+    slowest = {k: max(p.times_ms.get(k, 0.0) for p in parts) for k in {k for p in parts for k in p.times_ms}}
+    info = {**first.info, "regions": len(reports), "region_stats": reports, **extra}
+    return Stats(first.device, first.method, {**first.settings, "data_parallel": len(reports)},
+                 {**slowest, **times}, counters, info)
+
+
+@dataclass
+class RegionSet:
+    """N regions of one scene's volume rendered in this process, one renderer each, composited sort-last (module
+    docstring). ``make_renderer()`` builds one region's renderer (a `volren.render.DSSRM`)."""
+
+    scene: Scene
+    n: int
+    make_renderer: Callable[[], Any]
+
+    def __post_init__(self) -> None:
+        self.renderers = [self.make_renderer() for _ in range(self.n)]
+        first = self.renderers[0]
+        check_data_parallel(first.name, first.config, self.scene)
+        self.mode = first.config.mode
+        self.tree = split_volume(self.scene, self.n)
+        self.scenes = [region_scene(self.scene, self.tree, i, self.mode) for i in range(self.n)]
+
+    def render(self, views: Sequence[Camera], frame: int = 0) -> Frame:
+        views = list(views)
+        start = time.perf_counter()
+        partials = [r.region_light_map(s, frame) for r, s in zip(self.renderers, self.scenes, strict=True)]
+        light_bytes = 0
+        if any(p is not None for p in partials):
+            total = np.sum([p for p in partials if p is not None], axis=0, dtype=np.float32)
+            light_bytes = sum(p.nbytes for p in partials if p is not None)
+            for r in self.renderers:
+                r.light_map_total = total
+        frames = [r.render(s, views, frame) for r, s in zip(self.renderers, self.scenes, strict=True)]
+        t = time.perf_counter()
+        orders = view_orders(self.tree, self.scene, views)
+        images, depths = composite_views([f.images for f in frames], [f.depths for f in frames], orders, self.mode)
+        composite_ms = (time.perf_counter() - t) * 1e3
+        reports = [region_report(self.tree, i, s, f.stats) for i, (s, f) in enumerate(zip(self.scenes, frames,
+                                                                                            strict=True))]
+        stats = merged_stats([f.stats for f in frames], reports, {"composite": composite_ms},
+                             {"light_exchange_bytes": light_bytes, "orders": orders,
+                              "wall_ms": (time.perf_counter() - start) * 1e3})
+        return Frame(images, depths, stats, frame, background=self.scene.background, scene_name=self.scene.name)
