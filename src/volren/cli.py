@@ -170,6 +170,10 @@ def build_parser() -> argparse.ArgumentParser:
 def run_render(args: argparse.Namespace, method: str, command: str) -> int:
     """``volren render``/``animate``: on Ray with --workers or --ray-address, else in this process."""
     check_render_args(args, method)  # before the imports of either path
+    if getattr(args, "data_parallel", None) is not None:
+        from volren.distributed.regions import run_data_parallel
+
+        return run_data_parallel(args, method, command)
     if getattr(args, "workers", None) is not None or getattr(args, "ray_address", None) is not None:
         from volren.distributed.engine import run_command_on_ray
 

@@ -112,26 +112,30 @@ def composite_views(images: Sequence[Sequence[np.ndarray]], depths: Sequence[Seq
 
 
 def region_report(tree: RegionTree, index: int, scene: Scene, stats: Stats | None = None,
-                  seconds: float | None = None) -> dict[str, Any]:
-    """stats.json's entry of one region: its box, bricks held and bytes, and its render's pass times."""
+                  load_seconds: float | None = None) -> dict[str, Any]:
+    """stats.json's entry of one region: its box, bricks held and bytes, its load time and its render's pass
+    times."""
     region, grid = tree.regions[index], scene.volumes[0].density
     out: dict[str, Any] = {"index": index, "lo": list(region.lo), "hi": list(region.hi), "bricks": region.bricks,
                            "active_bricks": int(region.weight), "resident_bricks": int(len(grid.pool)),
                            "bytes": int(grid.nbytes)}
     if stats is not None:
         out["times_ms"] = {k: round(v, 3) for k, v in stats.times_ms.items()}
-    if seconds is not None:
-        out["seconds"] = round(seconds, 4)
+    if load_seconds is not None:
+        out["load_seconds"] = round(load_seconds, 4)
     return out
 
 
 def merged_stats(parts: Sequence[Stats], reports: list[dict[str, Any]], times: dict[str, float],
-                 extra: dict[str, Any]) -> Stats:
-    """One frame's stats from its regions': counters summed (the work of every region), pass times the slowest
-    region's (they run side by side) plus the exchange and compositing, ``regions`` and per region its report."""
+                 extra: dict[str, Any], light: Sequence[tuple[dict[str, float], dict[str, int]]] = ()) -> Stats:
+    """One frame's stats from its regions': counters summed (the work of every region, with their light-map passes'
+    ``light``: (times, counters) per region), pass times the slowest region's (they run side by side) plus the
+    exchange and compositing, ``regions`` and per region its report."""
     first = parts[0]
-    counters = {k: sum(p.counters.get(k, 0) for p in parts) for k in first.counters}
-    slowest = {k: max(p.times_ms.get(k, 0.0) for p in parts) for k in {k for p in parts for k in p.times_ms}}
+    counters = {k: sum(p.counters.get(k, 0) for p in parts) + sum(c.get(k, 0) for _, c in light)
+                for k in first.counters}
+    passes = [p.times_ms for p in parts] + [t for t, _ in light]
+    slowest = {k: max(t.get(k, 0.0) for t in passes) for k in {k for t in passes for k in t}}
     info = {**first.info, "regions": len(reports), "region_stats": reports, **extra}
     return Stats(first.device, first.method, {**first.settings, "data_parallel": len(reports)},
                  {**slowest, **times}, counters, info)
@@ -173,5 +177,6 @@ class RegionSet:
                                                                                             strict=True))]
         stats = merged_stats([f.stats for f in frames], reports, {"composite": composite_ms},
                              {"light_exchange_bytes": light_bytes, "orders": orders,
-                              "wall_ms": (time.perf_counter() - start) * 1e3})
+                              "wall_ms": (time.perf_counter() - start) * 1e3},
+                             [r.region_light_stats for r in self.renderers])
         return Frame(images, depths, stats, frame, background=self.scene.background, scene_name=self.scene.name)

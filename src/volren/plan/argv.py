@@ -354,6 +354,9 @@ def add_render_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
                        "with no --workers, one per CPU (GPU on CUDA) the cluster has (default: none)")
         b.add_argument("--gpus-per-worker", type=float, help="CUDA: the GPU share each worker asks, in (0, 1] "
                        "(default 1)")
+        b.add_argument("--data-parallel", type=int, metavar="N", help="split the volume into N >= 1 regions, each "
+                       "loaded, held and rendered by its own Ray actor, and composite their images (dssrm: dvr, mip, "
+                       "iso); with --ray-address on that cluster (default: none, one process holds it all)")
 
 
 

@@ -296,6 +296,8 @@ class LightMapRenderer(Renderer):
         self._light_map = LightMapCache()
         self._peak_of: tuple[DeviceScene, float] | None = None
         """(uploaded scene, 1 / its largest density) for MIP's and MIDA's intensity (`_mode_params`)"""
+        self.region_light_stats: tuple[dict[str, float], dict[str, int]] = ({}, {})
+        """the last `region_light_map`'s pass times and work counters"""
         self.light_map_total: np.ndarray | None = None
         """data-parallel rendering (issue 43): the light map of the whole volume, the sum of every region's
         `region_light_map` (optical depth adds), which this region's marches read; None: its own"""
@@ -317,10 +319,10 @@ class LightMapRenderer(Renderer):
         self._frame_info, self._views = {}, []
         ds = self._upload(scene, clock, self.config.light_grid)
         ds.skip_empty = self.config.skip_empty
-        if not self._light_map.update(ds, self.config.light_samples, clock, self.config.gi.on,
-                                      self.config.reuse_light_map):
-            return None
-        return ds.lightmap.numpy().copy()
+        ran = self._light_map.update(ds, self.config.light_samples, clock, self.config.gi.on,
+                                     self.config.reuse_light_map)
+        self.region_light_stats = (clock.times_ms, clock.counter_values())
+        return ds.lightmap.numpy().copy() if ran else None
 
     def _lighting(self, ds: DeviceScene, clock: PassClock) -> None:
         ds.skip_empty = self.config.skip_empty  # read by this frame's marches (`DeviceScene.medium`)
