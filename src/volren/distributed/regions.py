@@ -84,7 +84,7 @@ class RegionWorker:
         report = region_report(tree, index, self.scene, load_seconds=time.perf_counter() - start)
         budget = getattr(args, "memory_budget", None)
         if budget is not None and report["bytes"] > budget * 2**30:
-            raise VolrenError(f"region {index} of {len(tree.regions)} holds {report['bytes'] / 2**20:.0f} MiB of "
+            raise VolrenError(f"region {index} of {len(tree.regions)} holds {report['bytes'] / 2**20:.1f} MiB of "
                               f"bricks, above --memory-budget {budget:g} GiB: give more --data-parallel regions")
         return report
 
@@ -326,7 +326,7 @@ def run_data_parallel(args: Any, method: str, command: str) -> int:
 
     def said(report: dict[str, Any]) -> None:
         print(f"  region {report['index']}: bricks {report['lo']}..{report['hi']}, {report['resident_bricks']} "
-              f"resident, {report['bytes'] / 2**20:.1f} MiB, loaded in {report['seconds']:.1f} s", file=sys.stderr)
+              f"resident, {report['bytes'] / 2**20:.1f} MiB, loaded in {report['load_seconds']:.1f} s", file=sys.stderr)
 
     plan.value_mapping["regions"] = n  # stats.json's, beside the scene and the command
     with RegionEngine(RenderSpec.from_args(args, command), plan.scene, n, address=args.ray_address,

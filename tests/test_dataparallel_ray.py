@@ -1,0 +1,135 @@
+"""Data-parallel rendering on Ray (issue 43): `volren render --data-parallel N` and `RegionEngine` against the
+one-process render of the same file, a killed region actor, the driver's bytes, and the refusals."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+
+import numpy as np
+import pytest
+
+import volren.cli as cli
+from volren.metrics import psnr
+
+pytestmark = [pytest.mark.xdist_group("ray"), pytest.mark.timeout(240)]
+
+LIGHT = ["--light-dir", "0.6,-0.7,0.4"]
+
+
+@pytest.fixture(scope="module")
+def ball(tmp_path_factory):
+    """A 64^3 noisy ball (4^3 bricks) in a .npy file."""
+    n = 64
+    rng = np.random.default_rng(0)
+    z, y, x = np.mgrid[0:n, 0:n, 0:n] / (n - 1) * 2 - 1
+    d = np.clip(1 - np.sqrt(x**2 + y**2 + z**2) / 0.9, 0, None) * (0.5 + rng.random((n, n, n)))
+    path = tmp_path_factory.mktemp("dp") / "ball.npy"
+    np.save(path, d.astype(np.float32))
+    return path
+
+
+def render(path, out, *extra):
+    argv = ["render", "--volume", str(path), "--width", "48", "--height", "32", "--views", "stereo", "--device",
+            "cpu", "--save-linear", *LIGHT, *extra, "--out", str(out)]
+    assert cli.main(argv) == 0
+    return [np.load(out / f"view{v}.npy") for v in (0, 1)]
+
+
+@pytest.fixture(scope="module")
+def one_process(ball, tmp_path_factory):
+    out = tmp_path_factory.mktemp("one")
+    return {mode: render(ball, out / mode, "--mode", mode, *(["--iso-value", "0.4"] if mode == "iso" else []))
+            for mode in ("dvr", "mip", "iso")}
+
+
+@pytest.mark.parametrize("mode", ["dvr", "mip", "iso"])
+def test_three_region_actors_render_the_one_process_picture(ray_cluster, ball, one_process, tmp_path, mode):
+    iso = ["--iso-value", "0.4"] if mode == "iso" else []
+    images = render(ball, tmp_path / "dp", "--mode", mode, *iso, "--data-parallel", "3")
+    for got, want in zip(images, one_process[mode], strict=True):
+        assert want[..., 3].max() > 0.5  # the ball is in the picture
+        if mode == "dvr":
+            assert psnr(want[..., :3], got[..., :3]) >= 50 and np.abs(got - want).max() < 2e-3
+        else:
+            np.testing.assert_array_equal(got, want)
+    doc = json.loads((tmp_path / "dp" / "stats.json").read_text())
+    assert doc["regions"] == 3
+    info = doc["frames"][0]["info"]
+    assert info["regions"] == 3 and info["compositing"] == "direct-send"
+    held = [r["bytes"] for r in info["region_stats"]]
+    assert sum(r["bricks"] for r in info["region_stats"]) == 4**3  # the regions tile the bricks
+    # no actor holds the whole volume's bricks (iso holds a ring of one brick more, read by its crossing search)
+    assert max(held) < (1.0 if mode == "iso" else 0.6) * (4**3 * 17**3 * 4)
+
+
+def test_a_killed_region_actor_is_replaced_and_the_frame_redone(ray_cluster, ball, one_process):
+    from volren.distributed.regions import RegionEngine
+    from volren.plan import plan_render
+    from volren.plan.spec import RenderSpec
+
+    spec = RenderSpec.parse(["render", "--volume", str(ball), "--width", "48", "--height", "32", "--views", "stereo",
+                             "--device", "cpu", *LIGHT])
+    plan = plan_render(spec.namespace(), "dssrm")
+    with RegionEngine(spec, plan.scene, 2) as engine:
+        first = engine.render(plan.views, 0)
+        os.kill(engine.pids()[1], signal.SIGKILL)
+        again = engine.render(plan.views, 0)
+        assert again.stats.info["replaced"] == 1
+    for a, b, want in zip(first.images, again.images, one_process["dvr"], strict=True):
+        np.testing.assert_array_equal(a, b)
+        assert psnr(want[..., :3], b[..., :3]) >= 50
+
+
+def test_direct_send_brings_the_driver_one_image_and_gather_n(ray_cluster, ball):
+    from volren.distributed.regions import RegionEngine
+    from volren.plan import plan_render
+    from volren.plan.spec import RenderSpec
+
+    spec = RenderSpec.parse(["render", "--volume", str(ball), "--width", "48", "--height", "32", "--views", "mono",
+                             "--device", "cpu", "--mode", "mip"])
+    plan = plan_render(spec.namespace(), "dssrm")
+    image_bytes = 48 * 32 * (16 + 4)  # RGBA and depth, float32
+    frames = {}
+    for how in ("direct-send", "gather"):
+        with RegionEngine(spec, plan.scene, 2, compositing=how) as engine:
+            frames[how] = engine.render(plan.views, 0)
+    assert frames["direct-send"].stats.info["driver_bytes"] == image_bytes
+    assert frames["gather"].stats.info["driver_bytes"] == 2 * image_bytes
+    np.testing.assert_array_equal(frames["direct-send"].images[0], frames["gather"].images[0])
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--method", "cmsrm"], "--data-parallel renders with dssrm only"),
+    (["--mode", "mida"], "mode mida's running maximum"),
+    (["--data-parallel", "0"], "--data-parallel must be >= 1"),
+    (["--workers", "2"], "give one of them"),
+])
+def test_what_does_not_split_is_refused_in_one_line(ball, tmp_path, capsys, extra, message):
+    argv = ["render", "--volume", str(ball), "--width", "8", "--height", "8", "--device", "cpu", "--data-parallel",
+            "2", *extra, "--out", str(tmp_path / "o")]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert any(message in line for line in err), err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_pyramid_over_the_budget_renders_from_its_finest_bricks_read_per_region(ray_cluster, tmp_path, capsys):
+    """The driver streams the pyramid (its coarsest level in memory); each actor reads its region's level-0 bricks
+    from the store: the picture is the dense finest level's, and a region over the budget is refused."""
+    from tests.test_stream_render import write_pyramid
+
+    write_pyramid(tmp_path / "p.zarr", levels=3)
+    base = ["render", "--volume", str(tmp_path / "p.zarr"), "--width", "48", "--height", "32", "--device", "cpu",
+            "--save-linear", *LIGHT, "--views", "mono"]
+    assert cli.main([*base, "--level", "0", "--out", str(tmp_path / "dense")]) == 0
+    # level 0 is 1 MiB of float32 densities, over the 0.6 MiB budget: streamed, each of 2 regions holds 0.6 MiB
+    assert cli.main([*base, "--memory-budget", "0.0006", "--data-parallel", "2", "--out", str(tmp_path / "dp")]) == 0
+    want, got = np.load(tmp_path / "dense" / "view0.npy"), np.load(tmp_path / "dp" / "view0.npy")
+    assert want[..., 3].max() > 0.5 and np.abs(got - want).max() < 1e-5
+    capsys.readouterr()
+    assert cli.main([*base, "--memory-budget", "0.0004", "--data-parallel", "2", "--out", str(tmp_path / "o")]) == 2
+    assert "region 0 of 2 holds 0.6 MiB of bricks, above --memory-budget" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
