@@ -65,14 +65,14 @@ def test_three_region_actors_render_the_one_process_picture(ray_cluster, ball, o
 
 
 def test_a_killed_region_actor_is_replaced_and_the_frame_redone(ray_cluster, ball, one_process):
-    from volren.distributed.regions import RegionEngine
+    from volren.distributed.regions import PlannedScene, RegionEngine
     from volren.plan import plan_render
     from volren.plan.spec import RenderSpec
 
     spec = RenderSpec.parse(["render", "--volume", str(ball), "--width", "48", "--height", "32", "--views", "stereo",
                              "--device", "cpu", *LIGHT])
     plan = plan_render(spec.namespace(), "dssrm")
-    with RegionEngine(spec, plan.scene, 2) as engine:
+    with RegionEngine(PlannedScene(spec), plan.scene, 2, plan.renderer) as engine:
         first = engine.render(plan.views, 0)
         os.kill(engine.pids()[1], signal.SIGKILL)
         again = engine.render(plan.views, 0)
@@ -83,7 +83,7 @@ def test_a_killed_region_actor_is_replaced_and_the_frame_redone(ray_cluster, bal
 
 
 def test_direct_send_brings_the_driver_one_image_and_gather_n(ray_cluster, ball):
-    from volren.distributed.regions import RegionEngine
+    from volren.distributed.regions import PlannedScene, RegionEngine
     from volren.plan import plan_render
     from volren.plan.spec import RenderSpec
 
@@ -93,7 +93,7 @@ def test_direct_send_brings_the_driver_one_image_and_gather_n(ray_cluster, ball)
     image_bytes = 48 * 32 * (16 + 4)  # RGBA and depth, float32
     frames = {}
     for how in ("direct-send", "gather"):
-        with RegionEngine(spec, plan.scene, 2, compositing=how) as engine:
+        with RegionEngine(PlannedScene(spec), plan.scene, 2, plan.renderer, compositing=how) as engine:
             frames[how] = engine.render(plan.views, 0)
     assert frames["direct-send"].stats.info["driver_bytes"] == image_bytes
     assert frames["gather"].stats.info["driver_bytes"] == 2 * image_bytes

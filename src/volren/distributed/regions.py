@@ -20,10 +20,12 @@ and rendered by its own Ray actor (`RegionWorker`), the partial images composite
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import os
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -52,6 +54,24 @@ def cut_strips(images: Sequence[np.ndarray], depths: Sequence[np.ndarray], n: in
     return out
 
 
+@dataclass(frozen=True)
+class PlannedScene:
+    """The scene ``spec`` (a `volren.plan.spec.RenderSpec`) plans, built where it is called: a region actor's whole
+    volume, read there (a streamed pyramid: its metadata and coarsest level) before it keeps its region."""
+
+    spec: Any
+    cwd: str | None = None
+    """the driver's folder, which relative paths name, where this machine has it"""
+
+    def __call__(self) -> Any:
+        from volren.plan import plan_render
+
+        if self.cwd is not None and os.path.isdir(self.cwd):
+            os.chdir(self.cwd)
+        args = self.spec.namespace(max_minutes=0, data_parallel=None)
+        return plan_render(args, args.method).scene
+
+
 class RegionWorker:
     """One region's actor: its part of the volume and its renderer, kept across frames (module docstring). Imports
     no Ray: `RegionEngine` wraps it in ``ray.remote``."""
@@ -61,36 +81,51 @@ class RegionWorker:
             os.environ["VOLREN_CPU_THREADS"] = str(threads)
         self.renderer: Any = None
         self.scene: Any = None
+        self.halo = -1
 
     def pid(self) -> int:
         return os.getpid()
 
-    def open(self, spec: Any, cwd: str | None, tree: Any, index: int) -> dict[str, Any]:
-        """Build the run of ``spec`` and keep region ``index`` of ``tree`` of its volume; returns its report."""
-        from volren.dataparallel.render import check_data_parallel, region_report, region_scene
-        from volren.plan import plan_render
+    def open(self, source: Callable[[], Any], tree: Any, index: int, cls: type, config: Any,
+             device: str) -> dict[str, Any]:
+        """Build the whole scene by ``source()``, keep region ``index`` of ``tree`` of its volume, and a ``cls``
+        renderer of ``config`` on ``device``; returns the region's report (`region_report`)."""
+        from volren.dataparallel.render import region_report
 
         start = time.perf_counter()
-        if cwd is not None and os.path.isdir(cwd):
-            os.chdir(cwd)
-        args = spec.namespace(max_minutes=0, data_parallel=None)
-        plan = plan_render(args, args.method)
-        check_data_parallel(plan.method, plan.renderer.config, plan.scene)
-        self.scene = region_scene(plan.scene, tree, index, plan.renderer.config.mode)
-        for v in plan.scene.volumes:  # the whole pyramid's streamer is not needed: the region is read
+        self.source, self.tree, self.index = source, tree, index
+        self.renderer = cls(config, device=device)
+        self._cut(config.mode)
+        return region_report(tree, index, self.scene, load_seconds=time.perf_counter() - start)
+
+    def _cut(self, mode: str) -> None:
+        """The region of the whole scene as ``mode`` reads it (iso: a ring of bricks more), read afresh from the
+        source when that changes."""
+        from volren.dataparallel.render import check_data_parallel, region_scene
+
+        halo = 1 if mode == "iso" else 0
+        if halo == self.halo:
+            return
+        whole = self.source()
+        check_data_parallel(self.renderer.name, self.renderer.config, whole)
+        lights = self.scene.lights if self.scene is not None else whole.lights
+        self.scene = dataclasses.replace(region_scene(whole, self.tree, self.index, mode), lights=lights)
+        for v in whole.volumes:  # the whole pyramid's streamer is not needed: the region was read
             if getattr(v.density, "streamed", False):
                 v.density.close()
-        self.renderer, self.index = plan.renderer, index
-        report = region_report(tree, index, self.scene, load_seconds=time.perf_counter() - start)
-        budget = getattr(args, "memory_budget", None)
-        if budget is not None and report["bytes"] > budget * 2**30:
-            raise VolrenError(f"region {index} of {len(tree.regions)} holds {report['bytes'] / 2**20:.1f} MiB of "
-                              f"bricks, above --memory-budget {budget:g} GiB: give more --data-parallel regions")
-        return report
+        self.halo = halo
 
-    def light(self, frame: int) -> tuple[np.ndarray | None, tuple]:
+    def _sync(self, config: Any, lights: tuple) -> None:
+        """Render with the driver's ``config`` and ``lights`` (`volren serve`'s settings and light drag)."""
+        self.renderer.config = config
+        self._cut(config.mode)
+        if lights != self.scene.lights:
+            self.scene = dataclasses.replace(self.scene, lights=lights)
+
+    def light(self, frame: int, config: Any, lights: tuple) -> tuple[np.ndarray | None, tuple]:
         """This region's light map when its pass ran (`LightMapRenderer.region_light_map`), else None, and the
         pass's (times, counters)."""
+        self._sync(config, lights)
         return self.renderer.region_light_map(self.scene, frame), self.renderer.region_light_stats
 
     def render(self, frame: int, views: list, total: np.ndarray | None, strips: int) -> tuple:
@@ -121,19 +156,26 @@ def _nbytes(value: Any) -> int:
 
 
 class RegionEngine:
-    """N region actors of the run ``spec`` (a `volren.plan.spec.RenderSpec`) whose planned scene is ``scene``, on a
-    local Ray (``address`` None) or a cluster (module docstring). ``flag`` names the option in errors."""
+    """N region actors rendering ``scene``'s volume as ``renderer`` (its class, config and device) would, each
+    building the whole scene by ``source()`` (a picklable call: `PlannedScene`, `volren.serve`'s file) and keeping
+    its region, on a local Ray (``address`` None) or a cluster (module docstring). ``memory_budget`` [bytes]: the
+    most a region may hold. ``flag`` names the option in errors; ``on_region`` is called with each region's report
+    as it is loaded."""
 
-    def __init__(self, spec: Any, scene: Any, n: int, *, address: str | None = None,
-                 compositing: str = "direct-send", flag: str = "--data-parallel",
+    def __init__(self, source: Callable[[], Any], scene: Any, n: int, renderer: Any, *, address: str | None = None,
+                 compositing: str = "direct-send", flag: str = "--data-parallel", memory_budget: float | None = None,
                  on_region: Callable[[dict[str, Any]], None] | None = None) -> None:
-        from volren.dataparallel.render import split_volume
+        from volren.dataparallel.render import check_data_parallel, split_volume
         from volren.distributed.runtime import connect
 
         if compositing not in COMPOSITING:
             raise VolrenError(f"compositing must be one of {', '.join(COMPOSITING)}, got {compositing!r}")
-        self.spec, self.n, self.compositing, self.flag = spec, n, compositing, flag
-        self.mode = getattr(spec.namespace(), "mode", None) or "dvr"
+        if n < 1:
+            raise VolrenError(f"{flag} must be >= 1 regions, got {n}")
+        check_data_parallel(renderer.name, renderer.config, scene, flag)
+        self.source, self.n, self.compositing, self.flag = source, n, compositing, flag
+        self.cls, self.config, self.device, self.lights = type(renderer), renderer.config, renderer.device, scene.lights
+        self.memory_budget = memory_budget
         self.tree = split_volume(scene, n)
         self.to_local = scene.volumes[0].to_local
         start = time.perf_counter()
@@ -159,11 +201,16 @@ class RegionEngine:
         for i in which:
             self.actors[i] = self._remote.remote(1)
             self._sent[i] = -1
-        refs = {i: self.actors[i].open.remote(self.spec, os.getcwd(), self.tree, i) for i in which}
+            self._partials[i] = None
+        refs = {i: self.actors[i].open.remote(self.source, self.tree, i, self.cls, self.config, self.device)
+                for i in which}
         for i, ref in refs.items():
-            self.reports[i] = self._get(ref)
+            report = self.reports[i] = self._get(ref)
+            if self.memory_budget is not None and report["bytes"] > self.memory_budget:
+                raise VolrenError(f"region {i} of {self.n} holds {report['bytes'] / 2**20:.1f} MiB of bricks, above "
+                                  f"--memory-budget {self.memory_budget / 2**30:g} GiB: give more {self.flag} regions")
             if self.on_region is not None:
-                self.on_region(self.reports[i])
+                self.on_region(report)
 
     def _get(self, ref: Any) -> Any:
         try:
@@ -178,9 +225,16 @@ class RegionEngine:
         """The actors' process ids, region by region (the tests' fault injection)."""
         return self.ray.get([a.pid.remote() for a in self.actors])
 
-    def render(self, views: Sequence[Any], frame: int = 0) -> Any:
-        """Frame ``frame`` of ``views``: every region rendered by its actor and composited (module docstring); an
-        actor that died is replaced and the frame redone."""
+    def render(self, views: Sequence[Any], frame: int = 0, *, config: Any = None, lights: tuple | None = None) -> Any:
+        """Frame ``frame`` of ``views``: every region rendered by its actor and composited (module docstring), with
+        ``config`` and ``lights`` where given (else the last ones); an actor that died is replaced and the frame
+        redone."""
+        if config is not None:
+            from volren.dataparallel.render import check_data_parallel
+
+            check_data_parallel(self.cls.name, config, flag=self.flag)
+            self.config = config
+        self.lights = self.lights if lights is None else tuple(lights)
         for attempt in range(MAX_REDOS + 1):
             try:
                 return self._render(list(views), frame)
@@ -209,7 +263,7 @@ class RegionEngine:
         ray, n = self.ray, self.n
         start = time.perf_counter()
         received = 0
-        lit = ray.get([a.light.remote(frame) for a in self.actors])
+        lit = ray.get([a.light.remote(frame, self.config, self.lights) for a in self.actors])
         partials = [m for m, _ in lit]
         light_start = time.perf_counter()
         changed = [i for i, p in enumerate(partials) if p is not None]
@@ -231,7 +285,7 @@ class RegionEngine:
         orders = view_orders(self.tree, self._scene_stub(), views)
         t = time.perf_counter()
         if self.compositing == "direct-send":
-            done = ray.get([self.actors[k].composite.remote(self.mode, orders, *[o[k + 1] for o in outs])
+            done = ray.get([self.actors[k].composite.remote(self.config.mode, orders, *[o[k + 1] for o in outs])
                             for k in range(n)])
             images = [np.concatenate([d[0][v] for d in done]) for v in range(len(views))]
             depths = [np.concatenate([d[1][v] for d in done]) for v in range(len(views))]
@@ -241,7 +295,7 @@ class RegionEngine:
             parts = ray.get([o[1] for o in outs])
             received += _nbytes(parts)
             c = time.perf_counter()
-            images, depths = composite_views([p[0] for p in parts], [p[1] for p in parts], orders, self.mode)
+            images, depths = composite_views([p[0] for p in parts], [p[1] for p in parts], orders, self.config.mode)
             composite_ms = (time.perf_counter() - c) * 1e3
         metas = ray.get([o[0] for o in outs])
         exchange_ms = (time.perf_counter() - t) * 1e3
@@ -279,16 +333,20 @@ class DataParallelRenderer:
     frame)`` composites the regions' images of the planned scene, so ``volren render`` and ``animate`` write its frames
     as they write an in-process renderer's."""
 
-    def __init__(self, engine: RegionEngine, base: Any) -> None:
-        self.engine, self.base = engine, base
-        self.name, self.config, self.device = base.name, base.config, base.device
+    def __init__(self, engine: RegionEngine) -> None:
+        self.engine = engine
+        self.name, self.config, self.device = engine.cls.name, engine.config, engine.device
         self.on_rows: Callable[[int], None] | None = None
         self.on_bricks: Callable[[int, int], None] | None = None
+        self.stream_wait = True
+
+    def release_views(self) -> None:
+        """Nothing held per view here (`volren serve` calls it when its last viewer leaves)."""
 
     def render(self, scene: Any, views: Sequence[Any], frame: int = 0, *, occluder_depth: Any = None) -> Any:
         if occluder_depth is not None and any(z is not None for z in occluder_depth):
             raise VolrenError(f"{self.engine.flag} takes no depth images (--depth-image)")
-        out = self.engine.render(views, frame)
+        out = self.engine.render(views, frame, config=self.config, lights=scene.lights)
         out.background, out.scene_name = scene.background, scene.name
         if self.on_rows is not None:
             self.on_rows(sum(v.height for v in views))
@@ -329,9 +387,11 @@ def run_data_parallel(args: Any, method: str, command: str) -> int:
               f"resident, {report['bytes'] / 2**20:.1f} MiB, loaded in {report['load_seconds']:.1f} s", file=sys.stderr)
 
     plan.value_mapping["regions"] = n  # stats.json's, beside the scene and the command
-    with RegionEngine(RenderSpec.from_args(args, command), plan.scene, n, address=args.ray_address,
+    budget = getattr(args, "memory_budget", None)
+    with RegionEngine(PlannedScene(RenderSpec.from_args(args, command), os.getcwd()), plan.scene, n, plan.renderer,
+                      address=args.ray_address, memory_budget=None if budget is None else budget * 2**30,
                       on_region=said) as engine:
-        plan.renderer = DataParallelRenderer(engine, plan.renderer)
+        plan.renderer = DataParallelRenderer(engine)
         done = render_plan(plan, command)
     print_summary(method, plan.scene.name, len(plan.views), args.frames, done.wall, done.frames[-1].stats,
                   done.files, done.stats)
