@@ -133,3 +133,43 @@ def test_a_pyramid_over_the_budget_renders_from_its_finest_bricks_read_per_regio
     assert cli.main([*base, "--memory-budget", "0.0004", "--data-parallel", "2", "--out", str(tmp_path / "o")]) == 2
     assert "region 0 of 2 holds 0.6 MiB of bricks, above --memory-budget" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_serve_renders_through_the_regions_with_the_viewers_settings_and_light(ray_cluster, ball):
+    """A render loop over region actors (``serve --data-parallel``): its frames equal an in-process renderer of the
+    loop's config, after a mode switch (iso reads a ring of bricks more: the regions are cut again) and a light
+    drag (the lights travel to the actors, the light map is summed again)."""
+    from volren.distributed.regions import PlannedScene, RegionEngine
+    from volren.plan import plan_render
+    from volren.plan.spec import RenderSpec
+    from volren.render import DSSRM
+    from volren.serve.loop import RenderLoop, with_light
+
+    spec = RenderSpec.parse(["render", "--volume", str(ball), "--width", "40", "--height", "30", "--views", "mono",
+                             "--device", "cpu"])
+    plan = plan_render(spec.namespace(), "dssrm")
+    cam = plan.views[0]
+    with RegionEngine(PlannedScene(spec), plan.scene, 2, plan.renderer) as engine:
+        loop = RenderLoop(plan.scene, "dssrm", device="cpu", data_parallel=engine)
+        assert loop.choices.methods == ("dssrm",) and "mida" not in loop.choices.modes
+        for mode, light in (("dvr", None), ("iso", None), ("dvr", (0.7, -0.5, -0.5))):
+            loop.mode = mode
+            loop.light_dir = light
+            loop._build_renderer()
+            scene = with_light(plan.scene, light)
+            got = loop.renderer.render(scene, [cam], 0).images[0]
+            want = DSSRM(loop._config, device="cpu").render(scene, [cam]).images[0]
+            assert want[..., 3].max() > 0.5
+            # the one-process march stops below the interactive preset's min_transmittance; the regions march on
+            alpha = np.abs(got[..., 3] - want[..., 3]).max()
+            assert psnr(want[..., :3], got[..., :3]) >= 50 and alpha <= loop._config.min_transmittance, (mode, light)
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--shards", "2"], "give one of them"),
+    (["--method", "vpt"], "--data-parallel renders with dssrm only"),
+])
+def test_serve_data_parallel_refusals_are_one_line(ball, capsys, extra, message):
+    assert cli.main(["serve", "--volume", str(ball), "--data-parallel", "2", *extra]) == 2
+    assert message in capsys.readouterr().err

@@ -79,8 +79,11 @@ def add_serve_args(p: argparse.ArgumentParser) -> None:
     s.add_argument("--shards", type=int, help="render on N >= 1 Ray actors, each a render loop for the viewers "
                    "placed on it (a stereo pair whole, viewers of one part of the scene together); a local Ray is "
                    "started (default: none, one render loop in process)")
-    s.add_argument("--ray-address", help="with --shards: run the shards on the Ray cluster at ADDR (host:port, or "
-                   "'auto') (default: a local Ray)")
+    s.add_argument("--data-parallel", type=int, metavar="N", help="--volume FILE split into N >= 1 regions, each "
+                   "held and rendered by its own Ray actor, the images composited (dssrm: modes dvr, mip, iso; a "
+                   "local Ray is started) (default: none, the volume in process)")
+    s.add_argument("--ray-address", help="with --shards or --data-parallel: run the actors on the Ray cluster at "
+                   "ADDR (host:port, or 'auto') (default: a local Ray)")
     add_device(p)
 
 
@@ -96,12 +99,42 @@ def served_file(args: argparse.Namespace) -> dict:
     return {"scene": served.scene, "camera": served.camera, "animate": animate}
 
 
+def data_parallel_engine(args: argparse.Namespace, scene, animate):
+    """``serve --data-parallel N``'s region actors: each reads ``--volume`` itself and keeps its region."""
+    import os
+
+    from volren.distributed.regions import RegionEngine
+    from volren.distributed.runtime import import_ray
+    from volren.plan.served import ServedScene
+    from volren.presets import quality_config
+    from volren.render import DSSRM
+
+    if animate is not None:
+        raise CliError(f"--data-parallel splits one volume: the sequence {args.volume} changes it every frame")
+    import_ray("--data-parallel", local=not args.ray_address)
+    renderer = DSSRM(quality_config("dssrm", args.quality, reuse_light_map=True), device=args.device)
+    return RegionEngine(ServedScene(args, os.getcwd()), scene, args.data_parallel, renderer,
+                        address=args.ray_address)
+
+
 def run_serve(args: argparse.Namespace) -> int:
     # the checks that need no data first: the imports below take seconds
     if not 1 <= args.port <= 65535:
         raise CliError(f"--port must lie in [1, 65535], got {args.port}")
-    if args.ray_address is not None and args.shards is None:
-        raise CliError("--ray-address needs --shards N (the server renders in process without it)")
+    if args.ray_address is not None and args.shards is None and args.data_parallel is None:
+        raise CliError("--ray-address needs --shards N or --data-parallel N (the server renders in process without "
+                       "them)")
+    if args.data_parallel is not None:
+        if args.shards is not None:
+            raise CliError("--data-parallel splits the volume and --shards the viewers: give one of them")
+        if args.data_parallel < 1:
+            raise CliError(f"--data-parallel must be >= 1 regions, got {args.data_parallel}")
+        if args.volume is None:
+            raise CliError("--data-parallel splits the volume of --volume FILE (a built-in scene's smoke is advected "
+                           "every tick)")
+        if args.method not in (None, "dssrm"):
+            raise CliError(f"--data-parallel renders with dssrm only: method {args.method} has cube maps, paths or "
+                           "grids that cross the regions")
     if args.shards is not None and args.shards < 1:
         raise CliError(f"--shards must be at least 1, got {args.shards}")
     check_scene_name(args.scene)
@@ -124,8 +157,11 @@ def run_serve(args: argparse.Namespace) -> int:
                     max_per_client=per_client or min(Limits.max_per_client, args.max_viewers),
                     tick_ms=args.tick_ms or None)
     name = args.scene or DEFAULT_SCENE
+    served = served_file(args)
+    engine = None if args.data_parallel is None else data_parallel_engine(args, served["scene"], served["animate"])
     loop = build_loop(name, args.method, args.quality, args.resolution or DEFAULT_RESOLUTION, args.device, limits,
-                      args.lock_settings, **served_file(args), shards=args.shards, ray_address=args.ray_address)
+                      args.lock_settings, **served, shards=args.shards, ray_address=args.ray_address,
+                      data_parallel=engine)
     name = args.volume.name if args.volume is not None else name
     serve(make_app(loop, name, token, hosts=(args.host, *args.allow_host), origins=tuple(args.allow_origin)),
           args.host, args.port, token, source)

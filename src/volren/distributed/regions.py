@@ -333,9 +333,10 @@ class DataParallelRenderer:
     frame)`` composites the regions' images of the planned scene, so ``volren render`` and ``animate`` write its frames
     as they write an in-process renderer's."""
 
-    def __init__(self, engine: RegionEngine) -> None:
+    def __init__(self, engine: RegionEngine, config: Any = None) -> None:
         self.engine = engine
-        self.name, self.config, self.device = engine.cls.name, engine.config, engine.device
+        self.name, self.device = engine.cls.name, engine.device
+        self.config = engine.config if config is None else config
         self.on_rows: Callable[[int], None] | None = None
         self.on_bricks: Callable[[int, int], None] | None = None
         self.stream_wait = True

@@ -44,3 +44,22 @@ def served_volume(args: argparse.Namespace) -> ServedVolume | None:
     played = volume_sequence(args)
     return ServedVolume(scene, Camera(position=position, look_at=look_at, near=near, far=far), 1 if played is None else
                         len(played), lambda i: dataclasses.replace(scene, volumes=_file_scene(args, i).volumes))
+
+
+@dataclasses.dataclass(frozen=True)
+class ServedScene:
+    """``serve --volume``'s scene, built where it is called (a region actor of ``serve --data-parallel``,
+    `volren.distributed.regions`): picklable, unlike `ServedVolume.scene_at`."""
+
+    args: argparse.Namespace
+    cwd: str | None = None
+
+    def __call__(self) -> Any:
+        import os
+
+        if self.cwd is not None and os.path.isdir(self.cwd):
+            os.chdir(self.cwd)
+        served = served_volume(self.args)
+        if served is None:
+            raise CliError("serve --data-parallel splits the volume of --volume FILE: give one")
+        return served.scene

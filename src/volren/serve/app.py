@@ -553,12 +553,13 @@ async def _serve(app: web.Application, host: str, port: int, ready: str) -> str 
 def build_loop(scene_name: str, method: str | None, quality: str, resolution: int, device: str,
                limits: Limits, lock_settings: bool = False, *, scene: Scene | None = None,
                camera: Camera | None = None, animate: Callable[[], Scene] | None = None, shards: int | None = None,
-               ray_address: str | None = None) -> RenderLoop:
+               ray_address: str | None = None, data_parallel: Any = None) -> RenderLoop:
     """The render loop of a built-in scene: a volume scene at ``resolution`` seen from the CLI's default camera, or
     a fog scene from its own viewpoint; ``method`` None = the first live method that can render it. A ``scene``
     given (a file's, named ``scene_name``) is seen from ``camera`` and played by ``animate`` (None: not animated).
     ``shards``: a `ShardedLoop` of that many Ray actors (on the cluster at ``ray_address``; None: a local one), each
-    building the animation itself."""
+    building the animation itself. ``data_parallel``: a `volren.distributed.regions.RegionEngine` holding the
+    given scene's volume in regions, which the loop renders through."""
     from volren.data import BUILTIN_SCENES, builtin_scene
     from volren.data.fog_scenes import FOG_SCENES, fog_scene, fog_scene_camera
 
@@ -587,7 +588,7 @@ def build_loop(scene_name: str, method: str | None, quality: str, resolution: in
                            animate=animate_in, limits=limits, camera=camera, device=device,
                            lock_settings=lock_settings)
     return RenderLoop(scene, method or scene_methods(scene)[0], quality, limits=limits, camera=camera,
-                      device=device, animate=animate, lock_settings=lock_settings)
+                      device=device, animate=animate, lock_settings=lock_settings, data_parallel=data_parallel)
 
 
 def _given(animate: Callable[[], Scene] | None) -> Callable[[], Scene] | None:

@@ -187,8 +187,12 @@ class RenderLoop:
                  camera: Camera | None = None, device: str = "cpu", shared: bool = True, ipd: float = 0.063,
                  jpeg_quality: int = JPEG_QUALITY, animate: Callable[[], Scene] | None = None,
                  overrides: dict[str, Any] | None = None, refine: int | None = None,
-                 lock_settings: bool = False, encode: Callable[[np.ndarray], bytes] | None = None) -> None:
-        self.methods = scene_methods(scene)
+                 lock_settings: bool = False, encode: Callable[[np.ndarray], bytes] | None = None,
+                 data_parallel: Any = None) -> None:
+        self.data_parallel = data_parallel
+        """a `volren.distributed.regions.RegionEngine` the renderers render through (``serve --data-parallel``:
+        dssrm in modes dvr, mip and iso only), else None"""
+        self.methods = scene_methods(scene) if data_parallel is None else ("dssrm",)
         if method not in self.methods:
             raise VolrenError(f"--method: '{method}' cannot serve scene '{scene.name}': choose from "
                               f"{', '.join(self.methods)}")
@@ -211,7 +215,8 @@ class RenderLoop:
         self._pixels_high = 0
         """[px] the most a tick rendered since the heap was last trimmed"""
         self.limits = limits or Limits()
-        self.choices = Choices(self.methods, QUALITIES, (DENSITY_TF, *PRESETS), MODES)
+        modes = MODES if data_parallel is None else tuple(m for m in MODES if m != "mida")
+        self.choices = Choices(self.methods, QUALITIES, (DENSITY_TF, *PRESETS), modes)
         self.viewers = ViewerSet(self.limits.max_viewers, per_client=self.limits.max_per_client)
         self.time_shares = TimeShares(self.limits)
         self._settings_tick = -1
@@ -290,7 +295,12 @@ class RenderLoop:
     def _make_renderer(self) -> Any:
         """(also from the worker thread, for a new viewer of the naive server: settings may change meanwhile, so
         the class and config are those `_build_renderer` fixed for this tick)"""
-        renderer = self._renderer_cls(self._config, device=self.device)
+        if self.data_parallel is not None:  # the regions' actors keep their renderers; this one sends the config
+            from volren.distributed.regions import DataParallelRenderer
+
+            renderer = DataParallelRenderer(self.data_parallel, self._config)
+        else:
+            renderer = self._renderer_cls(self._config, device=self.device)
         renderer.on_rows = self._check_abandoned  # called once a view's image pass is through
         renderer.stream_wait = False  # a streamed volume's tick draws what is resident; the rest comes meanwhile
         return renderer
