@@ -30,9 +30,9 @@ def ball(tmp_path_factory):
     return path
 
 
-def render(path, out, *extra):
+def render(path, out, *extra, lit: bool = True):
     argv = ["render", "--volume", str(path), "--width", "48", "--height", "32", "--views", "stereo", "--device",
-            "cpu", "--save-linear", *LIGHT, *extra, "--out", str(out)]
+            "cpu", "--save-linear", *(LIGHT if lit else []), *extra, "--out", str(out)]
     assert cli.main(argv) == 0
     return [np.load(out / f"view{v}.npy") for v in (0, 1)]
 
@@ -173,3 +173,22 @@ def test_serve_renders_through_the_regions_with_the_viewers_settings_and_light(r
 def test_serve_data_parallel_refusals_are_one_line(ball, capsys, extra, message):
     assert cli.main(["serve", "--volume", str(ball), "--data-parallel", "2", *extra]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_multi_channel_file_splits_each_channel_alike(ray_cluster, tmp_path):
+    """Two channels of one grid (green and magenta by default): each region holds both, each channel composited over
+    the regions, then tinted (MIP) and added as the one-process render adds them."""
+    n = 48
+    z, y, x = np.mgrid[0:n, 0:n, 0:n] / (n - 1) * 2 - 1
+    blobs = [np.exp(-((x - c) ** 2 + y**2 + z**2) / 0.1) for c in (0.4, -0.4)]
+    path = tmp_path / "two.npy"
+    np.save(path, np.stack(blobs).astype(np.float32))
+    for mode in ("dvr", "mip"):
+        want = render(path, tmp_path / f"one-{mode}", "--mode", mode, lit=False)[0]
+        got = render(path, tmp_path / f"dp-{mode}", "--mode", mode, "--data-parallel", "2", lit=False)[0]
+        right, left = want[16, 30], want[16, 18]  # the +x blob (channel 0, green), the -x one (1, magenta)
+        assert right[1] > 0.3 > right[0] and left[0] > 0.3 > left[1]
+        if mode == "mip":
+            np.testing.assert_array_equal(got, want)
+        else:
+            assert np.abs(got - want).max() < 1e-4

@@ -40,6 +40,7 @@ from volren.dataparallel.order import visibility_order
 from volren.dataparallel.regions import RegionTree, split_regions
 from volren.dataparallel.volume import brick_weights, region_volume
 from volren.errors import VolrenError
+from volren.render.compositing.channels import add_channel_images, channel_color, tint_mip
 from volren.render.frame import Frame, Stats
 from volren.scene import Scene
 from volren.sparse.grid import BRICK
@@ -49,8 +50,10 @@ METHODS = ("dssrm",)
 MODES = ("dvr", "mip", "iso")
 
 
-def check_data_parallel(method: str, config: Any, scene: Scene | None = None, flag: str = "--data-parallel") -> None:
-    """Refuse in one line what does not split into regions (module docstring)."""
+def check_data_parallel(method: str, config: Any, scene: Scene | None = None, flag: str = "--data-parallel",
+                        channels: bool = False) -> None:
+    """Refuse in one line what does not split into regions (module docstring). ``channels``: the scene's volumes are
+    a multi-channel file's (`volren.render.compositing.channels`), one grid at one placement, split alike."""
     if method not in METHODS:
         raise VolrenError(f"{flag} renders with {', '.join(METHODS)} only: method {method} has cube maps, paths or "
                           "grids that cross the regions")
@@ -62,26 +65,35 @@ def check_data_parallel(method: str, config: Any, scene: Scene | None = None, fl
         raise VolrenError(f"{flag} does not split ambient GI's SH grid across regions: leave --gi off")
     if scene is None:
         return
-    if len(scene.volumes) != 1:
-        raise VolrenError(f"{flag} splits one volume into regions; scene '{scene.name}' has {len(scene.volumes)}")
+    volumes = scene.volumes
+    if not channels and len(volumes) != 1:
+        raise VolrenError(f"{flag} splits one volume into regions; scene '{scene.name}' has {len(volumes)}")
+    if any(v.density.shape != volumes[0].density.shape or not np.array_equal(v.to_world, volumes[0].to_world)
+           for v in volumes):
+        raise VolrenError(f"{flag} splits channels of one grid at one placement; scene '{scene.name}'s differ")
     if scene.opaque or scene.fog is not None:
         raise VolrenError(f"{flag} renders a volume alone: scene '{scene.name}' has meshes or fog")
 
 
 def split_volume(scene: Scene, n: int, brick: int = BRICK) -> RegionTree:
-    """The k-d tree of ``n`` regions of the scene's volume, balanced by its active bricks (`brick_weights`)."""
+    """The k-d tree of ``n`` regions of the scene's volume (its channels': one grid), balanced by the bricks active
+    in any of them (`brick_weights`)."""
     density = scene.volumes[0].density
-    weights = brick_weights(density, brick)
+    weights = np.sum([brick_weights(v.density, brick) for v in scene.volumes], axis=0) > 0
     if not weights.any():
-        weights = np.ones_like(weights)  # nothing active: halve geometrically
-    return split_regions(weights, n, shape=tuple(int(s) for s in density.shape), brick=brick)
+        weights[...] = True  # nothing active: halve geometrically
+    return split_regions(weights.astype(np.float64), n, shape=tuple(int(s) for s in density.shape), brick=brick)
 
 
-def region_scene(scene: Scene, tree: RegionTree, index: int, mode: str) -> Scene:
-    """The scene region ``index`` renders: its volume cut to the region (`region_volume`; iso holds one brick around
-    it for the crossing search and the gradient)."""
+def region_scenes(scene: Scene, tree: RegionTree, index: int, mode: str, channels: bool = False) -> list[Scene]:
+    """The scenes region ``index`` renders: the scene with its volume cut to the region (`region_volume`; iso holds
+    one brick around it for the crossing search and the gradient), or with ``channels`` one scene per channel, as
+    `volren.render.compositing.channels.AdditiveChannels` renders them."""
     halo = 1 if mode == "iso" else 0
-    return replace(scene, volumes=(region_volume(scene.volumes[0], tree.regions[index], tree, halo),))
+    cut = [region_volume(v, tree.regions[index], tree, halo) for v in scene.volumes]
+    if not channels:
+        return [replace(scene, volumes=(cut[0],))]
+    return [replace(scene, volumes=(v,), name=f"{scene.name}[c{c}]") for c, v in enumerate(cut)]
 
 
 def view_orders(tree: RegionTree, scene: Scene, views: Sequence[Camera]) -> list[list[int]]:
@@ -111,14 +123,38 @@ def composite_views(images: Sequence[Sequence[np.ndarray]], depths: Sequence[Seq
     return out_images, out_depths
 
 
-def region_report(tree: RegionTree, index: int, scene: Scene, stats: Stats | None = None,
+def composite_channels(images: Sequence[Sequence[Sequence[np.ndarray]]],
+                       depths: Sequence[Sequence[Sequence[np.ndarray]]], orders: Sequence[Sequence[int]], mode: str,
+                       colors: Sequence[np.ndarray] | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per view the composited image and depth of the regions' partial ones per channel (``images[r][c][v]``):
+    each channel composited over its regions (`composite_views`), then, with ``colors`` (a multi-channel scene's),
+    MIP tinted and the channels added as `AdditiveChannels` adds them."""
+    per_channel = [composite_views([im[c] for im in images], [d[c] for d in depths], orders, mode)
+                   for c in range(len(images[0]))]
+    if colors is None:
+        return per_channel[0]
+    out_images, out_depths = [], []
+    for v in range(len(orders)):
+        rgba = [tint_mip(ims[v], colors[c]) if mode == "mip" else ims[v] for c, (ims, _) in enumerate(per_channel)]
+        image, depth = add_channel_images(rgba, [ds[v] for _, ds in per_channel])
+        out_images.append(image)
+        out_depths.append(depth)
+    return out_images, out_depths
+
+
+def channel_colors(scene: Scene, channels: bool) -> list[np.ndarray] | None:
+    """The channels' colours (`channel_color`) for `composite_channels`; None for one volume."""
+    return [channel_color(v) for v in scene.volumes] if channels else None
+
+
+def region_report(tree: RegionTree, index: int, scenes: Sequence[Scene], stats: Stats | None = None,
                   load_seconds: float | None = None) -> dict[str, Any]:
-    """stats.json's entry of one region: its box, bricks held and bytes, its load time and its render's pass
-    times."""
-    region, grid = tree.regions[index], scene.volumes[0].density
+    """stats.json's entry of one region: its box, bricks held (every channel's) and bytes, its load time and its
+    render's pass times."""
+    region, grids = tree.regions[index], [s.volumes[0].density for s in scenes]
     out: dict[str, Any] = {"index": index, "lo": list(region.lo), "hi": list(region.hi), "bricks": region.bricks,
-                           "active_bricks": int(region.weight), "resident_bricks": int(len(grid.pool)),
-                           "bytes": int(grid.nbytes)}
+                           "active_bricks": int(region.weight), "resident_bricks": sum(len(g.pool) for g in grids),
+                           "bytes": sum(int(g.nbytes) for g in grids)}
     if stats is not None:
         out["times_ms"] = {k: round(v, 3) for k, v in stats.times_ms.items()}
     if load_seconds is not None:
@@ -143,40 +179,46 @@ def merged_stats(parts: Sequence[Stats], reports: list[dict[str, Any]], times: d
 
 @dataclass
 class RegionSet:
-    """N regions of one scene's volume rendered in this process, one renderer each, composited sort-last (module
-    docstring). ``make_renderer()`` builds one region's renderer (a `volren.render.DSSRM`)."""
+    """N regions of one scene's volume rendered in this process, one renderer each (per channel with ``channels``),
+    composited sort-last (module docstring). ``make_renderer()`` builds one region's renderer (a
+    `volren.render.DSSRM`)."""
 
     scene: Scene
     n: int
     make_renderer: Callable[[], Any]
+    channels: bool = False
 
     def __post_init__(self) -> None:
-        self.renderers = [self.make_renderer() for _ in range(self.n)]
-        first = self.renderers[0]
-        check_data_parallel(first.name, first.config, self.scene)
+        count = len(self.scene.volumes) if self.channels else 1
+        self.renderers = [[self.make_renderer() for _ in range(count)] for _ in range(self.n)]
+        first = self.renderers[0][0]
+        check_data_parallel(first.name, first.config, self.scene, channels=self.channels)
         self.mode = first.config.mode
         self.tree = split_volume(self.scene, self.n)
-        self.scenes = [region_scene(self.scene, self.tree, i, self.mode) for i in range(self.n)]
+        self.scenes = [region_scenes(self.scene, self.tree, i, self.mode, self.channels) for i in range(self.n)]
 
     def render(self, views: Sequence[Camera], frame: int = 0) -> Frame:
         views = list(views)
         start = time.perf_counter()
-        partials = [r.region_light_map(s, frame) for r, s in zip(self.renderers, self.scenes, strict=True)]
-        light_bytes = 0
-        if any(p is not None for p in partials):
-            total = np.sum([p for p in partials if p is not None], axis=0, dtype=np.float32)
-            light_bytes = sum(p.nbytes for p in partials if p is not None)
-            for r in self.renderers:
-                r.light_map_total = total
-        frames = [r.render(s, views, frame) for r, s in zip(self.renderers, self.scenes, strict=True)]
+        pairs = [list(zip(rs, ss, strict=True)) for rs, ss in zip(self.renderers, self.scenes, strict=True)]
+        partials = [[r.region_light_map(s, frame) for r, s in region] for region in pairs]
+        light_bytes = sum(p.nbytes for region in partials for p in region if p is not None)
+        for c in range(len(pairs[0])):
+            if any(region[c] is not None for region in partials):
+                total = np.sum([region[c] for region in partials], axis=0, dtype=np.float32)
+                for region in pairs:
+                    region[c][0].light_map_total = total
+        frames = [[r.render(s, views, frame) for r, s in region] for region in pairs]
         t = time.perf_counter()
         orders = view_orders(self.tree, self.scene, views)
-        images, depths = composite_views([f.images for f in frames], [f.depths for f in frames], orders, self.mode)
+        images, depths = composite_channels([[f.images for f in fs] for fs in frames],
+                                            [[f.depths for f in fs] for fs in frames], orders, self.mode,
+                                            channel_colors(self.scene, self.channels))
         composite_ms = (time.perf_counter() - t) * 1e3
-        reports = [region_report(self.tree, i, s, f.stats) for i, (s, f) in enumerate(zip(self.scenes, frames,
-                                                                                            strict=True))]
-        stats = merged_stats([f.stats for f in frames], reports, {"composite": composite_ms},
+        reports = [region_report(self.tree, i, ss, fs[0].stats) for i, (ss, fs) in enumerate(zip(self.scenes, frames,
+                                                                                                strict=True))]
+        stats = merged_stats([f.stats for fs in frames for f in fs], reports, {"composite": composite_ms},
                              {"light_exchange_bytes": light_bytes, "orders": orders,
                               "wall_ms": (time.perf_counter() - start) * 1e3},
-                             [r.region_light_stats for r in self.renderers])
+                             [r.region_light_stats for rs in self.renderers for r in rs])
         return Frame(images, depths, stats, frame, background=self.scene.background, scene_name=self.scene.name)

@@ -79,37 +79,40 @@ class RegionWorker:
     def __init__(self, threads: int | None = None) -> None:
         if threads is not None:
             os.environ["VOLREN_CPU_THREADS"] = str(threads)
-        self.renderer: Any = None
-        self.scene: Any = None
+        self.renderers: list[Any] = []
+        self.scenes: list[Any] = []
         self.halo = -1
 
     def pid(self) -> int:
         return os.getpid()
 
-    def open(self, source: Callable[[], Any], tree: Any, index: int, cls: type, config: Any,
-             device: str) -> dict[str, Any]:
-        """Build the whole scene by ``source()``, keep region ``index`` of ``tree`` of its volume, and a ``cls``
-        renderer of ``config`` on ``device``; returns the region's report (`region_report`)."""
+    def open(self, source: Callable[[], Any], tree: Any, index: int, cls: type, config: Any, device: str,
+             channels: int = 0) -> dict[str, Any]:
+        """Build the whole scene by ``source()``, keep region ``index`` of ``tree`` of its volume (of each of its
+        ``channels``, 0: one volume), and a ``cls`` renderer of ``config`` on ``device`` per channel; returns the
+        region's report (`region_report`)."""
         from volren.dataparallel.render import region_report
 
         start = time.perf_counter()
-        self.source, self.tree, self.index = source, tree, index
-        self.renderer = cls(config, device=device)
+        self.source, self.tree, self.index, self.channels = source, tree, index, channels
+        self.renderers = [cls(config, device=device) for _ in range(max(channels, 1))]
         self._cut(config.mode)
-        return region_report(tree, index, self.scene, load_seconds=time.perf_counter() - start)
+        return region_report(tree, index, self.scenes, load_seconds=time.perf_counter() - start)
 
     def _cut(self, mode: str) -> None:
         """The region of the whole scene as ``mode`` reads it (iso: a ring of bricks more), read afresh from the
         source when that changes."""
-        from volren.dataparallel.render import check_data_parallel, region_scene
+        from volren.dataparallel.render import check_data_parallel, region_scenes
 
         halo = 1 if mode == "iso" else 0
         if halo == self.halo:
             return
         whole = self.source()
-        check_data_parallel(self.renderer.name, self.renderer.config, whole)
-        lights = self.scene.lights if self.scene is not None else whole.lights
-        self.scene = dataclasses.replace(region_scene(whole, self.tree, self.index, mode), lights=lights)
+        first = self.renderers[0]
+        check_data_parallel(first.name, first.config, whole, channels=self.channels > 0)
+        lights = self.scenes[0].lights if self.scenes else whole.lights
+        self.scenes = [dataclasses.replace(s, lights=lights)
+                       for s in region_scenes(whole, self.tree, self.index, mode, self.channels > 0)]
         for v in whole.volumes:  # the whole pyramid's streamer is not needed: the region was read
             if getattr(v.density, "streamed", False):
                 v.density.close()
@@ -117,33 +120,41 @@ class RegionWorker:
 
     def _sync(self, config: Any, lights: tuple) -> None:
         """Render with the driver's ``config`` and ``lights`` (`volren serve`'s settings and light drag)."""
-        self.renderer.config = config
+        for r in self.renderers:
+            r.config = config
         self._cut(config.mode)
-        if lights != self.scene.lights:
-            self.scene = dataclasses.replace(self.scene, lights=lights)
+        if lights != self.scenes[0].lights:
+            self.scenes = [dataclasses.replace(s, lights=lights) for s in self.scenes]
 
-    def light(self, frame: int, config: Any, lights: tuple) -> tuple[np.ndarray | None, tuple]:
-        """This region's light map when its pass ran (`LightMapRenderer.region_light_map`), else None, and the
-        pass's (times, counters)."""
+    def light(self, frame: int, config: Any, lights: tuple) -> tuple[list, list]:
+        """Per channel this region's light map when its pass ran (`LightMapRenderer.region_light_map`), else None,
+        and the passes' (times, counters)."""
         self._sync(config, lights)
-        return self.renderer.region_light_map(self.scene, frame), self.renderer.region_light_stats
+        maps = [r.region_light_map(s, frame) for r, s in zip(self.renderers, self.scenes, strict=True)]
+        return maps, [r.region_light_stats for r in self.renderers]
 
-    def render(self, frame: int, views: list, total: np.ndarray | None, strips: int) -> tuple:
-        """Render the region's partial images of ``views`` (``total``: the summed light map when it changed, else
-        None) and return (its stats and seconds, then ``strips`` strips of rows, `cut_strips`)."""
+    def render(self, frame: int, views: list, totals: list | None, strips: int) -> tuple:
+        """Render the region's partial images of ``views`` per channel (``totals``: the summed light maps when they
+        changed, else None) and return (its stats and seconds, then ``strips`` strips of rows: per strip (images,
+        depths), each per channel and view, `cut_strips`)."""
         start = time.perf_counter()
-        if total is not None:
-            self.renderer.light_map_total = total
-        f = self.renderer.render(self.scene, views, frame)
-        meta = {"stats": f.stats, "seconds": time.perf_counter() - start}
-        return (meta, *cut_strips(f.images, f.depths, strips))
+        frames = []
+        for c, (r, s) in enumerate(zip(self.renderers, self.scenes, strict=True)):
+            if totals is not None and totals[c] is not None:
+                r.light_map_total = totals[c]
+            frames.append(r.render(s, views, frame))
+        meta = {"stats": [f.stats for f in frames], "seconds": time.perf_counter() - start}
+        cut = [cut_strips(f.images, f.depths, strips) for f in frames]
+        return (meta, *[([c[k][0] for c in cut], [c[k][1] for c in cut]) for k in range(strips)])
 
-    def composite(self, mode: str, orders: list, *parts: tuple[list, list]) -> tuple[list, list, float]:
-        """Composite one strip of every region's partial images (``parts[r]``: region r's) in ``orders``."""
-        from volren.dataparallel.render import composite_views
+    def composite(self, mode: str, orders: list, colors: list | None, *parts: tuple[list, list]
+                  ) -> tuple[list, list, float]:
+        """Composite one strip of every region's partial images (``parts[r]``: region r's) in ``orders``, the
+        channels added in ``colors`` (`composite_channels`)."""
+        from volren.dataparallel.render import composite_channels
 
         start = time.perf_counter()
-        images, depths = composite_views([p[0] for p in parts], [p[1] for p in parts], orders, mode)
+        images, depths = composite_channels([p[0] for p in parts], [p[1] for p in parts], orders, mode, colors)
         return images, depths, (time.perf_counter() - start) * 1e3
 
 
@@ -172,9 +183,15 @@ class RegionEngine:
             raise VolrenError(f"compositing must be one of {', '.join(COMPOSITING)}, got {compositing!r}")
         if n < 1:
             raise VolrenError(f"{flag} must be >= 1 regions, got {n}")
-        check_data_parallel(renderer.name, renderer.config, scene, flag)
+        from volren.dataparallel.render import channel_colors
+
+        # a multi-channel file's renderer (`AdditiveChannels`) renders each channel by a renderer of its own
+        self.channels = len(getattr(renderer, "renderers", ()))
+        base = renderer.renderers[0] if self.channels else renderer
+        check_data_parallel(base.name, base.config, scene, flag, channels=self.channels > 0)
         self.source, self.n, self.compositing, self.flag = source, n, compositing, flag
-        self.cls, self.config, self.device, self.lights = type(renderer), renderer.config, renderer.device, scene.lights
+        self.cls, self.config, self.device, self.lights = type(base), base.config, base.device, scene.lights
+        self.colors = channel_colors(scene, self.channels > 0)
         self.memory_budget = memory_budget
         self.tree = split_volume(scene, n)
         self.to_local = scene.volumes[0].to_local
@@ -186,7 +203,8 @@ class RegionEngine:
         self.ray_start_seconds = time.perf_counter() - start
         self.actors: list[Any] = [None] * n
         self.reports: list[dict[str, Any]] = [{}] * n
-        self._partials: list[np.ndarray | None] = [None] * n
+        self._partials: list[list | None] = [None] * n
+        """per region, per channel its last light map (`RegionWorker.light`)"""
         self._total: Any = None
         self._version, self._sent = 0, [-1] * n
         self.replaced = 0
@@ -202,8 +220,8 @@ class RegionEngine:
             self.actors[i] = self._remote.remote(1)
             self._sent[i] = -1
             self._partials[i] = None
-        refs = {i: self.actors[i].open.remote(self.source, self.tree, i, self.cls, self.config, self.device)
-                for i in which}
+        refs = {i: self.actors[i].open.remote(self.source, self.tree, i, self.cls, self.config, self.device,
+                                              self.channels) for i in which}
         for i, ref in refs.items():
             report = self.reports[i] = self._get(ref)
             if self.memory_budget is not None and report["bytes"] > self.memory_budget:
@@ -257,23 +275,24 @@ class RegionEngine:
         self._open(dead)
 
     def _render(self, views: list, frame: int) -> Any:
-        from volren.dataparallel.render import composite_views, merged_stats, view_orders
+        from volren.dataparallel.render import composite_channels, merged_stats, view_orders
         from volren.render.frame import Frame
 
         ray, n = self.ray, self.n
         start = time.perf_counter()
         received = 0
         lit = ray.get([a.light.remote(frame, self.config, self.lights) for a in self.actors])
-        partials = [m for m, _ in lit]
         light_start = time.perf_counter()
-        changed = [i for i, p in enumerate(partials) if p is not None]
+        changed = [i for i, (maps, _) in enumerate(lit) if any(m is not None for m in maps)]
         for i in changed:
-            self._partials[i] = partials[i]
-            received += partials[i].nbytes
-        if changed and all(p is not None for p in self._partials):
-            self._total = ray.put(np.sum(self._partials, axis=0, dtype=np.float32))
+            maps, old = lit[i][0], self._partials[i] or [None] * len(lit[i][0])
+            self._partials[i] = [m if m is not None else o for m, o in zip(maps, old, strict=True)]
+            received += sum(m.nbytes for m in maps if m is not None)
+        if changed and all(p is not None and all(m is not None for m in p) for p in self._partials):
+            self._total = ray.put([np.sum([p[c] for p in self._partials], axis=0, dtype=np.float32)
+                                   for c in range(len(self._partials[0]))])
             self._version += 1
-        light_ms = (time.perf_counter() - light_start) * 1e3
+        light_ms, light_bytes = (time.perf_counter() - light_start) * 1e3, received
         totals = []
         for i in range(n):
             fresh = self._total is not None and self._sent[i] != self._version
@@ -285,8 +304,8 @@ class RegionEngine:
         orders = view_orders(self.tree, self._scene_stub(), views)
         t = time.perf_counter()
         if self.compositing == "direct-send":
-            done = ray.get([self.actors[k].composite.remote(self.config.mode, orders, *[o[k + 1] for o in outs])
-                            for k in range(n)])
+            done = ray.get([self.actors[k].composite.remote(self.config.mode, orders, self.colors,
+                                                            *[o[k + 1] for o in outs]) for k in range(n)])
             images = [np.concatenate([d[0][v] for d in done]) for v in range(len(views))]
             depths = [np.concatenate([d[1][v] for d in done]) for v in range(len(views))]
             received += _nbytes([d[:2] for d in done])
@@ -295,18 +314,18 @@ class RegionEngine:
             parts = ray.get([o[1] for o in outs])
             received += _nbytes(parts)
             c = time.perf_counter()
-            images, depths = composite_views([p[0] for p in parts], [p[1] for p in parts], orders, self.config.mode)
+            images, depths = composite_channels([p[0] for p in parts], [p[1] for p in parts], orders,
+                                                self.config.mode, self.colors)
             composite_ms = (time.perf_counter() - c) * 1e3
         metas = ray.get([o[0] for o in outs])
         exchange_ms = (time.perf_counter() - t) * 1e3
-        reports = [{**r, "times_ms": {k: round(v, 3) for k, v in m["stats"].times_ms.items()},
+        reports = [{**r, "times_ms": {k: round(v, 3) for k, v in m["stats"][0].times_ms.items()},
                     "seconds": round(m["seconds"], 4)} for r, m in zip(self.reports, metas, strict=True)]
-        stats = merged_stats([m["stats"] for m in metas], reports,
+        stats = merged_stats([s for m in metas for s in m["stats"]], reports,
                              {"light_sum": light_ms, "composite": composite_ms, "render_and_composite": exchange_ms},
                              {"compositing": self.compositing, "driver_bytes": received,
-                              "light_exchange_bytes": sum(self._partials[i].nbytes for i in changed),
-                              "replaced": self.replaced, "orders": orders,
-                              "wall_ms": (time.perf_counter() - start) * 1e3}, [s for _, s in lit])
+                              "light_exchange_bytes": light_bytes, "replaced": self.replaced, "orders": orders,
+                              "wall_ms": (time.perf_counter() - start) * 1e3}, [s for _, ss in lit for s in ss])
         return Frame(images, depths, stats, frame)
 
     def _scene_stub(self) -> Any:
@@ -359,7 +378,6 @@ def run_data_parallel(args: Any, method: str, command: str) -> int:
     split into N regions on Ray (`RegionEngine`), written as the in-process run writes it."""
     import sys
 
-    from volren.dataparallel.render import check_data_parallel
     from volren.distributed.runtime import import_ray
     from volren.output import print_summary
     from volren.plan import plan_render, render_plan
@@ -374,7 +392,6 @@ def run_data_parallel(args: Any, method: str, command: str) -> int:
     import_ray(flag, local=not args.ray_address)  # missing: one line before the plan's seconds of work
     args.max_minutes = 0  # the run-time probe would render the whole volume in this process
     plan = plan_render(args, method)
-    check_data_parallel(method, plan.renderer.config, plan.scene, flag)
     if plan.played is not None or plan.animated:
         raise VolrenError(f"{flag} splits one volume: a sequence or an animated scene changes it every frame")
     if plan.sequence is not None:

@@ -160,11 +160,9 @@ def add_channels(frames: Sequence[Frame]) -> Frame:
     first = frames[0]
     images, depths = [], []
     for v in range(len(first.images)):
-        rgba = [f.images[v] for f in frames]
-        image = np.sum(rgba, axis=0, dtype=np.float32)
-        image[..., 3] = 1.0 - np.prod([1.0 - im[..., 3] for im in rgba], axis=0)
+        image, depth = add_channel_images([f.images[v] for f in frames], [f.depths[v] for f in frames])
         images.append(image)
-        depths.append(np.min([f.depths[v] for f in frames], axis=0))
+        depths.append(depth)
     times: dict[str, float] = {}
     counters: dict[str, int] = {}
     for f in frames:
@@ -178,6 +176,21 @@ def add_channels(frames: Sequence[Frame]) -> Frame:
                  first.index)
 
 
+def add_channel_images(rgba: Sequence[np.ndarray], depths: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """One view's channel images summed (`add_channels`): RGB added, alpha = 1 - prod (1 - alpha_c), depth the
+    nearest channel's."""
+    image = np.sum(rgba, axis=0, dtype=np.float32)
+    image[..., 3] = 1.0 - np.prod([1.0 - im[..., 3] for im in rgba], axis=0)
+    return image, np.min(depths, axis=0)
+
+
+def tint_mip(image: np.ndarray, color: np.ndarray) -> np.ndarray:
+    """A channel's grey MIP image (RGB = alpha = P) with its RGB tinted by ``color`` (`channel_color`)."""
+    tinted = image.copy()
+    tinted[..., :3] *= color
+    return tinted
+
+
 def channel_color(volume: Volume) -> np.ndarray:
     """A channel volume's colour (`channel_volumes`): its emission per unit extinction; black for opacity 0."""
     if volume.density_scale <= 0:
@@ -188,12 +201,7 @@ def channel_color(volume: Volume) -> np.ndarray:
 def channel_mip(frame: Frame, volume: Volume) -> Frame:
     """A channel's MIP frame (grey: RGB = alpha = P) with its RGB tinted by the channel's colour (`channel_color`)."""
     color = channel_color(volume)
-    images = []
-    for image in frame.images:
-        tinted = image.copy()
-        tinted[..., :3] *= color
-        images.append(tinted)
-    return replace(frame, images=images)
+    return replace(frame, images=[tint_mip(image, color) for image in frame.images])
 
 
 class AdditiveChannels:
