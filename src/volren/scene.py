@@ -166,7 +166,7 @@ class Volume:
         if self.owned_cells is not None:
             lo, hi = (tuple(int(c) for c in corner) for corner in self.owned_cells)
             cells = [n - 1 for n in self.density.shape]
-            if not all(0 <= a < b <= n for a, b, n in zip(lo, hi, cells, strict=True)) or len(lo) != 3:
+            if (len(lo), len(hi)) != (3, 3) or not all(0 <= a < b <= n for a, b, n in zip(lo, hi, cells, strict=True)):
                 raise VolrenError(f"volume '{self.name}': owned_cells {list(lo)}..{list(hi)} is not a box of its "
                                   f"{list(cells)} cells (z, y, x)")
             object.__setattr__(self, "owned_cells", (lo, hi))

@@ -330,8 +330,9 @@ class LightMapRenderer(Renderer):
         gi = self.config.gi
         if not self._reads_light_map(ds.scene):
             return  # nothing reads the light map: MIP is unlit, iso shades unshadowed (13 s of a 640^3 MIP frame)
-        self._light_map.update(ds, self.config.light_samples, clock, gi.on, self.config.reuse_light_map)
-        if self.light_map_total is not None:
+        if self.light_map_total is None:
+            self._light_map.update(ds, self.config.light_samples, clock, gi.on, self.config.reuse_light_map)
+        else:  # a data-parallel region: its pass ran in `region_light_map`; the regions' sum replaces its map
             with clock.measure("light_map_total"):
                 ds.lightmap.assign(self.light_map_total)
         if not gi.on:
