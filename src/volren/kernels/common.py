@@ -536,7 +536,7 @@ def region_steps(vol: VolumeGPU, o_l: wp.vec3, d_l: wp.vec3, t0: float, dt: floa
     if hit[1] < hit[0]:
         return wp.vec2i(0, 0)
     i0 = wp.clamp(int(wp.floor((hit[0] - t0) / dt - offset)), 0, n)
-    i1 = wp.clamp(int(wp.ceil((hit[1] - t0) / dt - offset)) + 1, 0, n)
+    i1 = wp.clamp(int(wp.ceil((hit[1] - t0) / dt - offset)), 0, n)
     return wp.vec2i(i0, i1)
 
 
