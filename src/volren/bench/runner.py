@@ -22,6 +22,7 @@ def all_suites() -> dict[str, Suite]:
     from volren.bench.bigdata import SUITE as BIGDATA_SUITE
     from volren.bench.binocular import SUITE as BINOCULAR_SUITE
     from volren.bench.bricks import SUITE as BRICKS_SUITE
+    from volren.bench.dataparallel import SUITE as DATAPARALLEL_SUITE
     from volren.bench.dssrm import SUITE as DSSRM_SUITE
     from volren.bench.gi import SUITE as GI_SUITE
     from volren.bench.integrated import SUITE as INTEGRATED_SUITE
@@ -36,7 +37,7 @@ def all_suites() -> dict[str, Suite]:
 
     return {s.name: s for s in (DSSRM_SUITE, RESOLUTION_SUITE, BINOCULAR_SUITE, VIEWERS_SUITE, VPT_SUITE, GI_SUITE,
                                 OIT_SUITE, INTEGRATED_SUITE, SERVE_SUITE, INTERACTIVE_SUITE, LOAD_SUITE, PEERS_SUITE,
-                                BATCH_SUITE, BRICKS_SUITE, BIGDATA_SUITE)}
+                                BATCH_SUITE, BRICKS_SUITE, BIGDATA_SUITE, DATAPARALLEL_SUITE)}
 
 
 
@@ -84,9 +85,10 @@ def run_suite(name: str, *, quick: bool, device: str, out: Path | None = None,
     summary_rows, summary_columns = result.pop("summary", ([], []))
     if summary_rows:
         table += "\n\n" + markdown_table(summary_rows, summary_columns)
+    notes = result.pop("notes", {})  # Markdown a suite writes before one of its further tables, by its key
     for key, more_columns in result.pop("more_tables", {}).items():  # further tables: rows kept under ``key``
         if result.get(key):
-            table += "\n\n" + markdown_table(result[key], more_columns)
+            table += (f"\n\n{notes[key]}" if key in notes else "") + "\n\n" + markdown_table(result[key], more_columns)
     doc = {"suite": name, "quick": quick, "machine": machine_info(device), "elapsed_s": round(elapsed, 1), **result,
            "summary": summary_rows}
     tag = f"{name}-{'cpu' if device == 'cpu' else 'cuda'}-{'quick' if quick else 'full'}"
