@@ -363,13 +363,8 @@ def ray_rows(cfg: dict[str, Any], device: str) -> list[dict[str, Any]]:
     """Part 3: `volren.distributed.regions.RegionEngine` with each compositing and region count on a ``.npy`` ball
     (``ray_resolution``^3 float32, several times ``actor_budget_mib``), one warm-up frame (actors started, regions
     loaded, kernels loaded, the light maps exchanged) then ``ray_repeats`` timed frames of the same view (the summed
-    light map kept: no exchange after the warm-up unless a map changes). The local Ray's start-up is its own row.
-    One row saying why where the engine is not in this build."""
-    try:
-        from volren.distributed.regions import RegionEngine
-    except ImportError as exc:
-        return [{"compositing": "skipped",
-                 "note": f"volren.distributed.regions.RegionEngine not in this build ({exc})"}]
+    light map kept: no exchange after the warm-up unless a map changes). The local Ray's start-up is its own row."""
+    from volren.distributed.regions import PlannedScene, RegionEngine
     from volren.distributed.runtime import connect, import_ray
     from volren.plan import plan_render
 
@@ -395,7 +390,7 @@ def ray_rows(cfg: dict[str, Any], device: str) -> list[dict[str, Any]]:
             for compositing in cfg["ray_compositing"]:
                 for n in cfg["ray_regions"]:
                     started = time.perf_counter()
-                    with RegionEngine(spec, plan.scene, n, compositing=compositing,
+                    with RegionEngine(PlannedScene(spec), plan.scene, n, plan.renderer, compositing=compositing,
                                       flag="bench dataparallel") as engine:
                         first = engine.render(plan.views, 0)
                         setup = time.perf_counter() - started
