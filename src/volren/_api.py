@@ -208,7 +208,8 @@ def render(scene: Scene | Volume | Channels | VolumeSequence | str | Path,
            views: Camera | Sequence[Camera] | str | int | None = None, method: str = DEFAULT_METHOD,
            quality: str = DEFAULT_QUALITY, device: str = "auto", *, width: int | None = None,
            height: int | None = None, frames: int | Iterable[int] | None = None, resolution: int | None = None,
-           count: int | None = None, environment: Any = None, **settings: Any) -> Frame | list[Frame]:
+           count: int | None = None, environment: Any = None, data_parallel: int | None = None,
+           ray_address: str | None = None, **settings: Any) -> Frame | list[Frame]:
     """One frame of ``scene`` (a list of them with ``frames=``) by ``method`` at ``quality``, with ``settings``
     (fields of the method's config, e.g. ``samples=720``, ``light_grid=16``, ``mode="mip"``, ``transfer="ct-bone"``
     for ``--tf``, ``jitter=True``, ``gi=vr.GIConfig(method="sresir")``) on top of the preset, as ``volren render``
@@ -241,6 +242,11 @@ def render(scene: Scene | Volume | Channels | VolumeSequence | str | Path,
     For frames that build on each other across calls (GI, denoising, fog), keep a `Renderer`: its ``render`` takes a
     Scene (or Channels) and views, always.
 
+    ``data_parallel``: the volume split into that many regions, each held and rendered by its own Ray actor (on the
+    cluster at ``ray_address``, else a local Ray), the images composited, as ``--data-parallel`` does
+    (`volren.distributed.regions`: dssrm in modes dvr, mip and iso; a path is read by each actor, a Scene or Volume
+    is sent to them).
+
     >>> frame = vr.render(vr.load("head.nrrd"), width=320, height=180)  # doctest: +SKIP
     >>> frames = vr.render(vr.load("sim_####.npy"), frames=range(3))  # doctest: +SKIP
     """
@@ -262,9 +268,55 @@ def render(scene: Scene | Volume | Channels | VolumeSequence | str | Path,
     if settings.get("mode") == "iso" and "iso_value" not in settings:
         settings["iso_value"] = _otsu_iso_value(source.at(0))
     renderer = Renderer(method, quality, device=device, **settings)
+    if data_parallel is not None:
+        region_source = _RegionSource(scene if isinstance(scene, str | Path) else source.at(0), resolution, count,
+                                      settings.get("seed"), source.environment)
+        return _render_regions(region_source, source, renderer, views, indices, data_parallel, ray_address)
     if indices is None:
         return renderer.render(source.at(0), views, 0)
     return [renderer.render(source.at(i), views, i) for i in indices]
+
+
+@dataclasses.dataclass(frozen=True)
+class _RegionSource:
+    """`render`'s scene as each region actor of ``data_parallel=`` builds it (`volren.distributed.regions`): a path
+    read there, a scene passed whole; a multi-channel file's channels as their Scene."""
+
+    value: Any
+    resolution: int | None
+    count: int | None
+    seed: int | None
+    environment: Any
+
+    def __call__(self) -> Any:
+        from volren.render.compositing.channels import Channels
+
+        source = dataclasses.replace(_source(self.value, self.resolution, self.count, self.seed),
+                                     environment=self.environment)
+        scene = source.at(0)
+        return scene.scene if isinstance(scene, Channels) else scene
+
+
+def _render_regions(region_source: _RegionSource, source: _Source, renderer: Renderer, views: list[Camera],
+                    indices: list[int] | None, n: int, address: str | None) -> Frame | list[Frame]:
+    """`render`'s frames with ``data_parallel=n`` (`volren.distributed.regions.RegionEngine`)."""
+    from volren.distributed.regions import RegionEngine
+    from volren.render.compositing.channels import AdditiveChannels, Channels
+
+    if source.frame is not None:
+        raise VolrenError("render: data_parallel= splits one volume; a sequence or an animated scene changes it "
+                          "every frame")
+    first = source.at(0)
+    scene, impl = first, renderer._renderer
+    if isinstance(first, Channels):
+        scene, impl = first.scene, AdditiveChannels(renderer._make, len(first))
+    with RegionEngine(region_source, scene, n, impl, address=address, flag="render: data_parallel=") as engine:
+        frames = []
+        for i in [0] if indices is None else indices:
+            frame = engine.render(views, i)
+            frame.background, frame.scene_name = scene.background, scene.name
+            frames.append(frame)
+    return frames[0] if indices is None else frames
 
 
 def _otsu_iso_value(scene: Any) -> float:
