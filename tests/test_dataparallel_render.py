@@ -125,7 +125,7 @@ def test_without_the_light_map_exchange_the_shadows_are_wrong():
         r.light_map_total = p
     frames = [r.render(s, [CAMERA]) for r, s in zip(*one_channel(rs), strict=True)]
     images, _ = composite_views([f.images for f in frames], [f.depths for f in frames],
-                                view_orders(rs.tree, scene, [CAMERA]), "dvr")
+                                view_orders(rs.tree, scene.volumes[0].to_local, [CAMERA]), "dvr")
     assert psnr(one.images[0][..., :3], images[0][..., :3]) < 35.0  # observed 20.8 dB
     assert psnr(one.images[0][..., :3], got.images[0][..., :3]) >= DVR_PSNR
 
@@ -248,7 +248,7 @@ def test_the_regions_composited_in_the_wrong_order_differ():
     scene = ball_scene()
     one, got, rs = renders(scene, [CAMERA], 2)
     frames = [r.render(s, [CAMERA]) for r, s in zip(*one_channel(rs), strict=True)]
-    order = view_orders(rs.tree, scene, [CAMERA])[0]
+    order = view_orders(rs.tree, scene.volumes[0].to_local, [CAMERA])[0]
     alphas = [f.images[0][..., 3] for f in frames]
     assert np.sum((alphas[0] > 0.2) & (alphas[1] > 0.2)) > 100  # the regions overlap in the image
     right = composite_over([f.images[0] for f in frames], order)

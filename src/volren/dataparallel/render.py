@@ -19,10 +19,13 @@ A frame is two passes over the regions:
    transmittance in front of them.
 
 What runs: DSSRM in modes dvr (with shadows), mip and iso, one volume (dense, bricked, .vdb or a streamed pyramid's
-finest level), directional, point and spot lights. Refused in one line: other methods (CMSRM's and CACRM's cube maps
-and LOD levels, VPT's paths and GI's SH grids cross regions and are not split), MIDA (its running maximum weighs
-what lies in front, across regions), several volumes, meshes, fog and early termination's loss: each region marches
-to its own end (so a dense front region makes the back ones' work wasted, not wrong).
+finest level) or a multi-channel file's channels (each split alike, composited over its regions, then tinted and
+added as `volren.render.compositing.channels.AdditiveChannels` adds them), directional, point and spot lights.
+Refused in one line: other methods (CMSRM's and CACRM's cube maps and LOD levels, VPT's paths and GI's SH grids
+cross regions and are not split), MIDA (its running maximum weighs what lies in front, across regions), several
+volumes, meshes and fog. Early ray termination does not cross regions: each region marches to its own end, so DVR
+differs from the one-process image by at most the termination threshold in alpha (and a dense front region makes
+the back ones' work wasted, not wrong).
 """
 
 from __future__ import annotations
@@ -96,9 +99,9 @@ def region_scenes(scene: Scene, tree: RegionTree, index: int, mode: str, channel
     return [replace(scene, volumes=(v,), name=f"{scene.name}[c{c}]") for c, v in enumerate(cut)]
 
 
-def view_orders(tree: RegionTree, scene: Scene, views: Sequence[Camera]) -> list[list[int]]:
-    """Per view, the regions front to back for its eye (`visibility_order` in the volume's local coordinates)."""
-    to_local = scene.volumes[0].to_local
+def view_orders(tree: RegionTree, to_local: np.ndarray, views: Sequence[Camera]) -> list[list[int]]:
+    """Per view, the regions front to back for its eye (`visibility_order` in the volume's local coordinates, which
+    ``to_local`` maps the world into)."""
     return [visibility_order(tree, (to_local @ np.append(np.asarray(c.position, np.float64), 1.0))[:3])
             for c in views]
 
@@ -210,7 +213,7 @@ class RegionSet:
                     region[c][0].light_map_total = total
         frames = [[r.render(s, views, frame) for r, s in region] for region in pairs]
         t = time.perf_counter()
-        orders = view_orders(self.tree, self.scene, views)
+        orders = view_orders(self.tree, self.scene.volumes[0].to_local, views)
         images, depths = composite_channels([[f.images for f in fs] for fs in frames],
                                             [[f.depths for f in fs] for fs in frames], orders, self.mode,
                                             channel_colors(self.scene, self.channels))

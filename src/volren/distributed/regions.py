@@ -3,10 +3,12 @@ and rendered by its own Ray actor (`RegionWorker`), the partial images composite
 
 - **Regions.** The driver splits the volume's brick grid by its active bricks (`split_volume`: from the data it
   planned with; a streamed OME-Zarr pyramid's from its coarsest level, so the driver never reads the finest) and
-  sends each actor the tree and its region's index. The actor builds the run from the same `RenderSpec` as the
-  driver (`volren.plan.plan_render`), cuts the volume to its region's bricks (a pyramid's level-0 bricks read straight
-  from the file or store, `volren.dataparallel.region_grid`), drops the rest and keeps its region resident across
-  frames. With ``--memory-budget`` each region must fit it.
+  sends each actor the tree and its region's index. The actor builds the whole scene itself (a picklable source:
+  the same `RenderSpec` as the driver's plan, `PlannedScene`; serve's file; the Python API's path or scene), cuts the
+  volume (each channel of a multi-channel file) to its region's bricks (a pyramid's level-0 bricks read straight
+  from the file or store, `volren.dataparallel.region_grid`; a dense file is read whole, then cut), drops the rest
+  and keeps its region resident across frames. With ``--memory-budget`` each region must fit it. The driver sends
+  the renderer's config and the scene's lights with each frame (`volren serve`'s settings and light drag).
 - **Light.** Each frame the actors run their light-map pass on their region; the maps that changed come to the
   driver, which sums them (optical depth adds: `volren.dataparallel.render`) and sends the sum back through Ray's
   object store, only to the actors that lack it (an orbit sends nothing after the first frame).
@@ -301,7 +303,7 @@ class RegionEngine:
         strips = n if self.compositing == "direct-send" else 1
         outs = [a.render.options(num_returns=strips + 1).remote(frame, views, totals[i], strips)
                 for i, a in enumerate(self.actors)]
-        orders = view_orders(self.tree, self._scene_stub(), views)
+        orders = view_orders(self.tree, self.to_local, views)
         t = time.perf_counter()
         if self.compositing == "direct-send":
             done = ray.get([self.actors[k].composite.remote(self.config.mode, orders, self.colors,
@@ -327,12 +329,6 @@ class RegionEngine:
                               "light_exchange_bytes": light_bytes, "replaced": self.replaced, "orders": orders,
                               "wall_ms": (time.perf_counter() - start) * 1e3}, [s for _, ss in lit for s in ss])
         return Frame(images, depths, stats, frame)
-
-    def _scene_stub(self) -> Any:
-        """What `view_orders` reads of the scene: its volume's ``to_local``."""
-        from types import SimpleNamespace
-
-        return SimpleNamespace(volumes=(SimpleNamespace(to_local=self.to_local),))
 
     def close(self) -> None:
         for a in self.actors:
