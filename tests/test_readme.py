@@ -7,6 +7,8 @@ import re
 import shlex
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text()
 
@@ -51,9 +53,10 @@ def readme_commands() -> list[list[str]]:
     return [words for words in EXAMPLES.readme_examples(README) if words[0] == "volren"]
 
 
-RAY_FLAGS = ("--workers", "--ray-address", "--shards")
-"""run here without them, in process: tests/test_batch*.py and test_serve_shards.py run the Ray paths on the test
-session's one cluster (each README line would start another, and `--ray-address` names a cluster that is not here)"""
+RAY_FLAGS = ("--workers", "--ray-address", "--shards", "--data-parallel")
+"""run here without them, in process: tests/test_batch*.py, test_serve_shards.py and test_dataparallel_ray.py run the
+Ray paths on the test session's one cluster (each README line would start another, and `--ray-address` names a
+cluster that is not here)"""
 
 
 def in_process(args: list[str]) -> list[str]:
@@ -176,9 +179,10 @@ def test_every_readme_command_runs_at_reduced_size(tmp_path, monkeypatch, capsys
     assert not failed, "\n".join(failed)
 
 
-def test_every_readme_python_block_runs_as_written(tmp_path, monkeypatch):
+@pytest.mark.xdist_group("ray")
+def test_every_readme_python_block_runs_as_written(ray_cluster, tmp_path, monkeypatch):
     """The README's Python examples, sized to finish in seconds, run unchanged on the stand-in files in a scratch
-    folder, using the public API only (`import volren as vr`)."""
+    folder, using the public API only (`import volren as vr`; ``data_parallel=`` on the test session's Ray)."""
     from PIL import Image
 
     blocks = re.findall(r"```python\n(.*?)```", README, flags=re.S)
