@@ -323,6 +323,25 @@ def test_a_streamed_pyramids_region_grid_is_the_finest_levels(tmp_path):
         assert np.allclose(a.read(lo, hi), b.read(lo, hi), rtol=1e-6, atol=1e-6)
 
 
+def test_a_streamed_pyramids_active_bricks_are_judged_from_its_coarsest_level(tmp_path):
+    """Every brick the finest level has density in is active (the split never starves a region of its cost), and
+    the empty ones far from the data are not."""
+    pytest.importorskip("ome_zarr")
+    from tests.test_stream_render import scene_of, write_levels
+
+    fine = np.zeros((64, 64, 64), np.float32)
+    fine[4:20, 40:60, 8:30] = 1000.0
+    levels = [fine]
+    for _ in range(2):
+        n = levels[-1].shape[0] // 2
+        levels.append(levels[-1].reshape(n, 2, n, 2, n, 2).mean(axis=(1, 3, 5)))
+    write_levels(tmp_path / "box.zarr", [np.round(v).astype(np.uint16) for v in levels], [1, 2, 4], centred=True)
+    dense = scene_of(tmp_path / "box.zarr", level=0).volumes[0].density
+    streamed = scene_of(tmp_path / "box.zarr", memory_budget=2**26, stream=True).volumes[0].density
+    judged, truth = brick_weights(streamed, 16), brick_weights(dense, 16)
+    assert np.all(judged >= truth) and 0 < truth.sum() <= judged.sum() <= truth.sum() + 24
+
+
 # --- refusals ---------------------------------------------------------------------------------------------------
 
 
