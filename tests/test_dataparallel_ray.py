@@ -209,3 +209,18 @@ def test_the_python_api_renders_data_parallel_as_the_cli(ray_cluster, ball):
                 np.testing.assert_array_equal(a, b)
             else:
                 assert psnr(a[..., :3], b[..., :3]) >= 50 and np.abs(a[..., 3] - b[..., 3]).max() <= 0.01
+
+
+def test_animate_orbits_the_regions_as_in_process(ray_cluster, ball, tmp_path):
+    """``volren animate --data-parallel 2``: each frame's orbiting view composited in its own visibility order, the
+    light map exchanged once (the light stands still), the frames the in-process run's."""
+    argv = ["animate", "--volume", str(ball), "--frames", "3", "--width", "40", "--height", "30", "--views", "mono",
+            "--device", "cpu", "--save-linear", "--mode", "mip"]
+    assert cli.main([*argv, "--out", str(tmp_path / "one")]) == 0
+    assert cli.main([*argv, "--data-parallel", "2", "--out", str(tmp_path / "dp")]) == 0
+    for i in range(3):
+        want = np.load(tmp_path / "one" / f"frame{i:04d}_view0.npy")
+        assert want[..., 3].max() > 0.5
+        np.testing.assert_array_equal(np.load(tmp_path / "dp" / f"frame{i:04d}_view0.npy"), want)
+    frames = json.loads((tmp_path / "dp" / "stats.json").read_text())["frames"]
+    assert len({tuple(f["info"]["orders"][0]) for f in frames}) == 2  # the orbit crosses the split plane
