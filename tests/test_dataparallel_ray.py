@@ -224,3 +224,38 @@ def test_animate_orbits_the_regions_as_in_process(ray_cluster, ball, tmp_path):
         np.testing.assert_array_equal(np.load(tmp_path / "dp" / f"frame{i:04d}_view0.npy"), want)
     frames = json.loads((tmp_path / "dp" / "stats.json").read_text())["frames"]
     assert len({tuple(f["info"]["orders"][0]) for f in frames}) == 2  # the orbit crosses the split plane
+
+
+def test_sigterm_stops_a_data_parallel_run_as_ctrl_c_does(ray_cluster, ball, tmp_path):
+    """SIGTERM once the regions are loaded and frames are rendering: one line, exit 143, no native stack dump, no
+    --out (it is written beside and moved in when complete), and the region actors gone from the cluster."""
+    import subprocess
+    import sys
+    import time
+
+    address = ray_cluster.get_runtime_context().gcs_address
+    out = tmp_path / "o"
+    proc = subprocess.Popen([sys.executable, "-m", "volren.cli", "animate", "--volume", str(ball), "--frames", "400",
+                             "--width", "64", "--height", "48", "--views", "mono", "--device", "cpu",
+                             "--data-parallel", "2", "--ray-address", address, "--out", str(out)],
+                            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        seen = ""
+        while "region 1:" not in seen and proc.poll() is None:
+            seen += proc.stderr.readline()
+        assert proc.poll() is None, seen
+        time.sleep(3.0)  # frames under way
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, (seen + err)[-3000:]
+    assert err.strip().splitlines()[-1] == "volren: terminated", err[-3000:]
+    for native in ("Fatal Python error", "Aborted", "core dumped", "Traceback"):
+        assert native not in err, err[-3000:]
+    assert list(tmp_path.iterdir()) == []
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and ray_cluster.available_resources().get("CPU", 0) < 2:
+        time.sleep(0.5)  # the actors' CPUs come back as they go
+    assert ray_cluster.available_resources().get("CPU", 0) == 2
