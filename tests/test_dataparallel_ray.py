@@ -45,7 +45,7 @@ def one_process(ball, tmp_path_factory):
 
 
 @pytest.mark.parametrize("mode", ["dvr", "mip", "iso"])
-def test_three_region_actors_render_the_one_process_picture(ray_cluster, ball, one_process, tmp_path, mode):
+def test_three_region_actors_render_the_one_process_picture(ray_cluster, ball, one_process, tmp_path, mode, capsys):
     iso = ["--iso-value", "0.4"] if mode == "iso" else []
     images = render(ball, tmp_path / "dp", "--mode", mode, *iso, "--data-parallel", "3")
     for got, want in zip(images, one_process[mode], strict=True):
@@ -56,6 +56,7 @@ def test_three_region_actors_render_the_one_process_picture(ray_cluster, ball, o
             np.testing.assert_array_equal(got, want)
     doc = json.loads((tmp_path / "dp" / "stats.json").read_text())
     assert doc["regions"] == 3
+    assert "regions (last frame): 0 " in capsys.readouterr().out
     info = doc["frames"][0]["info"]
     assert info["regions"] == 3 and info["compositing"] == "direct-send"
     held = [r["bytes"] for r in info["region_stats"]]

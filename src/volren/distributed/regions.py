@@ -409,4 +409,7 @@ def run_data_parallel(args: Any, method: str, command: str) -> int:
         done = render_plan(plan, command)
     print_summary(method, plan.scene.name, len(plan.views), args.frames, done.wall, done.frames[-1].stats,
                   done.files, done.stats)
+    info = done.frames[-1].stats.info
+    print("  regions (last frame): " + ", ".join(f"{r['index']} {r['seconds']:.2f} s" for r in info["region_stats"])
+          + f"; the driver received {info['driver_bytes'] / 2**20:.1f} MiB ({info['compositing']})")
     return 0
