@@ -260,3 +260,27 @@ def test_sigterm_stops_a_data_parallel_run_as_ctrl_c_does(ray_cluster, ball, tmp
     while time.monotonic() < deadline and ray_cluster.available_resources().get("CPU", 0) < 2:
         time.sleep(0.5)  # the actors' CPUs come back as they go
     assert ray_cluster.available_resources().get("CPU", 0) == 2
+
+
+def test_an_actors_error_reaches_the_driver_as_its_one_line(ray_cluster, ball, tmp_path):
+    """A switch to iso cuts the regions again from the file; the file gone meanwhile, the actors' error is the
+    driver's VolrenError naming it (not a RayTaskError's traceback)."""
+    import dataclasses
+    import shutil
+
+    from volren.distributed.regions import PlannedScene, RegionEngine
+    from volren.errors import VolrenError
+    from volren.plan import plan_render
+    from volren.plan.spec import RenderSpec
+
+    copy = tmp_path / "gone.npy"
+    shutil.copy(ball, copy)
+    spec = RenderSpec.parse(["render", "--volume", str(copy), "--width", "16", "--height", "12", "--views", "mono",
+                             "--device", "cpu", "--mode", "mip"])
+    plan = plan_render(spec.namespace(), "dssrm")
+    with RegionEngine(PlannedScene(spec), plan.scene, 2, plan.renderer) as engine:
+        assert engine.render(plan.views, 0).images[0][..., 3].max() > 0.5
+        copy.unlink()
+        with pytest.raises(VolrenError, match="gone.npy") as e:
+            engine.render(plan.views, 1, config=dataclasses.replace(plan.renderer.config, mode="iso"))
+        assert "\n" not in str(e.value)

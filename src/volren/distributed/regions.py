@@ -233,6 +233,7 @@ class RegionEngine:
                 self.on_region(report)
 
     def _get(self, ref: Any) -> Any:
+        """``ray.get(ref)``, an actor's `VolrenError` raised here as the one line it is."""
         try:
             return self.ray.get(ref)
         except self.ray.exceptions.RayTaskError as exc:
@@ -283,7 +284,7 @@ class RegionEngine:
         ray, n = self.ray, self.n
         start = time.perf_counter()
         received = 0
-        lit = ray.get([a.light.remote(frame, self.config, self.lights) for a in self.actors])
+        lit = self._get([a.light.remote(frame, self.config, self.lights) for a in self.actors])
         light_start = time.perf_counter()
         changed = [i for i, (maps, _) in enumerate(lit) if any(m is not None for m in maps)]
         for i in changed:
@@ -306,20 +307,20 @@ class RegionEngine:
         orders = view_orders(self.tree, self.to_local, views)
         t = time.perf_counter()
         if self.compositing == "direct-send":
-            done = ray.get([self.actors[k].composite.remote(self.config.mode, orders, self.colors,
+            done = self._get([self.actors[k].composite.remote(self.config.mode, orders, self.colors,
                                                             *[o[k + 1] for o in outs]) for k in range(n)])
             images = [np.concatenate([d[0][v] for d in done]) for v in range(len(views))]
             depths = [np.concatenate([d[1][v] for d in done]) for v in range(len(views))]
             received += _nbytes([d[:2] for d in done])
             composite_ms = max(d[2] for d in done)
         else:
-            parts = ray.get([o[1] for o in outs])
+            parts = self._get([o[1] for o in outs])
             received += _nbytes(parts)
             c = time.perf_counter()
             images, depths = composite_channels([p[0] for p in parts], [p[1] for p in parts], orders,
                                                 self.config.mode, self.colors)
             composite_ms = (time.perf_counter() - c) * 1e3
-        metas = ray.get([o[0] for o in outs])
+        metas = self._get([o[0] for o in outs])
         exchange_ms = (time.perf_counter() - t) * 1e3
         reports = [{**r, "times_ms": {k: round(v, 3) for k, v in m["stats"][0].times_ms.items()},
                     "seconds": round(m["seconds"], 4)} for r, m in zip(self.reports, metas, strict=True)]
