@@ -281,6 +281,6 @@ def test_an_actors_error_reaches_the_driver_as_its_one_line(ray_cluster, ball, t
     with RegionEngine(PlannedScene(spec), plan.scene, 2, plan.renderer) as engine:
         assert engine.render(plan.views, 0).images[0][..., 3].max() > 0.5
         copy.unlink()
-        with pytest.raises(VolrenError, match="gone.npy") as e:
+        with pytest.raises(VolrenError, match=r"gone\.npy") as e:
             engine.render(plan.views, 1, config=dataclasses.replace(plan.renderer.config, mode="iso"))
         assert "\n" not in str(e.value)
