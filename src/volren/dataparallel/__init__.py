@@ -1,6 +1,8 @@
-"""Data-parallel rendering's Ray-free foundation (issue 43): a volume's brick grid split into convex regions by a k-d
-tree (`regions`), the order a view's rays meet them (`order`), and sort-last compositing of the regions' partial
-images (`composite`). numpy only: the Ray actors that own the regions build on it."""
+"""Data-parallel, sort-last rendering (issue 43): a volume's brick grid split into convex regions by a k-d tree
+(`regions`), the order a view's rays meet them (`order`), sort-last compositing of the regions' partial images
+(`composite`), a volume cut to one region's bricks (`volume`), and N regions rendered and composited in one process
+(`render`: `RegionSet`, and the pieces `volren.distributed.regions` runs one Ray actor per region with). The first
+three are numpy only."""
 
 from volren.dataparallel.composite import composite_max, composite_nearest, composite_over
 from volren.dataparallel.order import visibility_order, visibility_order_direction
