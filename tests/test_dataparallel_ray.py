@@ -107,6 +107,7 @@ def test_direct_send_brings_the_driver_one_image_and_gather_n(ray_cluster, ball)
     (["--mode", "mida"], "mode mida's running maximum"),
     (["--data-parallel", "0"], "--data-parallel must be >= 1"),
     (["--workers", "2"], "give one of them"),
+    (["--data-parallel", "65"], "--data-parallel 65: cannot split a grid of 64 bricks into 65 regions"),
 ])
 def test_what_does_not_split_is_refused_in_one_line(ball, tmp_path, capsys, extra, message):
     argv = ["render", "--volume", str(ball), "--width", "8", "--height", "8", "--device", "cpu", "--data-parallel",

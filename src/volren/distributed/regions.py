@@ -195,7 +195,10 @@ class RegionEngine:
         self.cls, self.config, self.device, self.lights = type(base), base.config, base.device, scene.lights
         self.colors = channel_colors(scene, self.channels > 0)
         self.memory_budget = memory_budget
-        self.tree = split_volume(scene, n)
+        try:
+            self.tree = split_volume(scene, n)
+        except VolrenError as exc:  # more regions than bricks
+            raise VolrenError(f"{flag} {n}: {exc}") from None
         self.to_local = scene.volumes[0].to_local
         start = time.perf_counter()
         self.ray = ray = connect(flag, address, num_cpus=None if address else max(n, 1))
