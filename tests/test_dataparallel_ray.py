@@ -3,6 +3,7 @@ one-process render of the same file, a killed region actor, the driver's bytes, 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -266,7 +267,6 @@ def test_sigterm_stops_a_data_parallel_run_as_ctrl_c_does(ray_cluster, ball, tmp
 def test_an_actors_error_reaches_the_driver_as_its_one_line(ray_cluster, ball, tmp_path):
     """A switch to iso cuts the regions again from the file; the file gone meanwhile, the actors' error is the
     driver's VolrenError naming it (not a RayTaskError's traceback)."""
-    import dataclasses
     import shutil
 
     from volren.distributed.regions import PlannedScene, RegionEngine
@@ -285,3 +285,24 @@ def test_an_actors_error_reaches_the_driver_as_its_one_line(ray_cluster, ball, t
         with pytest.raises(VolrenError, match=r"gone\.npy") as e:
             engine.render(plan.views, 1, config=dataclasses.replace(plan.renderer.config, mode="iso"))
         assert "\n" not in str(e.value)
+
+
+def test_serve_data_parallel_builds_its_loop_on_region_actors(ray_cluster, ball, monkeypatch):
+    """``volren serve --volume F --data-parallel 2``: the app's loop renders the file through two region actors, the
+    picture the in-process renderer's of the loop's config and framing."""
+    from volren.render import DSSRM
+    from volren.serve.app import LOOP_KEY
+
+    apps = []
+    monkeypatch.setattr("volren.serve.app.serve", lambda app, *args, **kwargs: apps.append(app))
+    assert cli.main(["serve", "--volume", str(ball), "--data-parallel", "2", "--device", "cpu"]) == 0
+    loop = apps[0][LOOP_KEY]
+    try:
+        cam = dataclasses.replace(loop.camera, width=40, height=30)
+        got = loop.renderer.render(loop.scene, [cam]).images[0]
+        want = DSSRM(loop._config, device="cpu").render(loop.scene, [cam]).images[0]
+        assert loop.data_parallel.n == 2 and want[..., 3].max() > 0.5
+        assert psnr(want[..., :3], got[..., :3]) >= 50
+        assert np.abs(got[..., 3] - want[..., 3]).max() <= loop._config.min_transmittance
+    finally:
+        loop.data_parallel.close()
