@@ -7,10 +7,11 @@ A frame is two passes over the regions:
    every light-map node's march towards each light takes the steps of the one-process march (the whole box's t0, t1
    and step count) whose cell the region owns, so its map holds the optical depth of the region's part of each
    node's path. Optical depth adds along a path, so the regions' maps summed are the one-process map (to float
-   rounding of the sum): the regions exchange their maps once (an all-reduce, not a sweep in light order: no region
-   waits on the ones before it along the light), and only when the map's inputs change (an orbit keeps it). This
-   departs from the issue's "boundary optical depth in light order": a boundary map is exact only for the nodes on
-   a region's face; the sum is exact at every node and costs one exchange of the light grid (bytes in the stats).
+   rounding of the sum): the regions exchange their maps once (a reduction, not a sweep in light order: no region
+   waits on the ones before it along the light; what travels is each map's non-zero box and, back, the sum over the
+   nodes each region reads, `volren.dataparallel.light`), and only when the map's inputs change (an orbit keeps
+   it). This departs from the issue's "boundary optical depth in light order": a boundary map is exact only for the
+   nodes on a region's face; the sum is exact at every node and costs one exchange (bytes in the stats).
 2. **Views.** Each region marches the steps of the one-process march whose cell it owns
    (`volren.kernels.common.owns_sample`), shaded from the summed map, into premultiplied RGBA and depth; the partial
    images composite in each view's visibility order (`volren.dataparallel.order`): ``over`` for DVR, ``max`` for MIP
@@ -39,6 +40,7 @@ import numpy as np
 
 from volren.camera import Camera
 from volren.dataparallel.composite import composite_max, composite_nearest, composite_over
+from volren.dataparallel.light import light_map_of, light_part, light_patch, light_sum
 from volren.dataparallel.order import visibility_order
 from volren.dataparallel.regions import RegionTree, split_regions
 from volren.dataparallel.volume import brick_weights, region_volume
@@ -204,13 +206,17 @@ class RegionSet:
         views = list(views)
         start = time.perf_counter()
         pairs = [list(zip(rs, ss, strict=True)) for rs, ss in zip(self.renderers, self.scenes, strict=True)]
-        partials = [[r.region_light_map(s, frame) for r, s in region] for region in pairs]
-        light_bytes = sum(p.nbytes for region in partials for p in region if p is not None)
-        for c in range(len(pairs[0])):
-            if any(region[c] is not None for region in partials):
-                total = np.sum([region[c] for region in partials], axis=0, dtype=np.float32)
-                for region in pairs:
-                    region[c][0].light_map_total = total
+        maps = [[r.region_light_map(s, frame) for r, s in region] for region in pairs]
+        light_bytes = 0
+        for c in range(len(pairs[0])):  # the exchange of `volren.dataparallel.light`, as the Ray actors make it
+            if any(region[c] is not None for region in maps):
+                parts = [light_part(m[c], region[c][1].volumes[0], region[c][0].config.light_grid)
+                         for m, region in zip(maps, pairs, strict=True)]
+                total = light_sum(parts)
+                for region, part in zip(pairs, parts, strict=True):
+                    patch = light_patch(total, part)
+                    region[c][0].light_map_total = light_map_of(patch, part)
+                    light_bytes += part.nbytes + patch.nbytes
         frames = [[r.render(s, views, frame) for r, s in region] for region in pairs]
         t = time.perf_counter()
         orders = view_orders(self.tree, self.scene.volumes[0].to_local, views)

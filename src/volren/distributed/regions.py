@@ -98,6 +98,8 @@ class RegionWorker:
         start = time.perf_counter()
         self.source, self.tree, self.index, self.channels = source, tree, index, channels
         self.renderers = [cls(config, device=device) for _ in range(max(channels, 1))]
+        self.parts: list[Any] = [None] * len(self.renderers)
+        """per channel its light map's last `LightPart` (its layout, for the sums that come back)"""
         self._cut(config.mode)
         return region_report(tree, index, self.scenes, load_seconds=time.perf_counter() - start)
 
@@ -129,21 +131,30 @@ class RegionWorker:
             self.scenes = [dataclasses.replace(s, lights=lights) for s in self.scenes]
 
     def light(self, frame: int, config: Any, lights: tuple) -> tuple[list, list]:
-        """Per channel this region's light map when its pass ran (`LightMapRenderer.region_light_map`), else None,
-        and the passes' (times, counters)."""
-        self._sync(config, lights)
-        maps = [r.region_light_map(s, frame) for r, s in zip(self.renderers, self.scenes, strict=True)]
-        return maps, [r.region_light_stats for r in self.renderers]
+        """Per channel this region's light map where its pass ran (`LightMapRenderer.region_light_map`) as the
+        exchange sends it (`volren.dataparallel.light.light_part`), else None, and the passes' (times, counters)."""
+        from volren.dataparallel.light import light_part
 
-    def render(self, frame: int, views: list, totals: list | None, strips: int) -> tuple:
-        """Render the region's partial images of ``views`` per channel (``totals``: the summed light maps when they
-        changed, else None) and return (its stats and seconds, then ``strips`` strips of rows: per strip (images,
-        depths), each per channel and view, `cut_strips`)."""
+        self._sync(config, lights)
+        parts = []
+        for c, (r, s) in enumerate(zip(self.renderers, self.scenes, strict=True)):
+            m = r.region_light_map(s, frame)
+            parts.append(None if m is None else light_part(m, s.volumes[0], config.light_grid))
+            if parts[-1] is not None:
+                self.parts[c] = parts[-1]
+        return parts, [r.region_light_stats for r in self.renderers]
+
+    def render(self, frame: int, views: list, patches: list | None, strips: int) -> tuple:
+        """Render the region's partial images of ``views`` per channel (``patches``: the summed light maps over the
+        nodes it reads when they changed, else None) and return (its stats and seconds, then ``strips`` strips of
+        rows: per strip (images, depths), each per channel and view, `cut_strips`)."""
+        from volren.dataparallel.light import light_map_of
+
         start = time.perf_counter()
         frames = []
         for c, (r, s) in enumerate(zip(self.renderers, self.scenes, strict=True)):
-            if totals is not None and totals[c] is not None:
-                r.light_map_total = totals[c]
+            if patches is not None and patches[c] is not None:
+                r.light_map_total = light_map_of(patches[c], self.parts[c])
             frames.append(r.render(s, views, frame))
         meta = {"stats": [f.stats for f in frames], "seconds": time.perf_counter() - start}
         cut = [cut_strips(f.images, f.depths, strips) for f in frames]
@@ -209,8 +220,9 @@ class RegionEngine:
         self.actors: list[Any] = [None] * n
         self.reports: list[dict[str, Any]] = [{}] * n
         self._partials: list[list | None] = [None] * n
-        """per region, per channel its last light map (`RegionWorker.light`)"""
-        self._total: Any = None
+        """per region, per channel its last light map as it came (`volren.dataparallel.light.LightPart`)"""
+        self._patches: list[list] = [[]] * n
+        """per region, per channel the summed maps over the nodes it reads, as of ``_version``"""
         self._version, self._sent = 0, [-1] * n
         self.replaced = 0
         self.on_region = on_region
@@ -281,31 +293,34 @@ class RegionEngine:
         self._open(dead)
 
     def _render(self, views: list, frame: int) -> Any:
+        from volren.dataparallel.light import light_patch, light_sum
         from volren.dataparallel.render import composite_channels, merged_stats, view_orders
         from volren.render.frame import Frame
 
-        ray, n = self.ray, self.n
+        n = self.n
         start = time.perf_counter()
         received = 0
         lit = self._get([a.light.remote(frame, self.config, self.lights) for a in self.actors])
         light_start = time.perf_counter()
-        changed = [i for i, (maps, _) in enumerate(lit) if any(m is not None for m in maps)]
+        changed = [i for i, (parts, _) in enumerate(lit) if any(p is not None for p in parts)]
         for i in changed:
-            maps, old = lit[i][0], self._partials[i] or [None] * len(lit[i][0])
-            self._partials[i] = [m if m is not None else o for m, o in zip(maps, old, strict=True)]
-            received += sum(m.nbytes for m in maps if m is not None)
+            parts, old = lit[i][0], self._partials[i] or [None] * len(lit[i][0])
+            self._partials[i] = [p if p is not None else o for p, o in zip(parts, old, strict=True)]
+            received += sum(p.nbytes for p in parts if p is not None)
         if changed and all(p is not None and all(m is not None for m in p) for p in self._partials):
-            self._total = ray.put([np.sum([p[c] for p in self._partials], axis=0, dtype=np.float32)
-                                   for c in range(len(self._partials[0]))])
+            channels = range(len(self._partials[0]))
+            sums = [light_sum([p[c] for p in self._partials]) for c in channels]
+            self._patches = [[light_patch(sums[c], p[c]) for c in channels] for p in self._partials]
             self._version += 1
-        light_ms, light_bytes = (time.perf_counter() - light_start) * 1e3, received
-        totals = []
+        patches = []
         for i in range(n):
-            fresh = self._total is not None and self._sent[i] != self._version
-            totals.append(self._total if fresh else None)
+            fresh = self._version > 0 and self._sent[i] != self._version
+            patches.append(self._patches[i] if fresh else None)
             self._sent[i] = self._version if fresh else self._sent[i]
+        light_ms = (time.perf_counter() - light_start) * 1e3
+        light_bytes = received + sum(_nbytes(p) for p in patches if p is not None)
         strips = n if self.compositing == "direct-send" else 1
-        outs = [a.render.options(num_returns=strips + 1).remote(frame, views, totals[i], strips)
+        outs = [a.render.options(num_returns=strips + 1).remote(frame, views, patches[i], strips)
                 for i, a in enumerate(self.actors)]
         orders = view_orders(self.tree, self.to_local, views)
         t = time.perf_counter()

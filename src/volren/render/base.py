@@ -313,7 +313,7 @@ class LightMapRenderer(Renderer):
         `render`.
         None where nothing reads a light map, or where the pass's inputs are those of the last call (the sum given
         since still holds)."""
-        if not self._reads_light_map(scene):
+        if not self._reads_light_map(scene) or not scene.lights:  # no lights (channels glow): nothing to sum
             return None
         clock = PassClock(self.device)
         self._frame_info, self._views = {}, []
