@@ -319,20 +319,28 @@ def gather_grid(data: wp.array(dtype=float), offset: int, res: wp.vec3i, table: 
 
 
 @wp.func
+def stream_level(vol: VolumeGPU, k: int):
+    """Level ``k`` of a streamed volume as its header in the packed tables holds it (`STREAM_INTS` ints per level,
+    `STREAM_FLOATS` map floats per level): (voxels x, y, z; bricks x, y, z; its page table's first entry; its map's
+    first float in the density array)."""
+    h = vol.stream_header + k * STREAM_INTS
+    return (wp.vec3i(vol.table[h], vol.table[h + 1], vol.table[h + 2]),
+            wp.vec3i(vol.table[h + 3], vol.table[h + 4], vol.table[h + 5]), vol.table[h + 6],
+            vol.stream_map + k * STREAM_FLOATS)
+
+
+@wp.func
 def ancestor_voxel(density: wp.array(dtype=float), vol: VolumeGPU, v: wp.vec3i) -> float:
     """Level-0 voxel ``v`` of a streamed volume whose brick is not resident: a trilinear sample of the finest level
     k >= 1 whose cell there is resident (or known empty), at v's place on that level (index a v + b). The coarsest
     level is always resident, so a sample never falls into a hole (issue 41 item 3)."""
     for k in range(1, vol.stream_levels):
-        h = vol.stream_header + k * STREAM_INTS
-        res = wp.vec3i(vol.table[h], vol.table[h + 1], vol.table[h + 2])
-        bricks = wp.vec3i(vol.table[h + 3], vol.table[h + 4], vol.table[h + 5])
-        m = vol.stream_map + k * STREAM_FLOATS
+        res, bricks, table, m = stream_level(vol, k)
         f = level_index(density, m, res, v)
         cell = grid_cell(res, f)
-        entry = brick_entry(vol.table, vol.table[h + 6], bricks, vol.brick_shift, cell)
+        entry = brick_entry(vol.table, table, bricks, vol.brick_shift, cell)
         if entry != NOT_RESIDENT:
-            corners = gather_grid(density, vol.offset, res, vol.table, vol.table[h + 6], bricks, vol.brick_shift,
+            corners = gather_grid(density, vol.offset, res, vol.table, table, bricks, vol.brick_shift,
                                   vol.constants_offset, cell)
             return interpolate_cell(corners, cell_fraction(f, cell))
     return 0.0
@@ -421,18 +429,15 @@ def streamed_cell(density: wp.array(dtype=float), vol: VolumeGPU, cell: wp.vec3i
             return out
     high = cell + wp.vec3i(1, 1, 1)
     for k in range(1, vol.stream_levels):
-        h = vol.stream_header + k * STREAM_INTS
-        res = wp.vec3i(vol.table[h], vol.table[h + 1], vol.table[h + 2])
-        bricks = wp.vec3i(vol.table[h + 3], vol.table[h + 4], vol.table[h + 5])
-        m = vol.stream_map + k * STREAM_FLOATS
+        res, bricks, table, m = stream_level(vol, k)
         f_lo = level_index(density, m, res, cell)
         f_hi = level_index(density, m, res, high)
         lo = grid_cell(res, f_lo)
         hi = grid_cell(res, f_hi)
         if lo[0] >> shift != hi[0] >> shift or lo[1] >> shift != hi[1] >> shift or lo[2] >> shift != hi[2] >> shift:
             break
-        if brick_entry(vol.table, vol.table[h + 6], bricks, shift, lo) != NOT_RESIDENT:
-            base = gather_grid(density, vol.offset, res, vol.table, vol.table[h + 6], bricks, shift,
+        if brick_entry(vol.table, table, bricks, shift, lo) != NOT_RESIDENT:
+            base = gather_grid(density, vol.offset, res, vol.table, table, bricks, shift,
                                vol.constants_offset, lo)  # the corners whose cell there is the lowest's share it
             if lo[0] == hi[0] and lo[1] == hi[1] and lo[2] == hi[2]:
                 # every corner in that one cell (a coarse level's): `interpolate_cell` of each, its x lerps shared
@@ -455,7 +460,7 @@ def streamed_cell(density: wp.array(dtype=float), vol: VolumeGPU, cell: wp.vec3i
                     c = grid_cell(res, f)
                     got = base
                     if c[0] != lo[0] or c[1] != lo[1] or c[2] != lo[2]:
-                        got = gather_grid(density, vol.offset, res, vol.table, vol.table[h + 6], bricks, shift,
+                        got = gather_grid(density, vol.offset, res, vol.table, table, bricks, shift,
                                           vol.constants_offset, c)
                     out[n] = interpolate_cell(got, cell_fraction(f, c))
             return out
