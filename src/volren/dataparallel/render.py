@@ -115,16 +115,13 @@ def composite_views(images: Sequence[Sequence[np.ndarray]], depths: Sequence[Seq
     for v, order in enumerate(orders):
         rgba = [im[v] for im in images]
         z = [d[v] for d in depths]
-        if mode == "mip":
-            out_images.append(composite_max(rgba))
-            out_depths.append(np.minimum.reduce(z))
-        elif mode == "iso":
+        if mode == "iso":
             image, depth = composite_nearest(rgba, z, order)
             out_images.append(image)
             out_depths.append(depth)
-        else:
-            out_images.append(composite_over(rgba, order))
-            out_depths.append(composite_nearest(rgba, z, order)[1])
+            continue
+        out_images.append(composite_max(rgba) if mode == "mip" else composite_over(rgba, order))
+        out_depths.append(np.minimum.reduce(z))  # the nearest region's (module docstring), whatever the order
     return out_images, out_depths
 
 
